@@ -1,0 +1,30 @@
+"""jaxfric: a differentiable 2D finite-element simulator of sheet-metal tribology devices, in JAX.
+
+Importing jaxfric enables float64 (``jax_enable_x64``): every computation runs in double precision.
+"""
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+from .linalg import BlockTridiag, Bordered, block_tridiag_solve, bordered_solve, dense_solve, linear_solve  # noqa: E402
+from .loading import Affine, DirichletBC, Motion, Phase, Ramp, RigidMotion  # noqa: E402
+from .material import J2Material, MaterialState, von_mises  # noqa: E402
+from .mesh import StripMesh, graded_coordinates, strip_mesh  # noqa: E402
+from .newton import NewtonOptions  # noqa: E402
+from .results import Result, SimulationError  # noqa: E402
+from .run import RunResult, run  # noqa: E402
+from .simulate import (SimState, Simulation, StepControl, StripModel, default_observe,  # noqa: E402
+                       initial_state, simulate, simulate_fixed, solve_step, stresses)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "BlockTridiag", "Bordered", "block_tridiag_solve", "bordered_solve", "dense_solve", "linear_solve",
+    "Affine", "DirichletBC", "Motion", "Phase", "Ramp", "RigidMotion",
+    "J2Material", "MaterialState", "von_mises",
+    "StripMesh", "graded_coordinates", "strip_mesh",
+    "NewtonOptions", "Result", "SimulationError", "RunResult", "run",
+    "SimState", "Simulation", "StepControl", "StripModel", "default_observe", "initial_state",
+    "simulate", "simulate_fixed", "solve_step", "stresses",
+]

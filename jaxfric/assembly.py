@@ -1,0 +1,104 @@
+"""Global assembly of internal forces and of the block-tridiagonal tangent of a strip.
+
+The element loops are ``vmap``s; gathering and scattering use static index arrays computed once per
+mesh size with NumPy. The tangent is scattered directly into the blocks of a
+:class:`~jaxfric.linalg.BlockTridiag` (one block per column of nodes), so no global sparse or dense
+matrix is ever formed.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .element import ElementGeometry, element_force, element_force_and_tangent, element_geometry
+from .linalg import BlockTridiag
+from .mesh import StripMesh
+
+__all__ = ["Assembled", "mesh_geometry", "internal_force", "internal_force_and_tangent",
+           "tangent_scatter_index"]
+
+
+class Assembled(NamedTuple):
+    """Result of one assembly at a displacement field.
+
+    Attributes:
+        f_int: (n_nodes, 2) internal nodal forces (N/mm).
+        tangent: d f_int / d u as a BlockTridiag over the flattened dofs (node-major), or None.
+        states: trial material states at every Gauss point (leading axes (n_el, 4)).
+        tau: (n_el, 4, 3, 3) Kirchhoff stress (MPa).
+        det_min: () smallest det F over all Gauss points and centroids (<= 0: inverted element).
+    """
+
+    f_int: jax.Array
+    tangent: BlockTridiag | None
+    states: object
+    tau: jax.Array
+    det_min: jax.Array
+
+
+def mesh_geometry(mesh: StripMesh) -> ElementGeometry:
+    """Reference shape-function gradients and weights of every element of ``mesh``."""
+    return element_geometry(mesh.nodes[mesh.elements])
+
+
+@functools.lru_cache(maxsize=None)
+def tangent_scatter_index(nx: int, ny: int) -> np.ndarray:
+    """(n_el*64,) positions of the entries of every (8, 8) element tangent in the flat storage
+    ``concat(diag.ravel(), lower.ravel(), upper.ravel())`` of a BlockTridiag with nx+1 blocks."""
+    m = 2 * (ny + 1)
+    nb = nx + 1
+    i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    i, j = i.ravel(), j.ravel()
+    # Block column and in-block dof of each of the 8 element dofs (node-major, x then y).
+    col = i[:, None] + np.repeat([0, 1, 1, 0], 2)[None, :]
+    row = 2 * (j[:, None] + np.repeat([0, 0, 1, 1], 2)[None, :]) + np.tile([0, 1], 4)[None, :]
+    bi, bj = col[:, :, None], col[:, None, :]
+    ri, rj = row[:, :, None], row[:, None, :]
+    in_block = ri * m + rj
+    off_lower = nb * m * m
+    off_upper = off_lower + (nb - 1) * m * m
+    index = np.where(
+        bi == bj, bi * m * m + in_block,
+        np.where(bi > bj, off_lower + bj * m * m + in_block, off_upper + bi * m * m + in_block))
+    return index.reshape(-1).astype(np.int64)
+
+
+def _scatter_tangent(K_el: jax.Array, nx: int, ny: int) -> BlockTridiag:
+    m, nb = 2 * (ny + 1), nx + 1
+    size = (3 * nb - 2) * m * m
+    flat = jnp.zeros(size, K_el.dtype).at[tangent_scatter_index(nx, ny)].add(K_el.reshape(-1))
+    diag = flat[: nb * m * m].reshape(nb, m, m)
+    lower = flat[nb * m * m: (2 * nb - 1) * m * m].reshape(nb - 1, m, m)
+    upper = flat[(2 * nb - 1) * m * m:].reshape(nb - 1, m, m)
+    return BlockTridiag(lower=lower, diag=diag, upper=upper)
+
+
+def _element_map(fn, material, formulation, geo, u_el, states):
+    one = functools.partial(fn, material, formulation)
+    return jax.vmap(one)(geo.dN_dX, geo.dN_dX_center, geo.weight, u_el, states)
+
+
+def internal_force(mesh: StripMesh, material, formulation: str, geo: ElementGeometry,
+                   u: jax.Array, states) -> Assembled:
+    """Internal forces at displacement ``u`` (n_nodes, 2) from the converged ``states`` of the last step."""
+    elements = mesh.elements
+    f_el, (new_states, tau, det_min) = _element_map(
+        element_force, material, formulation, geo, u[elements], states)
+    f_int = jnp.zeros_like(u).at[elements].add(f_el)
+    return Assembled(f_int, None, new_states, tau, jnp.min(det_min))
+
+
+def internal_force_and_tangent(mesh: StripMesh, material, formulation: str, geo: ElementGeometry,
+                               u: jax.Array, states) -> Assembled:
+    """As :func:`internal_force`, plus the consistent tangent d f_int / d u (block-tridiagonal)."""
+    elements = mesh.elements
+    f_el, K_el, (new_states, tau, det_min) = _element_map(
+        element_force_and_tangent, material, formulation, geo, u[elements], states)
+    f_int = jnp.zeros_like(u).at[elements].add(f_el.reshape(-1, 4, 2))
+    K = _scatter_tangent(K_el, mesh.nx, mesh.ny)
+    return Assembled(f_int, K, new_states, tau, jnp.min(det_min))

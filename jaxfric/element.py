@@ -1,0 +1,163 @@
+"""Q4 plane-strain element with the F-bar treatment of volumetric locking.
+
+Formulation (de Souza Neto, Peric, Dutko, Owen, Int. J. Solids Struct. 33, 1996; de Souza Neto et al.,
+*Computational Methods for Plasticity*, 2008, sec. 15.2). At each of the 2x2 Gauss points the in-plane
+deformation gradient is replaced by
+
+    F_bar = (J_0 / J)^(1/2) F,        F_bar_zz = 1,
+
+with J = det F at the point and J_0 = det F at the element centroid. The volume change is therefore
+constant over the element (one volumetric constraint per element, as in a Q1/P0 mixed element), which
+removes the locking of full-integration Q4 under isochoric plastic flow, while the deviatoric
+deformation keeps its full 2x2 integration (no hourglass modes). F-bar is chosen over a mixed Q1/P0
+element because it keeps the displacement-only data structure (same unknowns, same block-tridiagonal
+stiffness) and works with any material law written as ``update(F, state)``.
+
+Internal force: the virtual work ``sum_gp w_gp P_bar : dF_bar/du`` with P_bar = tau F_bar^-T, obtained
+by pulling P_bar back through the map u -> F_bar with a JAX VJP. The element tangent is the forward-mode
+Jacobian of that force, which makes it consistent with the return mapping by construction.
+
+``formulation="q4"`` (plain displacement Q4, F_bar = F) is kept for the elastic verification checks.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .tensor import det2, inv2
+
+__all__ = ["FORMULATIONS", "ElementGeometry", "element_geometry", "deformation_gradients",
+           "element_force", "element_force_and_tangent"]
+
+FORMULATIONS = ("fbar", "q4")
+
+_G = 1.0 / np.sqrt(3.0)
+# Corner coordinates of the parent square, counter-clockwise from (-1, -1).
+_XI = np.array([-1.0, 1.0, 1.0, -1.0])
+_ETA = np.array([-1.0, -1.0, 1.0, 1.0])
+GAUSS_POINTS = np.array([[-_G, -_G], [_G, -_G], [_G, _G], [-_G, _G]])
+GAUSS_WEIGHTS = np.ones(4)
+
+
+def _parent_gradients(xi: float, eta: float) -> np.ndarray:
+    """dN_a/d(xi, eta) of the 4 bilinear shape functions at one parent point: (4, 2)."""
+    return 0.25 * np.stack([_XI * (1.0 + _ETA * eta), _ETA * (1.0 + _XI * xi)], axis=1)
+
+
+_DN_GAUSS = np.stack([_parent_gradients(*p) for p in GAUSS_POINTS])  # (4 gp, 4 nodes, 2)
+_DN_CENTER = _parent_gradients(0.0, 0.0)  # (4, 2)
+
+
+class ElementGeometry(eqx.Module):
+    """Reference-configuration data of every element, computed once per simulation.
+
+    Attributes:
+        dN_dX: (n_el, 4 gp, 4 nodes, 2) shape-function gradients at the Gauss points (1/mm).
+        dN_dX_center: (n_el, 4 nodes, 2) shape-function gradients at the centroid (1/mm).
+        weight: (n_el, 4 gp) Gauss weight times det(dX/dxi): reference area per point (mm^2,
+            per unit out-of-plane width).
+    """
+
+    dN_dX: jax.Array
+    dN_dX_center: jax.Array
+    weight: jax.Array
+
+
+def element_geometry(X_el: jax.Array) -> ElementGeometry:
+    """Element geometry from the reference corner coordinates ``X_el`` (n_el, 4, 2), in mm."""
+
+    def gradients(dN_dxi, X):
+        jac = X.T @ dN_dxi  # dX/dxi, (2, 2)
+        return dN_dxi @ inv2(jac), det2(jac)
+
+    def one(X):
+        dN, det = jax.vmap(gradients, (0, None))(jnp.asarray(_DN_GAUSS), X)
+        dN0, _ = gradients(jnp.asarray(_DN_CENTER), X)
+        return dN, dN0, det * GAUSS_WEIGHTS
+
+    dN, dN0, w = jax.vmap(one)(X_el)
+    return ElementGeometry(dN_dX=dN, dN_dX_center=dN0, weight=w)
+
+
+def deformation_gradients(dN_dX, dN_dX_center, u_e, formulation: str):
+    """In-plane deformation gradients at the 4 Gauss points, (4, 2, 2), and det F there and at the centroid.
+
+    F = I + sum_a u_a (x) dN_a/dX. With ``formulation="fbar"`` the returned gradients are
+    F_bar = (J_0/J)^(1/2) F. Also returns the smallest of det F at the Gauss points and the centroid,
+    which is <= 0 for an inverted element.
+    """
+    eye = jnp.eye(2)
+    F = eye + jnp.einsum("ai,gaj->gij", u_e, dN_dX)
+    J = det2(F)
+    J0 = det2(eye + u_e.T @ dN_dX_center)
+    det_min = jnp.minimum(jnp.min(J), J0)
+    if formulation == "q4":
+        return F, det_min
+    # Guard the ratio so an inverted element gives a finite (flagged) value, not NaN.
+    ratio = jnp.where((J > 0) & (J0 > 0), J0 / jnp.where(J > 0, J, 1.0), 1.0)
+    return jnp.sqrt(ratio)[:, None, None] * F, det_min
+
+
+def element_force(material, formulation, dN_dX, dN_dX_center, weight, u_e, states):
+    """Internal force of one element and its updated material states.
+
+    Args:
+        material: the material law, ``material.update(F (2,2), state) -> (tau (3,3), state)``.
+        formulation: "fbar" or "q4" (static).
+        dN_dX, dN_dX_center, weight: this element's rows of :class:`ElementGeometry`.
+        u_e: (4, 2) nodal displacements (mm).
+        states: material states at the 4 Gauss points (batched pytree, leading axis 4).
+
+    Returns:
+        f_e: (4, 2) nodal internal forces (N/mm).
+        aux: (new_states, tau (4, 3, 3), det_min).
+    """
+
+    def kinematics(u):
+        return deformation_gradients(dN_dX, dN_dX_center, u, formulation)
+
+    Fb, pull_back, det_min = jax.vjp(kinematics, u_e, has_aux=True)
+    tau, new_states = jax.vmap(material.update)(Fb, states)
+    # Plane strain: tau and F_bar are block-diagonal, so the in-plane block of P_bar = tau F_bar^-T
+    # is tau_2D F_bar_2D^-T; the zz entry does no virtual work (dF_bar_zz = 0).
+    P = jnp.einsum("gik,gjk->gij", tau[:, :2, :2], inv2(Fb))
+    (f_e,) = pull_back(weight[:, None, None] * P)
+    return f_e, (new_states, tau, det_min)
+
+
+def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight, u_e, states):
+    """As :func:`element_force`, plus the (8, 8) element tangent d f_e / d u_e (dofs node-major).
+
+    The tangent is the exact derivative of f_e = sum_g w_g (dF_g/du)^T P_g, assembled by the chain rule
+    from three automatic derivatives, so that the material is pushed forward along 4 directions (the
+    components of F_bar) instead of 8 (the element dofs):
+
+        K_e = sum_g w_g [ (dF_g/du)^T (dP_g/dF_g) (dF_g/du) + P_g : d2F_g/du2 ]
+
+    dP/dF by ``jacfwd`` of the point law (consistent with the return mapping), dF/du by ``jacfwd`` of
+    the kinematics, and the F-bar geometric term as the Hessian of u -> sum_g w_g P_g : F_g(u) with P
+    held fixed (zero for plain Q4, whose F is linear in u).
+    """
+
+    def kinematics(u_flat):
+        return deformation_gradients(dN_dX, dN_dX_center, u_flat.reshape(4, 2), formulation)[0]
+
+    u = u_e.ravel()
+    Fb, det_min = deformation_gradients(dN_dX, dN_dX_center, u_e, formulation)
+    dF_du = jax.jacfwd(kinematics)(u)  # (4 gp, 2, 2, 8)
+
+    def piola(F, state):
+        tau, new_state = material.update(F, state)
+        P = tau[:2, :2] @ inv2(F).T
+        return P, (P, tau, new_state)
+
+    dP_dF, (P, tau, new_states) = jax.vmap(jax.jacfwd(piola, has_aux=True))(Fb, states)
+    wP = weight[:, None, None] * P
+    f_e = jnp.einsum("gij,gija->a", wP, dF_du)
+    K_e = jnp.einsum("g,gija,gijkl,gklb->ab", weight, dF_du, dP_dF, dF_du)
+    if formulation == "fbar":
+        K_e = K_e + jax.hessian(lambda v: jnp.sum(jax.lax.stop_gradient(wP) * kinematics(v)))(u)
+    return f_e.reshape(4, 2), K_e, (new_states, tau, det_min)

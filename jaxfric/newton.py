@@ -1,0 +1,150 @@
+"""Newton-Raphson for one load step, differentiated by the implicit function theorem.
+
+The problem is given as two pure functions of the unknowns x and of a pytree ``args`` of data
+(parameters, converged history, prescribed values):
+
+    linearize(x, args) -> Linearization(residual R, jacobian dR/dx, scale, valid, aux)
+    residual(x, args)  -> (R, aux)
+
+``newton_solve`` iterates x <- x - J^-1 R inside a ``lax.while_loop`` until
+
+    ||R||_inf <= atol + rtol * max(scale, 1e-6)       (scale: ||f_int||_inf, N/mm)
+    ||dx_last||_inf <= du_atol + du_rtol * ||x - x_ref||_inf   (x_ref: the last converged state)
+
+after at least one iteration (so prescribed increments are always applied). It never raises: it
+returns a :class:`~jaxfric.results.Result` code.
+
+Derivatives. At a converged solution R(x*, args) = 0, so dx*/dargs = -J^-1 dR/dargs. The JVP rule
+computes exactly that: one JVP of the residual with respect to ``args`` and one linear solve with the
+converged Jacobian through :func:`jaxfric.linalg.linear_solve` (a ``lax.custom_linear_solve``, so reverse
+mode transposes it with the transposed structured solve). The Newton iterations themselves are never
+differentiated. The by-products ``aux`` (stresses, updated history, internal forces) get their tangents
+by a JVP of ``residual`` at (x*, args) along (dx*, dargs).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+
+from .linalg import linear_solve
+from .results import Result
+
+__all__ = ["NewtonOptions", "Linearization", "NewtonSolution", "newton_solve"]
+
+
+class NewtonOptions(eqx.Module):
+    """Newton tolerances (static: changing them recompiles).
+
+    Attributes:
+        rtol, atol: residual test ||R||_inf <= atol + rtol max(scale, 1e-6) (N/mm).
+        du_rtol, du_atol: increment test on the last correction, relative to the step's total
+            increment ||x - x0||_inf, and absolute (mm).
+        max_iterations: linear solves allowed per attempt.
+    """
+
+    rtol: float = eqx.field(static=True, default=1e-8)
+    atol: float = eqx.field(static=True, default=1e-10)
+    du_rtol: float = eqx.field(static=True, default=1e-3)
+    du_atol: float = eqx.field(static=True, default=1e-9)
+    max_iterations: int = eqx.field(static=True, default=25)
+
+    def __check_init__(self):
+        for name in ("rtol", "atol", "du_rtol", "du_atol"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"NewtonOptions field '{name}' must be >= 0")
+        if self.max_iterations < 1:
+            raise ValueError("NewtonOptions field 'max_iterations' must be >= 1")
+
+
+class Linearization(NamedTuple):
+    residual: jax.Array      # (N,)
+    jacobian: Any            # BlockTridiag or Bordered, dR/dx
+    scale: jax.Array         # () force scale of the relative residual test
+    valid: jax.Array         # () bool: False for an inadmissible configuration (inverted element)
+    aux: Any                 # by-products at x
+
+
+class NewtonSolution(NamedTuple):
+    x: jax.Array
+    aux: Any
+    iterations: jax.Array      # () int: linear solves performed
+    code: jax.Array            # () int: Result
+    residual_norm: jax.Array   # () ||R||_inf at x
+    residual_history: jax.Array  # (max_iterations+1,) ||R||_inf after each iteration (nan beyond)
+
+
+def _all_finite(tree) -> jax.Array:
+    leaves = [jnp.all(jnp.isfinite(leaf)) for leaf in jtu.tree_leaves(tree) if eqx.is_inexact_array(leaf)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
+
+
+def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions):
+    """The Newton loop; returns the solution and the Jacobian at it (for the JVP rule)."""
+
+    def classify(k, x, lin, dx_norm):
+        r_norm = jnp.max(jnp.abs(lin.residual))
+        finite = _all_finite((lin.residual, lin.jacobian))
+        res_ok = r_norm <= options.atol + options.rtol * jnp.maximum(lin.scale, 1e-6)
+        dx_ok = dx_norm <= options.du_atol + options.du_rtol * jnp.max(jnp.abs(x - x_ref))
+        code = jnp.select(
+            [~finite, ~lin.valid, (k >= 1) & res_ok & dx_ok, k >= options.max_iterations],
+            [Result.NONFINITE, Result.INVERTED_ELEMENT, Result.SUCCESS, Result.MAX_ITERATIONS],
+            Result.CONTINUE)
+        return code.astype(jnp.int32), r_norm
+
+    def cond(carry):
+        return carry[4] == Result.CONTINUE
+
+    def body(carry):
+        k, x, lin, _, _, r_hist = carry
+        dx = linear_solve(lin.jacobian, -lin.residual)
+        x = x + dx
+        lin = linearize(x, args)
+        dx_norm = jnp.max(jnp.abs(dx))
+        code, r_norm = classify(k + 1, x, lin, dx_norm)
+        return k + 1, x, lin, dx_norm, code, r_hist.at[k + 1].set(r_norm)
+
+    lin0 = linearize(x0, args)
+    code0, r0 = classify(0, x0, lin0, jnp.array(jnp.inf))
+    r_hist = jnp.full(options.max_iterations + 1, jnp.nan).at[0].set(r0)
+    k, x, lin, _, code, r_hist = jax.lax.while_loop(
+        cond, body, (jnp.array(0, jnp.int32), x0, lin0, jnp.array(jnp.inf), code0, r_hist))
+    return NewtonSolution(x, lin.aux, k, code, r_hist[k], r_hist), lin.jacobian
+
+
+@eqx.filter_custom_jvp
+def newton_solve(args, x0, x_ref, *, linearize: Callable, residual: Callable,
+                 options: NewtonOptions) -> NewtonSolution:
+    """Solve R(x, args) = 0 by Newton from the initial guess ``x0``; differentiable in ``args``.
+
+    ``x_ref`` (the last converged state) is the reference of the increment test. Neither ``x0`` nor
+    ``x_ref`` changes the solution, so neither carries a derivative. ``linearize`` and ``residual``
+    must be pure, module-level functions of (x, args): all data they use travels in ``args`` so that
+    derivatives reach it.
+    """
+    return _newton(args, x0, x_ref, linearize, options)[0]
+
+
+@newton_solve.def_jvp
+def _newton_solve_jvp(primals, tangents, *, linearize, residual, options):
+    args, x0, x_ref = primals
+    args_dot = tangents[0]  # the initial guess and the reference do not change the solution
+    solution, jacobian = _newton(args, x0, x_ref, linearize, options)
+    diff, static = eqx.partition(args, eqx.is_inexact_array)
+    diff_dot = jtu.tree_map(
+        lambda a, t: None if a is None else (jnp.zeros_like(a) if t is None else t),
+        diff, args_dot, is_leaf=lambda v: v is None)
+
+    def res(x, d):
+        return residual(x, eqx.combine(d, static))
+
+    # Implicit function theorem: J dx* = -(dR/dargs) dargs.
+    _, r_dot = jax.jvp(lambda d: res(solution.x, d)[0], (diff,), (diff_dot,))
+    x_dot = -linear_solve(jacobian, r_dot)
+    _, aux_dot = jax.jvp(lambda x, d: res(x, d)[1], (solution.x, diff), (x_dot, diff_dot))
+    return solution, NewtonSolution(x_dot, aux_dot, None, None, None, None)

@@ -1,0 +1,49 @@
+"""Result codes: failures are values inside ``jit`` and become exceptions at the public entry point."""
+
+from __future__ import annotations
+
+import enum
+
+__all__ = ["Result", "SimulationError", "describe"]
+
+
+class Result(enum.IntEnum):
+    CONTINUE = -1          # internal: Newton loop still iterating
+    SUCCESS = 0
+    MAX_ITERATIONS = 1     # Newton did not converge in max_iterations
+    NONFINITE = 2          # a NaN or Inf appeared in the residual or the tangent
+    INVERTED_ELEMENT = 3   # det F <= 0 at a Gauss point or an element centroid
+    MAX_STEPS = 4          # the history buffer is full before the end of the load path
+    DIVERGED = 5           # the residual grew by orders of magnitude
+
+
+_ADVICE = {
+    Result.SUCCESS: "converged",
+    Result.MAX_ITERATIONS: "Newton did not converge within the iteration limit; reduce the nominal "
+                           "step (more n_steps) or raise NewtonOptions.max_iterations",
+    Result.NONFINITE: "a non-finite value (NaN/Inf) appeared in the residual or the tangent; reduce the "
+                      "nominal step and check the material and load parameters",
+    Result.INVERTED_ELEMENT: "an element inverted (det F <= 0); reduce the nominal step or refine the mesh "
+                             "where the deformation concentrates",
+    Result.MAX_STEPS: "the history buffer is full before the end of the load path; raise "
+                      "StepControl.max_steps",
+    Result.DIVERGED: "the Newton residual diverged; reduce the nominal step",
+}
+
+
+def describe(code: int) -> str:
+    return _ADVICE.get(Result(int(code)), f"unknown result code {int(code)}")
+
+
+class SimulationError(RuntimeError):
+    """A simulation stopped before the end of its load path.
+
+    Attributes:
+        code: the :class:`Result` of the last attempt.
+        result: the partial result: everything converged up to the failure.
+    """
+
+    def __init__(self, message: str, code: Result, result=None):
+        super().__init__(message)
+        self.code = code
+        self.result = result

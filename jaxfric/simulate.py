@@ -1,0 +1,399 @@
+"""The strip model and its load path, run entirely inside JAX.
+
+A :class:`StripModel` is fixed data (mesh, material, phases). The evolving state (displacements,
+plastic history, internal forces, pseudo-time, phase) is a :class:`SimState`, threaded through the
+load steps explicitly. Two drivers share one step routine:
+
+- :func:`simulate` (adaptive): a ``lax.while_loop`` over attempts with the step controller of the
+  benchmark spec (section 1.9): halve the increment after a failed attempt, at most ``max_cuts`` times
+  below the nominal one; grow it by ``growth`` after two consecutive easy steps; clip it to phase ends
+  and schedule breakpoints. Differentiable in forward mode (``jax.jvp``).
+- :func:`simulate_fixed`: a ``lax.scan`` over the nominal steps without cutting: a fixed-length loop,
+  so reverse mode (``jax.grad``/``jax.vjp``) works too.
+
+Each step is a Newton solve (:func:`jaxfric.newton.newton_solve`) differentiated by the implicit
+function theorem, and the converged plastic history is carried to the next step, so derivatives follow
+the loading path. Failures are result codes; :func:`jaxfric.run.run` turns them into exceptions.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .assembly import internal_force, internal_force_and_tangent, mesh_geometry
+from .element import FORMULATIONS, ElementGeometry
+from .linalg import BlockTridiag
+from .loading import Phase, constraint_masks, prescribed_values, schedule
+from .material import J2Material
+from .mesh import StripMesh
+from .newton import Linearization, NewtonOptions, newton_solve
+from .progress import report
+from .results import Result
+
+__all__ = ["StripModel", "SimState", "StepControl", "History", "Simulation", "initial_state",
+           "default_observe", "stresses", "solve_step", "simulate", "simulate_fixed"]
+
+
+class StripModel(eqx.Module):
+    """A strip of elasto-plastic material under a sequence of phases of prescribed displacements.
+
+    Attributes:
+        mesh: the strip mesh.
+        material: the material law (one quadrature point).
+        phases: the load path, one :class:`~jaxfric.loading.Phase` per phase.
+        formulation: "fbar" (default) or "q4" (plain Q4, for elastic checks only); static.
+    """
+
+    mesh: StripMesh
+    material: J2Material
+    phases: tuple
+    formulation: str = eqx.field(static=True, default="fbar")
+
+    def __check_init__(self):
+        if self.formulation not in FORMULATIONS:
+            raise ValueError(f"field 'formulation' must be one of {FORMULATIONS}, got {self.formulation!r}")
+        if len(self.phases) == 0 or not all(isinstance(p, Phase) for p in self.phases):
+            raise ValueError("field 'phases' must be a non-empty tuple of Phase")
+        names = [p.name for p in self.phases]
+        if len(set(names)) != len(names):
+            raise ValueError(f"field 'phases' has repeated phase names: {names}")
+        constraint_masks(self.mesh.n_nodes, self.phases)  # validates node indices
+
+    @property
+    def n_phases(self) -> int:
+        return len(self.phases)
+
+
+class SimState(eqx.Module):
+    """State after a converged step.
+
+    Attributes:
+        u: (n_nodes, 2) displacements (mm).
+        material: material states at every Gauss point (leading axes (n_el, 4)).
+        f_int: (n_nodes, 2) internal forces (N/mm); at prescribed dofs these are the reactions.
+        time: () pseudo-time.
+        phase: () int32 index of the phase of the last step.
+    """
+
+    u: jax.Array
+    material: object
+    f_int: jax.Array
+    time: jax.Array
+    phase: jax.Array
+
+
+class StepControl(eqx.Module):
+    """Step controller settings (static).
+
+    Attributes:
+        max_cuts: an attempt below nominal / 2**max_cuts stops the run.
+        growth: increment growth factor after ``easy_steps`` consecutive easy steps.
+        easy_iterations: a step is easy when it needed at most this many Newton iterations.
+        max_steps: size of the history buffer (accepted steps); default 4x the nominal count + 50.
+    """
+
+    max_cuts: int = eqx.field(static=True, default=10)
+    growth: float = eqx.field(static=True, default=1.5)
+    easy_iterations: int = eqx.field(static=True, default=6)
+    easy_steps: int = eqx.field(static=True, default=2)
+    max_steps: int | None = eqx.field(static=True, default=None)
+
+
+class History(eqx.Module):
+    """Per-step records in preallocated buffers; rows 0..n_rows-1 are filled (row 0: initial state).
+
+    Attributes:
+        time, phase, newton_iters, cutbacks: (S,) per row.
+        observed: pytree of per-row observations, leading axis S.
+        n_rows: () number of filled rows.
+    """
+
+    time: jax.Array
+    phase: jax.Array
+    newton_iters: jax.Array
+    cutbacks: jax.Array
+    observed: object
+    n_rows: jax.Array
+
+
+class Simulation(eqx.Module):
+    """Outcome of a simulation: its history, final converged state and result code.
+
+    ``failed_time`` is the pseudo-time the last failed attempt was aiming at (nan if none failed).
+    """
+
+    history: History
+    final: SimState
+    code: jax.Array
+    failed_time: jax.Array
+    residual_norm: jax.Array
+
+
+def initial_state(model: StripModel) -> SimState:
+    n_el = model.mesh.n_elements
+    one = model.material.init_state()
+    states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n_el, 4) + a.shape), one)
+    zeros = jnp.zeros((model.mesh.n_nodes, 2))
+    return SimState(u=zeros, material=states, f_int=zeros, time=jnp.array(0.0),
+                    phase=jnp.array(0, jnp.int32))
+
+
+def default_observe(model: StripModel, state: SimState) -> dict:
+    """Reactions (sums of internal forces) on the left and right ends, and the largest eqps."""
+    return {
+        "reaction_left": jnp.sum(state.f_int[model.mesh.left], axis=0),
+        "reaction_right": jnp.sum(state.f_int[model.mesh.right], axis=0),
+        "max_eqps": jnp.max(state.material.eqps),
+    }
+
+
+def stresses(model: StripModel, state: SimState) -> jax.Array:
+    """Kirchhoff stress (n_el, 4, 3, 3) (MPa) at every Gauss point of a converged state.
+
+    Re-evaluating the update at the converged deformation from the converged history is exact: the
+    trial state then lies on (or inside) the yield surface, so the return map is the identity.
+    """
+    return internal_force(model.mesh, model.material, model.formulation, mesh_geometry(model.mesh),
+                          state.u, state.material).tau
+
+
+# ---- one step -------------------------------------------------------------------------------------
+
+class _StepArgs(eqx.Module):
+    """Everything the residual of one step depends on (the differentiable data travels here)."""
+
+    mesh: StripMesh
+    material: J2Material
+    geo: ElementGeometry
+    states: object
+    mask: jax.Array
+    values: jax.Array
+    formulation: str = eqx.field(static=True)
+
+
+def _constrain_rows(K: BlockTridiag, mask: jax.Array) -> BlockTridiag:
+    """Replace the rows of prescribed dofs by identity rows (keeps the block structure)."""
+    nb, m = K.diag.shape[0], K.diag.shape[1]
+    fixed = mask.reshape(nb, m)
+    keep = jnp.where(fixed, 0.0, 1.0)
+    diag = K.diag * keep[:, :, None] + jax.vmap(jnp.diag)(1.0 - keep)
+    return BlockTridiag(lower=K.lower * keep[1:, :, None], diag=diag, upper=K.upper * keep[:-1, :, None])
+
+
+def _residual(x, args: _StepArgs):
+    a = internal_force(args.mesh, args.material, args.formulation, args.geo, x.reshape(-1, 2), args.states)
+    R = jnp.where(args.mask, x - args.values, a.f_int.reshape(-1))
+    return R, (a.f_int, a.states)
+
+
+def _linearize(x, args: _StepArgs) -> Linearization:
+    a = internal_force_and_tangent(args.mesh, args.material, args.formulation, args.geo,
+                                   x.reshape(-1, 2), args.states)
+    # Prescribed dofs: R = x - values, so their Jacobian rows are identity rows.
+    R = jnp.where(args.mask, x - args.values, a.f_int.reshape(-1))
+    J = _constrain_rows(a.tangent, args.mask)
+    return Linearization(R, J, jnp.max(jnp.abs(a.f_int)), a.det_min > 0.0, (a.f_int, a.states))
+
+
+class _Context(eqx.Module):
+    """Loop-invariant data of a run, computed once before the loop."""
+
+    model: StripModel
+    geo: ElementGeometry
+    masks: jax.Array
+
+    @classmethod
+    def build(cls, model: StripModel) -> "_Context":
+        masks = jnp.asarray(constraint_masks(model.mesh.n_nodes, model.phases))
+        return cls(model, mesh_geometry(model.mesh), masks)
+
+
+def solve_step(model: StripModel, state: SimState, phase, t_target,
+               newton: NewtonOptions = NewtonOptions(), ctx: "_Context | None" = None, guess=None):
+    """Solve one load step from the converged ``state`` to pseudo-time ``t_target`` in phase ``phase``.
+
+    ``guess`` (n_nodes, 2) is Newton's initial displacement (default: ``state.u``).
+
+    Returns the :class:`~jaxfric.newton.NewtonSolution` (iterations, code, residual history) and the
+    new :class:`SimState` (meaningful only when ``solution.code == Result.SUCCESS``).
+    """
+    ctx = _Context.build(model) if ctx is None else ctx
+    phase = jnp.asarray(phase, jnp.int32)
+    t_target = jnp.asarray(t_target, jnp.float64)
+    tau = t_target - phase.astype(t_target.dtype)
+    values = prescribed_values(model.mesh.nodes, model.phases, phase, tau)
+    args = _StepArgs(model.mesh, model.material, ctx.geo, state.material, ctx.masks[phase], values,
+                     model.formulation)
+    x_ref = state.u.reshape(-1)
+    x0 = x_ref if guess is None else guess.reshape(-1)
+    sol = newton_solve(args, x0, x_ref, linearize=_linearize, residual=_residual, options=newton)
+    f_int, states = sol.aux
+    new_state = SimState(u=sol.x.reshape(-1, 2), material=states, f_int=f_int, time=t_target,
+                         phase=phase)
+    return sol, new_state
+
+
+def _select(pred, on_true, on_false):
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
+
+
+def _empty_history(n: int, row0: dict) -> History:
+    def buffer(a):
+        a = jnp.asarray(a)
+        return jnp.zeros((n,) + a.shape, a.dtype).at[0].set(a)
+
+    return History(time=jnp.zeros(n), phase=jnp.zeros(n, jnp.int32),
+                   newton_iters=jnp.zeros(n, jnp.int32), cutbacks=jnp.zeros(n, jnp.int32),
+                   observed=jax.tree_util.tree_map(buffer, row0), n_rows=jnp.array(1, jnp.int32))
+
+
+def _record(h: History, row, pred, state: SimState, iters, cuts, observed) -> History:
+    """Write row ``row`` when ``pred``; leave the buffers unchanged otherwise."""
+    def put(buf, value):
+        return buf.at[row].set(jnp.where(pred, value, buf[row]))
+
+    return History(time=put(h.time, state.time), phase=put(h.phase, state.phase),
+                   newton_iters=put(h.newton_iters, iters), cutbacks=put(h.cutbacks, cuts),
+                   observed=jax.tree_util.tree_map(put, h.observed, observed),
+                   n_rows=jnp.where(pred, row + 1, h.n_rows))
+
+
+# ---- drivers --------------------------------------------------------------------------------------
+
+class _Predictor(eqx.Module):
+    """Secant predictor: the last accepted increment, scaled to the next step (zero after a phase
+    change, where the loading direction may reverse). It only moves Newton's starting point."""
+
+    du: jax.Array   # (n_nodes, 2) displacement increment of the last accepted step
+    dt: jax.Array   # () its pseudo-time increment (0: no prediction)
+
+    def guess(self, state: SimState, dt_next, phase_next):
+        use = (self.dt > 0) & (phase_next == state.phase)
+        scale = jnp.where(use, dt_next / jnp.where(use, self.dt, 1.0), 0.0)
+        return state.u + scale * self.du
+
+    def after(self, ok, old: SimState, new: SimState) -> "_Predictor":
+        return _Predictor(du=jnp.where(ok, new.u - old.u, self.du),
+                          dt=jnp.where(ok, new.time - old.time, self.dt))
+
+
+class _Loop(eqx.Module):
+    """Carry of the adaptive load loop."""
+
+    state: SimState
+    predictor: _Predictor
+    dt: jax.Array          # current increment (pseudo-time)
+    seg: jax.Array         # current schedule segment
+    n_easy: jax.Array      # consecutive easy steps
+    cuts: jax.Array        # failed attempts since the last accepted step
+    iters: jax.Array       # Newton iterations since the last accepted step
+    history: History
+    code: jax.Array
+    failed_t: jax.Array    # target time of the last failed attempt
+    r_norm: jax.Array      # residual norm of the last attempt
+
+
+def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
+             control: StepControl = StepControl(), observe: Callable = default_observe,
+             progress: bool = False) -> Simulation:
+    """Run the whole load path with adaptive steps, inside one ``lax.while_loop``.
+
+    Pure and jit-able (wrap with ``eqx.filter_jit``; :func:`jaxfric.run.run` does); ``observe(model,
+    state) -> pytree`` is recorded at every accepted step and must be a static (hashable) function.
+    With ``progress`` a host callback reports every accepted step (see :mod:`jaxfric.progress`).
+    """
+    sched = schedule(model.phases)
+    n_seg = len(sched.seg_end)
+    seg_end = jnp.asarray(sched.seg_end)
+    seg_dt = jnp.asarray(sched.seg_dt)
+    seg_phase = jnp.asarray(sched.seg_phase, jnp.int32)
+    n_buf = control.max_steps or 4 * sched.n_nominal_steps + 50
+    ctx = _Context.build(model)
+    state0 = initial_state(model)
+    int0 = jnp.array(0, jnp.int32)
+
+    def body(c: _Loop) -> _Loop:
+        t_start, dt_nom, end = c.state.time, seg_dt[c.seg], seg_end[c.seg]
+        # Snap to the segment end when within round-off of it (steps end exactly on breakpoints).
+        t_try = jnp.where(t_start + c.dt >= end - 1e-9 * dt_nom, end, t_start + c.dt)
+        sol, new_state = solve_step(model, c.state, seg_phase[c.seg], t_try, newton, ctx,
+                                    guess=c.predictor.guess(c.state, t_try - t_start, seg_phase[c.seg]))
+        ok = sol.code == Result.SUCCESS
+        iters = c.iters + sol.iterations
+        row = c.history.n_rows
+        history = _record(c.history, row, ok, new_state, iters, c.cuts, observe(model, new_state))
+
+        seg_done = ok & (t_try == end)
+        next_seg = jnp.minimum(c.seg + seg_done.astype(jnp.int32), n_seg - 1)
+        n_easy = jnp.where(ok & (sol.iterations <= control.easy_iterations), c.n_easy + 1, 0)
+        grow = n_easy >= control.easy_steps
+        dt_ok = jnp.where(seg_done, seg_dt[next_seg],
+                          jnp.where(grow, jnp.minimum(control.growth * c.dt, dt_nom), c.dt))
+        dt_cut = 0.5 * (t_try - t_start)
+        too_small = ~ok & (dt_cut < dt_nom / 2.0**control.max_cuts * (1.0 - 1e-9))
+        finished = seg_done & (c.seg == n_seg - 1)
+        full = ok & ~finished & (row + 1 >= n_buf + 1)
+        code = jnp.select([too_small, finished, full], [sol.code, Result.SUCCESS, Result.MAX_STEPS],
+                          Result.CONTINUE).astype(jnp.int32)
+        if progress:
+            jax.lax.cond(ok, lambda: jax.debug.callback(report, row, t_try, iters, c.cuts), lambda: None)
+        return _Loop(state=_select(ok, new_state, c.state),
+                     predictor=c.predictor.after(ok, c.state, new_state),
+                     dt=jnp.where(ok, dt_ok, dt_cut), seg=next_seg,
+                     n_easy=jnp.where(grow, 0, n_easy), cuts=jnp.where(ok, 0, c.cuts + 1),
+                     iters=jnp.where(ok, 0, iters), history=history, code=code,
+                     failed_t=jnp.where(ok, c.failed_t, t_try), r_norm=sol.residual_norm)
+
+    init = _Loop(state=state0, predictor=_Predictor(jnp.zeros_like(state0.u), jnp.array(0.0)),
+                 dt=seg_dt[0], seg=int0, n_easy=int0, cuts=int0, iters=int0,
+                 history=_empty_history(n_buf + 1, observe(model, state0)),
+                 code=jnp.array(Result.CONTINUE, jnp.int32), failed_t=jnp.array(jnp.nan),
+                 r_norm=jnp.array(0.0))
+    out = jax.lax.while_loop(lambda c: c.code == Result.CONTINUE, body, init)
+    return Simulation(history=out.history, final=out.state, code=out.code, failed_time=out.failed_t,
+                      residual_norm=out.r_norm)
+
+
+def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
+                   observe: Callable = default_observe, progress: bool = False) -> Simulation:
+    """Run the nominal steps of the load path in a fixed-length ``lax.scan`` (no step cutting).
+
+    Reverse-mode differentiable. If a step fails the state stays at the last converged step, the
+    remaining rows are not filled and ``code`` holds the failure.
+    """
+    sched = schedule(model.phases)
+    times = sched.nominal_times()
+    phases = np.searchsorted(np.asarray(sched.seg_end), times - 1e-12, side="left")
+    phases = np.asarray(sched.seg_phase)[np.minimum(phases, len(sched.seg_end) - 1)]
+    ctx = _Context.build(model)
+    state0 = initial_state(model)
+    hist0 = _empty_history(len(times) + 1, observe(model, state0))
+
+    def body(c, xs):
+        state, predictor, hist, code, failed_t, r_norm = c
+        t, p = xs
+        sol, new_state = solve_step(model, state, p, t, newton, ctx,
+                                    guess=predictor.guess(state, t - state.time, p))
+        alive = code == Result.CONTINUE
+        ok = alive & (sol.code == Result.SUCCESS)
+        row = hist.n_rows
+        hist = _record(hist, row, ok, new_state, sol.iterations, jnp.array(0, jnp.int32),
+                       observe(model, new_state))
+        if progress:
+            jax.lax.cond(ok, lambda: jax.debug.callback(report, row, t, sol.iterations, 0), lambda: None)
+        code = jnp.where(alive & ~ok, sol.code, code).astype(jnp.int32)
+        failed_t = jnp.where(alive & ~ok, t, failed_t)
+        return (_select(ok, new_state, state), predictor.after(ok, state, new_state), hist, code,
+                failed_t, jnp.where(alive, sol.residual_norm, r_norm)), None
+
+    init = (state0, _Predictor(jnp.zeros_like(state0.u), jnp.array(0.0)), hist0,
+            jnp.array(Result.CONTINUE, jnp.int32), jnp.array(jnp.nan), jnp.array(0.0))
+    (state, _, hist, code, failed_t, r_norm), _ = jax.lax.scan(
+        body, init, (jnp.asarray(times), jnp.asarray(phases, jnp.int32)))
+    code = jnp.where(code == Result.CONTINUE, Result.SUCCESS, code).astype(jnp.int32)
+    return Simulation(history=hist, final=state, code=code, failed_time=failed_t, residual_norm=r_norm)

@@ -1,0 +1,54 @@
+"""Small strip problems shared by the core tests (built only from the public API)."""
+
+import jax.numpy as jnp
+
+import jaxfric as jf
+
+# A steel-like hardening material, and its perfectly plastic version.
+STEEL = dict(E=200000.0, nu=0.3, sigma_y=200.0, A=100.0, n=0.25)
+
+
+def clamped_pull(length=10.0, thickness=1.0, nx=10, ny=2, pull=0.15, unload=True, n_steps=4,
+                 sigma_y=200.0, material=None, formulation="fbar"):
+    """Strip clamped on the left, right end pulled by ``pull`` (mm) in x with v = 0, then returned.
+
+    The load-unload cycle leaves a path-dependent (compressive) residual reaction at the right end.
+    """
+    mesh = jf.strip_mesh(0.0, length, 0.0, thickness, nx, ny)
+    if material is None:
+        material = jf.J2Material(**{**STEEL, "sigma_y": sigma_y})
+    clamp = jf.DirichletBC(mesh.left)
+    phases = [jf.Phase("load", [clamp, jf.DirichletBC(mesh.right, motion=jf.Ramp((0, 0), (pull, 0)))],
+                       n_steps=n_steps)]
+    if unload:
+        phases.append(jf.Phase("unload", [clamp, jf.DirichletBC(mesh.right, motion=jf.Ramp((pull, 0), (0, 0)))],
+                               n_steps=n_steps))
+    return jf.StripModel(mesh, material, tuple(phases), formulation=formulation)
+
+
+def end_rotation(mesh, angle, side):
+    """x-components of an end face follow a rotation by ``angle`` (rad) about the face centre."""
+    nodes = getattr(mesh, side)
+    x_c = float(mesh.nodes[nodes[0], 0])
+    y_c = float(jnp.mean(mesh.nodes[nodes, 1]))
+    return jf.DirichletBC(nodes, components=(0,),
+                          motion=jf.RigidMotion(pivot=(x_c, y_c), angle_start=0.0, angle_end=angle))
+
+
+def pure_bending(length, thickness, nx, ny, angle, material, n_steps=1, formulation="fbar"):
+    """Pure bending: end faces rotated by -angle (left) and +angle (right) about their centres,
+    y fixed at the bottom node of each face only, so the faces contract freely and the exact
+    plane-strain solution of linear elasticity is admissible (both bottom corners have the same
+    exact v, so fixing them removes only rigid motions). Positive angle: the top fibre is compressed."""
+    mesh = jf.strip_mesh(-length / 2, length / 2, -thickness / 2, thickness, nx, ny)
+    bcs = [end_rotation(mesh, -angle, "left"), end_rotation(mesh, angle, "right"),
+           jf.DirichletBC([mesh.left[0], mesh.right[0]], components=(1,))]
+    return jf.StripModel(mesh, material, (jf.Phase("bend", bcs, n_steps=n_steps),), formulation=formulation)
+
+
+def end_moment(result, mesh):
+    """Moment (N mm / mm) of the right-face reactions about the face centre (counter-clockwise > 0)."""
+    nodes = mesh.right
+    y = mesh.nodes[nodes, 1] - jnp.mean(mesh.nodes[nodes, 1])
+    f = result.final.f_int[nodes]
+    return float(-jnp.sum(y * f[:, 0]))

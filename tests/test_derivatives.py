@@ -1,0 +1,101 @@
+"""Derivatives through the whole loading path: implicit differentiation of every step, plastic history
+threaded through the steps. Finite differences are central, in float64, with Newton tolerances tight
+enough (rtol 1e-12) that solver noise stays far below the tolerance of the comparison."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxfric as jf
+from models import clamped_pull
+
+TIGHT = jf.NewtonOptions(rtol=1e-12, atol=1e-10)
+SIGMA_Y, LENGTH = 200.0, 10.0
+
+
+def cycle_model(sigma_y, length):
+    # Pull to 2.5x the yield strain and back: the final reaction is compressive and path dependent.
+    return clamped_pull(length=length, sigma_y=sigma_y, nx=6, ny=2, pull=0.05, n_steps=3)
+
+
+def final_reaction(params, fixed=False):
+    sigma_y, length = params[0], params[1]
+    model = cycle_model(sigma_y, length)
+    sim = (jf.simulate_fixed(model, newton=TIGHT) if fixed else jf.simulate(model, newton=TIGHT))
+    return sim.history.observed["reaction_right"][sim.history.n_rows - 1, 0]
+
+
+forward = jax.jit(final_reaction)
+P0 = jnp.array([SIGMA_Y, LENGTH])
+
+
+def central_difference(f, p, direction, h):
+    return (f(p + h * direction) - f(p - h * direction)) / (2 * h)
+
+
+def test_cycle_is_plastic_and_path_dependent():
+    model = cycle_model(SIGMA_Y, LENGTH)
+    res = jf.run(model, newton=TIGHT, progress=False)
+    assert res.converged
+    assert res.history["max_eqps"][-1] > 1e-3
+    # Back at zero end displacement, the plastically elongated strip pushes on the grip.
+    assert res.history["reaction_right"][-1, 0] < -1.0
+
+
+@pytest.mark.parametrize("index, name", [(0, "sigma_y"), (1, "length")])
+def test_jvp_matches_central_differences(index, name):
+    direction = jnp.zeros(2).at[index].set(1.0)
+    value, tangent = jax.jvp(forward, (P0,), (direction,))
+    h = 1e-4 * float(P0[index])
+    fd = central_difference(forward, P0, direction, h)
+    assert float(value) < 0
+    np.testing.assert_allclose(float(tangent), float(fd), rtol=1e-5, err_msg=f"d reaction / d {name}")
+
+
+def test_reverse_mode_through_the_fixed_step_scan_agrees_with_forward_mode():
+    grad = jax.jit(jax.grad(lambda p: final_reaction(p, fixed=True)))(P0)
+    jac_fwd = jax.jit(jax.jacfwd(lambda p: final_reaction(p, fixed=True)))(P0)
+    np.testing.assert_allclose(grad, jac_fwd, rtol=1e-9)
+    # The fixed-step scan and the adaptive loop take the same (nominal) steps here.
+    np.testing.assert_allclose(jac_fwd, jax.jacfwd(forward)(P0), rtol=1e-9)
+
+
+def test_dot_product_test_of_the_implicit_step_derivative():
+    """<w, J v> = <J^T w, v> for the map (sigma_y, length, E) -> final displacement field."""
+
+    def final_u(p):
+        model = cycle_model(p[0], p[1])
+        model = eqx.tree_at(lambda m: m.material.E, model, p[2])
+        return jf.simulate_fixed(model, newton=TIGHT).final.u.reshape(-1)
+
+    p = jnp.array([SIGMA_Y, LENGTH, 200000.0])
+    v = jax.random.normal(jax.random.PRNGKey(1), (3,)) * p * 1e-3
+    out, Jv = jax.jit(lambda p, v: jax.jvp(final_u, (p,), (v,)))(p, v)
+    w = jax.random.normal(jax.random.PRNGKey(2), out.shape)
+    JTw = jax.jit(lambda p, w: jax.vjp(final_u, p)[1](w)[0])(p, w)
+    lhs, rhs = float(jnp.dot(w, Jv)), float(jnp.dot(JTw, v))
+    assert abs(lhs - rhs) <= 1e-10 * max(abs(lhs), abs(rhs))
+
+
+def test_new_parameter_values_do_not_retrace():
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def run(model):
+        return jf.simulate(model).final.u
+
+    for sigma_y, length in [(200.0, 10.0), (250.0, 9.0), (180.0, 11.0)]:
+        run(cycle_model(sigma_y, length))
+    # The public entry point compiles once per structure as well.
+    jf.run(cycle_model(200.0, 10.0), progress=False)
+    before = len(jf.run.__globals__["_COMPILED"])
+    jf.run(cycle_model(230.0, 9.5), progress=False)
+    assert len(jf.run.__globals__["_COMPILED"]) == before
+
+
+def test_vmap_over_yield_stress_equals_looped_runs():
+    sigmas = jnp.array([180.0, 200.0, 240.0])
+    batched = jax.jit(jax.vmap(lambda s: final_reaction(jnp.array([s, LENGTH]))))(sigmas)
+    looped = jnp.array([forward(jnp.array([s, LENGTH])) for s in sigmas])
+    np.testing.assert_allclose(batched, looped, rtol=1e-10)

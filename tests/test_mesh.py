@@ -1,0 +1,81 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxfric as jf
+from jaxfric.assembly import internal_force_and_tangent, mesh_geometry
+from jaxfric.simulate import initial_state
+
+
+def test_numbering_follows_the_spec():
+    mesh = jf.strip_mesh(0.0, 4.0, 0.0, 1.0, nx=4, ny=2)
+    assert mesh.n_nodes == 15 and mesh.n_elements == 8 and mesh.block_size == 6
+    # node (i, j) -> i*(ny+1) + j; element (i, j) -> i*ny + j, nodes counter-clockwise
+    np.testing.assert_allclose(mesh.nodes[mesh.node_index(3, 1)], [3.0, 0.5])
+    np.testing.assert_array_equal(mesh.elements[1 * 2 + 1], [4, 7, 8, 5])
+    np.testing.assert_array_equal(mesh.left, [0, 1, 2])
+    np.testing.assert_array_equal(mesh.right, [12, 13, 14])
+    np.testing.assert_array_equal(mesh.bottom, [0, 3, 6, 9, 12])
+    np.testing.assert_array_equal(mesh.top, [2, 5, 8, 11, 14])
+    # every element has positive area
+    assert float(jnp.min(mesh_geometry(mesh).weight)) > 0
+
+
+def test_graded_coordinates():
+    xs = jf.graded_coordinates(0.0, 10.0, 5, ratio=2.0)
+    h = np.diff(np.asarray(xs))
+    np.testing.assert_allclose(h[1:] / h[:-1], 2.0, rtol=1e-12)
+    np.testing.assert_allclose([xs[0], xs[-1]], [0.0, 10.0], atol=1e-14)
+    np.testing.assert_allclose(jf.graded_coordinates(0.0, 1.0, 4), [0, 0.25, 0.5, 0.75, 1.0], atol=1e-15)
+    # differentiable in the end point
+    d = jax.jacfwd(lambda s: jf.graded_coordinates(0.0, s, 4, 1.5))(2.0)
+    np.testing.assert_allclose(d, np.asarray(jf.graded_coordinates(0.0, 1.0, 4, 1.5)), rtol=1e-12)
+
+
+def test_tangent_is_block_tridiagonal_and_matches_dense_jacobian():
+    """The scattered block-tridiagonal tangent equals the dense autodiff Jacobian of f_int."""
+    mesh = jf.strip_mesh(0.0, 3.0, 0.0, 1.0, nx=3, ny=2, grading_x=1.3)
+    material = jf.J2Material(E=1000.0, nu=0.3, sigma_y=1.0, A=10.0, n=0.5)
+    model = jf.StripModel(mesh, material, (jf.Phase("p", [jf.DirichletBC(mesh.left)]),))
+    geo = mesh_geometry(mesh)
+    states = initial_state(model).material
+    u = 0.05 * jax.random.normal(jax.random.PRNGKey(0), (mesh.n_nodes, 2))
+
+    a = internal_force_and_tangent(mesh, material, "fbar", geo, u, states)
+    dense = jax.jacfwd(lambda v: internal_force_and_tangent(
+        mesh, material, "fbar", geo, v.reshape(-1, 2), states).f_int.reshape(-1))(u.reshape(-1))
+    np.testing.assert_allclose(a.tangent.to_dense(), dense, rtol=1e-10, atol=1e-8 * float(jnp.max(jnp.abs(dense))))
+    assert float(jnp.max(a.states.eqps)) > 0  # the point is plastic: the tangent is the consistent one
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    (dict(thickness=0.0), "thickness"),
+    (dict(thickness=-1.0), "thickness"),
+    (dict(thickness=float("nan")), "thickness"),
+    (dict(x_right=-1.0), "length"),
+    (dict(nx=0), "nx"),
+    (dict(ny=0), "ny"),
+    (dict(nx=2.5), "nx"),
+    (dict(x_right=float("inf")), "length"),
+])
+def test_bad_mesh_input_names_the_field(kwargs, field):
+    args = dict(x_left=0.0, x_right=1.0, y_bottom=0.0, thickness=1.0, nx=2, ny=2)
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=field):
+        jf.strip_mesh(**args)
+
+
+def test_bad_model_input_names_the_field():
+    mesh = jf.strip_mesh(0.0, 1.0, 0.0, 1.0, 2, 2)
+    mat = jf.J2Material.elastic(1.0, 0.3)
+    with pytest.raises(ValueError, match="formulation"):
+        jf.StripModel(mesh, mat, (jf.Phase("p"),), formulation="q8")
+    with pytest.raises(ValueError, match="phases"):
+        jf.StripModel(mesh, mat, ())
+    with pytest.raises(ValueError, match="n_steps"):
+        jf.Phase("p", n_steps=0)
+    with pytest.raises(ValueError, match="components"):
+        jf.DirichletBC(mesh.left, components=(2,))
+    with pytest.raises(ValueError, match="outside the mesh"):
+        jf.StripModel(mesh, mat, (jf.Phase("p", [jf.DirichletBC([99])]),))

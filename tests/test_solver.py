@@ -1,0 +1,184 @@
+"""Physics checks of the core solver: patch test, Newton rate, locking, bending, objectivity, failures."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxfric as jf
+from jaxfric.results import Result
+from models import STEEL, clamped_pull, end_moment, pure_bending
+
+ELASTIC = jf.J2Material.elastic(E=1000.0, nu=0.3)
+
+
+def distorted_patch(seed=0):
+    """A 4 x 3 patch whose interior nodes are moved randomly by up to 0.25 of an element."""
+    mesh = jf.strip_mesh(0.0, 4.0, 0.0, 3.0, nx=4, ny=3)
+    boundary = np.unique(np.concatenate([mesh.left, mesh.right, mesh.bottom, mesh.top]))
+    interior = np.setdiff1d(np.arange(mesh.n_nodes), boundary)
+    shift = 0.25 * jax.random.uniform(jax.random.PRNGKey(seed), (interior.size, 2), minval=-1, maxval=1)
+    return jf.StripMesh(mesh.nodes.at[interior].add(shift), mesh.nx, mesh.ny), boundary, interior
+
+
+@pytest.mark.parametrize("formulation", ["fbar", "q4"])
+@pytest.mark.parametrize("H", [[[2e-3, 1e-3], [-5e-4, -1e-3]], [[0.3, 0.2], [-0.1, -0.25]]],
+                         ids=["small", "finite"])
+def test_patch_test_reproduces_homogeneous_state(formulation, H):
+    mesh, boundary, interior = distorted_patch()
+    model = jf.StripModel(mesh, ELASTIC, (jf.Phase("load", [jf.DirichletBC(boundary, motion=jf.Affine(H))],
+                                                    n_steps=2),), formulation=formulation)
+    res = jf.run(model, progress=False)
+    X = mesh.nodes[interior]
+    exact = X @ jnp.asarray(H).T
+    np.testing.assert_allclose(res.final.u[interior], exact, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(exact))))
+    tau = jf.stresses(model, res.final).reshape(-1, 9)
+    np.testing.assert_allclose(tau, jnp.broadcast_to(tau[0], tau.shape), rtol=0,
+                               atol=1e-10 * float(jnp.max(jnp.abs(tau))))
+
+
+def test_newton_converges_quadratically_on_a_plastic_step():
+    """One large plastic step (strain 1.5 %, 7x the yield strain): the residual sequence is quadratic."""
+    model = clamped_pull(nx=20, ny=3, pull=0.15, unload=False)
+    state = jf.initial_state(model)
+    sol, new_state = jf.solve_step(model, state, 0, 1.0, jf.NewtonOptions(rtol=1e-13, du_rtol=0.0))
+    r = np.asarray(sol.residual_history)[: int(sol.iterations) + 1]
+    message = f"residual sequence (N/mm): {r}"
+    assert int(sol.code) == Result.SUCCESS, message
+    assert float(jnp.max(new_state.material.eqps)) > 1e-3, "the step must be plastic"
+    # Convergence order from the last three residuals above the round-off floor.
+    floor = 1e-11 * float(jnp.max(jnp.abs(new_state.f_int)))
+    above = r[r > floor]
+    assert above.size >= 4, message
+    r0, r1, r2 = above[-3:]
+    order = np.log(r2 / r1) / np.log(r1 / r0)
+    assert order > 1.8, f"convergence order {order:.2f}; " + message
+
+
+def test_no_volumetric_locking_thick_cylinder_limit_pressure():
+    """Plane-strain thick cylinder (b/a = 2), elastic-perfectly plastic, pushed radially well past
+    full yield: the inner pressure reaches p_L = (2/sqrt(3)) sigma_y ln(b/a) (current radii) within 2 %
+    with F-bar on a coarse 4 x 8 mesh, while plain Q4 overshoots it (volumetric locking)."""
+    a, b, ua, sigma_y = 1.0, 2.0, 0.02, 200.0
+    nr, nt = 4, 8
+
+    class Radial(jf.Motion):
+        def __call__(self, X, tau):
+            return tau * ua * X / jnp.linalg.norm(X, axis=1, keepdims=True)
+
+    def limit_ratio(formulation):
+        # i runs along the radius and j around the quarter circle, so elements stay counter-clockwise.
+        r, th = np.linspace(a, b, nr + 1), np.linspace(0.0, np.pi / 2, nt + 1)
+        R, T = np.meshgrid(r, th, indexing="ij")
+        nodes = jnp.asarray(np.stack([(R * np.cos(T)).ravel(), (R * np.sin(T)).ravel()], axis=1))
+        mesh = jf.StripMesh(nodes, nr, nt)
+        bcs = [jf.DirichletBC(mesh.bottom, components=(1,)),  # theta = 0: symmetry
+               jf.DirichletBC(mesh.top, components=(0,)),     # theta = 90 deg: symmetry
+               jf.DirichletBC(mesh.left, motion=Radial())]    # inner surface pushed out
+        mat = jf.J2Material(E=200000.0, nu=0.3, sigma_y=sigma_y, A=0.0, n=0.0)
+        model = jf.StripModel(mesh, mat, (jf.Phase("push", bcs, n_steps=20),), formulation=formulation)
+        res = jf.run(model, progress=False)
+        x = mesh.nodes + res.final.u
+        e_r = mesh.nodes[mesh.left] / a
+        radial_force = float(jnp.sum(res.final.f_int[mesh.left] * e_r))
+        a_cur, b_cur = a + ua, float(jnp.mean(jnp.linalg.norm(x[mesh.right], axis=1)))
+        # Uniform pressure on the inner polygon gives sum f.e_r = p a nt sin(dtheta).
+        p = radial_force / (a_cur * nt * np.sin(np.pi / 2 / nt))
+        return p / (2.0 / np.sqrt(3.0) * sigma_y * np.log(b_cur / a_cur))
+
+    fbar, q4 = limit_ratio("fbar"), limit_ratio("q4")
+    assert abs(fbar - 1.0) < 0.02, f"F-bar limit pressure ratio {fbar:.4f}"
+    assert q4 > 1.0 + 2 * abs(fbar - 1.0), f"plain Q4 should lock: ratio {q4:.4f} vs F-bar {fbar:.4f}"
+
+
+def bending_ratio(ny, formulation, nx=40, length=2.0):
+    """M_FE / M_beam for pure bending of an elastic strip (plane strain, nu = 0.3), with
+    M_beam = E/(1-nu^2) t^3/12 kappa, kappa = 2 angle / length."""
+    E, nu, t, angle = 200000.0, 0.3, 1.0, 1e-4
+    model = pure_bending(length, t, nx=nx, ny=ny, angle=angle, material=jf.J2Material.elastic(E, nu),
+                         formulation=formulation)
+    res = jf.run(model, progress=False)
+    return abs(end_moment(res, model.mesh)) / (E / (1 - nu**2) * t**3 / 12 * 2 * angle / length)
+
+
+def test_elastic_strip_bending_against_beam_theory():
+    """Pure bending of an elastic strip, measured against plane-strain beam theory.
+
+    Measured (nu = 0.3, elements 0.05 mm long so parasitic shear is negligible): with 3 elements
+    through the thickness F-bar is 7.1 % too soft and plain Q4 2.6 % too stiff. F-bar holds the
+    dilatation constant per element, but bending has a dilatation linear through the thickness
+    (-(1-2nu)/(1-nu) kappa y); Q4 cannot represent the quadratic Poisson displacement. Both errors
+    fall as 1/ny^2, and F-bar is within 1 % from 10 elements through the thickness. 1 % at 3 elements
+    would need an enhanced-strain element; this is reported on the issue, not hidden here.
+    """
+    fbar = {ny: bending_ratio(ny, "fbar") for ny in (3, 6, 10)}
+    q4 = {ny: bending_ratio(ny, "q4") for ny in (3, 6)}
+    report = f"F-bar {fbar}, Q4 {q4}"
+    assert 0.91 < fbar[3] < 0.95 and 1.015 < q4[3] < 1.035, report  # the measured signs and sizes
+    # second-order convergence in the number of elements through the thickness
+    assert (1 - fbar[3]) / (1 - fbar[6]) > 3.5 and (q4[3] - 1) / (q4[6] - 1) > 3.0, report
+    assert abs(fbar[10] - 1) < 0.01, report
+
+
+def test_objectivity_under_superposed_rigid_rotation():
+    """Stretch a clamped strip plastically, then rotate the deformed strip rigidly by 70 degrees: the
+    stress invariants and plastic strains at every Gauss point are those of the unrotated strip."""
+    length, t, pull, angle = 6.0, 1.0, 0.06, np.deg2rad(70.0)
+    mesh = jf.strip_mesh(0.0, length, 0.0, t, 12, 2)
+    mat = jf.J2Material(**STEEL)
+    centre = jnp.array([length / 2, t / 2])
+
+    class RotateDeformed(jf.Motion):
+        """Both ends: after the pull (left fixed, right moved by `pull`), a rigid rotation about the centre."""
+        def __call__(self, X, tau):
+            x = X + jnp.where(X[:, :1] > length / 2, jnp.array([pull, 0.0]), 0.0)
+            c, s = jnp.cos(tau * angle), jnp.sin(tau * angle)
+            Q = jnp.array([[c, -s], [s, c]])
+            return centre + (x - centre) @ Q.T - X
+
+    pulled = [jf.DirichletBC(mesh.left), jf.DirichletBC(mesh.right, motion=jf.Ramp((0, 0), (pull, 0)))]
+    held = [jf.DirichletBC(mesh.left), jf.DirichletBC(mesh.right, motion=jf.Ramp((pull, 0), (pull, 0)))]
+    rotated = [jf.DirichletBC(np.concatenate([mesh.left, mesh.right]), motion=RotateDeformed())]
+    base = jf.StripModel(mesh, mat, (jf.Phase("pull", pulled, 4), jf.Phase("hold", held, 7)))
+    turned = jf.StripModel(mesh, mat, (jf.Phase("pull", pulled, 4), jf.Phase("rotate", rotated, 7)))
+    r0, r1 = jf.run(base, progress=False), jf.run(turned, progress=False)
+
+    def invariants(model, res):
+        tau = jf.stresses(model, res.final)
+        return (jax.vmap(jax.vmap(jf.von_mises))(tau), jnp.trace(tau, axis1=-2, axis2=-1),
+                jnp.linalg.det(tau[..., :2, :2]), tau[..., 2, 2], res.final.material.eqps)
+
+    assert float(jnp.max(r0.final.material.eqps)) > 1e-3
+    for a, b in zip(invariants(base, r0), invariants(turned, r1)):
+        scale = float(jnp.max(jnp.abs(a)))
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-7 * scale)
+
+
+def test_failure_is_a_result_code_with_partial_results():
+    """Crushing a strip to 5 % of its length inverts elements: the run stops with a result code, a
+    message naming the step and what to try, and keeps every converged step."""
+    mesh = jf.strip_mesh(0.0, 4.0, 0.0, 1.0, 8, 2)
+    crush = [jf.DirichletBC(mesh.left), jf.DirichletBC(mesh.right, motion=jf.Ramp((0, 0), (-3.8, 0)))]
+    model = jf.StripModel(mesh, jf.J2Material(**STEEL), (jf.Phase("crush", crush, n_steps=4),))
+    with pytest.raises(jf.SimulationError, match="stopped after step") as info:
+        jf.run(model, progress=False, control=jf.StepControl(max_cuts=3))
+    partial = info.value.result
+    assert not partial.converged and partial.code != Result.SUCCESS
+    assert "reduce the nominal step" in partial.message or "raise" in partial.message
+    assert all(np.all(np.isfinite(v)) for v in (partial.final.u, partial.final.f_int))
+    assert partial.history["time"][-1] == pytest.approx(float(partial.final.time))
+    res = jf.run(model, progress=False, control=jf.StepControl(max_cuts=3), raise_on_failure=False)
+    assert res.code == partial.code and res.history["time"].size == partial.history["time"].size
+
+
+def test_adaptive_steps_cut_and_grow_back():
+    """A step too large for Newton is cut, recorded as a cutback, and the increment grows back."""
+    model = clamped_pull(nx=10, ny=2, pull=2.0, unload=False, n_steps=1)
+    res = jf.run(model, progress=False, newton=jf.NewtonOptions(max_iterations=6))
+    h = res.history
+    assert res.converged and h["cutbacks"].sum() >= 1
+    assert h["time"][-1] == 1.0 and np.all(np.diff(h["time"]) > 0)
+    assert np.all(h["newton_iters"][1:] >= 1)
+    dt = np.diff(h["time"])
+    assert np.any(dt[1:] > dt[:-1] * 1.4), f"the increment never grew back: {dt}"
