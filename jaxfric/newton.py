@@ -67,6 +67,7 @@ class Linearization(NamedTuple):
     scale: jax.Array         # () force scale of the relative residual test
     valid: jax.Array         # () bool: False for an inadmissible configuration (inverted element)
     aux: Any                 # by-products at x
+    status: Any = None       # optional int array (contact status): must not change in the last iteration
 
 
 class NewtonSolution(NamedTuple):
@@ -86,13 +87,13 @@ def _all_finite(tree) -> jax.Array:
 def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions):
     """The Newton loop; returns the solution and the Jacobian at it (for the JVP rule)."""
 
-    def classify(k, x, lin, dx_norm):
+    def classify(k, x, lin, dx_norm, same_status):
         r_norm = jnp.max(jnp.abs(lin.residual))
         finite = _all_finite((lin.residual, lin.jacobian))
         res_ok = r_norm <= options.atol + options.rtol * jnp.maximum(lin.scale, 1e-6)
         dx_ok = dx_norm <= options.du_atol + options.du_rtol * jnp.max(jnp.abs(x - x_ref))
         code = jnp.select(
-            [~finite, ~lin.valid, (k >= 1) & res_ok & dx_ok, k >= options.max_iterations],
+            [~finite, ~lin.valid, (k >= 1) & res_ok & dx_ok & same_status, k >= options.max_iterations],
             [Result.NONFINITE, Result.INVERTED_ELEMENT, Result.SUCCESS, Result.MAX_ITERATIONS],
             Result.CONTINUE)
         return code.astype(jnp.int32), r_norm
@@ -104,13 +105,15 @@ def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions):
         k, x, lin, _, _, r_hist = carry
         dx = linear_solve(lin.jacobian, -lin.residual)
         x = x + dx
-        lin = linearize(x, args)
+        new = linearize(x, args)
+        # Contact: converged only if no pair changed status (open/stick/slip) in this iteration.
+        same = jnp.array(True) if new.status is None else jnp.all(new.status == lin.status)
         dx_norm = jnp.max(jnp.abs(dx))
-        code, r_norm = classify(k + 1, x, lin, dx_norm)
-        return k + 1, x, lin, dx_norm, code, r_hist.at[k + 1].set(r_norm)
+        code, r_norm = classify(k + 1, x, new, dx_norm, same)
+        return k + 1, x, new, dx_norm, code, r_hist.at[k + 1].set(r_norm)
 
     lin0 = linearize(x0, args)
-    code0, r0 = classify(0, x0, lin0, jnp.array(jnp.inf))
+    code0, r0 = classify(0, x0, lin0, jnp.array(jnp.inf), jnp.array(True))
     r_hist = jnp.full(options.max_iterations + 1, jnp.nan).at[0].set(r0)
     k, x, lin, _, code, r_hist = jax.lax.while_loop(
         cond, body, (jnp.array(0, jnp.int32), x0, lin0, jnp.array(jnp.inf), code0, r_hist))

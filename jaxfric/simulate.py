@@ -27,7 +27,10 @@ import numpy as np
 
 from .assembly import internal_force, internal_force_and_tangent, mesh_geometry
 from .element import FORMULATIONS, ElementGeometry
-from .linalg import BlockTridiag
+from .contact import (ContactState, ContactStep, Force, Move, Penalty, evaluate_pairs,
+                      initial_contact_state, split_pairs, tool_forces)
+from .contact_laws import SLIP
+from .linalg import BlockTridiag, Bordered
 from .loading import Phase, constraint_masks, prescribed_values, schedule
 from .material import J2Material
 from .mesh import StripMesh
@@ -40,19 +43,24 @@ __all__ = ["StripModel", "SimState", "StepControl", "History", "Simulation", "in
 
 
 class StripModel(eqx.Module):
-    """A strip of elasto-plastic material under a sequence of phases of prescribed displacements.
+    """A strip of elasto-plastic material under a sequence of phases of prescribed displacements,
+    optionally in contact with rigid tools.
 
     Attributes:
         mesh: the strip mesh.
         material: the material law (one quadrature point).
         phases: the load path, one :class:`~jaxfric.loading.Phase` per phase.
         formulation: "fbar" (default) or "q4" (plain Q4, for elastic checks only); static.
+        tools: rigid tools (:class:`~jaxfric.contact.RigidTool`), one control per phase each.
+        contact: the contact regularisation (:class:`~jaxfric.contact.Penalty`); needed with tools.
     """
 
     mesh: StripMesh
     material: J2Material
     phases: tuple
     formulation: str = eqx.field(static=True, default="fbar")
+    tools: tuple = ()
+    contact: Penalty | None = None
 
     def __check_init__(self):
         if self.formulation not in FORMULATIONS:
@@ -63,10 +71,26 @@ class StripModel(eqx.Module):
         if len(set(names)) != len(names):
             raise ValueError(f"field 'phases' has repeated phase names: {names}")
         constraint_masks(self.mesh.n_nodes, self.phases)  # validates node indices
+        if self.tools and self.contact is None:
+            raise ValueError("field 'contact' (e.g. Penalty(eps_n, eps_t)) is required when there are tools")
+        names = [t.name for t in self.tools]
+        if len(set(names)) != len(names):
+            raise ValueError(f"field 'tools' has repeated tool names: {names}")
+        for tool in self.tools:
+            if len(tool.controls) != len(self.phases):
+                raise ValueError(f"tool {tool.name!r} has {len(tool.controls)} controls for "
+                                 f"{len(self.phases)} phases")
+            if max(tool.candidates) >= self.mesh.n_nodes or min(tool.candidates) < 0:
+                raise ValueError(f"tool {tool.name!r}: field 'candidates' names nodes outside the mesh")
 
     @property
     def n_phases(self) -> int:
         return len(self.phases)
+
+    @property
+    def force_tools(self) -> tuple:
+        """Static indices of the tools that are force-driven in some phase (one unknown each)."""
+        return tuple(k for k, t in enumerate(self.tools) if t.force_driven)
 
 
 class SimState(eqx.Module):
@@ -78,6 +102,7 @@ class SimState(eqx.Module):
         f_int: (n_nodes, 2) internal forces (N/mm); at prescribed dofs these are the reactions.
         time: () pseudo-time.
         phase: () int32 index of the phase of the last step.
+        contact: contact history and outputs (:class:`~jaxfric.contact.ContactState`), or None.
     """
 
     u: jax.Array
@@ -85,6 +110,7 @@ class SimState(eqx.Module):
     f_int: jax.Array
     time: jax.Array
     phase: jax.Array
+    contact: ContactState | None = None
 
 
 class StepControl(eqx.Module):
@@ -139,17 +165,43 @@ def initial_state(model: StripModel) -> SimState:
     one = model.material.init_state()
     states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n_el, 4) + a.shape), one)
     zeros = jnp.zeros((model.mesh.n_nodes, 2))
+    contact = initial_contact_state(model.tools, model.mesh.nodes) if model.tools else None
     return SimState(u=zeros, material=states, f_int=zeros, time=jnp.array(0.0),
-                    phase=jnp.array(0, jnp.int32))
+                    phase=jnp.array(0, jnp.int32), contact=contact)
 
 
 def default_observe(model: StripModel, state: SimState) -> dict:
-    """Reactions (sums of internal forces) on the left and right ends, and the largest eqps."""
-    return {
-        "reaction_left": jnp.sum(state.f_int[model.mesh.left], axis=0),
-        "reaction_right": jnp.sum(state.f_int[model.mesh.right], axis=0),
+    """Reactions on the left and right ends (sums of f_int - f_c over their nodes), the largest eqps,
+    and with tools: their positions and clamping forces, the largest penetration and the numbers of
+    active (closed) and slipping pairs."""
+    reaction = reactions(model, state)
+    out = {
+        "reaction_left": jnp.sum(reaction[model.mesh.left], axis=0),
+        "reaction_right": jnp.sum(reaction[model.mesh.right], axis=0),
         "max_eqps": jnp.max(state.material.eqps),
     }
+    if state.contact is not None:
+        c = state.contact
+        out.update(tool_position=c.q, tool_force=c.force,
+                   max_penetration=jnp.max(jnp.where(c.status > 0, jnp.maximum(-c.gap, 0.0), 0.0)),
+                   n_active=jnp.sum(c.status > 0), n_slip=jnp.sum(c.status == SLIP))
+    return out
+
+
+def contact_force_field(model: StripModel, state: SimState) -> jax.Array:
+    """(n_nodes, 2) contact forces on the sheet, f_c = R_N n + R_T t summed per node (N/mm)."""
+    f_c = jnp.zeros_like(state.u)
+    if state.contact is None:
+        return f_c
+    c = state.contact
+    pair_f = c.rn[:, None] * c.normal + c.rt[:, None] * jnp.stack([-c.normal[:, 1], c.normal[:, 0]], 1)
+    nodes = np.concatenate([np.asarray(t.candidates) for t in model.tools])
+    return f_c.at[nodes].add(pair_f)
+
+
+def reactions(model: StripModel, state: SimState) -> jax.Array:
+    """(n_nodes, 2) reactions f_int - f_c: non-zero at prescribed dofs only, at convergence (N/mm)."""
+    return state.f_int - contact_force_field(model, state)
 
 
 def stresses(model: StripModel, state: SimState) -> jax.Array:
@@ -173,7 +225,9 @@ class _StepArgs(eqx.Module):
     states: object
     mask: jax.Array
     values: jax.Array
+    contact: ContactStep | None
     formulation: str = eqx.field(static=True)
+    force_idx: tuple = eqx.field(static=True)
 
 
 def _constrain_rows(K: BlockTridiag, mask: jax.Array) -> BlockTridiag:
@@ -185,19 +239,97 @@ def _constrain_rows(K: BlockTridiag, mask: jax.Array) -> BlockTridiag:
     return BlockTridiag(lower=K.lower * keep[1:, :, None], diag=diag, upper=K.upper * keep[:-1, :, None])
 
 
+def _pair_nodes(args: _StepArgs) -> np.ndarray:
+    return np.concatenate([np.asarray(t.candidates) for t in args.contact.tools])
+
+
+def _contact_terms(args: _StepArgs, u, qf, jacobian: bool):
+    """Contact forces at (u, q): per-node forces, per-tool clamping forces, and the pair results."""
+    c = args.contact
+    q = c.q_presc.at[np.asarray(args.force_idx)].set(qf) if args.force_idx else c.q_presc
+    pairs = evaluate_pairs(c, args.mesh.nodes, u, q, jacobian)
+    f_c = jnp.zeros_like(u).at[_pair_nodes(args)].add(jnp.concatenate([p.f for p in pairs]))
+    return q, pairs, f_c, tool_forces(c, pairs)
+
+
+def _contact_out(q, pairs, tool_f):
+    cat = lambda name: jnp.concatenate([getattr(p, name) for p in pairs])  # noqa: E731
+    return dict(q=q, force=tool_f, rn=cat("rn"), rt=cat("rt"), zeta=cat("zeta"), gap=cat("gap"),
+                normal=cat("normal"), status=cat("status"))
+
+
+def _evaluate(x, args: _StepArgs, jacobian: bool):
+    n = args.mesh.n_dofs
+    u, qf = x[:n].reshape(-1, 2), x[n:]
+    assemble = internal_force_and_tangent if jacobian else internal_force
+    a = assemble(args.mesh, args.material, args.formulation, args.geo, u, args.states)
+    r_u = a.f_int
+    contact = None
+    if args.contact is not None:
+        q, pairs, f_c, tool_f = _contact_terms(args, u, qf, jacobian)
+        r_u = r_u - f_c
+        contact = (q, pairs, tool_f)
+    R = jnp.where(args.mask, x[:n] - args.values, r_u.reshape(-1))
+    if args.force_idx:
+        fi = np.asarray(args.force_idx)
+        c = args.contact
+        R_q = jnp.where(c.force_mask[fi], tool_f[fi] - c.force[fi], qf - c.q_presc[fi])
+        R = jnp.concatenate([R, R_q])
+    return R, a, contact
+
+
 def _residual(x, args: _StepArgs):
-    a = internal_force(args.mesh, args.material, args.formulation, args.geo, x.reshape(-1, 2), args.states)
-    R = jnp.where(args.mask, x - args.values, a.f_int.reshape(-1))
-    return R, (a.f_int, a.states)
+    R, a, contact = _evaluate(x, args, jacobian=False)
+    return R, (a.f_int, a.states, None if contact is None else _contact_out(*contact))
+
+
+def _contact_jacobian(args: _StepArgs, K: BlockTridiag, pairs, keep):
+    """Add the pair Jacobians to the diagonal blocks and build the border of the force-driven tools."""
+    ny1 = args.mesh.ny + 1
+    nodes = _pair_nodes(args)
+    cols = nodes // ny1
+    rows = 2 * (nodes % ny1)[:, None] + np.arange(2)[None, :]
+    dfdx = jnp.concatenate([p.df_dx for p in pairs])
+    # R_u = f_int - f_c: the pair blocks enter with a minus sign (free rows only: `keep`).
+    diag = K.diag.at[cols[:, None, None], rows[:, :, None], rows[:, None, :]].add(-dfdx)
+    K = BlockTridiag(K.lower, diag, K.upper)
+    if not args.force_idx:
+        return K
+    c = args.contact
+    n = args.mesh.n_dofs
+    B_cols, C_rows, D_diag = [], [], []
+    for k in args.force_idx:
+        tool, p = c.tools[k], pairs[k]
+        dofs = (2 * np.asarray(tool.candidates)[:, None] + np.arange(2)[None, :]).ravel()
+        B_cols.append(jnp.zeros(n).at[dofs].add(-p.df_dq.ravel()) * keep)
+        driven = c.force_mask[k]
+        # d(e_q . f)/dx per pair, scattered to the pair's node dofs.
+        row = jnp.zeros(n).at[dofs].add(jnp.einsum("i,pij->pj", tool.drive, p.df_dx).ravel())
+        C_rows.append(jnp.where(driven, row, 0.0))
+        lost = ~jnp.any(p.status > 0)  # no closed pair: regularise the row (Jacobian only)
+        d = jnp.sum(p.df_dq @ tool.drive) + jnp.where(lost, c.law.eps_n, 0.0)
+        D_diag.append(jnp.where(driven, d, 1.0))
+    return Bordered(A=K, B=jnp.stack(B_cols, axis=1), C=jnp.stack(C_rows), D=jnp.diag(jnp.stack(D_diag)))
 
 
 def _linearize(x, args: _StepArgs) -> Linearization:
-    a = internal_force_and_tangent(args.mesh, args.material, args.formulation, args.geo,
-                                   x.reshape(-1, 2), args.states)
+    R, a, contact = _evaluate(x, args, jacobian=True)
+    keep = jnp.where(args.mask, 0.0, 1.0)
+    K = a.tangent
+    status = None
+    aux_contact = None
+    if contact is not None:
+        q, pairs, tool_f = contact
+        K = _contact_jacobian(args, K, pairs, keep)
+        aux_contact = _contact_out(q, pairs, tool_f)
+        status = aux_contact["status"]
     # Prescribed dofs: R = x - values, so their Jacobian rows are identity rows.
-    R = jnp.where(args.mask, x - args.values, a.f_int.reshape(-1))
-    J = _constrain_rows(a.tangent, args.mask)
-    return Linearization(R, J, jnp.max(jnp.abs(a.f_int)), a.det_min > 0.0, (a.f_int, a.states))
+    if isinstance(K, Bordered):
+        J = Bordered(A=_constrain_rows(K.A, args.mask), B=K.B, C=K.C, D=K.D)
+    else:
+        J = _constrain_rows(K, args.mask)
+    return Linearization(R, J, jnp.max(jnp.abs(a.f_int)), a.det_min > 0.0,
+                         (a.f_int, a.states, aux_contact), status)
 
 
 class _Context(eqx.Module):
@@ -213,11 +345,42 @@ class _Context(eqx.Module):
         return cls(model, mesh_geometry(model.mesh), masks)
 
 
+def _contact_step(model: StripModel, state: SimState, phase, tau, law) -> tuple:
+    """The contact data of a step in ``phase`` at phase-local time ``tau``, from the last state."""
+    c = state.contact
+    new_phase = phase != state.phase
+    # Controls are relative to the tool's position / force at the start of the phase.
+    q_start = jnp.where(new_phase, c.q, c.q_start)
+    f_start = jnp.where(new_phase, c.force, c.f_start)
+    q_table, f_table = [], []
+    for p in range(model.n_phases):  # static: the control type of each tool changes with the phase
+        q_row, f_row = [], []
+        for k, tool in enumerate(model.tools):
+            ctrl = tool.controls[p]
+            q_row.append(ctrl.position(q_start[k], tau) if isinstance(ctrl, Move) else c.q[k])
+            f_row.append(ctrl.force(f_start[k], tau) if isinstance(ctrl, Force) else jnp.zeros(()))
+        q_table.append(jnp.stack(q_row))
+        f_table.append(jnp.stack(f_row))
+    force_mask = np.array([[isinstance(t.controls[p], Force) for t in model.tools]
+                           for p in range(model.n_phases)])
+    mu_now = tuple(t.mu[phase] for t in model.tools)
+    rt_prev = []
+    for k, (tool, rt) in enumerate(zip(model.tools, split_pairs(model.tools, c.rt))):
+        # R_T,n restarts from 0 at a phase boundary where the tool's mu changes (spec 1.5).
+        reset = new_phase & (tool.mu[phase] != tool.mu[state.phase])
+        rt_prev.append(jnp.where(reset, 0.0, rt))
+    step = ContactStep(tools=model.tools, law=law, mu=mu_now, rt_prev=tuple(rt_prev),
+                       u_prev=tuple(state.u[np.asarray(t.candidates)] for t in model.tools), q_prev=c.q,
+                       q_presc=jnp.stack(q_table)[phase],
+                       force=jnp.stack(f_table)[phase], force_mask=jnp.asarray(force_mask)[phase])
+    return step, q_start, f_start
+
+
 def solve_step(model: StripModel, state: SimState, phase, t_target,
                newton: NewtonOptions = NewtonOptions(), ctx: "_Context | None" = None, guess=None):
     """Solve one load step from the converged ``state`` to pseudo-time ``t_target`` in phase ``phase``.
 
-    ``guess`` (n_nodes, 2) is Newton's initial displacement (default: ``state.u``).
+    ``guess`` is Newton's initial point ``(u (n_nodes, 2), q (n_tools,))`` (default: the last state).
 
     Returns the :class:`~jaxfric.newton.NewtonSolution` (iterations, code, residual history) and the
     new :class:`SimState` (meaningful only when ``solution.code == Result.SUCCESS``).
@@ -227,14 +390,27 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
     t_target = jnp.asarray(t_target, jnp.float64)
     tau = t_target - phase.astype(t_target.dtype)
     values = prescribed_values(model.mesh.nodes, model.phases, phase, tau)
+    contact, q_start, f_start = (None, None, None)
+    if model.tools:
+        contact, q_start, f_start = _contact_step(model, state, phase, tau, model.contact)
+    force_idx = model.force_tools
     args = _StepArgs(model.mesh, model.material, ctx.geo, state.material, ctx.masks[phase], values,
-                     model.formulation)
-    x_ref = state.u.reshape(-1)
-    x0 = x_ref if guess is None else guess.reshape(-1)
+                     contact, model.formulation, force_idx)
+    q_f = state.contact.q[np.asarray(force_idx)] if force_idx else jnp.zeros(0)
+    x_ref = jnp.concatenate([state.u.reshape(-1), q_f])
+    if guess is None:
+        x0 = x_ref
+    else:
+        u_guess, q_guess = guess
+        q0 = q_guess[np.asarray(force_idx)] if force_idx else jnp.zeros(0)
+        x0 = jnp.concatenate([u_guess.reshape(-1), q0])
     sol = newton_solve(args, x0, x_ref, linearize=_linearize, residual=_residual, options=newton)
-    f_int, states = sol.aux
-    new_state = SimState(u=sol.x.reshape(-1, 2), material=states, f_int=f_int, time=t_target,
-                         phase=phase)
+    f_int, states, c_out = sol.aux
+    new_contact = None
+    if model.tools:
+        new_contact = ContactState(q_start=q_start, f_start=f_start, **c_out)
+    new_state = SimState(u=sol.x[: model.mesh.n_dofs].reshape(-1, 2), material=states, f_int=f_int,
+                         time=t_target, phase=phase, contact=new_contact)
     return sol, new_state
 
 
@@ -265,20 +441,32 @@ def _record(h: History, row, pred, state: SimState, iters, cuts, observed) -> Hi
 
 # ---- drivers --------------------------------------------------------------------------------------
 
+def _tool_q(state: SimState) -> jax.Array:
+    return jnp.zeros(0) if state.contact is None else state.contact.q
+
+
 class _Predictor(eqx.Module):
-    """Secant predictor: the last accepted increment, scaled to the next step (zero after a phase
-    change, where the loading direction may reverse). It only moves Newton's starting point."""
+    """Secant predictor: the last accepted increment of displacements and tool positions together
+    (so that gaps are extrapolated consistently), scaled to the next step. Not used after a phase
+    change, where the loading direction may reverse, nor on a retry after a failed attempt. It only
+    moves Newton's starting point, never the solution."""
 
     du: jax.Array   # (n_nodes, 2) displacement increment of the last accepted step
+    dq: jax.Array   # (n_tools,) tool position increment of the last accepted step
     dt: jax.Array   # () its pseudo-time increment (0: no prediction)
 
-    def guess(self, state: SimState, dt_next, phase_next):
-        use = (self.dt > 0) & (phase_next == state.phase)
+    @classmethod
+    def empty(cls, state: SimState) -> "_Predictor":
+        return cls(jnp.zeros_like(state.u), jnp.zeros_like(_tool_q(state)), jnp.array(0.0))
+
+    def guess(self, state: SimState, dt_next, phase_next, retry=False):
+        use = (self.dt > 0) & (phase_next == state.phase) & ~retry
         scale = jnp.where(use, dt_next / jnp.where(use, self.dt, 1.0), 0.0)
-        return state.u + scale * self.du
+        return state.u + scale * self.du, _tool_q(state) + scale * self.dq
 
     def after(self, ok, old: SimState, new: SimState) -> "_Predictor":
         return _Predictor(du=jnp.where(ok, new.u - old.u, self.du),
+                          dq=jnp.where(ok, _tool_q(new) - _tool_q(old), self.dq),
                           dt=jnp.where(ok, new.time - old.time, self.dt))
 
 
@@ -322,7 +510,8 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
         # Snap to the segment end when within round-off of it (steps end exactly on breakpoints).
         t_try = jnp.where(t_start + c.dt >= end - 1e-9 * dt_nom, end, t_start + c.dt)
         sol, new_state = solve_step(model, c.state, seg_phase[c.seg], t_try, newton, ctx,
-                                    guess=c.predictor.guess(c.state, t_try - t_start, seg_phase[c.seg]))
+                                    guess=c.predictor.guess(c.state, t_try - t_start, seg_phase[c.seg],
+                                                            retry=c.cuts > 0))
         ok = sol.code == Result.SUCCESS
         iters = c.iters + sol.iterations
         row = c.history.n_rows
@@ -349,7 +538,7 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
                      iters=jnp.where(ok, 0, iters), history=history, code=code,
                      failed_t=jnp.where(ok, c.failed_t, t_try), r_norm=sol.residual_norm)
 
-    init = _Loop(state=state0, predictor=_Predictor(jnp.zeros_like(state0.u), jnp.array(0.0)),
+    init = _Loop(state=state0, predictor=_Predictor.empty(state0),
                  dt=seg_dt[0], seg=int0, n_easy=int0, cuts=int0, iters=int0,
                  history=_empty_history(n_buf + 1, observe(model, state0)),
                  code=jnp.array(Result.CONTINUE, jnp.int32), failed_t=jnp.array(jnp.nan),
@@ -391,7 +580,7 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
         return (_select(ok, new_state, state), predictor.after(ok, state, new_state), hist, code,
                 failed_t, jnp.where(alive, sol.residual_norm, r_norm)), None
 
-    init = (state0, _Predictor(jnp.zeros_like(state0.u), jnp.array(0.0)), hist0,
+    init = (state0, _Predictor.empty(state0), hist0,
             jnp.array(Result.CONTINUE, jnp.int32), jnp.array(jnp.nan), jnp.array(0.0))
     (state, _, hist, code, failed_t, r_norm), _ = jax.lax.scan(
         body, init, (jnp.asarray(times), jnp.asarray(phases, jnp.int32)))

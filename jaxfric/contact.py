@@ -1,0 +1,273 @@
+"""Node-to-rigid-surface contact of the sheet with rigid tools, inside the global Newton system.
+
+A scene declares, per tool, its geometry (:class:`jaxfric.tools.Tool`), its closing direction e_q,
+its candidate sheet nodes, its friction coefficient per phase, and per phase how it moves:
+
+- :class:`Move` (displacement-driven): q = q_start + a + tau (b - a), relative to its position at the
+  start of the phase (``Move(0, 0)`` holds it where it is);
+- :class:`Force` (force-driven, spec 1.8): its position q is an extra unknown, balanced by the
+  prescribed closing force P(tau) = P_0 + tau (P_end - P_0), with P_0 the tool's clamping force at
+  the start of the phase unless given.
+
+Global system (unknowns x = (u, q_f), q_f the positions of the tools that are force-driven in some
+phase; a scene with none has no extra unknown):
+
+    R_u = f_int(u) - f_c(u, q)                        (free dofs; prescribed dofs: u - u_presc)
+    R_q = sum_{pairs of the tool} e_q . f_c,a - P     (force-driven phase; otherwise q - q_presc)
+
+with f_c,a = R_N n + R_T t the force on the sheet at pair a (spec 1.4). The contact forces depend on
+each pair's node and tool only, so dR_u/du keeps the block-tridiagonal structure (a 2x2 block per
+pair on the diagonal) and the tools add a border (:class:`jaxfric.linalg.Bordered`). The Jacobian of
+every pair force, including the derivatives of n, t and zeta with respect to the node position and
+the tool position, comes from ``jax.jacfwd`` of the pair law.
+
+A force-driven tool that has lost every contact has a zero row dR_q/d(u, q): its Newton row then gets
+the diagonal eps_N (as if one pair were closed), which moves the tool towards the sheet by
+(P - sum f)/eps_N per iteration. Only the Jacobian changes, never the residual, so converged
+solutions are exact; the spec's rule that a force-driven phase starts touching makes it rare.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._checks import check_nonnegative, is_concrete
+from .contact_laws import OPEN, augmented_pair
+from .tools import Tool, project
+
+__all__ = ["Move", "Force", "RigidTool", "Penalty", "ContactState", "ContactStep", "PairResult",
+           "initial_contact_state", "evaluate_pairs", "tool_forces", "split_pairs"]
+
+
+class Move(eqx.Module):
+    """Displacement-driven phase: q = q_start + start + tau (end - start) (mm, along e_q)."""
+
+    start: jax.Array
+    end: jax.Array
+
+    def __init__(self, start=0.0, end=0.0):
+        self.start = jnp.asarray(start, jnp.float64)
+        self.end = jnp.asarray(end, jnp.float64)
+
+    def position(self, q_start, tau):
+        return q_start + self.start + tau * (self.end - self.start)
+
+
+class Force(eqx.Module):
+    """Force-driven phase: closing force P = P_0 + tau (end - P_0) (N/mm); P_0 = ``start``, or the
+    tool's clamping force at the start of the phase when ``start`` is None."""
+
+    end: jax.Array
+    start: jax.Array | None
+
+    def __init__(self, end, start=None):
+        check_nonnegative("force end", end)
+        if start is not None:
+            check_nonnegative("force start", start)
+        self.end = jnp.asarray(end, jnp.float64)
+        self.start = None if start is None else jnp.asarray(start, jnp.float64)
+
+    def force(self, f_start, tau):
+        p0 = f_start if self.start is None else self.start
+        return p0 + tau * (self.end - p0)
+
+
+class RigidTool(eqx.Module):
+    """A rigid tool in a scene.
+
+    Attributes:
+        name: static name (outputs).
+        geometry: the tool at rest.
+        drive: (2,) unit closing direction e_q (towards the sheet).
+        candidates: static tuple of candidate sheet-node indices.
+        controls: one :class:`Move` or :class:`Force` per phase.
+        mu: (n_phases,) friction coefficient per phase.
+        frictional: static; False when mu is 0 in every phase (then no friction term is built).
+    """
+
+    name: str = eqx.field(static=True)
+    geometry: Tool
+    drive: jax.Array
+    candidates: tuple = eqx.field(static=True)
+    controls: tuple
+    mu: jax.Array
+    frictional: bool = eqx.field(static=True)
+
+    def __init__(self, name, geometry: Tool, drive, candidates, controls, mu):
+        self.name = str(name)
+        self.geometry = geometry
+        self.drive = jnp.asarray(drive, jnp.float64)
+        self.candidates = tuple(int(a) for a in np.asarray(candidates).ravel())
+        self.controls = tuple(controls)
+        mu = jnp.asarray(mu, jnp.float64)
+        self.mu = jnp.broadcast_to(mu, (len(self.controls),)) if mu.ndim == 0 else mu
+        self.frictional = (not is_concrete(self.mu)) or bool(np.any(np.asarray(self.mu) > 0))
+
+    def __check_init__(self):
+        if self.drive.shape != (2,):
+            raise ValueError(f"tool {self.name!r}: field 'drive' must be a 2-vector")
+        if is_concrete(self.drive) and abs(float(jnp.linalg.norm(self.drive)) - 1.0) > 1e-12:
+            raise ValueError(f"tool {self.name!r}: field 'drive' must be a unit vector, got {self.drive}")
+        if not self.candidates:
+            raise ValueError(f"tool {self.name!r}: field 'candidates' is empty")
+        if not all(isinstance(c, (Move, Force)) for c in self.controls):
+            raise ValueError(f"tool {self.name!r}: field 'controls' must hold one Move or Force per phase")
+        if self.mu.shape != (len(self.controls),):
+            raise ValueError(f"tool {self.name!r}: field 'mu' must be a scalar or one value per phase")
+        if is_concrete(self.mu) and not np.all(np.isfinite(self.mu) & (np.asarray(self.mu) >= 0)):
+            raise ValueError(f"tool {self.name!r}: field 'mu' must be finite and >= 0, got {self.mu}")
+
+    @property
+    def force_driven(self) -> bool:
+        """Static: whether any phase drives this tool by a force (it then owns an extra unknown)."""
+        return any(isinstance(c, Force) for c in self.controls)
+
+
+class Penalty(eqx.Module):
+    """Penalty regularisation of contact and friction (spec 1.5): eps_n, eps_t in N/mm per mm."""
+
+    eps_n: jax.Array
+    eps_t: jax.Array
+
+    def __init__(self, eps_n, eps_t):
+        for name, v in (("eps_n", eps_n), ("eps_t", eps_t)):
+            check_nonnegative(name, v)
+        self.eps_n = jnp.asarray(eps_n, jnp.float64)
+        self.eps_t = jnp.asarray(eps_t, jnp.float64)
+
+    def __check_init__(self):
+        if is_concrete(self.eps_n) and not float(self.eps_n) > 0:
+            raise ValueError(f"field 'eps_n' must be > 0, got {float(self.eps_n)}")
+
+
+class ContactState(eqx.Module):
+    """Contact history and outputs after a converged step (m pairs, n_t tools).
+
+    Attributes:
+        q: (n_t,) tool positions along e_q from rest (mm).
+        q_start, f_start: (n_t,) position and clamping force at the start of the current phase.
+        force: (n_t,) clamping force sum_a e_q . f_c,a (N/mm).
+        rn, rt: (m,) normal and tangential forces (N/mm); rt is R_T,n of the next step.
+        zeta: (m,) arc-length coordinate of each node's projection (tool frame, mm).
+        gap: (m,) normal gap (mm; GAP_OPEN when the node projects on no primitive).
+        normal: (m, 2) tool normal at the projection.
+        status: (m,) int8 0 open, 1 stick, 2 slip.
+    """
+
+    q: jax.Array
+    q_start: jax.Array
+    f_start: jax.Array
+    force: jax.Array
+    rn: jax.Array
+    rt: jax.Array
+    zeta: jax.Array
+    gap: jax.Array
+    normal: jax.Array
+    status: jax.Array
+
+
+class ContactStep(eqx.Module):
+    """Everything the contact terms of one load step depend on (differentiable data)."""
+
+    tools: tuple
+    law: Penalty
+    mu: tuple            # per tool, () coefficient of this phase
+    rt_prev: tuple       # per tool, (n_k,) R_T,n
+    u_prev: tuple        # per tool, (n_k, 2) displacements of the candidates at the last converged step
+    q_prev: jax.Array    # (n_t,) tool positions at the last converged step
+    q_presc: jax.Array   # (n_t,) prescribed positions (used where not force-driven)
+    force: jax.Array     # (n_t,) prescribed forces (used where force-driven)
+    force_mask: jax.Array  # (n_t,) bool: force-driven in this phase
+
+
+class PairResult(NamedTuple):
+    """Per tool: forces on the sheet and their derivatives at every candidate pair."""
+
+    f: jax.Array          # (n_k, 2) force on the sheet
+    df_dx: jax.Array      # (n_k, 2, 2) d f / d x_node
+    df_dq: jax.Array      # (n_k, 2) d f / d q
+    rn: jax.Array
+    rt: jax.Array
+    status: jax.Array
+    gap: jax.Array
+    zeta: jax.Array
+    normal: jax.Array
+
+
+def _pair(tool: RigidTool, law: Penalty, frictional: bool, X, u, q, mu, rt_prev, u_prev, q_prev):
+    # Relative motion of node and tool since the last converged step; the slip is the change of zeta it
+    # causes, computed from the increment itself (round-off, see jaxfric.tools.project).
+    increment = (u - u_prev) - (q - q_prev) * tool.drive
+    proj = project(tool.geometry, X, q_prev * tool.drive, displacement=u_prev, increment=increment)
+    if frictional:
+        force = augmented_pair(proj.gap, proj.zeta_increment, 0.0, rt_prev, mu, law.eps_n, law.eps_t,
+                               proj.valid)
+    else:  # static: a frictionless tool builds no tangential term at all
+        force = augmented_pair(proj.gap, 0.0, 0.0, 0.0, 0.0, law.eps_n, 0.0, proj.valid)
+    f = force.normal * proj.normal + force.tangential * proj.tangent
+    return f, (force.normal, force.tangential, force.status, proj.gap, proj.zeta, proj.normal)
+
+
+def evaluate_pairs(step: ContactStep, nodes_ref: jax.Array, u: jax.Array, q: jax.Array,
+                   jacobian: bool) -> list:
+    """Forces (and with ``jacobian`` their derivatives) of every pair, tool by tool.
+
+    Args:
+        step: the contact data of this step.
+        nodes_ref, u: (n_nodes, 2) reference node positions and displacements (mm), kept apart for an
+            accurate gap (see :func:`jaxfric.tools.project`).
+        q: (n_t,) current tool positions (mm).
+    """
+    out = []
+    for k, tool in enumerate(step.tools):  # static loop: tools differ in structure
+        idx = np.asarray(tool.candidates)
+
+        def one(u_a, qk, X_a, rt_prev, u_prev, tool=tool, k=k):
+            f, aux = _pair(tool, step.law, tool.frictional, X_a, u_a, qk, step.mu[k], rt_prev, u_prev,
+                           step.q_prev[k])
+            return f, (f, aux)
+
+        args = (u[idx], q[k], nodes_ref[idx], step.rt_prev[k], step.u_prev[k])
+        axes = (0, None, 0, 0, 0)
+        if jacobian:  # d f / d x_node = d f / d u_node
+            (dfdx, dfdq), (f, aux) = jax.vmap(jax.jacfwd(one, argnums=(0, 1), has_aux=True), axes)(*args)
+        else:
+            f, aux = jax.vmap(lambda *a: one(*a)[1], axes)(*args)
+            dfdx = dfdq = None
+        out.append(PairResult(f, dfdx, dfdq, *aux))
+    return out
+
+
+def tool_forces(step: ContactStep, pairs: list) -> jax.Array:
+    """(n_t,) clamping force of every tool: sum over its pairs of e_q . f_c (N/mm)."""
+    return jnp.stack([jnp.sum(p.f @ tool.drive) for tool, p in zip(step.tools, pairs)])
+
+
+def initial_contact_state(tools, nodes: jax.Array) -> ContactState:
+    """Tools at rest, no force; zeta of every candidate's projection in the reference configuration."""
+    n_t = len(tools)
+    zeros_t = jnp.zeros(n_t)
+    zetas, gaps, normals = [], [], []
+    for tool in tools:
+        proj = jax.vmap(project, in_axes=(None, 0, None))(tool.geometry, nodes[np.asarray(tool.candidates)],
+                                                          jnp.zeros(2))
+        zetas.append(proj.zeta)
+        gaps.append(proj.gap)
+        normals.append(proj.normal)
+    zeta = jnp.concatenate(zetas)
+    m = zeta.shape[0]
+    return ContactState(q=zeros_t, q_start=zeros_t, f_start=zeros_t, force=zeros_t, rn=jnp.zeros(m),
+                        rt=jnp.zeros(m), zeta=zeta, gap=jnp.concatenate(gaps),
+                        normal=jnp.concatenate(normals), status=jnp.full(m, OPEN, jnp.int8))
+
+
+def split_pairs(tools, values):
+    """Split a per-pair array (m, ...) into per-tool pieces."""
+    sizes = np.cumsum([len(t.candidates) for t in tools])[:-1]
+    return tuple(jnp.split(values, sizes))
+

@@ -1,0 +1,73 @@
+"""Frictional contact laws for ONE node-to-rigid-surface pair (vmapped outward by the assembly).
+
+Penalty (benchmarks spec 1.5, paper eq. 19) and augmented Lagrangian (spec 1.6, eq. 20) share one
+law: with multipliers (lambda_N, lambda_T) frozen during a Newton solve,
+
+    R_N    = < lambda_N - eps_N g_N >                     (<x> = max(x, 0))
+    R_T^tr = lambda_T - eps_T s                           (stick predictor; s: slip since the reference)
+    R_T    = R_T^tr                  if |R_T^tr| <  mu R_N   (stick)
+           = mu R_N sign(R_T^tr)     otherwise               (slip: return to the Coulomb limit)
+
+Penalty is the case lambda_N = 0, lambda_T = R_T,n (converged tangential force of the last step) and s
+the slip since the last converged step (Wriggers, *Computational Contact Mechanics*, 2006, ch. 5;
+Laursen, *Computational Contact and Impact Mechanics*, 2002, ch. 5). Forces are nodal (per unit
+out-of-plane width, N/mm); eps_N, eps_T in N/mm per mm.
+
+Kinks are decided once, here, with explicit ``where`` branches (never a tie-averaging max/clip):
+- a pair with R_N^tr = lambda_N - eps_N g_N = 0 exactly counts as closed (spec 0: a tool that starts
+  exactly touching gives a non-singular first iteration);
+- |R_T^tr| = mu R_N counts as slip; with mu R_N = 0 the slip branch gives R_T = 0 and a zero
+  tangential stiffness, so a frictionless or just-touching pair never gets a spurious stick stiffness.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["OPEN", "STICK", "SLIP", "PairForce", "augmented_pair", "penalty_pair", "status_of"]
+
+OPEN, STICK, SLIP = 0, 1, 2
+
+
+class PairForce(NamedTuple):
+    normal: jax.Array       # () R_N >= 0 (N/mm)
+    tangential: jax.Array   # () R_T along t (N/mm)
+    status: jax.Array       # () int8: OPEN, STICK or SLIP (the branch the law took)
+
+
+def augmented_pair(gap, slip, lambda_n, lambda_t, mu, eps_n, eps_t, valid=True) -> PairForce:
+    """The augmented-Lagrangian pair law (penalty when lambda_n = 0, lambda_t = R_T,n).
+
+    Args:
+        gap: () normal gap g_N (mm), negative when penetrating.
+        slip: () tangential slip s since the multipliers' reference configuration (mm), along t.
+        lambda_n, lambda_t: () frozen multipliers (N/mm).
+        mu: () friction coefficient.
+        eps_n, eps_t: () normal and tangential penalties (N/mm per mm).
+        valid: () bool, False when the node projects on no tool primitive (the pair is open).
+    """
+    rn_trial = lambda_n - eps_n * gap
+    closed = valid & (rn_trial >= 0.0)
+    rn = jnp.where(closed, rn_trial, 0.0)
+    rt_trial = jnp.where(closed, lambda_t - eps_t * slip, 0.0)
+    limit = mu * rn
+    stick = jnp.abs(rt_trial) < limit
+    rt = jnp.where(stick, rt_trial, limit * jnp.sign(rt_trial))
+    status = jnp.where(closed, jnp.where(stick, STICK, SLIP), OPEN).astype(jnp.int8)
+    return PairForce(rn, rt, status)
+
+
+def penalty_pair(gap, slip, rt_prev, mu, eps_n, eps_t, valid=True) -> PairForce:
+    """The penalty pair law: ``augmented_pair`` with lambda_N = 0 and lambda_T = R_T,n."""
+    return augmented_pair(gap, slip, jnp.zeros_like(gap), rt_prev, mu, eps_n, eps_t, valid)
+
+
+def status_of(rn, rt, mu) -> jax.Array:
+    """Contact status from forces by the spec's thresholds (spec 0): 0 open (R_N <= 1e-9 N/mm),
+    1 stick (|R_T| < (1 - 1e-6) mu R_N), 2 slip otherwise (closed frictionless pairs slip)."""
+    closed = rn > 1e-9
+    stick = jnp.abs(rt) < (1.0 - 1e-6) * mu * rn
+    return jnp.where(closed, jnp.where(stick, STICK, SLIP), OPEN).astype(jnp.int8)

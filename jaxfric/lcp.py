@@ -1,0 +1,749 @@
+"""Exact complementarity for node-to-rigid contact: the contact LCP, Lemke, and semismooth Newton.
+
+Benchmarks spec sections 1.7 (LCP of the linearised problem) and 1.8 (force-driven tools).
+
+The problem. At a Newton iterate the bulk operators, condensed on the ``n_c`` candidate nodes and
+rotated into their local (n, t) frames, give
+
+    K* du_c = r* + p,        du_c, p: (2 n_c,), per candidate (normal, tangential)
+
+with ``p = (R_N, R_T)`` the contact forces on the sheet (N/mm) and ``du_c`` the displacement
+increments (mm). The linearised kinematics are ``g_N = g_N^i + du_N`` and ``s = s^i + du_T``
+(gap and step slip, mm). The contact law is Signorini and 2D Coulomb (spec 1.4):
+
+    g_N >= 0,  R_N >= 0,  g_N R_N = 0,
+    |R_T| <= mu R_N,   |R_T| < mu R_N => s = 0,   s != 0 => R_T = -mu R_N sign(s).
+
+Two solvers of the same problem, which must agree (spec 1.7: "(a) and (b) give the same contact
+forces and displacements to solver tolerance"):
+
+* :func:`lemke` on the LCP of :func:`contact_lcp` (NumPy, host side; the reference). Lemke's
+  complementary pivoting (Lemke 1965; Cottle, Pang & Stone, *The Linear Complementarity Problem*,
+  1992, sections 4.4 and 4.9) with covering vector e = 1 and the lexicographic minimum ratio test.
+* :func:`ssn_contact`: Alart-Curnier nonsmooth equations (Alart & Curnier 1991) solved by the
+  primal-dual active-set form of semismooth Newton (Hintermueller, Ito & Kunisch 2002), in JAX
+  (``jit``, ``vmap``, one ``lax.while_loop``).
+
+What is unique. For K* positive definite (not necessarily symmetric) and mu small enough for the
+incremental problem to have one solution, ``du_c`` and ``p`` (and the tool increments ``dq``) are
+unique. The LCP multipliers are not: on an open candidate R_N = 0 forces R_T = 0, so phi+ = phi- = 0
+and only ``lambda- - lambda+ = s`` is fixed; on a closed frictionless candidate the same holds.
+Compare solutions through :func:`contact_solution`, never through ``z``.
+
+Force-driven tools (spec 1.8). ``n_q`` tools whose positions q_k are unknown get one extra LCP row
+and column each; see :class:`ForceDrive` for the equations.
+
+Units: lengths mm, forces N/mm (per unit width), stiffness N/mm per mm.
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from ._checks import is_concrete
+
+__all__ = [
+    "ForceDrive",
+    "LemkeStatus",
+    "LemkeResult",
+    "LemkeContactResult",
+    "SSNResult",
+    "ContactStatus",
+    "lemke",
+    "lemke_callback",
+    "contact_lcp",
+    "contact_solution",
+    "lemke_contact",
+    "ssn_contact",
+    "contact_status",
+    "OPEN_FORCE",
+    "STICK_MARGIN",
+]
+
+OPEN_FORCE = 1e-9      # N/mm: R_N at or below this is "open" (spec section 0)
+STICK_MARGIN = 1e-6    # |R_T| < (1 - STICK_MARGIN) mu R_N is "stick" (spec section 0)
+DEFAULT_SHIFT = 1e3    # mm: alpha of spec 1.8, larger than any tool increment |dq|
+_NOISE = 1e-12         # relative round-off scale of Lemke's basic values (ties within it)
+
+
+# --------------------------------------------------------------------------------------------
+# Force-driven tools
+# --------------------------------------------------------------------------------------------
+
+
+class ForceDrive(eqx.Module):
+    """Force-driven tools of the condensed contact problem (spec 1.8).
+
+    Tool k moves by ``dq_k`` (mm) along its closing direction e_q,k. The candidates it touches
+    see it in their kinematics, and its equilibrium along e_q,k is one extra equation:
+
+        g_N,a = g_N,a^i + du_N,a - sum_k (e_q,k . n_a) dq_k
+        s_a   = s_a^i   + du_T,a - sum_k (e_q,k . t_a) dq_k
+        r_q,k = sum_a [(e_q,k . n_a) R_N,a + (e_q,k . t_a) R_T,a] - P_k = 0
+
+    In matrix form, with ``C = coupling`` (2 n_c, n_q): ``(g_N, s) = (g^i, s^i) + du_c - C dq``
+    and ``C^T p = P``. The same matrix is the kinematic column and the equilibrium row, because
+    both are projections on e_q (the tool's virtual work ``dq . C^T p``); the bordered system
+    stays symmetric whenever K* is.
+
+    Attributes:
+        coupling: (2 n_c, n_q), ordered like K* (normal, tangential per candidate):
+            ``coupling[2a, k] = e_q,k . n_a`` and ``coupling[2a + 1, k] = e_q,k . t_a`` when
+            candidate a belongs to tool k, 0 otherwise. Dimensionless.
+        force: (n_q,) prescribed closing forces P_k >= 0, N/mm.
+        shift: alpha, mm. The LCP pairs the tool row with ``z_q = dq + alpha``, which must stay
+            > 0 so that complementarity forces the equality ``r_q = 0``; alpha must exceed any
+            |dq| (default 1e3 mm, spec 1.8). Not used by :func:`ssn_contact`.
+    """
+
+    coupling: jax.Array
+    force: jax.Array
+    shift: float = DEFAULT_SHIFT
+
+    def __check_init__(self):
+        if jnp.ndim(self.coupling) != 2 or jnp.shape(self.coupling)[0] % 2:
+            raise ValueError(f"ForceDrive field 'coupling' must have shape (2 n_c, n_q), "
+                             f"got {jnp.shape(self.coupling)}")
+        if jnp.shape(self.force) != (jnp.shape(self.coupling)[1],):
+            raise ValueError(f"ForceDrive field 'force' must have shape (n_q,) = "
+                             f"({jnp.shape(self.coupling)[1]},), got {jnp.shape(self.force)}")
+        if is_concrete(self.shift) and not float(self.shift) > 0.0:
+            raise ValueError(f"ForceDrive field 'shift' must be > 0 mm, got {self.shift}")
+
+    @classmethod
+    def single(cls, e_dot_n, e_dot_t, force, shift: float = DEFAULT_SHIFT) -> "ForceDrive":
+        """One tool: ``e_dot_n``, ``e_dot_t`` (n_c,) are e_q . n_a and e_q . t_a (0 for the
+        candidates of other tools), ``force`` the scalar P (N/mm)."""
+        e_dot_n, e_dot_t = jnp.asarray(e_dot_n), jnp.asarray(e_dot_t)
+        coupling = jnp.stack([e_dot_n, e_dot_t], axis=-1).reshape(-1, 1)
+        return cls(coupling=coupling, force=jnp.reshape(jnp.asarray(force, coupling.dtype), (1,)),
+                   shift=shift)
+
+    @property
+    def num_tools(self) -> int:
+        """n_q (static)."""
+        return self.coupling.shape[1]
+
+    def increment(self, z: jax.Array) -> jax.Array:
+        """Tool increments ``dq = z_q - alpha`` (n_q,) from an LCP solution of size 3 n_c + n_q."""
+        return z[z.shape[0] - self.num_tools:] - self.shift
+
+
+def _coupling(drive: ForceDrive | None, n_c: int, dtype):
+    """(C, P): the coupling matrix (2 n_c, n_q) and forces (n_q,); empty when no tool is force-driven."""
+    if drive is None:
+        return jnp.zeros((2 * n_c, 0), dtype), jnp.zeros((0,), dtype)
+    if drive.coupling.shape[0] != 2 * n_c:
+        raise ValueError(f"ForceDrive.coupling has {drive.coupling.shape[0]} rows, expected 2 n_c = {2 * n_c}")
+    return jnp.asarray(drive.coupling, dtype), jnp.asarray(drive.force, dtype)
+
+
+# --------------------------------------------------------------------------------------------
+# The contact LCP (spec 1.7 steps 2-6, 1.8)
+# --------------------------------------------------------------------------------------------
+
+
+def _interleave(normal: jax.Array, tangential: jax.Array) -> jax.Array:
+    """(n_c,), (n_c,) -> (2 n_c,) in K* order (normal, tangential per candidate)."""
+    return jnp.stack([normal, tangential], axis=-1).reshape(-1)
+
+
+def _check_shapes(K_star, r_star, gap, slip, mu=None):
+    n_c = jnp.shape(gap)[0]
+    want = {"K_star": (2 * n_c, 2 * n_c), "r_star": (2 * n_c,), "slip": (n_c,)}
+    if mu is not None:
+        want["mu"] = (n_c,)
+    got = {"K_star": jnp.shape(K_star), "r_star": jnp.shape(r_star), "slip": jnp.shape(slip)}
+    if mu is not None:
+        got["mu"] = jnp.shape(mu)
+    for name, shape in want.items():
+        if got[name] != shape:
+            raise ValueError(f"'{name}' must have shape {shape} for n_c = {n_c} candidates, got {got[name]}")
+    if mu is not None and is_concrete(mu) and np.any(np.asarray(mu) < 0):
+        raise ValueError("friction coefficients 'mu' must be >= 0")
+    return n_c
+
+
+def _facet_matrix(mu: jax.Array) -> jax.Array:
+    """A per candidate, (n_c, 3, 2): rows (R_N, phi+, phi-) = [[1, 0], [mu, -1], [mu, 1]] (R_N, R_T)."""
+    one, zero = jnp.ones_like(mu), jnp.zeros_like(mu)
+    return jnp.stack([jnp.stack([one, zero], -1), jnp.stack([mu, -one], -1), jnp.stack([mu, one], -1)], -2)
+
+
+# B per candidate: du = (g_N, lambda-  - lambda+) + d0, i.e. (du_N, du_T) = B (g_N, lambda+, lambda-) + d0.
+_B = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0]])
+
+
+def contact_lcp(K_star, r_star, gap, slip, mu, drive: ForceDrive | None = None):
+    """The LCP ``w = M z + q, z >= 0, w >= 0, z.w = 0`` of the linearised contact problem.
+
+    Per candidate (spec 1.7), ``z = (g_N, lambda+, lambda-)`` and ``w = (R_N, phi+, phi-)`` with
+    ``phi+- = mu R_N -+ R_T`` and ``s = lambda- - lambda+``, so that
+
+        du_c = B z + d0,    p = K* du_c - r*,    w = A p,
+        M = A K* B,         q = A (K* d0 - r*),
+
+    ``A = [[1, 0], [mu, -1], [mu, 1]]``, ``B = [[1, 0, 0], [0, -1, 1]]``, ``d0 = (-g_N^i, -s^i)``.
+
+    With a :class:`ForceDrive` (spec 1.8) the unknowns gain ``z_q = dq + alpha`` (n_q,) and the
+    rows gain ``w_q = C^T p - P``; with ``d0' = d0 - alpha C 1``:
+
+        du_c = B z + C z_q + d0',
+        M = [[A K* B, A K* C], [C^T K* B, C^T K* C]],
+        q = [A (K* d0' - r*), C^T (K* d0' - r*) - P].
+
+    Args:
+        K_star: (2 n_c, 2 n_c) condensed stiffness in the (n, t) frames, N/mm per mm.
+        r_star: (2 n_c,) condensed residual, N/mm.
+        gap: (n_c,) normal gaps g_N^i at the iterate (negative: penetration), mm.
+        slip: (n_c,) step slips s^i at the iterate, mm.
+        mu: (n_c,) friction coefficients >= 0.
+        drive: force-driven tools, or None.
+
+    Returns:
+        (M, q): shapes (3 n_c + n_q, 3 n_c + n_q) and (3 n_c + n_q,).
+    """
+    n_c = _check_shapes(K_star, r_star, gap, slip, mu)
+    K_star, r_star = jnp.asarray(K_star), jnp.asarray(r_star)
+    dtype = K_star.dtype
+    C, P = _coupling(drive, n_c, dtype)
+    A = _facet_matrix(jnp.asarray(mu, dtype))                         # (n_c, 3, 2)
+    B = jnp.asarray(_B, dtype)
+    d0 = -_interleave(jnp.asarray(gap, dtype), jnp.asarray(slip, dtype))
+    if drive is not None:
+        d0 = d0 - drive.shift * jnp.sum(C, axis=1)
+
+    K4 = K_star.reshape(n_c, 2, n_c, 2)
+    AK = jnp.einsum("iab,ibjc->iajc", A, K4)                          # A K*, (n_c, 3, n_c, 2)
+    M = jnp.einsum("iajc,cd->iajd", AK, B).reshape(3 * n_c, 3 * n_c)
+    f0 = K_star @ d0 - r_star                                         # p at z = 0
+    q = jnp.einsum("iab,ib->ia", A, f0.reshape(n_c, 2)).reshape(-1)
+    if drive is None:
+        return M, q
+    AKC = AK.reshape(3 * n_c, 2 * n_c) @ C                            # (3 n_c, n_q)
+    KB = jnp.einsum("iajc,cd->iajd", K4, B).reshape(2 * n_c, 3 * n_c)  # K* B
+    M = jnp.block([[M, AKC], [C.T @ KB, C.T @ K_star @ C]])
+    q = jnp.concatenate([q, C.T @ f0 - P])
+    return M, q
+
+
+def contact_solution(K_star, r_star, gap, slip, z, drive: ForceDrive | None = None):
+    """Displacements and forces from an LCP solution (spec 1.7 step 6): the unique parts.
+
+    ``du_c = B z + d0 (+ C dq)``, ``p = K* du_c - r*``.
+
+    Args:
+        K_star, r_star, gap, slip, drive: as for :func:`contact_lcp`.
+        z: (3 n_c + n_q,) LCP solution.
+
+    Returns:
+        (du_c, p): (2 n_c,) displacement increments (mm) and contact forces (R_N, R_T) on the
+        sheet (N/mm). The tool increments are ``drive.increment(z)``.
+    """
+    n_c = _check_shapes(K_star, r_star, gap, slip)
+    K_star = jnp.asarray(K_star)
+    z = jnp.asarray(z, K_star.dtype)
+    zc = z[: 3 * n_c].reshape(n_c, 3)
+    du = jnp.einsum("ab,ib->ia", jnp.asarray(_B, K_star.dtype), zc).reshape(-1)
+    du = du - _interleave(jnp.asarray(gap, K_star.dtype), jnp.asarray(slip, K_star.dtype))
+    if drive is not None:
+        C, _ = _coupling(drive, n_c, K_star.dtype)
+        du = du + C @ drive.increment(z)
+    return du, K_star @ du - jnp.asarray(r_star, K_star.dtype)
+
+
+# --------------------------------------------------------------------------------------------
+# Lemke's algorithm (NumPy reference)
+# --------------------------------------------------------------------------------------------
+
+
+class LemkeStatus(enum.IntEnum):
+    SOLVED = 0
+    RAY = 1               # ray termination: no blocking variable (infeasible, or not processable)
+    MAX_PIVOTS = 2        # pivot budget exhausted
+    SHIFT_TOO_SMALL = 3   # lemke_contact only: z_q = 0, the tool shift alpha is smaller than |dq|
+
+
+class LemkeResult(NamedTuple):
+    z: np.ndarray     # (n,) z >= 0
+    w: np.ndarray     # (n,) M z + q, recomputed from z
+    pivots: int       # pivots performed, the initial z0 pivot included
+    status: int       # LemkeStatus
+
+
+def _tie_tolerance(ratio: np.ndarray) -> float:
+    # Ties are judged with a relative tolerance: the exact ties of a degenerate problem (zero
+    # gaps, frictionless rows phi+ = -phi-, mu = 1) arrive with round-off differences.
+    return 1e-12 * max(float(np.max(np.abs(ratio))), np.finfo(float).tiny)
+
+
+def _min_ratio_rows(T: np.ndarray, col: int, pivot_tol: float, noise: np.ndarray) -> np.ndarray:
+    """Rows that tie for the minimum ratio ``x_i / d_i`` over the pivots ``d_i > pivot_tol max|d|``.
+
+    ``noise`` (n,) bounds the round-off in the basic values x. Two ratios tie when they differ by
+    less than their combined noise: the exact ties of the contact LCP (an open candidate has
+    ``w = z0 (1, 1, 1)``, so its three rows reach 0 together with z0) arrive with round-off
+    differences, which the large entries of q from a force-driven tool's shift (alpha K* C) make
+    much larger than the last digit of x.
+    """
+    d = T[:, col]
+    rows = np.flatnonzero(d > pivot_tol * np.max(np.abs(d)))
+    if rows.size == 0:
+        return rows
+    ratio = T[rows, -1] / d[rows]
+    slack = noise[rows] / d[rows]
+    k = np.argmin(ratio)
+    return rows[ratio - ratio[k] <= slack + slack[k] + 1e-15 * abs(ratio[k])]
+
+
+def _lexmin(T: np.ndarray, col: int, rows: np.ndarray, n: int) -> int:
+    """The lexicographic minimum among tied ``rows``: ``(B^-1)_{i, j} / d_i`` for j = 1..n in turn.
+
+    The first n tableau columns hold B^-1. The rows of ``[x, B^-1]`` then stay lexicographically
+    positive, every pivot decreases them strictly, and cycling is excluded (Cottle-Pang-Stone 4.9).
+    """
+    d = T[:, col]
+    for j in range(n):
+        if rows.size == 1:
+            break
+        ratio = T[rows, j] / d[rows]
+        rows = rows[ratio <= np.min(ratio) + _tie_tolerance(ratio)]
+    return int(rows[0])
+
+
+def _leads_to_ray(T: np.ndarray, row: int, col: int, next_col: int, pivot_tol: float) -> bool:
+    """Whether, after pivoting on (row, col), the column ``next_col`` has no admissible pivot."""
+    a = T[:, next_col]
+    new = a - T[:, col] * (a[row] / T[row, col])
+    new[row] = a[row] / T[row, col]
+    return not np.any(new > pivot_tol * np.max(np.abs(new)))
+
+
+def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12) -> LemkeResult:
+    """Solve the LCP ``w = M z + q, z >= 0, w >= 0, z.w = 0`` by Lemke's complementary pivoting.
+
+    Lemke (1965), "Bimatrix equilibrium points and mathematical programming"; Cottle, Pang &
+    Stone (1992), Algorithm 4.4.5 with the lexicographic rule of section 4.9. The augmented
+    system ``w = M z + q + e z0`` (covering vector e = 1) starts from the basis of all w with
+    ``z0 = -min q``; each pivot brings in the complement of the variable that just left, until
+    z0 leaves (solution), no variable blocks (ray termination) or ``max_pivots`` is reached.
+
+    Processability. Lemke solves any feasible LCP with a copositive-plus M (e.g. positive
+    semidefinite). The frictional contact LCP is not copositive, but for K* positive definite and
+    mu < 1 a secondary ray is impossible: a ray (z_r, t) would give ``du_r = B z_r`` with
+    ``du_r . K* du_r <= 0`` (each pair contributes ``-t g_r`` or ``-(l+ + l-)(mu R_N + t) <= 0``),
+    hence ``du_r = 0``, and the only remaining direction ``lambda+ = lambda-`` needs
+    ``phi+ = phi- = 0`` with z0 > 0, i.e. ``mu R_N + z0 = 0`` and ``R_N + z0 >= 0``, which
+    requires mu >= 1. Ray termination therefore signals an infeasible problem (or mu >= 1).
+
+    Degeneracy (open candidates, mu = 0, zero gaps, q with zero entries) is handled by the
+    lexicographic ratio test. The final basic values are recomputed by one LU solve of the
+    basis against the original data, so round-off of the Gauss-Jordan pivots does not
+    accumulate into the answer.
+
+    Pure function of arrays (NumPy, float64), suitable for ``jax.pure_callback``
+    (see :func:`lemke_callback`).
+
+    Args:
+        M: (n, n) matrix.
+        q: (n,) vector.
+        max_pivots: pivot budget; default 50 n.
+        pivot_tol: relative pivot tolerance: a pivot must exceed ``pivot_tol`` times the largest
+            entry of the entering column.
+
+    Returns:
+        :class:`LemkeResult` ``(z, w, pivots, status)``. On failure z is the last basic point
+        with z0 dropped (not a solution).
+    """
+    M = np.asarray(M, dtype=np.float64)
+    q = np.asarray(q, dtype=np.float64).reshape(-1)
+    n = q.size
+    if M.shape != (n, n):
+        raise ValueError(f"M must have shape ({n}, {n}), got {M.shape}")
+    if max_pivots is None:
+        max_pivots = 50 * n
+    if np.all(q >= 0.0):
+        return LemkeResult(np.zeros(n), q.copy(), 0, int(LemkeStatus.SOLVED))
+
+    # Tableau of  I w - M z - e z0 = q  ; columns: w (0..n-1), z (n..2n-1), z0 (2n), rhs (2n+1).
+    # The w columns hold B^-1 of the current basis: the initial basis is the identity.
+    z0 = 2 * n
+    T = np.hstack([np.eye(n), -M, -np.ones((n, 1)), q[:, None]])
+    basis = np.arange(n)                         # variable index basic in each row
+
+    def pivot(row, col):
+        T[row] /= T[row, col]
+        factor = T[:, col].copy()
+        factor[row] = 0.0
+        T[...] -= np.outer(factor, T[row])
+        basis[row] = col
+
+    # First pivot: z0 enters at -min q, and a row of the most negative q leaves.
+    row = _first_leaving_row(q)
+    leaving = basis[row]
+    pivot(row, z0)
+    pivots = 1
+    entering = _complement(int(leaving), n)
+    status = LemkeStatus.MAX_PIVOTS
+    while pivots < max_pivots:
+        # Round-off scale of the basic values x = B^-1 q: the size of the terms that cancel in
+        # the product (with a safety factor of about 1e4 on the unit round-off).
+        noise = _NOISE * (np.abs(T[:, :n]) @ np.abs(q) + np.abs(T[:, -1]))
+        ties = _min_ratio_rows(T, entering, pivot_tol, noise)
+        if ties.size == 0:
+            status = LemkeStatus.RAY
+            break
+        row = _choose_row(T, basis, entering, ties, n, pivot_tol)
+        leaving = basis[row]
+        pivot(row, entering)
+        pivots += 1
+        if leaving == z0:
+            status = LemkeStatus.SOLVED
+            break
+        entering = _complement(int(leaving), n)
+
+    values = _basic_values(M, q, basis, T[:, -1])
+    z = np.zeros(n)
+    in_z = (basis >= n) & (basis < 2 * n)
+    z[basis[in_z] - n] = values[in_z]
+    if status == LemkeStatus.SOLVED:
+        # Basic values that should be >= 0 can come back as -1e-17 after the refinement.
+        z = np.maximum(z, 0.0)
+    return LemkeResult(z, M @ z + q, pivots, int(status))
+
+
+def _complement(var: int, n: int) -> int:
+    return var + n if var < n else var - n
+
+
+def _choose_row(T, basis, entering, ties, n, pivot_tol) -> int:
+    """Leaving row among the rows ``ties`` that block first.
+
+    z0 leaves if it is among them (that ends the algorithm). Otherwise the lexicographic rule,
+    with one look-ahead on degenerate ties: a tied row whose leaving variable's complement would
+    find no pivot (a ray at the next pivot) is passed over for the next row in lexicographic order.
+    This matters for the contact LCP, whose columns of lambda+ and lambda- are opposite: at a
+    degenerate vertex with phi+ = phi- = 0 (mu = 1 exactly, where R_N + z0 = 0 ties with phi-),
+    bringing in lambda- while lambda+ is basic moves along the null direction lambda+ = lambda-
+    and ends in a ray although the problem is solvable; the other tied row continues the path.
+    """
+    z0 = 2 * n
+    if ties.size == 1:
+        return int(ties[0])
+    in_ties = basis[ties] == z0
+    if np.any(in_ties):
+        return int(ties[in_ties][0])
+    remaining = ties
+    first = None
+    while remaining.size:
+        row = _lexmin(T, entering, remaining, n)
+        first = row if first is None else first
+        if not _leads_to_ray(T, row, entering, _complement(int(basis[row]), n), pivot_tol):
+            return row
+        remaining = remaining[remaining != row]
+    return first
+
+
+def _first_leaving_row(q: np.ndarray) -> int:
+    """Row leaving when z0 enters (the z0 column is -e): one of argmin q.
+
+    After pivoting on row r, a tied row i becomes ``(q_i - q_r, e_i - e_r) = (0, e_i - e_r)``
+    in ``[x, B^-1]``; it is lexicographically positive iff i < r. So the lexicographic rule takes
+    the largest index among the (round-off) ties.
+    """
+    rows = np.flatnonzero(q <= np.min(q) + 1e-12 * np.max(np.abs(q)))
+    return int(rows[-1])
+
+
+def _basic_values(M, q, basis, fallback):
+    """Values of the basic variables from ``B x_B = q`` with the original columns (I, -M, -e)."""
+    n = q.size
+    cols = np.empty((n, n))
+    for k, var in enumerate(basis):
+        if var < n:
+            cols[:, k] = np.eye(n)[:, var]
+        elif var < 2 * n:
+            cols[:, k] = -M[:, var - n]
+        else:
+            cols[:, k] = -1.0
+    try:
+        return np.linalg.solve(cols, q)
+    except np.linalg.LinAlgError:
+        return fallback.copy()
+
+
+def lemke_callback(M: jax.Array, q: jax.Array, *, max_pivots: int | None = None,
+                   pivot_tol: float = 1e-12) -> LemkeResult:
+    """:func:`lemke` called from inside ``jit`` through ``jax.pure_callback`` (``vmap`` runs it
+    once per batch element). Not differentiable; returns a :class:`LemkeResult` of arrays."""
+    n = q.shape[-1]
+
+    def host(M, q):
+        res = lemke(M, q, max_pivots=max_pivots, pivot_tol=pivot_tol)
+        return (res.z.astype(q.dtype), res.w.astype(q.dtype), np.int32(res.pivots), np.int32(res.status))
+
+    shapes = (jax.ShapeDtypeStruct((n,), q.dtype), jax.ShapeDtypeStruct((n,), q.dtype),
+              jax.ShapeDtypeStruct((), jnp.int32), jax.ShapeDtypeStruct((), jnp.int32))
+    return LemkeResult(*jax.pure_callback(host, shapes, M, q, vmap_method="sequential"))
+
+
+class LemkeContactResult(NamedTuple):
+    du_c: np.ndarray   # (2 n_c,) displacement increments of the candidates (n, t frames), mm
+    p: np.ndarray      # (2 n_c,) contact forces (R_N, R_T) on the sheet, N/mm
+    dq: np.ndarray     # (n_q,) increments of the force-driven tools, mm (empty without tools)
+    z: np.ndarray      # (3 n_c + n_q,) LCP solution (multipliers not unique; see module doc)
+    pivots: int
+    status: int        # LemkeStatus
+
+
+def lemke_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = None,
+                  max_pivots: int | None = None, pivot_tol: float = 1e-12) -> LemkeContactResult:
+    """Solve the linearised contact problem by Lemke (``lcp_lemke`` of spec 1.7), on the host.
+
+    Builds the LCP with :func:`contact_lcp`, solves it with :func:`lemke` and recovers
+    ``(du_c, p)`` with :func:`contact_solution`. Arguments as for :func:`contact_lcp`; the default
+    pivot budget is 50 (3 n_c + n_q).
+    """
+    M, q = contact_lcp(K_star, r_star, gap, slip, mu, drive)
+    res = lemke(np.asarray(M), np.asarray(q), max_pivots=max_pivots, pivot_tol=pivot_tol)
+    du_c, p = contact_solution(K_star, r_star, gap, slip, res.z, drive)
+    status = res.status
+    dq = np.zeros(0)
+    if drive is not None:
+        dq = np.asarray(drive.increment(jnp.asarray(res.z)))
+        if status == LemkeStatus.SOLVED and np.any(dq + float(drive.shift) <= 0.0):
+            status = int(LemkeStatus.SHIFT_TOO_SMALL)
+    return LemkeContactResult(np.asarray(du_c), np.asarray(p), dq, res.z, res.pivots, status)
+
+
+# --------------------------------------------------------------------------------------------
+# Semismooth Newton on the Alart-Curnier equations
+# --------------------------------------------------------------------------------------------
+
+
+class SSNResult(NamedTuple):
+    du_c: jax.Array        # (2 n_c,) displacement increments of the candidates, mm
+    p: jax.Array           # (2 n_c,) contact forces (R_N, R_T) on the sheet, N/mm
+    iterations: jax.Array  # () int32: linear solves performed
+    converged: jax.Array   # () bool
+    dq: jax.Array          # (n_q,) increments of the force-driven tools, mm (empty without tools)
+
+
+# Active-set labels of one candidate inside the Newton iteration. The slip direction is part of
+# the label: a change of sign is a change of the linear piece.
+_OPEN, _STICK, _SLIP_POS, _SLIP_NEG = 0, 1, 2, 3
+
+
+def _alart_curnier(R_N, R_T, g, s, mu, c_n, c_t):
+    """Active set and residual ``(C_N, C_T)`` of the Alart-Curnier equations, per candidate."""
+    sig_n = R_N - c_n * g
+    sig_t = R_T - c_t * s
+    bound = mu * jnp.maximum(sig_n, 0.0)
+    C_N = R_N - jnp.maximum(sig_n, 0.0)
+    C_T = R_T - jnp.clip(sig_t, -bound, bound)
+    state = jnp.where(sig_n <= 0.0, _OPEN,
+                      jnp.where(jnp.abs(sig_t) < bound, _STICK,
+                                jnp.where(sig_t >= 0.0, _SLIP_POS, _SLIP_NEG)))
+    return state.astype(jnp.int32), jnp.stack([C_N, C_T], axis=-1), sig_n
+
+
+def _piece(state, mu, c_n, c_t):
+    """Generalised Jacobian of (C_N, C_T) on the linear piece ``state``: C = W_F p + W_K (g, s).
+
+    open:   C = (R_N, R_T)                                W_F = I,  W_K = 0
+    stick:  C = (c_N g, c_T s)                            W_F = 0,  W_K = diag(c_N, c_T)
+    slip:   C = (c_N g, R_T - mu xi (R_N - c_N g))        W_F = [[0, 0], [-mu xi, 1]],
+                                                          W_K = [[c_N, 0], [mu xi c_N, 0]]
+    with xi = sign(sigma_T). Returns W_F, W_K of shape (n_c, 2, 2).
+    """
+    one, zero = jnp.ones_like(mu), jnp.zeros_like(mu)
+    xi = jnp.where(state == _SLIP_NEG, -1.0, 1.0)
+    is_open, is_stick = state == _OPEN, state == _STICK
+    is_slip = ~is_open & ~is_stick
+    w_f = jnp.stack([jnp.stack([jnp.where(is_open, one, zero), zero], -1),
+                     jnp.stack([jnp.where(is_slip, -mu * xi, zero), jnp.where(is_stick, zero, one)], -1)], -2)
+    closed = jnp.where(is_open, zero, c_n * one)
+    w_k = jnp.stack([jnp.stack([closed, zero], -1),
+                     jnp.stack([jnp.where(is_slip, mu * xi * c_n, zero), jnp.where(is_stick, c_t * one, zero)],
+                               -1)], -2)
+    return w_f, w_k
+
+
+def _keep_tools_touching(state, sig_n, e_dot_n):
+    """Close (in stick) the candidate of largest sigma_N of every force-driven tool left with no
+    closed candidate.
+
+    With all its candidates open, a tool's row ``C^T p = P`` does not involve dq and the Newton
+    matrix is singular. At a solution with P > 0 some candidate of the tool carries force, so this
+    only steers the iteration; the convergence test uses the unmodified classification.
+    ``e_dot_n`` (n_c, n_q) holds e_q . n per candidate and tool.
+    """
+    mine = e_dot_n > 0.0
+    touching = jnp.any(mine & (state != _OPEN)[:, None], axis=0)
+    nearest = jnp.argmax(jnp.where(mine, sig_n[:, None], -jnp.inf), axis=0)
+    need = ~touching & jnp.any(mine, axis=0)
+    return state.at[nearest].set(jnp.where(need, _STICK, state[nearest]))
+
+
+def _block_diag(blocks: jax.Array) -> jax.Array:
+    """(n_c, 2, 2) -> (2 n_c, 2 n_c) block-diagonal matrix."""
+    n_c = blocks.shape[0]
+    i = jnp.arange(n_c)
+    dense = jnp.zeros((n_c, 2, n_c, 2), blocks.dtype).at[i, :, i, :].set(blocks)
+    return dense.reshape(2 * n_c, 2 * n_c)
+
+
+def ssn_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = None, c_n=None, c_t=None,
+                max_iter: int = 50, tol: float = 1e-10) -> SSNResult:
+    """Solve the linearised contact problem by semismooth Newton (``lcp_ssn`` of spec 1.7).
+
+    Unknowns ``du_c`` (2 n_c,) and ``dq`` (n_q,), with ``p = K* du_c - r*``,
+    ``(g_N, s) = (g_N^i, s^i) + du_c - C dq``. Equations, per candidate (Alart & Curnier 1991):
+
+        sigma_N = R_N - c_N g_N,        sigma_T = R_T - c_T s,
+        C_N = R_N - max(0, sigma_N) = 0,
+        C_T = R_T - clip(sigma_T, -mu max(0, sigma_N), +mu max(0, sigma_N)) = 0,
+
+    and, per force-driven tool, the ordinary equality ``C^T p - P = 0`` (spec 1.8).
+
+    C = 0 is exactly the Signorini-Coulomb law: C_N = 0 is ``R_N = max(0, R_N - c_N g_N)``,
+    i.e. the complementarity of (g_N, R_N); C_T = 0 projects R_T on [-mu R_N, mu R_N] and
+    forces s = 0 inside, s opposite to R_T on the boundary. Hence the solution is that of the
+    LCP for any c_N, c_T > 0.
+
+    Method: primal-dual active sets (Hintermueller, Ito & Kunisch 2002), which is semismooth
+    Newton for these piecewise-linear equations. Each candidate is classified from the current
+    sigma's as open, stick or slip (with the slip direction); on that piece C is linear, and the
+    Newton step solves it exactly, so each iteration is one dense solve of size 2 n_c + n_q:
+
+        [W_F K* + W_K, -W_K C] [du]   [W_F r* + W_K d0]
+        [C^T K*,            0] [dq] = [P + C^T r*     ]      d0 = -(g^i, s^i).
+
+    The iteration stops when the classification of the new iterate equals the one that produced
+    it (then C = 0 exactly, up to round-off) or when ``|C|_inf <= tol * scale``, which covers
+    candidates sitting on a kink (sigma_N = 0 with g_N = R_N = 0) whose label may flip. The first
+    classification follows the closed-at-zero-gap rule (spec section 0): candidates with
+    g_N^i <= 0 start closed in stick, the others open.
+
+    Why Alart-Curnier rather than Fischer-Burmeister: (i) the max/clip equations are piecewise
+    linear, so the Newton step lands exactly on the solution of its piece: the iteration is a
+    finite active-set method, not a merely superlinear one, and it returns the LCP solution to
+    round-off, where the smoothed FB function only approaches it; (ii) its solution does not depend
+    on c_N, c_T, which only steer the classification; (iii) the Jacobian is the bulk stiffness with
+    rows swapped for kinematic constraints, and the same labels give the open/stick/slip status the
+    spec asks for. FB is smooth away from (0, 0) but mixes each pair into a nonlinear function,
+    needs a line search for global convergence, and has no natural 2D Coulomb form with the slip
+    direction.
+
+    Args:
+        K_star, r_star, gap, slip, mu, drive: as for :func:`contact_lcp`.
+        c_n, c_t: Alart-Curnier parameters (N/mm per mm), scalar or (n_c,); default the mean
+            diagonal entry of K*.
+        max_iter: linear solves allowed (static). If the active set has not settled by then,
+            ``converged`` is False and the caller falls back to Lemke (spec 1.7).
+        tol: relative residual test, ``|C|_inf <= tol * max(|r*|, |p|, c_N |g^i|, c_T |s^i|, |P|)``.
+
+    Returns:
+        :class:`SSNResult` ``(du_c, p, iterations, converged, dq)``. Non-finite iterates (e.g. a
+        force-driven tool whose candidates are all open, which leaves dq undetermined) stop the
+        iteration with ``converged = False``.
+    """
+    n_c = _check_shapes(K_star, r_star, gap, slip, mu)
+    K_star = jnp.asarray(K_star)
+    dtype = K_star.dtype
+    r_star, gap, slip, mu = (jnp.asarray(a, dtype) for a in (r_star, gap, slip, mu))
+    C, P = _coupling(drive, n_c, dtype)
+    n_q = C.shape[1]
+    mean_diag = jnp.mean(jnp.diagonal(K_star))
+    c_n = mean_diag if c_n is None else jnp.asarray(c_n, dtype)
+    c_t = mean_diag if c_t is None else jnp.asarray(c_t, dtype)
+    c_n, c_t = jnp.broadcast_to(c_n, (n_c,)), jnp.broadcast_to(c_t, (n_c,))
+    d0 = -_interleave(gap, slip)
+    scale = jnp.max(jnp.concatenate([jnp.abs(r_star), c_n * jnp.abs(gap), c_t * jnp.abs(slip), jnp.abs(P),
+                                     jnp.array([jnp.finfo(dtype).tiny], dtype)]))
+
+    def split(x):
+        return x[: 2 * n_c], x[2 * n_c:]
+
+    def classify(x):
+        du, dq = split(x)
+        p = (K_star @ du - r_star).reshape(n_c, 2)
+        kin = (du - C @ dq - d0).reshape(n_c, 2)
+        state, res, sig_n = _alart_curnier(p[:, 0], p[:, 1], kin[:, 0], kin[:, 1], mu, c_n, c_t)
+        res_norm = jnp.max(jnp.abs(res))
+        if n_q:
+            res_norm = jnp.maximum(res_norm, jnp.max(jnp.abs(C.T @ p.reshape(-1) - P)))
+        return state, res_norm, jnp.max(jnp.abs(p)), sig_n
+
+    def newton_step(state):
+        w_f, w_k = _piece(state, mu, c_n, c_t)
+        K3 = K_star.reshape(n_c, 2, 2 * n_c)
+        top = jnp.einsum("iab,ibj->iaj", w_f, K3).reshape(2 * n_c, 2 * n_c) + _block_diag(w_k)
+        rhs_top = (jnp.einsum("iab,ib->ia", w_f, r_star.reshape(n_c, 2))
+                   + jnp.einsum("iab,ib->ia", w_k, d0.reshape(n_c, 2))).reshape(-1)
+        if n_q == 0:
+            return jnp.linalg.solve(top, rhs_top)
+        top_right = -_block_diag(w_k) @ C
+        # A bordered system of n_q extra rows: solved densely here, as K* is dense after condensation.
+        J = jnp.block([[top, top_right], [C.T @ K_star, jnp.zeros((n_q, n_q), dtype)]])
+        return jnp.linalg.solve(J, jnp.concatenate([rhs_top, P + C.T @ r_star]))
+
+    def cond(carry):
+        k, _, _, done, _ = carry
+        return ~done & (k < max_iter)
+
+    def next_state(state, sig_n):
+        return _keep_tools_touching(state, sig_n, C[0::2]) if n_q else state
+
+    def body(carry):
+        k, _, state, _, _ = carry
+        x = newton_step(state)
+        new_state, res_norm, p_norm, sig_n = classify(x)
+        finite = jnp.all(jnp.isfinite(x))
+        settled = jnp.all(new_state == state) | (res_norm <= tol * jnp.maximum(scale, p_norm))
+        return k + 1, x, next_state(new_state, sig_n), settled | ~finite, settled & finite
+
+    x0 = jnp.zeros(2 * n_c + n_q, dtype)
+    state0 = jnp.where(gap <= 0.0, _STICK, _OPEN).astype(jnp.int32)
+    state0 = next_state(state0, classify(x0)[3])
+    carry0 = (jnp.array(0, jnp.int32), x0, state0, jnp.array(False), jnp.array(False))
+    k, x, _, _, converged = lax.while_loop(cond, body, carry0)
+    du, dq = split(x)
+    return SSNResult(du, K_star @ du - r_star, k, converged, dq)
+
+
+# --------------------------------------------------------------------------------------------
+# Contact status (spec section 0)
+# --------------------------------------------------------------------------------------------
+
+
+class ContactStatus(enum.IntEnum):
+    OPEN = 0
+    STICK = 1
+    SLIP = 2   # includes closed frictionless pairs
+
+
+def contact_status(p, mu) -> jax.Array:
+    """Status of each candidate from its forces (spec section 0).
+
+    open if ``R_N <= 1e-9`` N/mm; else stick if ``|R_T| < (1 - 1e-6) mu R_N``; else slip.
+
+    Args:
+        p: (2 n_c,) forces (R_N, R_T) per candidate, N/mm.
+        mu: (n_c,) friction coefficients.
+
+    Returns:
+        (n_c,) int32 :class:`ContactStatus` codes.
+    """
+    p = jnp.asarray(p).reshape(-1, 2)
+    R_N, R_T = p[:, 0], p[:, 1]
+    stick = jnp.abs(R_T) < (1.0 - STICK_MARGIN) * jnp.asarray(mu, p.dtype) * R_N
+    return jnp.where(R_N <= OPEN_FORCE, ContactStatus.OPEN,
+                     jnp.where(stick, ContactStatus.STICK, ContactStatus.SLIP)).astype(jnp.int32)
