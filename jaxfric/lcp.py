@@ -71,6 +71,9 @@ OPEN_FORCE = 1e-9      # N/mm: R_N at or below this is "open" (spec section 0)
 STICK_MARGIN = 1e-6    # |R_T| < (1 - STICK_MARGIN) mu R_N is "stick" (spec section 0)
 DEFAULT_SHIFT = 1e3    # mm: alpha of spec 1.8, larger than any tool increment |dq|
 _NOISE = 1e-12         # relative round-off scale of Lemke's basic values (ties within it)
+_MEMORY = 5            # semismooth Newton: iterates in the non-monotone line search reference
+_ARMIJO = 1e-4         # sufficient decrease factor
+_MIN_STEP = 2.0**-30   # smallest step before the line search gives up
 
 
 # --------------------------------------------------------------------------------------------
@@ -550,7 +553,8 @@ def _alart_curnier(R_N, R_T, g, s, mu, c_n, c_t):
     C_T = R_T - jnp.clip(sig_t, -bound, bound)
     state = jnp.where(sig_n <= 0.0, _OPEN,
                       jnp.where(jnp.abs(sig_t) < bound, _STICK,
-                                jnp.where(sig_t >= 0.0, _SLIP_POS, _SLIP_NEG)))
+                                # Without friction the slip direction plays no part.
+                                jnp.where((sig_t >= 0.0) | (mu == 0.0), _SLIP_POS, _SLIP_NEG)))
     return state.astype(jnp.int32), jnp.stack([C_N, C_T], axis=-1), sig_n
 
 
@@ -615,45 +619,52 @@ def ssn_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = Non
 
     C = 0 is exactly the Signorini-Coulomb law: C_N = 0 is ``R_N = max(0, R_N - c_N g_N)``,
     i.e. the complementarity of (g_N, R_N); C_T = 0 projects R_T on [-mu R_N, mu R_N] and
-    forces s = 0 inside, s opposite to R_T on the boundary. Hence the solution is that of the
-    LCP for any c_N, c_T > 0.
+    forces s = 0 inside, s opposite to R_T on the boundary. Hence the solutions are those of
+    the LCP, for any c_N, c_T > 0.
 
     Method: primal-dual active sets (Hintermueller, Ito & Kunisch 2002), which is semismooth
     Newton for these piecewise-linear equations. Each candidate is classified from the current
-    sigma's as open, stick or slip (with the slip direction); on that piece C is linear, and the
-    Newton step solves it exactly, so each iteration is one dense solve of size 2 n_c + n_q:
+    sigma's as open, stick or slip (with the slip direction); on that piece C is affine, and the
+    Newton step solves it exactly, one dense solve of size 2 n_c + n_q per iteration:
 
         [W_F K* + W_K, -W_K C] [du]   [W_F r* + W_K d0]
-        [C^T K*,            0] [dq] = [P + C^T r*     ]      d0 = -(g^i, s^i).
+        [C^T K*,            0] [dq] = [P + C^T r*     ]      d0 = -(g^i, s^i),
 
-    The iteration stops when the classification of the new iterate equals the one that produced
-    it (then C = 0 exactly, up to round-off) or when ``|C|_inf <= tol * scale``, which covers
-    candidates sitting on a kink (sigma_N = 0 with g_N = R_N = 0) whose label may flip. The first
-    classification follows the closed-at-zero-gap rule (spec section 0): candidates with
-    g_N^i <= 0 start closed in stick, the others open.
+    with ``C = W_F p + W_K (g, s)`` on the piece (see ``_piece``). The first classification
+    follows the closed-at-zero-gap rule (spec section 0): g_N^i <= 0 starts closed in stick.
+
+    Globalisation. Plain active-set iterations can cycle when K* is not an M-matrix, which a
+    condensed sheet stiffness never is (bending couples neighbouring normals with both signs):
+    on a clamped strip 1/3 of random problems cycled. The step is therefore accepted by a
+    non-monotone Armijo test on ``theta = |C|^2 (+ |C^T p - P|^2)`` against the largest theta of
+    the last 5 iterates (Grippo, Lampariello & Lucidi 1986), halving it otherwise. Near the
+    solution the full step passes, so the iteration still ends exactly on the solution's piece.
+
+    Stopping: converged when a full step leaves the classification unchanged (then C = 0 up to
+    round-off), or when ``|C|_inf <= tol * max(|r*|, |p|, c_N |g^i|, c_T |s^i|, |P|)``, which
+    covers candidates on a kink (g_N = R_N = 0) whose label may flip.
 
     Why Alart-Curnier rather than Fischer-Burmeister: (i) the max/clip equations are piecewise
-    linear, so the Newton step lands exactly on the solution of its piece: the iteration is a
-    finite active-set method, not a merely superlinear one, and it returns the LCP solution to
-    round-off, where the smoothed FB function only approaches it; (ii) its solution does not depend
-    on c_N, c_T, which only steer the classification; (iii) the Jacobian is the bulk stiffness with
-    rows swapped for kinematic constraints, and the same labels give the open/stick/slip status the
-    spec asks for. FB is smooth away from (0, 0) but mixes each pair into a nonlinear function,
-    needs a line search for global convergence, and has no natural 2D Coulomb form with the slip
-    direction.
+    linear, so a full Newton step lands exactly on the solution of its piece: the iteration is a
+    finite active-set method that returns the LCP solution to round-off, where the smooth FB
+    function only approaches it superlinearly; (ii) its solution does not depend on c_N, c_T,
+    which only steer the classification; (iii) its Jacobian is the bulk stiffness with rows
+    swapped for kinematic constraints, and its labels are the open/stick/slip status of the
+    spec. FB mixes each complementary pair into a nonlinear function, is degenerate where both
+    members vanish (open candidates: R_N = phi+- = 0) and has no direct form for the 2D Coulomb
+    law with a slip direction.
 
     Args:
         K_star, r_star, gap, slip, mu, drive: as for :func:`contact_lcp`.
         c_n, c_t: Alart-Curnier parameters (N/mm per mm), scalar or (n_c,); default the mean
-            diagonal entry of K*.
-        max_iter: linear solves allowed (static). If the active set has not settled by then,
-            ``converged`` is False and the caller falls back to Lemke (spec 1.7).
-        tol: relative residual test, ``|C|_inf <= tol * max(|r*|, |p|, c_N |g^i|, c_T |s^i|, |P|)``.
+            diagonal entry of K* (spec 1.7).
+        max_iter: linear solves allowed (static). If not converged by then, ``converged`` is
+            False and the caller falls back to Lemke (spec 1.7).
+        tol: relative residual test, see above.
 
     Returns:
-        :class:`SSNResult` ``(du_c, p, iterations, converged, dq)``. Non-finite iterates (e.g. a
-        force-driven tool whose candidates are all open, which leaves dq undetermined) stop the
-        iteration with ``converged = False``.
+        :class:`SSNResult` ``(du_c, p, iterations, converged, dq)``. A failed line search or a
+        non-finite iterate also ends the iteration with ``converged = False``.
     """
     n_c = _check_shapes(K_star, r_star, gap, slip, mu)
     K_star = jnp.asarray(K_star)
@@ -669,20 +680,18 @@ def ssn_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = Non
     scale = jnp.max(jnp.concatenate([jnp.abs(r_star), c_n * jnp.abs(gap), c_t * jnp.abs(slip), jnp.abs(P),
                                      jnp.array([jnp.finfo(dtype).tiny], dtype)]))
 
-    def split(x):
-        return x[: 2 * n_c], x[2 * n_c:]
-
-    def classify(x):
-        du, dq = split(x)
-        p = (K_star @ du - r_star).reshape(n_c, 2)
+    def evaluate(x):
+        """Classification, merit theta, |residual|_inf, |p|_inf and sigma_N at x = (du, dq)."""
+        du, dq = x[: 2 * n_c], x[2 * n_c:]
+        p = K_star @ du - r_star
         kin = (du - C @ dq - d0).reshape(n_c, 2)
-        state, res, sig_n = _alart_curnier(p[:, 0], p[:, 1], kin[:, 0], kin[:, 1], mu, c_n, c_t)
-        res_norm = jnp.max(jnp.abs(res))
-        if n_q:
-            res_norm = jnp.maximum(res_norm, jnp.max(jnp.abs(C.T @ p.reshape(-1) - P)))
-        return state, res_norm, jnp.max(jnp.abs(p)), sig_n
+        p2 = p.reshape(n_c, 2)
+        state, res, sig_n = _alart_curnier(p2[:, 0], p2[:, 1], kin[:, 0], kin[:, 1], mu, c_n, c_t)
+        res = jnp.concatenate([res.reshape(-1), C.T @ p - P])
+        return state, jnp.sum(res * res), jnp.max(jnp.abs(res)), jnp.max(jnp.abs(p)), sig_n
 
-    def newton_step(state):
+    def newton_point(state):
+        """The solution of the equations linearised on the piece ``state``."""
         w_f, w_k = _piece(state, mu, c_n, c_t)
         K3 = K_star.reshape(n_c, 2, 2 * n_c)
         top = jnp.einsum("iab,ibj->iaj", w_f, K3).reshape(2 * n_c, 2 * n_c) + _block_diag(w_k)
@@ -690,32 +699,56 @@ def ssn_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = Non
                    + jnp.einsum("iab,ib->ia", w_k, d0.reshape(n_c, 2))).reshape(-1)
         if n_q == 0:
             return jnp.linalg.solve(top, rhs_top)
-        top_right = -_block_diag(w_k) @ C
-        # A bordered system of n_q extra rows: solved densely here, as K* is dense after condensation.
-        J = jnp.block([[top, top_right], [C.T @ K_star, jnp.zeros((n_q, n_q), dtype)]])
+        # n_q bordering rows, solved densely: K* is dense after condensation anyway.
+        J = jnp.block([[top, -_block_diag(w_k) @ C], [C.T @ K_star, jnp.zeros((n_q, n_q), dtype)]])
         return jnp.linalg.solve(J, jnp.concatenate([rhs_top, P + C.T @ r_star]))
-
-    def cond(carry):
-        k, _, _, done, _ = carry
-        return ~done & (k < max_iter)
 
     def next_state(state, sig_n):
         return _keep_tools_touching(state, sig_n, C[0::2]) if n_q else state
 
+    def line_search(x, x_full, theta, theta_ref):
+        """Largest t = 2^-j with theta(x + t d) <= theta_ref - 2 sigma t theta (non-monotone Armijo)."""
+
+        def accept(t, theta_t):
+            return theta_t <= theta_ref - 2.0 * _ARMIJO * t * theta
+
+        def cond(c):
+            t, theta_t = c
+            return ~accept(t, theta_t) & (t >= _MIN_STEP)
+
+        def body(c):
+            t = 0.5 * c[0]
+            return t, evaluate(x + t * (x_full - x))[1]
+
+        t, _ = lax.while_loop(cond, body, (jnp.array(1.0, dtype), evaluate(x_full)[1]))
+        return t
+
+    def cond(carry):
+        k, done = carry[0], carry[4]
+        return ~done & (k < max_iter)
+
     def body(carry):
-        k, _, state, _, _ = carry
-        x = newton_step(state)
-        new_state, res_norm, p_norm, sig_n = classify(x)
+        k, x, state, thetas, _, _ = carry
+        x_full = newton_point(state)
+        # The first step is taken in full: x0 = 0 is a guess, not an iterate; only its
+        # classification (from the gaps) is used.
+        t = line_search(x, x_full, thetas[-1], jnp.where(k == 0, jnp.inf, jnp.max(thetas)))
+        x = jnp.where(t == 1.0, x_full, x + t * (x_full - x))
+        new_state, theta, res_norm, p_norm, sig_n = evaluate(x)
         finite = jnp.all(jnp.isfinite(x))
-        settled = jnp.all(new_state == state) | (res_norm <= tol * jnp.maximum(scale, p_norm))
-        return k + 1, x, next_state(new_state, sig_n), settled | ~finite, settled & finite
+        exact = (t == 1.0) & jnp.all(new_state == state)
+        settled = finite & (exact | (res_norm <= tol * jnp.maximum(scale, p_norm)))
+        failed = ~finite | (t < _MIN_STEP)
+        thetas = jnp.concatenate([thetas[1:], theta[None]])
+        return k + 1, x, next_state(new_state, sig_n), thetas, settled | failed, settled
 
     x0 = jnp.zeros(2 * n_c + n_q, dtype)
-    state0 = jnp.where(gap <= 0.0, _STICK, _OPEN).astype(jnp.int32)
-    state0 = next_state(state0, classify(x0)[3])
-    carry0 = (jnp.array(0, jnp.int32), x0, state0, jnp.array(False), jnp.array(False))
-    k, x, _, _, converged = lax.while_loop(cond, body, carry0)
-    du, dq = split(x)
+    _, theta0, _, _, sig_n0 = evaluate(x0)
+    state0 = next_state(jnp.where(gap <= 0.0, _STICK, _OPEN).astype(jnp.int32), sig_n0)
+    thetas0 = jnp.full(_MEMORY, -jnp.inf, dtype).at[-1].set(theta0)
+    carry0 = (jnp.array(0, jnp.int32), x0, state0, thetas0, jnp.array(False), jnp.array(False))
+    k, x, _, _, _, converged = lax.while_loop(cond, body, carry0)
+    du, dq = x[: 2 * n_c], x[2 * n_c:]
     return SSNResult(du, K_star @ du - r_star, k, converged, dq)
 
 

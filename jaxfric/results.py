@@ -15,6 +15,7 @@ class Result(enum.IntEnum):
     INVERTED_ELEMENT = 3   # det F <= 0 at a Gauss point or an element centroid
     MAX_STEPS = 4          # the history buffer is full before the end of the load path
     DIVERGED = 5           # the residual grew by orders of magnitude
+    AUGMENTATIONS = 6      # the augmented Lagrangian did not reach its target gap
 
 
 _ADVICE = {
@@ -28,6 +29,8 @@ _ADVICE = {
     Result.MAX_STEPS: "the history buffer is full before the end of the load path; raise "
                       "StepControl.max_steps",
     Result.DIVERGED: "the Newton residual diverged; reduce the nominal step",
+    Result.AUGMENTATIONS: "the augmented Lagrangian needed more augmentations than allowed to reach its "
+                          "target gap; raise eps_n, the target_gap or max_augmentations, or reduce the step",
 }
 
 

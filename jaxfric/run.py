@@ -98,6 +98,7 @@ def _to_host(model, sim: Simulation, monitor, compile_s, wall_s) -> RunResult:
         "phase_name": np.array([model.phases[int(p)].name for p in np.asarray(h.phase[:n])]),
         "newton_iters": np.asarray(h.newton_iters[:n]),
         "cutbacks": np.asarray(h.cutbacks[:n]),
+        "augmentations": np.asarray(h.augmentations[:n]),
     }
     if monitor is not None:
         history["wall_s"] = monitor.step_wall_times(n)

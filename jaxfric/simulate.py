@@ -18,7 +18,7 @@ the loading path. Failures are result codes; :func:`jaxfric.run.run` turns them 
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import equinox as eqx
 import jax
@@ -27,9 +27,9 @@ import numpy as np
 
 from .assembly import internal_force, internal_force_and_tangent, mesh_geometry
 from .element import FORMULATIONS, ElementGeometry
-from .contact import (ContactState, ContactStep, Force, Move, Penalty, evaluate_pairs,
+from .contact import (AugmentedLagrangian, ContactState, ContactStep, Force, Move, Penalty, evaluate_pairs,
                       initial_contact_state, split_pairs, tool_forces)
-from .contact_laws import SLIP
+from .contact_laws import SLIP, STICK
 from .linalg import BlockTridiag, Bordered
 from .loading import Phase, constraint_masks, prescribed_values, schedule
 from .material import J2Material
@@ -134,7 +134,7 @@ class History(eqx.Module):
     """Per-step records in preallocated buffers; rows 0..n_rows-1 are filled (row 0: initial state).
 
     Attributes:
-        time, phase, newton_iters, cutbacks: (S,) per row.
+        time, phase, newton_iters, cutbacks, augmentations: (S,) per row.
         observed: pytree of per-row observations, leading axis S.
         n_rows: () number of filled rows.
     """
@@ -143,6 +143,7 @@ class History(eqx.Module):
     phase: jax.Array
     newton_iters: jax.Array
     cutbacks: jax.Array
+    augmentations: jax.Array
     observed: object
     n_rows: jax.Array
 
@@ -255,7 +256,7 @@ def _contact_terms(args: _StepArgs, u, qf, jacobian: bool):
 def _contact_out(q, pairs, tool_f):
     cat = lambda name: jnp.concatenate([getattr(p, name) for p in pairs])  # noqa: E731
     return dict(q=q, force=tool_f, rn=cat("rn"), rt=cat("rt"), zeta=cat("zeta"), gap=cat("gap"),
-                normal=cat("normal"), status=cat("status"))
+                normal=cat("normal"), status=cat("status"), slip=cat("slip"))
 
 
 def _evaluate(x, args: _StepArgs, jacobian: bool):
@@ -364,16 +365,79 @@ def _contact_step(model: StripModel, state: SimState, phase, tau, law) -> tuple:
     force_mask = np.array([[isinstance(t.controls[p], Force) for t in model.tools]
                            for p in range(model.n_phases)])
     mu_now = tuple(t.mu[phase] for t in model.tools)
-    rt_prev = []
-    for k, (tool, rt) in enumerate(zip(model.tools, split_pairs(model.tools, c.rt))):
+    lam_t = []
+    for tool, rt in zip(model.tools, split_pairs(model.tools, c.rt)):
         # R_T,n restarts from 0 at a phase boundary where the tool's mu changes (spec 1.5).
         reset = new_phase & (tool.mu[phase] != tool.mu[state.phase])
-        rt_prev.append(jnp.where(reset, 0.0, rt))
-    step = ContactStep(tools=model.tools, law=law, mu=mu_now, rt_prev=tuple(rt_prev),
-                       u_prev=tuple(state.u[np.asarray(t.candidates)] for t in model.tools), q_prev=c.q,
-                       q_presc=jnp.stack(q_table)[phase],
+        lam_t.append(jnp.where(reset, 0.0, rt))
+    # Penalty: lambda_N = 0. Augmented Lagrangian: warm start from the last converged R_N (spec 1.6).
+    lam_n = split_pairs(model.tools, c.rn if isinstance(law, AugmentedLagrangian) else jnp.zeros_like(c.rn))
+    step = ContactStep(tools=model.tools, law=law, mu=mu_now, lam_n=lam_n, lam_t=tuple(lam_t),
+                       u_ref=_candidates(model, state.u), q_ref=c.q, q_presc=jnp.stack(q_table)[phase],
                        force=jnp.stack(f_table)[phase], force_mask=jnp.asarray(force_mask)[phase])
     return step, q_start, f_start
+
+
+def _candidates(model: StripModel, u: jax.Array) -> tuple:
+    """Per tool, the displacements (n_k, 2) of its candidate nodes."""
+    return tuple(u[np.asarray(t.candidates)] for t in model.tools)
+
+
+class StepSolution(NamedTuple):
+    """Outcome of one load-step attempt: the Newton solution(s) summed over AL augmentations."""
+
+    x: jax.Array
+    aux: object
+    iterations: jax.Array       # () Newton iterations, all augmentations included
+    code: jax.Array             # () Result
+    residual_norm: jax.Array
+    residual_history: jax.Array  # of the last Newton solve
+    augmentations: jax.Array    # () AL augmentations (0 for the penalty method)
+
+
+def _max_penetration(contact_out: dict) -> jax.Array:
+    return jnp.max(jnp.where(contact_out["status"] > 0, jnp.maximum(-contact_out["gap"], 0.0), 0.0))
+
+
+def _constraint_error(contact_out: dict) -> jax.Array:
+    """AL acceptance measure: largest penetration, and largest slip of a sticking pair (mm)."""
+    stick_slip = jnp.where(contact_out["status"] == STICK, jnp.abs(contact_out["slip"]), 0.0)
+    return jnp.maximum(_max_penetration(contact_out), jnp.max(stick_slip))
+
+
+def _augment(model: StripModel, args: "_StepArgs", sol, x_ref, newton: NewtonOptions) -> StepSolution:
+    """Augmented Lagrangian loop (spec 1.6): while the step's largest penetration or stick slip exceeds
+    the target, set lambda <- R and solve again (Uzawa iteration).
+
+    The slip reference stays at the start of the step. Resetting it at each augmentation, as the spec
+    words it, makes the tangential update telescope: R_T^(K) = lambda_T^(0) - eps_T (sum of the slips of
+    all augmentations) = R_T,n - eps_T (slip since the step start), which is the penalty law itself,
+    so the stick error could never fall below R_T / eps_t. With a fixed reference, a converged sticking
+    pair has exactly zero slip over the step and the multiplier carries the whole stick force.
+    """
+    law = model.contact
+
+    def solve(lam_n, lam_t, x0):
+        step = eqx.tree_at(lambda c: (c.lam_n, c.lam_t), args.contact, (lam_n, lam_t))
+        return newton_solve(eqx.tree_at(lambda a: a.contact, args, step), x0, x_ref,
+                            linearize=_linearize, residual=_residual, options=newton)
+
+    def pending(c):
+        sol, n_aug, _ = c
+        return (sol.code == Result.SUCCESS) & (_constraint_error(sol.aux[2]) > law.target_gap)
+
+    def body(c):
+        sol, n_aug, iters = c
+        out = sol.aux[2]
+        new = solve(split_pairs(model.tools, out["rn"]), split_pairs(model.tools, out["rt"]), sol.x)
+        # After the last allowed augmentation the target must be met, or the attempt fails.
+        exhausted = (n_aug + 1 >= law.max_augmentations) & (new.code == Result.SUCCESS) & (
+            _constraint_error(new.aux[2]) > law.target_gap)
+        code = jnp.where(exhausted, Result.AUGMENTATIONS, new.code).astype(jnp.int32)
+        return new._replace(code=code), n_aug + 1, iters + new.iterations
+
+    sol, n_aug, iters = jax.lax.while_loop(pending, body, (sol, jnp.array(0, jnp.int32), sol.iterations))
+    return StepSolution(sol.x, sol.aux, iters, sol.code, sol.residual_norm, sol.residual_history, n_aug)
 
 
 def solve_step(model: StripModel, state: SimState, phase, t_target,
@@ -382,7 +446,7 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
 
     ``guess`` is Newton's initial point ``(u (n_nodes, 2), q (n_tools,))`` (default: the last state).
 
-    Returns the :class:`~jaxfric.newton.NewtonSolution` (iterations, code, residual history) and the
+    Returns the :class:`StepSolution` (iterations, code, residual history, AL augmentations) and the
     new :class:`SimState` (meaningful only when ``solution.code == Result.SUCCESS``).
     """
     ctx = _Context.build(model) if ctx is None else ctx
@@ -405,10 +469,15 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
         q0 = q_guess[np.asarray(force_idx)] if force_idx else jnp.zeros(0)
         x0 = jnp.concatenate([u_guess.reshape(-1), q0])
     sol = newton_solve(args, x0, x_ref, linearize=_linearize, residual=_residual, options=newton)
+    if isinstance(model.contact, AugmentedLagrangian):
+        sol = _augment(model, args, sol, x_ref, newton)
+    else:
+        sol = StepSolution(*sol, augmentations=jnp.array(0, jnp.int32))
     f_int, states, c_out = sol.aux
     new_contact = None
     if model.tools:
-        new_contact = ContactState(q_start=q_start, f_start=f_start, **c_out)
+        kept = {k: v for k, v in c_out.items() if k != "slip"}  # slip is a per-attempt measure only
+        new_contact = ContactState(q_start=q_start, f_start=f_start, **kept)
     new_state = SimState(u=sol.x[: model.mesh.n_dofs].reshape(-1, 2), material=states, f_int=f_int,
                          time=t_target, phase=phase, contact=new_contact)
     return sol, new_state
@@ -425,16 +494,18 @@ def _empty_history(n: int, row0: dict) -> History:
 
     return History(time=jnp.zeros(n), phase=jnp.zeros(n, jnp.int32),
                    newton_iters=jnp.zeros(n, jnp.int32), cutbacks=jnp.zeros(n, jnp.int32),
+                   augmentations=jnp.zeros(n, jnp.int32),
                    observed=jax.tree_util.tree_map(buffer, row0), n_rows=jnp.array(1, jnp.int32))
 
 
-def _record(h: History, row, pred, state: SimState, iters, cuts, observed) -> History:
+def _record(h: History, row, pred, state: SimState, iters, cuts, augmentations, observed) -> History:
     """Write row ``row`` when ``pred``; leave the buffers unchanged otherwise."""
     def put(buf, value):
         return buf.at[row].set(jnp.where(pred, value, buf[row]))
 
     return History(time=put(h.time, state.time), phase=put(h.phase, state.phase),
                    newton_iters=put(h.newton_iters, iters), cutbacks=put(h.cutbacks, cuts),
+                   augmentations=put(h.augmentations, augmentations),
                    observed=jax.tree_util.tree_map(put, h.observed, observed),
                    n_rows=jnp.where(pred, row + 1, h.n_rows))
 
@@ -515,7 +586,8 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
         ok = sol.code == Result.SUCCESS
         iters = c.iters + sol.iterations
         row = c.history.n_rows
-        history = _record(c.history, row, ok, new_state, iters, c.cuts, observe(model, new_state))
+        history = _record(c.history, row, ok, new_state, iters, c.cuts, sol.augmentations,
+                          observe(model, new_state))
 
         seg_done = ok & (t_try == end)
         next_seg = jnp.minimum(c.seg + seg_done.astype(jnp.int32), n_seg - 1)
@@ -572,7 +644,7 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
         ok = alive & (sol.code == Result.SUCCESS)
         row = hist.n_rows
         hist = _record(hist, row, ok, new_state, sol.iterations, jnp.array(0, jnp.int32),
-                       observe(model, new_state))
+                       sol.augmentations, observe(model, new_state))
         if progress:
             jax.lax.cond(ok, lambda: jax.debug.callback(report, row, t, sol.iterations, 0), lambda: None)
         code = jnp.where(alive & ~ok, sol.code, code).astype(jnp.int32)

@@ -52,3 +52,25 @@ def end_moment(result, mesh):
     y = mesh.nodes[nodes, 1] - jnp.mean(mesh.nodes[nodes, 1])
     f = result.final.f_int[nodes]
     return float(-jnp.sum(y * f[:, 0]))
+
+
+def flat_die_strip(law, length=6.0, half_thickness=0.395, nx=30, ny=2, force=50.0, mu=0.15,
+                   draw=0.03, material=None):
+    """A small version of the benchmark's flat die: a force-driven die (line above the strip) clamps
+    it with `force` N/mm frictionlessly, then the right end is drawn by `draw` mm with friction `mu`
+    (the spec's increments: 100 steps to draw/12, then 275). v = 0 on the bottom (symmetry plane)."""
+    from jaxfric.contact import Force, RigidTool
+    from jaxfric.tools import Tool
+
+    mesh = jf.strip_mesh(0.0, length, 0.0, half_thickness, nx, ny)
+    if material is None:
+        material = jf.J2Material(E=69004.0, nu=0.3, sigma_y=80.55923, A=10000.0, n=0.216)
+    die = Tool.line((-2.0, half_thickness), (length + 2.0, half_thickness), normal_side="right")
+    tool = RigidTool("die", die, drive=(0.0, -1.0), candidates=mesh.top,
+                     controls=(Force(force, start=0.0), Force(force)), mu=(0.0, mu))
+    sym = jf.DirichletBC(mesh.bottom, components=(1,))
+    hold = jf.DirichletBC(mesh.right, components=(0,))
+    pull = jf.DirichletBC(mesh.right, components=(0,), motion=jf.Ramp((0, 0), (draw, 0)))
+    phases = (jf.Phase("clamp", [sym, hold], 10),
+              jf.Phase("draw", [sym, pull], increments=((1 / 12, 100), (1.0, 275))))
+    return jf.StripModel(mesh, material, phases, tools=(tool,), contact=law)

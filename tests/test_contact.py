@@ -1,0 +1,111 @@
+"""Contact with rigid tools: global Coulomb sliding, force-driven tool balance, penalty -> augmented
+Lagrangian, penetration law, bad input."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxfric as jf
+from jaxfric.contact import AugmentedLagrangian, Force, Move, Penalty, RigidTool
+from jaxfric.tools import Tool
+from models import STEEL, flat_die_strip
+
+MU, FORCE = 0.15, 50.0
+
+
+@pytest.fixture(scope="module")
+def stiff_penalty_run():
+    """The benchmark's stiff penalties (eps_n = 1e9, eps_t = 1.5e8 N/mm)."""
+    return jf.run(flat_die_strip(Penalty(1e9, 1.5e8)), progress=False)
+
+
+@pytest.fixture(scope="module")
+def augmented_run():
+    return jf.run(flat_die_strip(AugmentedLagrangian(1e5, 1.5e4, target_gap=1e-8)), progress=False)
+
+
+def drawing_curve(res):
+    h = res.history
+    draw = h["phase"] == 1
+    return (h["time"][draw] - 1.0) * 0.03, h["reaction_right"][draw, 0]
+
+
+def test_global_coulomb_sliding(stiff_penalty_run):
+    """Once every closed pair slides, the drawing force is mu times the clamping force and the
+    tangential resultant is mu times the normal resultant (to solver tolerance)."""
+    res = stiff_penalty_run
+    c = res.final.contact
+    assert res.converged
+    assert int(res.history["n_slip"][-1]) == int(res.history["n_active"][-1]) == c.rn.size
+    np.testing.assert_allclose(-float(jnp.sum(c.rt)), MU * float(jnp.sum(c.rn)), rtol=1e-9)
+    np.testing.assert_allclose(res.history["reaction_right"][-1, 0], MU * FORCE, rtol=1e-8)
+    # The stick-slip transition: the drawing force rises from 0 to mu P through partial slip.
+    U, F = drawing_curve(res)
+    partial = (res.history["n_slip"] < res.history["n_active"])[res.history["phase"] == 1]
+    assert partial[:20].any() and np.all(np.diff(F[: np.argmax(F >= MU * FORCE * (1 - 1e-9))]) > 0)
+
+
+@pytest.mark.parametrize("which", ["penalty", "auglag"])
+def test_force_driven_die_balance_at_every_step(which, stiff_penalty_run, augmented_run):
+    """|clamping force - P(t)| within Newton's tolerance at every converged step of force-driven phases."""
+    res = stiff_penalty_run if which == "penalty" else augmented_run
+    h = res.history
+    prescribed = np.where(h["phase"] == 0, FORCE * h["time"], FORCE)
+    tol = 1e-10 + 1e-8 * np.maximum(np.abs(h["tool_force"][:, 0]), 1e-6) * 10
+    assert np.all(np.abs(h["tool_force"][:, 0] - prescribed) <= tol + 1e-8 * FORCE)
+
+
+def test_penalty_penetration_law_and_auglag_target(stiff_penalty_run, augmented_run):
+    """Penalty: a closed pair penetrates by R_N / eps_n exactly. AL: every step meets its target gap."""
+    c = stiff_penalty_run.final.contact
+    closed = np.asarray(c.status) > 0
+    np.testing.assert_allclose(-np.asarray(c.gap)[closed], np.asarray(c.rn)[closed] / 1e9, rtol=1e-8)
+    assert augmented_run.history["max_penetration"].max() <= 1e-8
+    assert augmented_run.history["augmentations"].sum() > 0
+
+
+def test_penalty_approaches_the_augmented_lagrangian(stiff_penalty_run, augmented_run):
+    """As eps_n grows, the penalty drawing-force curve and die position approach the AL solution."""
+    U_ref, F_ref = drawing_curve(augmented_run)
+    q_ref = augmented_run.history["tool_position"][-1, 0]
+    errors = []
+    for eps_n in (1e5, 1e7):
+        res = jf.run(flat_die_strip(Penalty(eps_n, MU * eps_n)), progress=False)
+        U, F = drawing_curve(res)
+        errors.append((np.max(np.abs(np.interp(U_ref, U, F) - F_ref)) / (MU * FORCE),
+                       abs(res.history["tool_position"][-1, 0] - q_ref) / q_ref))
+    U, F = drawing_curve(stiff_penalty_run)
+    errors.append((np.max(np.abs(np.interp(U_ref, U, F) - F_ref)) / (MU * FORCE),
+                   abs(stiff_penalty_run.history["tool_position"][-1, 0] - q_ref) / q_ref))
+    curve, position = np.array(errors).T
+    assert np.all(np.diff(curve) < 0) and np.all(np.diff(position) < 0), errors
+    assert curve[-1] < 1e-2 and position[-1] < 1e-4, errors
+
+
+def test_bad_contact_input_names_the_field():
+    mesh = jf.strip_mesh(0.0, 1.0, 0.0, 1.0, 2, 2)
+    line = Tool.line((-1.0, 1.0), (2.0, 1.0))
+    ok = dict(name="die", geometry=line, drive=(0.0, -1.0), candidates=mesh.top, controls=(Move(),), mu=0.1)
+    with pytest.raises(ValueError, match="mu"):
+        RigidTool(**{**ok, "mu": -0.1})
+    with pytest.raises(ValueError, match="drive"):
+        RigidTool(**{**ok, "drive": (0.0, -2.0)})
+    with pytest.raises(ValueError, match="candidates"):
+        RigidTool(**{**ok, "candidates": []})
+    with pytest.raises(ValueError, match="eps_n"):
+        Penalty(-1.0, 0.0)
+    with pytest.raises(ValueError, match="eps_n"):
+        Penalty(0.0, 0.0)
+    with pytest.raises(ValueError, match="target_gap"):
+        AugmentedLagrangian(1e5, 0.0, target_gap=0.0)
+    with pytest.raises(ValueError, match="force"):
+        Force(-5.0)
+    mat = jf.J2Material(**STEEL)
+    phase = (jf.Phase("p", [jf.DirichletBC(mesh.left)]),)
+    with pytest.raises(ValueError, match="contact"):
+        jf.StripModel(mesh, mat, phase, tools=(RigidTool(**ok),))
+    with pytest.raises(ValueError, match="controls"):
+        jf.StripModel(mesh, mat, phase + (jf.Phase("q"),), tools=(RigidTool(**ok),), contact=Penalty(1e5, 0))
+    with pytest.raises(ValueError, match="candidates"):
+        jf.StripModel(mesh, mat, phase, tools=(RigidTool(**{**ok, "candidates": [99]}),),
+                      contact=Penalty(1e5, 0))
