@@ -70,7 +70,7 @@ __all__ = [
 OPEN_FORCE = 1e-9      # N/mm: R_N at or below this is "open" (spec section 0)
 STICK_MARGIN = 1e-6    # |R_T| < (1 - STICK_MARGIN) mu R_N is "stick" (spec section 0)
 DEFAULT_SHIFT = 1e3    # mm: alpha of spec 1.8, larger than any tool increment |dq|
-_NOISE = 1e-12         # relative round-off scale of Lemke's basic values (ties within it)
+_NOISE = 1e-11         # relative round-off scale of the basic values in Lemke (ties within it)
 _MEMORY = 5            # semismooth Newton: iterates in the non-monotone line search reference
 _ARMIJO = 1e-4         # sufficient decrease factor
 _MIN_STEP = 2.0**-30   # smallest step before the line search gives up
@@ -253,13 +253,17 @@ def contact_solution(K_star, r_star, gap, slip, z, drive: ForceDrive | None = No
     n_c = _check_shapes(K_star, r_star, gap, slip)
     K_star = jnp.asarray(K_star)
     z = jnp.asarray(z, K_star.dtype)
-    zc = z[: 3 * n_c].reshape(n_c, 3)
-    du = jnp.einsum("ab,ib->ia", jnp.asarray(_B, K_star.dtype), zc).reshape(-1)
-    du = du - _interleave(jnp.asarray(gap, K_star.dtype), jnp.asarray(slip, K_star.dtype))
-    if drive is not None:
-        C, _ = _coupling(drive, n_c, K_star.dtype)
-        du = du + C @ drive.increment(z)
-    return du, K_star @ du - jnp.asarray(r_star, K_star.dtype)
+    C, _ = _coupling(drive, n_c, K_star.dtype)
+    dq = drive.increment(z) if drive is not None else jnp.zeros((0,), K_star.dtype)
+    return _recover(K_star, r_star, gap, slip, z[: 3 * n_c], dq, C)
+
+
+def _recover(K_star, r_star, gap, slip, z_c, dq, C):
+    """``du_c = B z_c + d0 + C dq``, ``p = K* du_c - r*``."""
+    dtype = K_star.dtype
+    du = jnp.einsum("ab,ib->ia", jnp.asarray(_B, dtype), z_c.reshape(-1, 3)).reshape(-1)
+    du = du - _interleave(jnp.asarray(gap, dtype), jnp.asarray(slip, dtype)) + C @ dq
+    return du, K_star @ du - jnp.asarray(r_star, dtype)
 
 
 # --------------------------------------------------------------------------------------------
@@ -275,10 +279,11 @@ class LemkeStatus(enum.IntEnum):
 
 
 class LemkeResult(NamedTuple):
-    z: np.ndarray     # (n,) z >= 0
-    w: np.ndarray     # (n,) M z + q, recomputed from z
-    pivots: int       # pivots performed, the initial z0 pivot included
-    status: int       # LemkeStatus
+    z: np.ndarray       # (n,) z >= 0
+    w: np.ndarray       # (n,) M z + q, recomputed from z
+    pivots: int         # pivots performed, the initial z0 pivot included
+    status: int         # LemkeStatus
+    basis: np.ndarray   # (n,) basic variable of each row: i < n is w_i, n + j is z_j, 2n is z0
 
 
 def _tie_tolerance(ratio: np.ndarray) -> float:
@@ -287,23 +292,31 @@ def _tie_tolerance(ratio: np.ndarray) -> float:
     return 1e-12 * max(float(np.max(np.abs(ratio))), np.finfo(float).tiny)
 
 
-def _min_ratio_rows(T: np.ndarray, col: int, pivot_tol: float, noise: np.ndarray) -> np.ndarray:
-    """Rows that tie for the minimum ratio ``x_i / d_i`` over the pivots ``d_i > pivot_tol max|d|``.
+def _min_ratio_rows(T: np.ndarray, col: int, column: np.ndarray, q: np.ndarray, pivot_tol: float) -> np.ndarray:
+    """Rows that block first when the variable of tableau column ``col`` enters.
 
-    ``noise`` (n,) bounds the round-off in the basic values x. Two ratios tie when they differ by
-    less than their combined noise: the exact ties of the contact LCP (an open candidate has
-    ``w = z0 (1, 1, 1)``, so its three rows reach 0 together with z0) arrive with round-off
-    differences, which the large entries of q from a force-driven tool's shift (alpha K* C) make
-    much larger than the last digit of x.
+    ``d = B^-1 a`` is the entering column (``a = column`` in the original data) and ``x = B^-1 q``
+    the basic values. Their round-off is estimated from the size of the terms that cancel in the
+    products, ``dx = eps (|B^-1| |q| + |x|)`` and ``dd = eps (|B^-1| |a| + |d|)``. Admissible
+    pivots are ``d_i > max(pivot_tol max|d|, dd_i)``: an entry within its own round-off of 0 is
+    no pivot. With ``t = min x_i / d_i``, the rows returned are those that the step t brings to 0
+    within round-off, ``x_i - t d_i <= dx_i + t dd_i``.
+
+    The contact LCP has exact ties that must be seen as such: an open candidate has
+    ``w = z0 (1, 1, 1)``, so its three rows reach 0 together with z0. K* scales spread over
+    decades, and the shift alpha of a force-driven tool (entries alpha K* C in q), make these
+    round-off differences far larger than the last digit of x.
     """
     d = T[:, col]
-    rows = np.flatnonzero(d > pivot_tol * np.max(np.abs(d)))
+    B_inv = np.abs(T[:, : q.size])
+    noise_d = _NOISE * (B_inv @ np.abs(column) + np.abs(d))
+    rows = np.flatnonzero((d > pivot_tol * np.max(np.abs(d))) & (d > noise_d))
     if rows.size == 0:
         return rows
-    ratio = T[rows, -1] / d[rows]
-    slack = noise[rows] / d[rows]
-    k = np.argmin(ratio)
-    return rows[ratio - ratio[k] <= slack + slack[k] + 1e-15 * abs(ratio[k])]
+    x = T[rows, -1]
+    noise_x = _NOISE * (B_inv[rows] @ np.abs(q) + np.abs(x))
+    t = np.min(np.maximum(x, 0.0) / d[rows])
+    return rows[x - t * d[rows] <= noise_x + t * noise_d[rows]]
 
 
 def _lexmin(T: np.ndarray, col: int, rows: np.ndarray, n: int) -> int:
@@ -373,13 +386,19 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12) -> L
     if max_pivots is None:
         max_pivots = 50 * n
     if np.all(q >= 0.0):
-        return LemkeResult(np.zeros(n), q.copy(), 0, int(LemkeStatus.SOLVED))
+        return LemkeResult(np.zeros(n), q.copy(), 0, int(LemkeStatus.SOLVED), np.arange(n))
 
     # Tableau of  I w - M z - e z0 = q  ; columns: w (0..n-1), z (n..2n-1), z0 (2n), rhs (2n+1).
     # The w columns hold B^-1 of the current basis: the initial basis is the identity.
     z0 = 2 * n
     T = np.hstack([np.eye(n), -M, -np.ones((n, 1)), q[:, None]])
     basis = np.arange(n)                         # variable index basic in each row
+
+    def original_column(var):
+        """Column of ``var`` in the original system ``[I, -M, -e]``."""
+        if var < n:
+            return np.eye(n)[:, var]
+        return -M[:, var - n] if var < 2 * n else -np.ones(n)
 
     def pivot(row, col):
         T[row] /= T[row, col]
@@ -396,12 +415,14 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12) -> L
     entering = _complement(int(leaving), n)
     status = LemkeStatus.MAX_PIVOTS
     while pivots < max_pivots:
-        # Round-off scale of the basic values x = B^-1 q: the size of the terms that cancel in
-        # the product (with a safety factor of about 1e4 on the unit round-off).
-        noise = _NOISE * (np.abs(T[:, :n]) @ np.abs(q) + np.abs(T[:, -1]))
-        ties = _min_ratio_rows(T, entering, pivot_tol, noise)
+        ties = _min_ratio_rows(T, entering, original_column(entering), q, pivot_tol)
         if ties.size == 0:
             status = LemkeStatus.RAY
+            # A z0 that is zero within round-off (it tied with rows judged just below it) leaves
+            # a solution, not a ray.
+            row = int(np.flatnonzero(basis == z0)[0])
+            if T[row, -1] <= _NOISE * (np.abs(T[row, :n]) @ np.abs(q) + abs(T[row, -1])):
+                status = LemkeStatus.SOLVED
             break
         row = _choose_row(T, basis, entering, ties, n, pivot_tol)
         leaving = basis[row]
@@ -412,14 +433,11 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12) -> L
             break
         entering = _complement(int(leaving), n)
 
-    values = _basic_values(M, q, basis, T[:, -1])
-    z = np.zeros(n)
-    in_z = (basis >= n) & (basis < 2 * n)
-    z[basis[in_z] - n] = values[in_z]
+    z = _z_from_basis(M, q, basis, T[:, -1])
     if status == LemkeStatus.SOLVED:
         # Basic values that should be >= 0 can come back as -1e-17 after the refinement.
         z = np.maximum(z, 0.0)
-    return LemkeResult(z, M @ z + q, pivots, int(status))
+    return LemkeResult(z, M @ z + q, pivots, int(status), basis.copy())
 
 
 def _complement(var: int, n: int) -> int:
@@ -465,8 +483,13 @@ def _first_leaving_row(q: np.ndarray) -> int:
     return int(rows[-1])
 
 
-def _basic_values(M, q, basis, fallback):
-    """Values of the basic variables from ``B x_B = q`` with the original columns (I, -M, -e)."""
+def _z_from_basis(M, q, basis, fallback):
+    """z from the basis: ``B x_B = q`` solved with the original columns (I, -M, -e) by one LU.
+
+    Solving once with the original data, instead of reading the Gauss-Jordan tableau, keeps the
+    round-off of the pivots out of the answer. ``fallback`` (the tableau's x) serves if B is
+    numerically singular.
+    """
     n = q.size
     cols = np.empty((n, n))
     for k, var in enumerate(basis):
@@ -477,9 +500,13 @@ def _basic_values(M, q, basis, fallback):
         else:
             cols[:, k] = -1.0
     try:
-        return np.linalg.solve(cols, q)
+        values = np.linalg.solve(cols, q)
     except np.linalg.LinAlgError:
-        return fallback.copy()
+        values = fallback.copy()
+    z = np.zeros(n)
+    in_z = (basis >= n) & (basis < 2 * n)
+    z[basis[in_z] - n] = values[in_z]
+    return z
 
 
 def lemke_callback(M: jax.Array, q: jax.Array, *, max_pivots: int | None = None,
@@ -511,19 +538,36 @@ def lemke_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = N
     """Solve the linearised contact problem by Lemke (``lcp_lemke`` of spec 1.7), on the host.
 
     Builds the LCP with :func:`contact_lcp`, solves it with :func:`lemke` and recovers
-    ``(du_c, p)`` with :func:`contact_solution`. Arguments as for :func:`contact_lcp`; the default
-    pivot budget is 50 (3 n_c + n_q).
+    ``(du_c, p)`` as :func:`contact_solution` does. Arguments as for :func:`contact_lcp`; the
+    default pivot budget is 50 (3 n_c + n_q).
+
+    With force-driven tools the final basis is solved once more against the unshifted data:
+    in ``w = M z + q`` the shift enters only through ``q = q_free - alpha M[:, tools]``, so the
+    same basis with ``dq`` in place of ``z_q`` and ``q_free`` as right-hand side gives dq, du_c
+    and p without the cancellation of alpha (1e3 mm) against dq (typically 1e-3 mm).
     """
     M, q = contact_lcp(K_star, r_star, gap, slip, mu, drive)
-    res = lemke(np.asarray(M), np.asarray(q), max_pivots=max_pivots, pivot_tol=pivot_tol)
-    du_c, p = contact_solution(K_star, r_star, gap, slip, res.z, drive)
-    status = res.status
-    dq = np.zeros(0)
-    if drive is not None:
-        dq = np.asarray(drive.increment(jnp.asarray(res.z)))
-        if status == LemkeStatus.SOLVED and np.any(dq + float(drive.shift) <= 0.0):
+    M, q = np.asarray(M), np.asarray(q)
+    res = lemke(M, q, max_pivots=max_pivots, pivot_tol=pivot_tol)
+    n_c = np.shape(gap)[0]
+    K = jnp.asarray(K_star)
+    C, _ = _coupling(drive, n_c, K.dtype)
+    if drive is None:
+        z_c, dq, status = res.z, np.zeros(0), res.status
+    else:
+        shift = float(drive.shift)
+        tools = 3 * n_c + np.arange(drive.num_tools)
+        z_free = _z_from_basis(M, q + shift * M[:, tools].sum(axis=1), res.basis, res.z)
+        # A tool whose z_q is non-basic sits at z_q = 0, i.e. dq = -alpha.
+        basic = np.isin(q.size + tools, res.basis)     # z_j is basic variable n + j
+        dq = np.where(basic, z_free[tools], -shift)
+        z_c, status = z_free[: 3 * n_c], res.status
+        if status == LemkeStatus.SOLVED:
+            z_c = np.maximum(z_c, 0.0)
+        if status == LemkeStatus.SOLVED and np.any(dq + shift <= 0.0):
             status = int(LemkeStatus.SHIFT_TOO_SMALL)
-    return LemkeContactResult(np.asarray(du_c), np.asarray(p), dq, res.z, res.pivots, status)
+    du_c, p = _recover(K, r_star, gap, slip, jnp.asarray(z_c[: 3 * n_c]), jnp.asarray(dq), C)
+    return LemkeContactResult(np.asarray(du_c), np.asarray(p), np.asarray(dq), res.z, res.pivots, status)
 
 
 # --------------------------------------------------------------------------------------------
@@ -635,10 +679,12 @@ def ssn_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = Non
 
     Globalisation. Plain active-set iterations can cycle when K* is not an M-matrix, which a
     condensed sheet stiffness never is (bending couples neighbouring normals with both signs):
-    on a clamped strip 1/3 of random problems cycled. The step is therefore accepted by a
-    non-monotone Armijo test on ``theta = |C|^2 (+ |C^T p - P|^2)`` against the largest theta of
-    the last 5 iterates (Grippo, Lampariello & Lucidi 1986), halving it otherwise. Near the
-    solution the full step passes, so the iteration still ends exactly on the solution's piece.
+    on a clamped strip about 1 random problem in 5 cycled. The step is therefore accepted by a
+    non-monotone Armijo test on ``theta = sum C_N^2 / c_N + C_T^2 / c_T (+ |C^T p - P|^2 / c)``
+    against the largest theta of the last 5 iterates (Grippo, Lampariello & Lucidi 1986), halving
+    it otherwise. The Newton direction d = -J^-1 C is a descent direction of theta wherever C is
+    differentiable (theta' = -2 theta); near the solution the full step passes, so the iteration
+    still ends exactly on the solution's piece.
 
     Stopping: converged when a full step leaves the classification unchanged (then C = 0 up to
     round-off), or when ``|C|_inf <= tol * max(|r*|, |p|, c_N |g^i|, c_T |s^i|, |P|)``, which
@@ -687,8 +733,12 @@ def ssn_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = Non
         kin = (du - C @ dq - d0).reshape(n_c, 2)
         p2 = p.reshape(n_c, 2)
         state, res, sig_n = _alart_curnier(p2[:, 0], p2[:, 1], kin[:, 0], kin[:, 1], mu, c_n, c_t)
-        res = jnp.concatenate([res.reshape(-1), C.T @ p - P])
-        return state, jnp.sum(res * res), jnp.max(jnp.abs(res)), jnp.max(jnp.abs(p)), sig_n
+        res_q = C.T @ p - P
+        # Merit in energy units (N/mm mm): C^2 / c per equation, so that candidates of very
+        # different stiffness weigh alike when c follows the stiffness.
+        theta = jnp.sum(res[:, 0] ** 2 / c_n + res[:, 1] ** 2 / c_t) + jnp.sum(res_q**2) / jnp.mean(c_n)
+        res_norm = jnp.maximum(jnp.max(jnp.abs(res)), jnp.max(jnp.abs(res_q), initial=0.0))
+        return state, theta, res_norm, jnp.max(jnp.abs(p)), sig_n
 
     def newton_point(state):
         """The solution of the equations linearised on the piece ``state``."""

@@ -531,7 +531,7 @@ class _Predictor(eqx.Module):
         return cls(jnp.zeros_like(state.u), jnp.zeros_like(_tool_q(state)), jnp.array(0.0))
 
     def guess(self, state: SimState, dt_next, phase_next, retry=False):
-        use = (self.dt > 0) & (phase_next == state.phase) & ~retry
+        use = (self.dt > 0) & (phase_next == state.phase) & ~jnp.asarray(retry, bool)
         scale = jnp.where(use, dt_next / jnp.where(use, self.dt, 1.0), 0.0)
         return state.u + scale * self.du, _tool_q(state) + scale * self.dq
 
