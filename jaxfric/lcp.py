@@ -418,10 +418,10 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12) -> L
         ties = _min_ratio_rows(T, entering, original_column(entering), q, pivot_tol)
         if ties.size == 0:
             status = LemkeStatus.RAY
-            # A z0 that is zero within round-off (it tied with rows judged just below it) leaves
-            # a solution, not a ray.
-            row = int(np.flatnonzero(basis == z0)[0])
-            if T[row, -1] <= _NOISE * (np.abs(T[row, :n]) @ np.abs(q) + abs(T[row, -1])):
+            # z0 may have reached 0 within round-off together with rows judged just below it;
+            # then the point is a solution, not a ray. Verified on the original data.
+            z = _z_from_basis(M, q, basis, T[:, -1])
+            if _is_solution(M, q, np.maximum(z, 0.0)):
                 status = LemkeStatus.SOLVED
             break
         row = _choose_row(T, basis, entering, ties, n, pivot_tol)
@@ -481,6 +481,14 @@ def _first_leaving_row(q: np.ndarray) -> int:
     """
     rows = np.flatnonzero(q <= np.min(q) + 1e-12 * np.max(np.abs(q)))
     return int(rows[-1])
+
+
+def _is_solution(M, q, z) -> bool:
+    """Whether ``z >= 0`` solves the LCP to round-off: ``w = M z + q >= -tol`` and, wherever
+    z_i > 0, ``|w_i| <= tol``; tol is relative to the terms that cancel in each row of w."""
+    w = M @ z + q
+    tol = 1e3 * _NOISE * (np.abs(M) @ z + np.abs(q))
+    return bool(np.all(w >= -tol) and np.all((z == 0.0) | (np.abs(w) <= tol)))
 
 
 def _z_from_basis(M, q, basis, fallback):

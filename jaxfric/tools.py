@@ -238,8 +238,10 @@ class Arc(eqx.Module):
         (radius times the angle turned, from the cross and dot products of the old radius vector with
         ``inc``, so that a small increment is not lost against the radius); side = +1 right, -1 left."""
         walk = self.walk_sense(side)
-        rel0 = (y - self.centre) + dy  # see `project`: the large parts cancel first
-        rel = rel0 + inc
+        base = y - self.centre  # see `project`: the large parts cancel first
+        shift = dy + inc  # small: the motion relative to the tool
+        rel0 = base + dy
+        rel = base + shift
         rho = safe_norm(rel)
         off_centre = rho > 0
         # Double where: at the centre the direction is undefined (the pair is open); a dummy unit vector
@@ -253,10 +255,13 @@ class Arc(eqx.Module):
         from_mid = _wrap_angle(walk * (polar - 0.5 * (self.angle_start + self.angle_end)))
         inside = off_centre & (jnp.abs(from_mid) <= half + _EXTENT_TOL / self.radius)
         s = self.radius * (from_mid + half)
+        # rho - R without cancelling at the magnitude of R: the part that varies with the unknowns,
+        # 2 base.shift + |shift|^2, is small and kept apart from the constant |base|^2 - R^2.
+        excess = ((base @ base - self.radius**2) + (2.0 * base + shift) @ shift) / (rho + self.radius)
         if self.concave:
-            normal, gap = -radial, self.radius - rho
+            normal, gap = -radial, -excess
         else:
-            normal, gap = radial, rho - self.radius
+            normal, gap = radial, excess
         # Angle from rel0 to rel: atan2(rel0 x inc, |rel0|^2 + rel0 . inc); guarded at the centre.
         cross = rel0[0] * inc[1] - rel0[1] * inc[0]
         dot = rel0 @ rel0 + rel0 @ inc

@@ -109,3 +109,32 @@ def test_bad_contact_input_names_the_field():
     with pytest.raises(ValueError, match="candidates"):
         jf.StripModel(mesh, mat, phase, tools=(RigidTool(**{**ok, "candidates": [99]}),),
                       contact=Penalty(1e5, 0))
+
+
+@pytest.mark.parametrize("law", [Penalty(1e6, 0.0), AugmentedLagrangian(1e5, 0.0, target_gap=1e-7)],
+                         ids=["penalty", "auglag"])
+def test_hertz_line_contact(law):
+    """A rigid cylinder (R = 10 mm) pressed with P = 1 N/mm on a thick elastic block (half model,
+    graded mesh, 0.005 mm at the contact): half-width a = sqrt(4 P R / (pi E*)) and peak pressure
+    p0 = 2 P / (pi a) within 5 % (measured: a 1.5 % wide, half a node spacing; p0 within 0.2 %)."""
+    E, nu, R, P = 1000.0, 0.3, 10.0, 1.0
+    xs = jf.graded_coordinates(0.0, 5.0, 60, 1.075)
+    ys = jf.graded_coordinates(-5.0, 0.0, 30, 1 / 1.12)
+    mesh = jf.StripMesh.from_coordinates(xs, ys)
+    tool = RigidTool("cylinder", Tool.circle((0.0, R), R), drive=(0.0, -1.0), candidates=mesh.top,
+                     controls=(Force(P / 2, start=0.0),), mu=0.0)
+    bcs = [jf.DirichletBC(mesh.left, components=(0,)), jf.DirichletBC(mesh.bottom)]
+    model = jf.StripModel(mesh, jf.J2Material.elastic(E, nu), (jf.Phase("press", bcs, n_steps=5),),
+                          tools=(tool,), contact=law)
+    res = jf.run(model, progress=False)
+    rn = np.asarray(res.final.contact.rn)
+    x = np.asarray(mesh.nodes[mesh.top, 0] + res.final.u[mesh.top, 0])
+    X = np.asarray(xs)
+    tributary = np.r_[(X[1] - X[0]) / 2, (X[2:] - X[:-2]) / 2, (X[-1] - X[-2]) / 2]
+    a = np.sqrt(4 * P * R / (np.pi * E / (1 - nu**2)))
+    p0 = 2 * P / (np.pi * a)
+    last = np.max(np.nonzero(rn > 1e-9)[0])
+    a_fe = 0.5 * (x[last] + x[last + 1])  # the contact edge lies between the last closed and first open node
+    assert abs(a_fe / a - 1) < 0.05, (a_fe, a)
+    assert abs(rn[0] / tributary[0] / p0 - 1) < 0.05, (rn[0] / tributary[0], p0)
+    np.testing.assert_allclose(res.history["tool_force"][-1, 0], P / 2, rtol=1e-8)

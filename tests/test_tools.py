@@ -482,7 +482,8 @@ def test_vmap_points_and_tools_and_no_retrace():
     batched = project_many(tool, jnp.asarray(xs))
     project_jit = jax.jit(project)
     one_by_one = [project_jit(tool, jnp.asarray(x), jnp.zeros(2)) for x in xs[:20]]
-    np.testing.assert_allclose(batched.gap[:20], [p.gap for p in one_by_one], rtol=1e-15)
+    # A few ulps, not 1: XLA may fuse (and round) the batched gap expression differently.
+    np.testing.assert_allclose(batched.gap[:20], [p.gap for p in one_by_one], rtol=1e-14)
     np.testing.assert_array_equal(batched.valid[:20], [bool(p.valid) for p in one_by_one])
 
     # Tools of identical structure, stacked leaf by leaf, vmapped.
