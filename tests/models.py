@@ -1,6 +1,7 @@
 """Small strip problems shared by the core tests (built only from the public API)."""
 
 import jax.numpy as jnp
+import numpy as np
 
 import jaxfric as jf
 
@@ -74,3 +75,26 @@ def flat_die_strip(law, length=6.0, half_thickness=0.395, nx=30, ny=2, force=50.
     phases = (jf.Phase("clamp", [sym, hold], 10),
               jf.Phase("draw", [sym, pull], increments=((1 / 12, 100), (1.0, 275))))
     return jf.StripModel(mesh, material, phases, tools=(tool,), contact=law)
+
+
+def wrapped_strip(radius=10.0, thickness=0.1, wrap=np.pi / 2, leg=5.0, h=0.1, ny=2):
+    """A thin strip lying stress-free over the top of a roller of centre (0, 0): an arc of `wrap` rad on
+    the circle of `radius` (its inner surface, j = 0, on the circle) between two straight tangent legs.
+    Returns the mesh and the unit directions of the strip along its incoming and outgoing legs."""
+    phi1, phi2 = np.pi / 2 + wrap / 2, np.pi / 2 - wrap / 2
+    arc = radius * wrap
+    n_leg, n_arc = int(round(leg / h)), int(round(arc / h))
+    s = np.concatenate([np.linspace(-leg, 0, n_leg + 1)[:-1], np.linspace(0, arc, n_arc + 1),
+                        arc + np.linspace(0, leg, n_leg + 1)[1:]])
+    r = radius + thickness * np.arange(ny + 1) / ny
+    d1, d2 = np.array([np.sin(phi1), -np.cos(phi1)]), np.array([np.sin(phi2), -np.cos(phi2)])
+    nodes = np.zeros((s.size, ny + 1, 2))
+    for i, si in enumerate(s):
+        if si < 0:
+            nodes[i] = r[:, None] * np.array([np.cos(phi1), np.sin(phi1)]) + si * d1
+        elif si > arc:
+            nodes[i] = r[:, None] * np.array([np.cos(phi2), np.sin(phi2)]) + (si - arc) * d2
+        else:
+            phi = phi1 - si / radius
+            nodes[i] = r[:, None] * np.array([np.cos(phi), np.sin(phi)])
+    return jf.StripMesh(jnp.asarray(nodes.reshape(-1, 2)), s.size - 1, ny), d1, d2

@@ -8,7 +8,7 @@ import pytest
 import jaxfric as jf
 from jaxfric.contact import AugmentedLagrangian, Force, Move, Penalty, RigidTool
 from jaxfric.tools import Tool
-from models import STEEL, flat_die_strip
+from models import STEEL, flat_die_strip, wrapped_strip
 
 MU, FORCE = 0.15, 50.0
 
@@ -138,3 +138,30 @@ def test_hertz_line_contact(law):
     assert abs(a_fe / a - 1) < 0.05, (a_fe, a)
     assert abs(rn[0] / tributary[0] / p0 - 1) < 0.05, (rn[0] / tributary[0], p0)
     np.testing.assert_allclose(res.history["tool_force"][-1, 0], P / 2, rtol=1e-8)
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.2])
+def test_capstan_over_a_fixed_roller(mu):
+    """A thin elastic strip wrapped 90 degrees over a fixed roller, one end held, the other pulled
+    along its leg until the whole wrap slides: T_out / T_in = exp(mu theta) (measured 1.3672 vs
+    1.3691). Frictionless: the strip dissipates nothing (T_out = T_in, measured to 3e-4, the strip's
+    bending at the tangent points) and the roller forces have zero moment about its centre."""
+    radius, wrap = 10.0, np.pi / 2
+    mesh, d1, d2 = wrapped_strip(radius=radius, wrap=wrap)
+    roller = RigidTool("roller", Tool.circle((0.0, 0.0), radius), drive=(0.0, -1.0),
+                       candidates=mesh.bottom, controls=(Move(),), mu=mu)
+    bcs = [jf.DirichletBC(mesh.left), jf.DirichletBC(mesh.right, motion=jf.Ramp((0, 0), tuple(0.05 * d2)))]
+    model = jf.StripModel(mesh, jf.J2Material.elastic(200000.0, 0.3), (jf.Phase("pull", bcs, n_steps=20),),
+                          tools=(roller,), contact=Penalty(1e6, mu * 1e6))
+    res = jf.run(model, progress=False)
+    h = res.history
+    t_in, t_out = -h["reaction_left"][-1] @ d1, h["reaction_right"][-1] @ d2
+    assert t_in > 30.0 and h["n_slip"][-1] == h["n_active"][-1] > 100
+    assert abs(t_out / t_in / np.exp(mu * wrap) - 1) < 0.01, (t_out / t_in, np.exp(mu * wrap))
+    if mu == 0.0:
+        c = res.final.contact
+        n = np.asarray(c.normal)
+        f = np.asarray(c.rn)[:, None] * n
+        x = np.asarray(mesh.nodes[mesh.bottom] + res.final.u[mesh.bottom])
+        moment = np.sum(x[:, 0] * f[:, 1] - x[:, 1] * f[:, 0])
+        assert abs(moment) < 1e-9 * t_in * radius
