@@ -62,6 +62,7 @@ __all__ = [
     "contact_solution",
     "lemke_contact",
     "ssn_contact",
+    "diagonal_parameters",
     "contact_status",
     "OPEN_FORCE",
     "STICK_MARGIN",
@@ -357,12 +358,17 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12) -> L
     ``du_r . K* du_r <= 0`` (each pair contributes ``-t g_r`` or ``-(l+ + l-)(mu R_N + t) <= 0``),
     hence ``du_r = 0``, and the only remaining direction ``lambda+ = lambda-`` needs
     ``phi+ = phi- = 0`` with z0 > 0, i.e. ``mu R_N + z0 = 0`` and ``R_N + z0 >= 0``, which
-    requires mu >= 1. Ray termination therefore signals an infeasible problem (or mu >= 1).
+    requires mu >= 1. (With force-driven tools the same holds if every tool has a candidate with
+    e_q . n > 0.) So for K* positive definite and mu < 1 Lemke always ends with a solution; ray
+    termination signals an indefinite K* or mu >= 1, where it does occur (a clamped strip with
+    mu = 1 ends on the ray lambda+ = lambda- in every trial; SSN solves those problems).
 
-    Degeneracy (open candidates, mu = 0, zero gaps, q with zero entries) is handled by the
-    lexicographic ratio test. The final basic values are recomputed by one LU solve of the
-    basis against the original data, so round-off of the Gauss-Jordan pivots does not
-    accumulate into the answer.
+    Degeneracy is the rule here, not the exception: an open candidate has R_N = R_T = 0, so its
+    three rows reach 0 together with z0; mu = 0 makes the rows phi+ and phi- opposite; zero gaps
+    and slips put zeros in q. It is handled by the lexicographic ratio test, with ties judged
+    against an estimate of the round-off of each basic value (``_min_ratio_rows``). The final
+    basic values are recomputed by one LU solve of the basis against the original data, so the
+    round-off of the Gauss-Jordan pivots does not accumulate into the answer.
 
     Pure function of arrays (NumPy, float64), suitable for ``jax.pure_callback``
     (see :func:`lemke_callback`).
@@ -375,8 +381,8 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12) -> L
             entry of the entering column.
 
     Returns:
-        :class:`LemkeResult` ``(z, w, pivots, status)``. On failure z is the last basic point
-        with z0 dropped (not a solution).
+        :class:`LemkeResult` ``(z, w, pivots, status, basis)``. On failure z is the last basic
+        point with z0 dropped (not a solution).
     """
     M = np.asarray(M, dtype=np.float64)
     q = np.asarray(q, dtype=np.float64).reshape(-1)
@@ -450,10 +456,11 @@ def _choose_row(T, basis, entering, ties, n, pivot_tol) -> int:
     z0 leaves if it is among them (that ends the algorithm). Otherwise the lexicographic rule,
     with one look-ahead on degenerate ties: a tied row whose leaving variable's complement would
     find no pivot (a ray at the next pivot) is passed over for the next row in lexicographic order.
-    This matters for the contact LCP, whose columns of lambda+ and lambda- are opposite: at a
-    degenerate vertex with phi+ = phi- = 0 (mu = 1 exactly, where R_N + z0 = 0 ties with phi-),
-    bringing in lambda- while lambda+ is basic moves along the null direction lambda+ = lambda-
-    and ends in a ray although the problem is solvable; the other tied row continues the path.
+    This matters for the contact LCP, whose columns of lambda+ and lambda- are opposite: at
+    mu = 1, once phi+ = 0 with lambda+ basic, phi- = 2 (R_N + z0) reaches 0 together with the row
+    of R_N; letting phi- leave brings in lambda- along the null direction lambda+ = lambda- (a
+    ray), letting R_N leave continues the path. Random problems with mu = 1 go from ray
+    terminations to solutions with this rule.
     """
     z0 = 2 * n
     if ties.size == 1:
@@ -525,10 +532,12 @@ def lemke_callback(M: jax.Array, q: jax.Array, *, max_pivots: int | None = None,
 
     def host(M, q):
         res = lemke(M, q, max_pivots=max_pivots, pivot_tol=pivot_tol)
-        return (res.z.astype(q.dtype), res.w.astype(q.dtype), np.int32(res.pivots), np.int32(res.status))
+        return (res.z.astype(q.dtype), res.w.astype(q.dtype), np.int32(res.pivots), np.int32(res.status),
+                res.basis.astype(np.int32))
 
     shapes = (jax.ShapeDtypeStruct((n,), q.dtype), jax.ShapeDtypeStruct((n,), q.dtype),
-              jax.ShapeDtypeStruct((), jnp.int32), jax.ShapeDtypeStruct((), jnp.int32))
+              jax.ShapeDtypeStruct((), jnp.int32), jax.ShapeDtypeStruct((), jnp.int32),
+              jax.ShapeDtypeStruct((n,), jnp.int32))
     return LemkeResult(*jax.pure_callback(host, shapes, M, q, vmap_method="sequential"))
 
 
@@ -656,6 +665,18 @@ def _block_diag(blocks: jax.Array) -> jax.Array:
     return dense.reshape(2 * n_c, 2 * n_c)
 
 
+def diagonal_parameters(K_star) -> tuple[jax.Array, jax.Array]:
+    """Per-candidate Alart-Curnier parameters ``(c_N, c_T)``, each (n_c,): the diagonal of K*.
+
+    The spec's default (the mean diagonal, one value for all) is fine when the candidates'
+    stiffnesses are alike, as on a uniformly meshed sheet (a factor 10 or so). When they spread
+    over decades (graded meshes, penalty-like test data), one c misclassifies the soft or the stiff
+    candidates and the iteration can stall; c following each candidate's stiffness does not.
+    """
+    diagonal = jnp.diagonal(jnp.asarray(K_star))
+    return diagonal[0::2], diagonal[1::2]
+
+
 def ssn_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = None, c_n=None, c_t=None,
                 max_iter: int = 50, tol: float = 1e-10) -> SSNResult:
     """Solve the linearised contact problem by semismooth Newton (``lcp_ssn`` of spec 1.7).
@@ -711,7 +732,8 @@ def ssn_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = Non
     Args:
         K_star, r_star, gap, slip, mu, drive: as for :func:`contact_lcp`.
         c_n, c_t: Alart-Curnier parameters (N/mm per mm), scalar or (n_c,); default the mean
-            diagonal entry of K* (spec 1.7).
+            diagonal entry of K* (spec 1.7). See :func:`diagonal_parameters` for stiffnesses
+            spread over decades.
         max_iter: linear solves allowed (static). If not converged by then, ``converged`` is
             False and the caller falls back to Lemke (spec 1.7).
         tol: relative residual test, see above.

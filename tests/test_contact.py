@@ -1,6 +1,7 @@
 """Contact with rigid tools: global Coulomb sliding, force-driven tool balance, penalty -> augmented
-Lagrangian, penetration law, bad input."""
+Lagrangian, penetration law, Hertz, capstan, objectivity, derivatives, bad input."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -165,3 +166,70 @@ def test_capstan_over_a_fixed_roller(mu):
         x = np.asarray(mesh.nodes[mesh.bottom] + res.final.u[mesh.bottom])
         moment = np.sum(x[:, 0] * f[:, 1] - x[:, 1] * f[:, 0])
         assert abs(moment) < 1e-9 * t_in * radius
+
+
+def capstan_model(alpha=0.0, mu=0.2, radius=10.0, wrap=np.pi / 2):
+    """The capstan problem rotated rigidly by ``alpha`` (rad) about the roller centre."""
+    mesh0, _, d2 = wrapped_strip(radius=radius, wrap=wrap)
+    Q = np.array([[np.cos(alpha), -np.sin(alpha)], [np.sin(alpha), np.cos(alpha)]])
+    mesh = jf.StripMesh(mesh0.nodes @ Q.T, mesh0.nx, mesh0.ny)
+    roller = RigidTool("roller", Tool.circle((0.0, 0.0), radius), drive=Q @ np.array([0.0, -1.0]),
+                       candidates=mesh.bottom, controls=(Move(),), mu=mu)
+    bcs = [jf.DirichletBC(mesh.left), jf.DirichletBC(mesh.right, motion=jf.Ramp((0, 0), tuple(Q @ (0.05 * d2))))]
+    model = jf.StripModel(mesh, jf.J2Material.elastic(200000.0, 0.3), (jf.Phase("pull", bcs, n_steps=20),),
+                          tools=(roller,), contact=Penalty(1e6, 1e6 * mu))
+    return model, Q, d2
+
+
+def test_objectivity_of_frictional_contact_under_rotation():
+    """The frictional capstan problem rotated by 0.7 rad (sheet, tool, drive and loads together) gives
+    the same contact forces and, rotated back, the same reactions (measured 1e-10 and 1e-12)."""
+    (m0, _, _), (m1, Q, _) = capstan_model(0.0), capstan_model(0.7)
+    r0, r1 = jf.run(m0, progress=False), jf.run(m1, progress=False)
+    c0, c1 = r0.final.contact, r1.final.contact
+    scale = float(jnp.max(c0.rn))
+    np.testing.assert_allclose(c1.rn, c0.rn, rtol=0, atol=1e-8 * scale)
+    np.testing.assert_allclose(c1.rt, c0.rt, rtol=0, atol=1e-8 * scale)
+    np.testing.assert_allclose(Q.T @ r1.history["reaction_right"][-1], r0.history["reaction_right"][-1],
+                               rtol=0, atol=1e-9 * scale)
+
+
+TIGHT = jf.NewtonOptions(rtol=1e-12, atol=1e-10)
+
+
+def test_jvp_of_sliding_force_with_respect_to_mu():
+    """Exit tension of the fully sliding capstan: forward derivative in mu vs central differences."""
+
+    @jax.jit
+    def exit_tension(mu):
+        model, _, d2 = capstan_model(mu=mu)
+        sim = jf.simulate(model, newton=TIGHT)
+        return sim.history.observed["reaction_right"][sim.history.n_rows - 1] @ jnp.asarray(d2)
+
+    _, tangent = jax.jvp(exit_tension, (0.2,), (1.0,))
+    h = 1e-5
+    fd = (exit_tension(0.2 + h) - exit_tension(0.2 - h)) / (2 * h)
+    np.testing.assert_allclose(float(tangent), float(fd), rtol=1e-6)
+
+
+def test_jvp_of_indentation_with_respect_to_tool_radius():
+    """Frictionless Hertz indentation: approach of the force-driven cylinder as a function of its
+    radius, forward derivative vs central differences (status switches are far from this radius)."""
+    xs = jf.graded_coordinates(0.0, 2.0, 20, 1.1)
+    ys = jf.graded_coordinates(-2.0, 0.0, 8, 1 / 1.2)
+    mesh = jf.StripMesh.from_coordinates(xs, ys)
+    bcs = [jf.DirichletBC(mesh.left, components=(0,)), jf.DirichletBC(mesh.bottom)]
+
+    @jax.jit
+    def approach(radius):
+        tool = RigidTool("cylinder", Tool.circle(jnp.stack([0.0, radius]), radius), drive=(0.0, -1.0),
+                         candidates=mesh.top, controls=(Force(0.5, start=0.0),), mu=0.0)
+        model = jf.StripModel(mesh, jf.J2Material.elastic(1000.0, 0.3), (jf.Phase("press", bcs, 4),),
+                              tools=(tool,), contact=Penalty(1e6, 0.0))
+        return jf.simulate(model, newton=TIGHT).final.contact.q[0]
+
+    value, tangent = jax.jvp(approach, (5.0,), (1.0,))
+    h = 1e-4
+    fd = (approach(5.0 + h) - approach(5.0 - h)) / (2 * h)
+    assert float(value) > 0 and float(tangent) < 0  # a larger cylinder sinks in less
+    np.testing.assert_allclose(float(tangent), float(fd), rtol=1e-5)

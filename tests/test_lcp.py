@@ -1,0 +1,488 @@
+"""Exact complementarity (spec 1.7, 1.8): Lemke, the contact LCP, semismooth Newton, and their agreement.
+
+Test problems. ``random_problem`` builds K* = D^1/2 (I + E) D^1/2 with ||E||_2 = 0.2 and one scale d_a
+per candidate (shared by its normal and tangential dofs). For two solutions of the incremental
+Signorini-Coulomb problem, du K* du = sum dg dR_N + ds dR_T <= mu sum |dR_N| |ds|; in the variables
+v = D^1/2 du the left side is >= 0.8 |v|^2 and the right side <= 0.7 mu |v|^2, so the solution
+(du_c, p, dq) is unique for every mu <= 1 whatever the scales. Comparing Lemke with semismooth
+Newton is then a real test, not a comparison of two members of a solution set. The LCP multipliers
+are never compared: they are not unique (open candidates leave lambda+ - lambda- free).
+
+SSN runs batched under one ``jit(vmap(...))`` per shape: compiling costs more than solving.
+"""
+
+import functools
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxfric.lcp import (
+    ContactStatus,
+    ForceDrive,
+    LemkeStatus,
+    contact_lcp,
+    contact_solution,
+    contact_status,
+    diagonal_parameters,
+    lemke,
+    lemke_callback,
+    lemke_contact,
+    ssn_contact,
+)
+
+AGREE = 1e-8        # relative agreement of Lemke and SSN (spec 1.7: "to solver tolerance")
+LAW = 1e-9          # relative violation allowed in the Signorini-Coulomb conditions
+
+
+# ---------------------------------------------------------------------------------------------
+# Problem generators and checks
+# ---------------------------------------------------------------------------------------------
+
+
+def random_problem(seed, n_c, mu, scales=(1e3, 1e3), symmetric=True, open_fraction=0.4):
+    """(K*, r*, gap, slip, mu) with a unique solution for mu <= 1 (module docstring).
+
+    Scales (N/mm per mm) are log-uniform per candidate in ``scales``. Gaps (mm): a fraction
+    ``open_fraction`` open in [0, 0.02], the others penetrating in [-0.02, 0]. Slips in
+    [-0.02, 0.02] mm. r* (N/mm) of the size of the forces those gaps produce.
+    """
+    rng = np.random.default_rng(seed)
+    n = 2 * n_c
+    E = rng.standard_normal((n, n))
+    if symmetric:
+        E = E + E.T
+    E *= 0.2 / np.linalg.norm(E, 2)
+    d = np.exp(rng.uniform(np.log(scales[0]), np.log(scales[1]), n_c))
+    root = np.repeat(np.sqrt(d), 2)
+    K = root[:, None] * (np.eye(n) + E) * root[None, :]
+    is_open = rng.random(n_c) < open_fraction
+    gap = np.where(is_open, rng.uniform(0.0, 0.02, n_c), -rng.uniform(0.0, 0.02, n_c))
+    slip = rng.uniform(-0.02, 0.02, n_c)
+    r = 0.01 * root**2 * rng.standard_normal(n)
+    return K, r, gap, slip, np.full(n_c, float(mu))
+
+
+def batch(problems):
+    """Stack a list of (K, r, gap, slip, mu) tuples along a leading axis."""
+    return tuple(jnp.asarray(np.stack(a)) for a in zip(*problems))
+
+
+@functools.partial(jax.jit, static_argnames=("c_rule",))
+def ssn_batch(K, r, gap, slip, mu, c_rule="mean", c_factor=1.0):
+    """SSN on a batch; c_rule "mean": the spec default, "diagonal": per-candidate diagonal of K*."""
+
+    def one(K, r, gap, slip, mu):
+        if c_rule == "diagonal":
+            c_n, c_t = diagonal_parameters(K)
+        else:
+            c_n = c_t = jnp.mean(jnp.diagonal(K))
+        return ssn_contact(K, r, gap, slip, mu, c_n=c_factor * c_n, c_t=c_factor * c_t)
+
+    return jax.vmap(one)(K, r, gap, slip, mu)
+
+
+def law_violation(du, p, gap, slip, mu, r, force=0.0):
+    """Largest relative violation of Signorini and Coulomb (spec 1.4) by (du_c, p).
+
+    Lengths are measured against the largest of |du|, |gap|, |slip|; forces against the largest
+    of |p|, |r*| and ``force``.
+    """
+    du, p, gap, slip, mu, r = (np.asarray(a, np.float64) for a in (du, p, gap, slip, mu, r))
+    g, s = gap + du[0::2], slip + du[1::2]
+    R_N, R_T = p[0::2], p[1::2]
+    L = max(np.abs(du).max(), np.abs(gap).max(), np.abs(slip).max())
+    F = max(np.abs(p).max(), np.abs(r).max(), force, 1e-300)
+    closed = R_N > LAW * F
+    stick = closed & (np.abs(R_T) < (1.0 - 1e-6) * mu * R_N)
+    slipping = np.abs(s) > LAW * L
+    checks = {
+        "gap >= 0": np.max(-g, initial=0.0) / L,
+        "R_N >= 0": np.max(-R_N, initial=0.0) / F,
+        "g R_N = 0": np.max(np.abs(g * R_N), initial=0.0) / (L * F),
+        "|R_T| <= mu R_N": np.max(np.abs(R_T) - mu * R_N, initial=0.0) / F,
+        "stick => s = 0": np.max(np.where(stick, np.abs(s), 0.0), initial=0.0) / L,
+        "open => R_T = 0": np.max(np.where(closed, 0.0, np.abs(R_T)), initial=0.0) / F,
+        "slip => |R_T| = mu R_N": np.max(np.where(slipping, np.abs(np.abs(R_T) - mu * R_N), 0.0),
+                                         initial=0.0) / F,
+        "R_T opposes s": np.max(np.where(slipping, np.maximum(R_T * np.sign(s), 0.0), 0.0),
+                                initial=0.0) / F,
+    }
+    return max(checks.values()), checks
+
+
+def rel(a, b, scale):
+    return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / scale)
+
+
+def assert_agree(lem, ssn, gap, slip, r, label=""):
+    """Lemke and SSN give the same du_c and p (relative to the problem's length and force scales)."""
+    length = max(np.linalg.norm(lem.du_c), np.linalg.norm(gap), np.linalg.norm(slip))
+    force = max(np.linalg.norm(lem.p), np.linalg.norm(r))
+    e_u, e_p = rel(ssn.du_c, lem.du_c, length), rel(ssn.p, lem.p, force)
+    assert e_u < AGREE and e_p < AGREE, f"{label}: |du_ssn - du_lemke| {e_u:.1e}, |p_ssn - p_lemke| {e_p:.1e}"
+
+
+def assert_lcp_solution(M, q, z, w, tol=1e-10):
+    scale = np.abs(M) @ np.abs(z) + np.abs(q)
+    assert np.all(z >= 0.0)
+    np.testing.assert_allclose(w, M @ z + q, rtol=0, atol=1e-12 * scale.max())
+    assert np.all(w >= -tol * scale), f"w min {w.min():.2e}"
+    assert np.all(np.abs(z * w) <= tol * scale * np.maximum(z, 1e-300)), f"z.w {np.abs(z * w).max():.2e}"
+
+
+# ---------------------------------------------------------------------------------------------
+# Lemke on general LCPs
+# ---------------------------------------------------------------------------------------------
+
+
+def test_lemke_small_lcp_by_hand():
+    # M = [[2, 1], [1, 2]]: both z > 0 solve 2 z1 + z2 = 5, z1 + 2 z2 = 6 -> z = (4/3, 7/3).
+    M = np.array([[2.0, 1.0], [1.0, 2.0]])
+    res = lemke(M, np.array([-5.0, -6.0]))
+    assert res.status == LemkeStatus.SOLVED
+    np.testing.assert_allclose(res.z, [4 / 3, 7 / 3], rtol=1e-14)
+    np.testing.assert_allclose(res.w, 0.0, atol=1e-14)
+    # q = (-1, 2): z = (1/2, 0), w = (0, 5/2).
+    res = lemke(M, np.array([-1.0, 2.0]))
+    np.testing.assert_allclose(res.z, [0.5, 0.0], atol=1e-15)
+    np.testing.assert_allclose(res.w, [0.0, 2.5], atol=1e-15)
+    assert res.pivots == 2
+
+
+def test_lemke_trivial_and_budget():
+    M = np.array([[2.0, 1.0], [1.0, 2.0]])
+    res = lemke(M, np.array([0.0, 3.0]))
+    assert (res.status, res.pivots) == (LemkeStatus.SOLVED, 0)
+    np.testing.assert_array_equal(res.z, 0.0)
+    assert lemke(M, np.array([-5.0, -6.0]), max_pivots=1).status == LemkeStatus.MAX_PIVOTS
+
+
+def test_lemke_ray_termination_on_infeasible_lcp():
+    # w1 + w2 = -2 for every z: infeasible. M is positive semidefinite, so Lemke must end on a ray.
+    M = np.array([[1.0, -1.0], [-1.0, 1.0]])
+    res = lemke(M, np.array([-1.0, -1.0]))
+    assert res.status == LemkeStatus.RAY
+
+
+@pytest.mark.parametrize("kind", ["positive_definite", "positive_semidefinite"])
+@pytest.mark.parametrize("n", [1, 5, 20, 60])
+def test_lemke_random_monotone_lcps(kind, n):
+    """M = A A^T (+ skew part), rank n/2 for the semidefinite case; q planted from a complementary
+    pair (z*, w*) so that the LCP is feasible. Lemke processes every feasible copositive-plus LCP."""
+    rng = np.random.default_rng(n + (kind == "positive_semidefinite") * 100)
+    for trial in range(5):
+        rank = n if kind == "positive_definite" else max(n // 2, 1)
+        A = rng.standard_normal((n, rank))
+        S = rng.standard_normal((n, n))
+        M = A @ A.T + 0.5 * (S - S.T) + (1e-2 * np.eye(n) if kind == "positive_definite" else 0.0)
+        support = rng.random(n) < 0.5
+        z_star = np.where(support, rng.uniform(0.1, 1.0, n), 0.0)
+        w_star = np.where(support, 0.0, rng.uniform(0.1, 1.0, n))
+        q = w_star - M @ z_star
+        res = lemke(M, q)
+        assert res.status == LemkeStatus.SOLVED, f"trial {trial}: status {res.status}"
+        assert_lcp_solution(M, q, res.z, res.w)
+        if kind == "positive_definite":  # unique solution
+            np.testing.assert_allclose(res.z, z_star, atol=1e-9 * (1 + np.abs(z_star).max()))
+
+
+def test_lemke_callback_under_jit_and_vmap():
+    M, q, *_ = zip(*[contact_lcp(*random_problem(s, 4, 0.3)) for s in range(3)])
+    M, q = jnp.stack(M), jnp.stack(q)
+    out = jax.jit(jax.vmap(lemke_callback))(M, q)
+    for i in range(3):
+        ref = lemke(np.asarray(M[i]), np.asarray(q[i]))
+        np.testing.assert_array_equal(out.z[i], ref.z)
+        assert int(out.status[i]) == ref.status and int(out.pivots[i]) == ref.pivots
+
+
+# ---------------------------------------------------------------------------------------------
+# The contact LCP
+# ---------------------------------------------------------------------------------------------
+
+
+def test_contact_lcp_matches_its_definition():
+    """M = A K* B, q = A (K* d0 - r*) assembled with explicit loops; w = A p at any z."""
+    K, r, gap, slip, mu = random_problem(0, 3, 0.3, symmetric=False)
+    mu = np.array([0.0, 0.3, 1.0])
+    n_c = 3
+    A = np.zeros((3 * n_c, 2 * n_c))
+    B = np.zeros((2 * n_c, 3 * n_c))
+    for a in range(n_c):
+        A[3 * a : 3 * a + 3, 2 * a : 2 * a + 2] = [[1, 0], [mu[a], -1], [mu[a], 1]]
+        B[2 * a : 2 * a + 2, 3 * a : 3 * a + 3] = [[1, 0, 0], [0, -1, 1]]
+    d0 = -np.column_stack([gap, slip]).ravel()
+    M, q = contact_lcp(K, r, gap, slip, mu)
+    np.testing.assert_allclose(M, A @ K @ B, rtol=1e-14, atol=1e-12 * np.abs(K).max())
+    np.testing.assert_allclose(q, A @ (K @ d0 - r), rtol=1e-14, atol=1e-12 * np.abs(r).max())
+    z = np.random.default_rng(1).uniform(0, 0.01, 3 * n_c)
+    du, p = contact_solution(K, r, gap, slip, z)
+    np.testing.assert_allclose(du, B @ z + d0, atol=1e-15)
+    np.testing.assert_allclose(M @ z + q, A @ np.asarray(p), rtol=1e-12, atol=1e-9)
+
+
+def test_contact_lcp_rejects_bad_input():
+    K, r, gap, slip, mu = random_problem(0, 3, 0.3)
+    with pytest.raises(ValueError, match="mu"):
+        contact_lcp(K, r, gap, slip, -mu)
+    with pytest.raises(ValueError, match="r_star"):
+        contact_lcp(K, r[:-1], gap, slip, mu)
+    with pytest.raises(ValueError, match="force"):
+        ForceDrive(coupling=jnp.zeros((6, 2)), force=jnp.zeros(1))
+
+
+# ---------------------------------------------------------------------------------------------
+# Lemke and semismooth Newton on the same contact problems
+# ---------------------------------------------------------------------------------------------
+
+CONDITIONING = {
+    # name: (scales, SSN parameter rule)
+    "well": ((1e3, 1e3), "mean"),
+    "stiff": ((1e9, 1e9), "mean"),
+    "spread_1e3": ((1e3, 1e6), "mean"),
+    # Six decades between candidates: the mean diagonal misclassifies the soft candidates and
+    # the iteration can stall, so c follows each candidate's stiffness (see ssn_contact).
+    "spread_1e6": ((1e3, 1e9), "diagonal"),
+}
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.17, 0.5, 1.0])
+@pytest.mark.parametrize("conditioning", list(CONDITIONING))
+def test_lemke_and_ssn_agree(mu, conditioning):
+    scales, c_rule = CONDITIONING[conditioning]
+    problems = [random_problem(100 * k + int(100 * mu), 10, mu, scales, symmetric=k % 2 == 0,
+                               open_fraction=[0.0, 0.3, 0.6, 1.0][k % 4]) for k in range(8)]
+    ssn = ssn_batch(*batch(problems), c_rule=c_rule)
+    assert np.all(ssn.converged), f"SSN iterations {ssn.iterations}"
+    for k, (K, r, gap, slip, m) in enumerate(problems):
+        lem = lemke_contact(K, r, gap, slip, m)
+        assert lem.status == LemkeStatus.SOLVED, f"problem {k}: Lemke status {lem.status}"
+        one = jax.tree_util.tree_map(lambda a: a[k], ssn)
+        assert_agree(lem, one, gap, slip, r, f"problem {k}")
+        for name, (du, p) in {"lemke": (lem.du_c, lem.p), "ssn": (one.du_c, one.p)}.items():
+            worst, checks = law_violation(du, p, gap, slip, m, r)
+            assert worst < LAW, f"problem {k}, {name}: {checks}"
+
+
+def test_default_ssn_parameters_on_widely_spread_scales_fail_safely():
+    """With the spec's c = mean diagonal and candidate stiffnesses six decades apart SSN may not
+    converge (the caller then falls back to Lemke); whenever it reports convergence it is right."""
+    problems = [random_problem(7000 + k, 10, 0.5, (1e3, 1e9), symmetric=k % 2 == 0) for k in range(8)]
+    ssn = ssn_batch(*batch(problems), c_rule="mean")
+    for k, (K, r, gap, slip, m) in enumerate(problems):
+        if bool(ssn.converged[k]):
+            lem = lemke_contact(K, r, gap, slip, m)
+            assert_agree(lem, jax.tree_util.tree_map(lambda a: a[k], ssn), gap, slip, r, f"problem {k}")
+
+
+def test_ssn_solution_does_not_depend_on_c():
+    problems = [random_problem(300 + k, 10, [0.0, 0.17, 0.5, 1.0][k % 4], (1e3, 1e5)) for k in range(8)]
+    args = batch(problems)
+    ref = ssn_batch(*args, c_rule="diagonal")
+    for factor in (1e-3, 1e3):
+        out = ssn_batch(*args, c_rule="diagonal", c_factor=factor)
+        assert np.all(out.converged), f"c x {factor}: iterations {out.iterations}"
+        for k, (_, r, gap, slip, _) in enumerate(problems):
+            length = max(np.linalg.norm(ref.du_c[k]), np.linalg.norm(gap))
+            assert rel(out.du_c[k], ref.du_c[k], length) < AGREE, f"c x {factor}, problem {k}"
+            assert rel(out.p[k], ref.p[k], max(np.linalg.norm(ref.p[k]), np.linalg.norm(r))) < AGREE
+
+
+def test_degenerate_data_zero_gaps_slips_and_loads():
+    """Zero gaps (closed at zero gap), zero slips and zero loads put zeros in q and ties in every
+    ratio test. The solution here is du = 0 or close to it; both solvers must find it."""
+    problems = []
+    for k in range(8):
+        K, r, gap, slip, mu = random_problem(500 + k, 10, [0.0, 0.17, 0.5, 1.0][k % 4])
+        rng = np.random.default_rng(k)
+        gap = np.where(rng.random(10) < 0.6, 0.0, gap)
+        slip = np.where(rng.random(10) < 0.6, 0.0, slip)
+        r = np.where(rng.random(20) < 0.5, 0.0, r) if k % 3 else np.zeros(20)
+        problems.append((K, r, gap, slip, mu))
+    ssn = ssn_batch(*batch(problems))
+    assert np.all(ssn.converged)
+    for k, (K, r, gap, slip, mu) in enumerate(problems):
+        lem = lemke_contact(K, r, gap, slip, mu)
+        assert lem.status == LemkeStatus.SOLVED
+        one = jax.tree_util.tree_map(lambda a: a[k], ssn)
+        # Absolute scales: with zero data the solution itself may be 0.
+        force = 0.02 * np.abs(K).max()
+        assert rel(one.du_c, lem.du_c, 0.02) < AGREE and rel(one.p, lem.p, force) < AGREE
+        assert law_violation(lem.du_c, lem.p, gap, slip, mu, r, force)[0] < LAW
+
+
+def test_all_open_gives_the_free_solution():
+    """Gaps that stay open: p = 0 and du = K*^-1 r* (the sheet moves freely)."""
+    K, _, _, slip, mu = random_problem(11, 10, 0.5)
+    du_free = np.random.default_rng(0).uniform(-0.005, 0.005, 20)
+    r = K @ du_free
+    gap = np.full(10, 0.01)                   # g = 0.01 + du_N > 0
+    lem = lemke_contact(K, r, gap, slip, mu)
+    ssn = ssn_contact(K, r, gap, slip, mu)
+    for du, p in [(lem.du_c, lem.p), (ssn.du_c, ssn.p)]:
+        np.testing.assert_allclose(du, du_free, rtol=1e-10, atol=1e-14)
+        np.testing.assert_allclose(p, 0.0, atol=1e-10 * np.abs(r).max())
+    np.testing.assert_array_equal(contact_status(ssn.p, mu), ContactStatus.OPEN)
+
+
+def test_all_closed_in_stick_and_in_slip():
+    """All penetrating, no load: every gap closes. With no step slip everything sticks; with a
+    large step slip of one sign everything slides and R_T = -mu R_N sign(s)."""
+    K, _, _, _, mu = random_problem(12, 10, 0.5)
+    r = np.zeros(20)
+    gap = np.full(10, -0.01)
+    for slip, expected in [(np.zeros(10), ContactStatus.STICK), (np.full(10, 0.5), ContactStatus.SLIP)]:
+        lem = lemke_contact(K, r, gap, slip, mu)
+        ssn = ssn_contact(K, r, gap, slip, mu)
+        assert bool(ssn.converged) and lem.status == LemkeStatus.SOLVED
+        assert_agree(lem, ssn, gap, slip, r)
+        np.testing.assert_allclose(gap + lem.du_c[0::2], 0.0, atol=1e-14)
+        np.testing.assert_array_equal(contact_status(lem.p, mu), expected)
+        if expected == ContactStatus.SLIP:
+            np.testing.assert_allclose(lem.p[1::2], -mu * lem.p[0::2], rtol=1e-10)
+        else:
+            np.testing.assert_allclose(slip + lem.du_c[1::2], 0.0, atol=1e-14)
+
+
+def test_single_candidate_by_hand():
+    """K* = k I, r* = 0, g = -0.01, s = 0.02, mu = 0.5: closing needs R_N = 0.01 k; sticking would
+    need |R_T| = 0.02 k > mu R_N, so it slides: R_T = -0.005 k, du_T = -0.005, s = 0.015 > 0."""
+    k = 2e5
+    K, r = k * np.eye(2), np.zeros(2)
+    gap, slip, mu = np.array([-0.01]), np.array([0.02]), np.array([0.5])
+    for du, p in [lemke_contact(K, r, gap, slip, mu)[:2], ssn_contact(K, r, gap, slip, mu)[:2]]:
+        np.testing.assert_allclose(du, [0.01, -0.005], rtol=1e-13)
+        np.testing.assert_allclose(p, [0.01 * k, -0.005 * k], rtol=1e-13)
+    # Frictionless: slides freely, R_T = 0 and the whole slip remains.
+    for du, p in [lemke_contact(K, r, gap, slip, 0 * mu)[:2], ssn_contact(K, r, gap, slip, 0 * mu)[:2]]:
+        np.testing.assert_allclose(du, [0.01, 0.0], atol=1e-15)
+        np.testing.assert_allclose(p, [0.01 * k, 0.0], atol=1e-10)
+
+
+# ---------------------------------------------------------------------------------------------
+# Force-driven tools (spec 1.8)
+# ---------------------------------------------------------------------------------------------
+
+
+def random_drive(seed, n_c, n_tools, K):
+    """Tool k owns every candidate a with a % (n_tools + 1) == k (the rest belong to a fixed tool);
+    its closing direction is within 0.3 rad of the normals; P_k = 0.5 .. 2 % of a stiffness x mm."""
+    rng = np.random.default_rng(seed)
+    theta = rng.uniform(-0.3, 0.3, n_c)
+    C = np.zeros((2 * n_c, n_tools))
+    for a in range(n_c):
+        k = a % (n_tools + 1)
+        if k < n_tools:
+            C[2 * a, k], C[2 * a + 1, k] = np.cos(theta[a]), np.sin(theta[a])
+    P = rng.uniform(0.5, 2.0, n_tools) * 0.01 * np.mean(np.diag(K))
+    return ForceDrive(coupling=jnp.asarray(C), force=jnp.asarray(P))
+
+
+@functools.partial(jax.jit, static_argnames=())
+def ssn_drive_batch(K, r, gap, slip, mu, drive):
+    return jax.vmap(lambda *a: ssn_contact(*a[:5], drive=a[5]))(K, r, gap, slip, mu, drive)
+
+
+@pytest.mark.parametrize("n_tools", [1, 2])
+def test_force_driven_tool_balance(n_tools):
+    """The tool equation sum_a e_q . (R_N n + R_T t) = P holds at the solution of both solvers,
+    and they agree on du_c, p and dq."""
+    problems, drives = [], []
+    for k in range(8):
+        mu = [0.0, 0.17, 0.5, 1.0][k % 4]
+        K, r, gap, slip, m = random_problem(900 + 10 * n_tools + k, 10, mu, [(1e3, 1e3), (1e3, 1e6)][k % 2],
+                                            symmetric=k % 3 > 0)
+        problems.append((K, r, gap, slip, m))
+        drives.append(random_drive(k, 10, n_tools, K))
+    stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *drives)
+    ssn = ssn_drive_batch(*batch(problems), stacked)
+    assert np.all(ssn.converged), f"iterations {ssn.iterations}"
+    for k, ((K, r, gap, slip, mu), drive) in enumerate(zip(problems, drives)):
+        C, P = np.asarray(drive.coupling), np.asarray(drive.force)
+        lem = lemke_contact(K, r, gap, slip, mu, drive=drive)
+        assert lem.status == LemkeStatus.SOLVED, f"problem {k}: Lemke status {lem.status}"
+        one = jax.tree_util.tree_map(lambda a: a[k], ssn)
+        for name, p in {"lemke": lem.p, "ssn": one.p}.items():
+            np.testing.assert_allclose(C.T @ p, P, rtol=1e-9, err_msg=f"problem {k}, {name}")
+        assert_agree(lem, one, gap, slip, r, f"problem {k}")
+        np.testing.assert_allclose(one.dq, lem.dq, rtol=0, atol=AGREE * max(np.abs(lem.dq).max(), 0.02))
+        # The gaps seen by the solvers include the tool motion.
+        gap_q, slip_q = gap - (C[0::2] @ lem.dq), slip - (C[1::2] @ lem.dq)
+        assert law_violation(lem.du_c, lem.p, gap_q, slip_q, mu, r)[0] < LAW
+
+
+def test_force_driven_single_candidate_by_hand():
+    """One frictionless candidate touching (g = 0), K* = k I, e_q = n: R_N = P, du_N = P / k, and
+    the tool follows the node to keep g = 0: dq = P / k. A tool starting all open is brought into
+    contact by SSN (its first iterate closes the nearest candidate)."""
+    k, P = 1e5, 600.0
+    K, r = k * np.eye(2), np.zeros(2)
+    drive = ForceDrive.single([1.0], [0.0], P)
+    for gap in [0.0, 0.3]:
+        args = (K, r, np.array([gap]), np.zeros(1), np.zeros(1))
+        lem = lemke_contact(*args, drive=drive)
+        ssn = ssn_contact(*args, drive=drive)
+        for du, p, dq in [(lem.du_c, lem.p, lem.dq), (ssn.du_c, ssn.p, ssn.dq)]:
+            np.testing.assert_allclose(p, [P, 0.0], rtol=1e-10, atol=1e-10)
+            np.testing.assert_allclose(du, [P / k, 0.0], rtol=1e-10, atol=1e-15)
+            np.testing.assert_allclose(dq, [P / k + gap], rtol=1e-10)
+    M, q = contact_lcp(*args, drive)
+    assert M.shape == (4, 4) and q.shape == (4,)
+
+
+# ---------------------------------------------------------------------------------------------
+# JAX transformations, status, sizes
+# ---------------------------------------------------------------------------------------------
+
+
+def test_ssn_jit_matches_vmap_and_does_not_retrace():
+    problems = [random_problem(40 + k, 5, 0.3) for k in range(3)]
+    traces = []
+
+    @jax.jit
+    def solve(K, r, gap, slip, mu):
+        traces.append(1)
+        return ssn_contact(K, r, gap, slip, mu)
+
+    batched = jax.vmap(solve)(*batch(problems))
+    for k, prob in enumerate(problems):
+        single = solve(*(jnp.asarray(a) for a in prob))
+        np.testing.assert_allclose(single.du_c, batched.du_c[k], rtol=1e-13, atol=1e-16)
+        assert int(single.iterations) == int(batched.iterations[k])
+    # vmap batches the jaxpr traced for one problem; new values never retrace.
+    assert len(traces) == 1
+
+
+def test_contact_status_thresholds():
+    mu = np.array([0.5, 0.5, 0.5, 0.5, 0.0, 0.5])
+    p = np.array([1e-9, 0.0,                   # R_N at the open threshold: open
+                  1.0, 0.5 * (1 - 1e-6),       # |R_T| = (1 - 1e-6) mu R_N: slip
+                  1.0, -0.5 * (1 - 2e-6),      # just inside: stick
+                  1.0, 0.5,                    # on the cone: slip
+                  1.0, 0.0,                    # closed frictionless: slip
+                  -1.0, 0.0])                  # tensile (not a solution, but classified): open
+    expected = [ContactStatus.OPEN, ContactStatus.SLIP, ContactStatus.STICK, ContactStatus.SLIP,
+                ContactStatus.SLIP, ContactStatus.OPEN]
+    np.testing.assert_array_equal(contact_status(p, mu), expected)
+
+
+@pytest.mark.parametrize("n_c", [30])
+def test_larger_problem_and_timing(n_c):
+    """A 90-variable LCP: both solvers agree; timings printed for the record (pytest -s)."""
+    K, r, gap, slip, mu = random_problem(77, n_c, 0.17, (1e3, 1e5))
+    t0 = time.perf_counter()
+    lem = lemke_contact(K, r, gap, slip, mu)
+    t_lemke = time.perf_counter() - t0
+    solve = jax.jit(ssn_contact)
+    args = tuple(jnp.asarray(a) for a in (K, r, gap, slip, mu))
+    jax.block_until_ready(solve(*args))
+    t0 = time.perf_counter()
+    ssn = jax.block_until_ready(solve(*args))
+    t_ssn = time.perf_counter() - t0
+    print(f"n_c = {n_c}: Lemke {lem.pivots} pivots {1e3 * t_lemke:.1f} ms; "
+          f"SSN {int(ssn.iterations)} iterations {1e3 * t_ssn:.2f} ms")
+    assert lem.status == LemkeStatus.SOLVED and bool(ssn.converged)
+    assert_agree(lem, ssn, gap, slip, r)
