@@ -129,16 +129,25 @@ class RigidTool(eqx.Module):
 
 
 class Penalty(eqx.Module):
-    """Penalty regularisation of contact and friction (spec 1.5): eps_n, eps_t in N/mm per mm."""
+    """Penalty regularisation of contact and friction (spec 1.5): eps_n, eps_t in N/mm per mm.
+
+    ``smoothing`` (N/mm, default 0: the exact law) smooths the normal and stick/slip kinks over a force
+    band of that width (:mod:`jaxfric.contact_laws`), for gradient-based work; whether it is on is
+    static (decided from its value at construction), its value is an array leaf.
+    """
 
     eps_n: jax.Array
     eps_t: jax.Array
+    smoothing: jax.Array
+    smooth: bool = eqx.field(static=True)
 
-    def __init__(self, eps_n, eps_t):
-        for name, v in (("eps_n", eps_n), ("eps_t", eps_t)):
+    def __init__(self, eps_n, eps_t, smoothing=0.0):
+        for name, v in (("eps_n", eps_n), ("eps_t", eps_t), ("smoothing", smoothing)):
             check_nonnegative(name, v)
         self.eps_n = jnp.asarray(eps_n, jnp.float64)
         self.eps_t = jnp.asarray(eps_t, jnp.float64)
+        self.smoothing = jnp.asarray(smoothing, jnp.float64)
+        self.smooth = (not is_concrete(self.smoothing)) or float(self.smoothing) > 0
 
     def __check_init__(self):
         if is_concrete(self.eps_n) and not float(self.eps_n) > 0:
@@ -162,8 +171,8 @@ class AugmentedLagrangian(Penalty):
     target_gap: jax.Array
     max_augmentations: int = eqx.field(static=True)
 
-    def __init__(self, eps_n, eps_t, target_gap=1e-5, max_augmentations: int = 20):
-        super().__init__(eps_n, eps_t)
+    def __init__(self, eps_n, eps_t, target_gap=1e-5, max_augmentations: int = 20, smoothing=0.0):
+        super().__init__(eps_n, eps_t, smoothing)
         check_nonnegative("target_gap", target_gap)
         if is_concrete(target_gap) and not float(target_gap) > 0:
             raise ValueError(f"field 'target_gap' must be > 0, got {float(target_gap)}")
@@ -234,11 +243,12 @@ def _pair(tool: RigidTool, law: Penalty, frictional: bool, X, u, q, mu, lam_n, l
     # it causes, computed from the increment itself (round-off, see jaxfric.tools.project).
     increment = (u - u_ref) - (q - q_ref) * tool.drive
     proj = project(tool.geometry, X, q_ref * tool.drive, displacement=u_ref, increment=increment)
+    smoothing = law.smoothing if law.smooth else None
     if frictional:
         force = augmented_pair(proj.gap, proj.zeta_increment, lam_n, lam_t, mu, law.eps_n, law.eps_t,
-                               proj.valid)
+                               proj.valid, smoothing)
     else:  # static: a frictionless tool builds no tangential term at all
-        force = augmented_pair(proj.gap, 0.0, lam_n, 0.0, 0.0, law.eps_n, 0.0, proj.valid)
+        force = augmented_pair(proj.gap, 0.0, lam_n, 0.0, 0.0, law.eps_n, 0.0, proj.valid, smoothing)
     f = force.normal * proj.normal + force.tangential * proj.tangent
     return f, (force.normal, force.tangential, force.status, proj.gap, proj.zeta, proj.normal,
                proj.zeta_increment)

@@ -13,7 +13,18 @@ the slip since the last converged step (Wriggers, *Computational Contact Mechani
 Laursen, *Computational Contact and Impact Mechanics*, 2002, ch. 5). Forces are nodal (per unit
 out-of-plane width, N/mm); eps_N, eps_T in N/mm per mm.
 
-Kinks are decided once, here, with explicit ``where`` branches (never a tie-averaging max/clip):
+Optional smoothing (for gradient work; default off): with a force scale s > 0 (N/mm),
+
+    R_N = s softplus(R_N^tr / s),         R_T = R_T^tr - s softplus((R_T^tr - mu R_N)/s)
+                                                  + s softplus((-R_T^tr - mu R_N)/s),
+
+a smooth <.> and a smooth clip to [-mu R_N, mu R_N]; both tend to the exact law as s -> 0 (the error
+is at most s log 2 near the kinks and decays exponentially away from them). Effect on forces: an open
+pair at gap g > 0 still carries s softplus(-eps_N g / s), a closed one penetrates by about s log 2 /
+eps_N more at the contact edge, and the Coulomb limit is approached over a band of width ~s.
+
+Kinks of the exact law are decided once, here, with explicit ``where`` branches (never a tie-averaging
+max/clip):
 - a pair with R_N^tr = lambda_N - eps_N g_N = 0 exactly counts as closed (spec 0: a tool that starts
   exactly touching gives a non-singular first iteration);
 - |R_T^tr| = mu R_N counts as slip; with mu R_N = 0 the slip branch gives R_T = 0 and a zero
@@ -38,7 +49,7 @@ class PairForce(NamedTuple):
     status: jax.Array       # () int8: OPEN, STICK or SLIP (the branch the law took)
 
 
-def augmented_pair(gap, slip, lambda_n, lambda_t, mu, eps_n, eps_t, valid=True) -> PairForce:
+def augmented_pair(gap, slip, lambda_n, lambda_t, mu, eps_n, eps_t, valid=True, smoothing=None) -> PairForce:
     """The augmented-Lagrangian pair law (penalty when lambda_n = 0, lambda_t = R_T,n).
 
     Args:
@@ -48,7 +59,10 @@ def augmented_pair(gap, slip, lambda_n, lambda_t, mu, eps_n, eps_t, valid=True) 
         mu: () friction coefficient.
         eps_n, eps_t: () normal and tangential penalties (N/mm per mm).
         valid: () bool, False when the node projects on no tool primitive (the pair is open).
+        smoothing: None for the exact law, or a force scale s > 0 (N/mm) for the smoothed one.
     """
+    if smoothing is not None:
+        return _smoothed_pair(gap, slip, lambda_n, lambda_t, mu, eps_n, eps_t, valid, smoothing)
     rn_trial = lambda_n - eps_n * gap
     closed = valid & (rn_trial >= 0.0)
     rn = jnp.where(closed, rn_trial, 0.0)
@@ -58,6 +72,15 @@ def augmented_pair(gap, slip, lambda_n, lambda_t, mu, eps_n, eps_t, valid=True) 
     rt = jnp.where(stick, rt_trial, limit * jnp.sign(rt_trial))
     status = jnp.where(closed, jnp.where(stick, STICK, SLIP), OPEN).astype(jnp.int8)
     return PairForce(rn, rt, status)
+
+
+def _smoothed_pair(gap, slip, lambda_n, lambda_t, mu, eps_n, eps_t, valid, s) -> PairForce:
+    rn_trial = jnp.where(valid, lambda_n - eps_n * gap, -jnp.inf)
+    rn = s * jax.nn.softplus(rn_trial / s)
+    rt_trial = jnp.where(valid, lambda_t - eps_t * slip, 0.0)
+    limit = mu * rn
+    rt = rt_trial - s * jax.nn.softplus((rt_trial - limit) / s) + s * jax.nn.softplus((-rt_trial - limit) / s)
+    return PairForce(rn, rt, status_of(rn, rt, mu))
 
 
 def penalty_pair(gap, slip, rt_prev, mu, eps_n, eps_t, valid=True) -> PairForce:

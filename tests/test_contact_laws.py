@@ -1,0 +1,58 @@
+"""The pair law at its kinks: branch choices, exact values, smoothing."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxfric.contact_laws import OPEN, SLIP, STICK, augmented_pair, penalty_pair, status_of
+
+EPS_N, EPS_T, MU = 1e5, 1.5e4, 0.2
+
+
+def test_penalty_branches():
+    open_ = penalty_pair(1e-3, 0.0, 0.0, MU, EPS_N, EPS_T)
+    assert float(open_.normal) == 0.0 and int(open_.status) == OPEN
+    stick = penalty_pair(-1e-4, 1e-6, 0.0, MU, EPS_N, EPS_T)
+    np.testing.assert_allclose([stick.normal, stick.tangential], [10.0, -0.015])
+    assert int(stick.status) == STICK
+    slip = penalty_pair(-1e-4, 1e-3, 0.0, MU, EPS_N, EPS_T)
+    np.testing.assert_allclose([slip.normal, slip.tangential], [10.0, -2.0])
+    assert int(slip.status) == SLIP
+
+
+def test_touching_pair_is_closed_with_normal_stiffness_and_no_spurious_stick():
+    """g = 0 exactly: closed (spec 0), dR_N/dg = -eps_n; R_T = 0 with zero tangential stiffness."""
+    f = lambda g, s: penalty_pair(g, s, 0.0, MU, EPS_N, EPS_T)  # noqa: E731
+    assert int(f(0.0, 0.0).status) != OPEN
+    dn = jax.grad(lambda g: f(g, 0.0).normal)(0.0)
+    dt = jax.grad(lambda s: f(0.0, s).tangential)(0.0)
+    assert float(dn) == -EPS_N and float(dt) == 0.0
+
+
+def test_frictionless_and_status_thresholds():
+    f = penalty_pair(-1e-4, 1e-3, 0.0, 0.0, EPS_N, EPS_T)
+    assert float(f.tangential) == 0.0 and int(f.status) == SLIP
+    np.testing.assert_array_equal(status_of(jnp.array([0.0, 1.0, 1.0]), jnp.array([0.0, 0.1, 0.2]), 0.2),
+                                  [OPEN, STICK, SLIP])
+
+
+@pytest.mark.parametrize("s", [1e-2, 1e-4])
+def test_smoothing_tends_to_the_exact_law_and_is_differentiable_at_the_kinks(s):
+    gaps = jnp.linspace(-2e-4, 2e-4, 41)
+    slips = jnp.linspace(-3e-3, 3e-3, 41)
+    exact = jax.vmap(lambda g, x: augmented_pair(g, x, 0.0, 0.0, MU, EPS_N, EPS_T))(gaps, slips)
+    smooth = jax.vmap(lambda g, x: augmented_pair(g, x, 0.0, 0.0, MU, EPS_N, EPS_T, smoothing=s))(gaps, slips)
+    # error at most s log 2 in R_N; the clip adds at most (1 + mu) s log 2 to R_T
+    assert float(jnp.max(jnp.abs(smooth.normal - exact.normal))) <= s * np.log(2) * 1.0001
+    assert float(jnp.max(jnp.abs(smooth.tangential - exact.tangential))) <= (1 + MU) * s * np.log(2) * 1.0001
+    # at the normal kink (g = 0) and at the stick/slip kink (|R_T^tr| = mu R_N): finite derivatives that
+    # match central differences
+    for g, x in [(0.0, 0.0), (-1e-4, MU * 10.0 / EPS_T)]:
+        f = lambda v: jnp.stack(augmented_pair(v[0], v[1], 0.0, 0.0, MU, EPS_N, EPS_T, smoothing=s)[:2])  # noqa: E731
+        v0 = jnp.array([g, x])
+        J = jax.jacfwd(f)(v0)
+        h = jnp.array([1e-3, 1e-3]) * s / EPS_N
+        fd = jnp.stack([(f(v0 + h * e) - f(v0 - h * e)) / (2 * h[i]) for i, e in enumerate(jnp.eye(2))], 1)
+        assert bool(jnp.all(jnp.isfinite(J)))
+        np.testing.assert_allclose(J, fd, rtol=1e-5, atol=1e-6 * EPS_N)
