@@ -39,7 +39,8 @@ from .progress import report
 from .results import Result
 
 __all__ = ["StripModel", "SimState", "StepControl", "History", "Simulation", "initial_state",
-           "default_observe", "stresses", "solve_step", "simulate", "simulate_fixed"]
+           "default_observe", "stresses", "solve_step", "linearize_step", "reactions",
+           "contact_force_field", "StepSolution", "simulate", "simulate_fixed"]
 
 
 class StripModel(eqx.Module):
@@ -440,6 +441,32 @@ def _augment(model: StripModel, args: "_StepArgs", sol, x_ref, newton: NewtonOpt
     return StepSolution(sol.x, sol.aux, iters, sol.code, sol.residual_norm, sol.residual_history, n_aug)
 
 
+def _step_args(model: StripModel, state: SimState, phase, t_target, ctx: "_Context"):
+    phase = jnp.asarray(phase, jnp.int32)
+    t_target = jnp.asarray(t_target, jnp.float64)
+    tau = t_target - phase.astype(t_target.dtype)
+    values = prescribed_values(model.mesh.nodes, model.phases, phase, tau)
+    contact, q_start, f_start = (None, None, None)
+    if model.tools:
+        contact, q_start, f_start = _contact_step(model, state, phase, tau, model.contact)
+    args = _StepArgs(model.mesh, model.material, ctx.geo, state.material, ctx.masks[phase], values,
+                     contact, model.formulation, model.force_tools)
+    return args, q_start, f_start
+
+
+def _unknowns(model: StripModel, state: SimState, u) -> jax.Array:
+    q_f = state.contact.q[np.asarray(model.force_tools)] if model.force_tools else jnp.zeros(0)
+    return jnp.concatenate([u.reshape(-1), q_f])
+
+
+def linearize_step(model: StripModel, state: SimState, phase, t_target) -> Linearization:
+    """Residual and Jacobian (BlockTridiag, or Bordered with force-driven tools) of the step from the
+    converged ``state`` to ``t_target`` in ``phase``, at the unknowns of ``state`` (for inspection,
+    debugging and benchmarks; :func:`solve_step` iterates on it)."""
+    args, _, _ = _step_args(model, state, phase, t_target, _Context.build(model))
+    return _linearize(_unknowns(model, state, state.u), args)
+
+
 def solve_step(model: StripModel, state: SimState, phase, t_target,
                newton: NewtonOptions = NewtonOptions(), ctx: "_Context | None" = None, guess=None):
     """Solve one load step from the converged ``state`` to pseudo-time ``t_target`` in phase ``phase``.
@@ -450,22 +477,15 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
     new :class:`SimState` (meaningful only when ``solution.code == Result.SUCCESS``).
     """
     ctx = _Context.build(model) if ctx is None else ctx
-    phase = jnp.asarray(phase, jnp.int32)
     t_target = jnp.asarray(t_target, jnp.float64)
-    tau = t_target - phase.astype(t_target.dtype)
-    values = prescribed_values(model.mesh.nodes, model.phases, phase, tau)
-    contact, q_start, f_start = (None, None, None)
-    if model.tools:
-        contact, q_start, f_start = _contact_step(model, state, phase, tau, model.contact)
-    force_idx = model.force_tools
-    args = _StepArgs(model.mesh, model.material, ctx.geo, state.material, ctx.masks[phase], values,
-                     contact, model.formulation, force_idx)
-    q_f = state.contact.q[np.asarray(force_idx)] if force_idx else jnp.zeros(0)
-    x_ref = jnp.concatenate([state.u.reshape(-1), q_f])
+    phase = jnp.asarray(phase, jnp.int32)
+    args, q_start, f_start = _step_args(model, state, phase, t_target, ctx)
+    x_ref = _unknowns(model, state, state.u)
     if guess is None:
         x0 = x_ref
     else:
         u_guess, q_guess = guess
+        force_idx = model.force_tools
         q0 = q_guess[np.asarray(force_idx)] if force_idx else jnp.zeros(0)
         x0 = jnp.concatenate([u_guess.reshape(-1), q0])
     sol = newton_solve(args, x0, x_ref, linearize=_linearize, residual=_residual, options=newton)

@@ -70,6 +70,9 @@ def batch(problems):
     return tuple(jnp.asarray(np.stack(a)) for a in zip(*problems))
 
 
+ssn_jit = jax.jit(ssn_contact)
+
+
 @functools.partial(jax.jit, static_argnames=("c_rule",))
 def ssn_batch(K, r, gap, slip, mu, c_rule="mean", c_factor=1.0):
     """SSN on a batch; c_rule "mean": the spec default, "diagonal": per-candidate diagonal of K*."""
@@ -321,7 +324,7 @@ def test_all_open_gives_the_free_solution():
     r = K @ du_free
     gap = np.full(10, 0.01)                   # g = 0.01 + du_N > 0
     lem = lemke_contact(K, r, gap, slip, mu)
-    ssn = ssn_contact(K, r, gap, slip, mu)
+    ssn = ssn_jit(K, r, gap, slip, mu)
     for du, p in [(lem.du_c, lem.p), (ssn.du_c, ssn.p)]:
         np.testing.assert_allclose(du, du_free, rtol=1e-10, atol=1e-14)
         np.testing.assert_allclose(p, 0.0, atol=1e-10 * np.abs(r).max())
@@ -336,7 +339,7 @@ def test_all_closed_in_stick_and_in_slip():
     gap = np.full(10, -0.01)
     for slip, expected in [(np.zeros(10), ContactStatus.STICK), (np.full(10, 0.5), ContactStatus.SLIP)]:
         lem = lemke_contact(K, r, gap, slip, mu)
-        ssn = ssn_contact(K, r, gap, slip, mu)
+        ssn = ssn_jit(K, r, gap, slip, mu)
         assert bool(ssn.converged) and lem.status == LemkeStatus.SOLVED
         assert_agree(lem, ssn, gap, slip, r)
         np.testing.assert_allclose(gap + lem.du_c[0::2], 0.0, atol=1e-14)
@@ -353,13 +356,90 @@ def test_single_candidate_by_hand():
     k = 2e5
     K, r = k * np.eye(2), np.zeros(2)
     gap, slip, mu = np.array([-0.01]), np.array([0.02]), np.array([0.5])
-    for du, p in [lemke_contact(K, r, gap, slip, mu)[:2], ssn_contact(K, r, gap, slip, mu)[:2]]:
+    for du, p in [lemke_contact(K, r, gap, slip, mu)[:2], ssn_jit(K, r, gap, slip, mu)[:2]]:
         np.testing.assert_allclose(du, [0.01, -0.005], rtol=1e-13)
         np.testing.assert_allclose(p, [0.01 * k, -0.005 * k], rtol=1e-13)
     # Frictionless: slides freely, R_T = 0 and the whole slip remains.
-    for du, p in [lemke_contact(K, r, gap, slip, 0 * mu)[:2], ssn_contact(K, r, gap, slip, 0 * mu)[:2]]:
+    for du, p in [lemke_contact(K, r, gap, slip, 0 * mu)[:2], ssn_jit(K, r, gap, slip, 0 * mu)[:2]]:
         np.testing.assert_allclose(du, [0.01, 0.0], atol=1e-15)
         np.testing.assert_allclose(p, [0.01 * k, 0.0], atol=1e-10)
+
+
+def clamped_strip_stiffness(nx=40, ny=4, length=40.0, thickness=1.0, E=2e5, nu=0.3):
+    """K* of a real sheet: plane-strain linear Q4 strip (2x2 Gauss) clamped at x = 0, condensed on
+    its bottom nodes (the clamped one excluded), in the frames n = +y, t = (-n_y, n_x) = -x of a
+    flat die below it, so (u_N, u_T) = (u_y, -u_x). Shape (2 nx, 2 nx), N/mm per mm.
+
+    Condensed bending stiffness couples neighbouring normals with both signs: K* is far from an
+    M-matrix, and on these data the plain active-set iteration cycles on 2 of 16 problems.
+    """
+    lam, G = E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
+    D = np.array([[lam + 2 * G, lam, 0.0], [lam, lam + 2 * G, 0.0], [0.0, 0.0, G]])
+    hx, hy = length / nx, thickness / ny
+    xi_a, eta_a = np.array([-1, 1, 1, -1]), np.array([-1, -1, 1, 1])
+    Ke = np.zeros((8, 8))
+    for xi in (-1 / np.sqrt(3), 1 / np.sqrt(3)):
+        for eta in (-1 / np.sqrt(3), 1 / np.sqrt(3)):
+            dN = np.stack([xi_a * (1 + eta_a * eta) / (2 * hx), eta_a * (1 + xi_a * xi) / (2 * hy)])
+            Bm = np.zeros((3, 8))
+            Bm[0, 0::2], Bm[1, 1::2], Bm[2, 0::2], Bm[2, 1::2] = dN[0], dN[1], dN[1], dN[0]
+            Ke += Bm.T @ D @ Bm * hx * hy / 4
+    node = lambda i, j: i * (ny + 1) + j  # noqa: E731  (column-by-column numbering, spec section 0)
+    n_dof = 2 * (nx + 1) * (ny + 1)
+    K = np.zeros((n_dof, n_dof))
+    for i in range(nx):
+        for j in range(ny):
+            dofs = np.ravel([[2 * a, 2 * a + 1] for a in (node(i, j), node(i + 1, j), node(i + 1, j + 1),
+                                                          node(i, j + 1))])
+            K[np.ix_(dofs, dofs)] += Ke
+    clamped = np.ravel([[2 * node(0, j), 2 * node(0, j) + 1] for j in range(ny + 1)])
+    bottom = np.array([node(i, 0) for i in range(1, nx + 1)])
+    c = np.ravel(np.column_stack([2 * bottom + 1, 2 * bottom]))
+    f = np.setdiff1d(np.arange(n_dof), np.concatenate([clamped, c]))
+    K_star = K[np.ix_(c, c)] - K[np.ix_(c, f)] @ np.linalg.solve(K[np.ix_(f, f)], K[np.ix_(f, c)])
+    sign = np.tile([1.0, -1.0], bottom.size)
+    return sign[:, None] * K_star * sign[None, :]
+
+
+@pytest.fixture(scope="module")
+def strip():
+    return clamped_strip_stiffness()
+
+
+def test_clamped_strip_on_a_flat_die(strip):
+    """Random penetrations, slips and loads on a real condensed sheet stiffness, mu < 1."""
+    K = strip
+    n_c = K.shape[0] // 2
+    problems = []
+    for seed in range(16):
+        rng = np.random.default_rng(seed)
+        gap, slip = rng.uniform(-0.01, 0.01, n_c), rng.uniform(-0.01, 0.01, n_c)
+        r = K @ rng.normal(0, 0.01, 2 * n_c) * (seed % 2)
+        problems.append((K, r, gap, slip, np.full(n_c, [0.0, 0.17, 0.5][seed % 3])))
+    ssn = ssn_batch(*batch(problems))
+    assert np.all(ssn.converged), f"SSN iterations {ssn.iterations}"
+    for k, (K, r, gap, slip, mu) in enumerate(problems):
+        lem = lemke_contact(K, r, gap, slip, mu)
+        assert lem.status == LemkeStatus.SOLVED
+        one = jax.tree_util.tree_map(lambda a: a[k], ssn)
+        assert_agree(lem, one, gap, slip, r, f"problem {k}")
+        assert law_violation(one.du_c, one.p, gap, slip, mu, r)[0] < LAW
+
+
+def test_global_coulomb_sliding(strip):
+    """Strip touching the die, pressed onto it by 10 N/mm per bottom node and slid 0.5 mm: every
+    closed pair slides the same way, so the tangential resultant is -mu times the normal one
+    (spec section 8)."""
+    K = strip
+    n_c = K.shape[0] // 2
+    gap, slip, mu = np.zeros(n_c), np.full(n_c, 0.5), np.full(n_c, 0.15)
+    r = np.zeros(2 * n_c)
+    r[0::2] = -10.0
+    for du, p in [lemke_contact(K, r, gap, slip, mu)[:2], ssn_jit(K, r, gap, slip, mu)[:2]]:
+        p = np.asarray(p)
+        assert np.sum(p[0::2] > 1e-9) >= n_c // 2, "most of the strip must be in contact"
+        np.testing.assert_allclose(p[1::2].sum(), -0.15 * p[0::2].sum(), rtol=1e-10)
+        assert np.all(slip + np.asarray(du)[1::2] > 0.4)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -424,7 +504,7 @@ def test_force_driven_single_candidate_by_hand():
     for gap in [0.0, 0.3]:
         args = (K, r, np.array([gap]), np.zeros(1), np.zeros(1))
         lem = lemke_contact(*args, drive=drive)
-        ssn = ssn_contact(*args, drive=drive)
+        ssn = ssn_jit(*args, drive=drive)
         for du, p, dq in [(lem.du_c, lem.p, lem.dq), (ssn.du_c, ssn.p, ssn.dq)]:
             np.testing.assert_allclose(p, [P, 0.0], rtol=1e-10, atol=1e-10)
             np.testing.assert_allclose(du, [P / k, 0.0], rtol=1e-10, atol=1e-15)

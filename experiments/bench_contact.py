@@ -1,0 +1,101 @@
+"""Contact performance: ``python experiments/bench_contact.py [--stroke 3] [--draw 3]``.
+
+A 300 x 3 strip (the Nine test's strip, material and cylinders A, B, C of benchmark Table 3) in
+contact with three cylinders: B is pushed down by ``stroke`` mm, then the strip is drawn ``draw`` mm,
+with mu = 0.17 and eps_n = 1e5, eps_t = mu eps_n. For each contact algorithm available, prints and
+writes to ``experiments/results/bench_contact.csv``: steps, Newton iterations per step, augmentations
+per step (AL), wall time per Newton iteration of the whole run, and one linearisation (residual +
+tangent, contact included) at the final state against the same without contact.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxfric as jf
+from jaxfric.contact import AugmentedLagrangian, Move, Penalty, RigidTool
+from jaxfric.tools import Tool
+
+R1, PITCH, E_SHEET = 5.5, 11.97, 0.97
+
+
+def three_cylinders(law, stroke=3.0, draw=3.0, nx=300, ny=3, mu=0.17) -> jf.StripModel:
+    mesh = jf.strip_mesh(-50.0, 50.0, 0.0, E_SHEET, nx, ny)
+    mat = jf.J2Material(E=200000.0, nu=0.3, sigma_y=171.0, A=121.74485, n=0.23)
+    below = dict(drive=(0.0, 1.0), candidates=mesh.bottom, controls=(Move(), Move()), mu=mu)
+    tools = (RigidTool("A", Tool.circle((0.0, -R1), R1), **below),
+             RigidTool("B", Tool.circle((PITCH, E_SHEET + R1), R1, seam=np.pi / 2), drive=(0.0, -1.0),
+                       candidates=mesh.top, controls=(Move(0.0, stroke), Move()), mu=mu),
+             RigidTool("C", Tool.circle((2 * PITCH, -R1), R1), **below))
+    hold = jf.DirichletBC(mesh.right)
+    pull = jf.DirichletBC(mesh.right, motion=jf.Ramp((0.0, 0.0), (draw, 0.0)))
+    phases = (jf.Phase("clamp", [hold], n_steps=int(round(stroke / 0.1))),
+              jf.Phase("draw", [pull], n_steps=int(round(draw / 0.1))))
+    return jf.StripModel(mesh, mat, phases, tools=tools, contact=law)
+
+
+def median_time(fn, *args, repeat=20):
+    jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def linearisation_ms(model: jf.StripModel, state, repeat: int) -> float:
+    """One residual + tangent evaluation at ``state`` (a draw step)."""
+    fn = jax.jit(lambda m, s: jf.linearize_step(m, s, 1, 1.5)[:2])
+    return 1e3 * median_time(fn, model, state, repeat=repeat)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--stroke", type=float, default=3.0)
+    parser.add_argument("--draw", type=float, default=3.0)
+    parser.add_argument("--repeat", type=int, default=20)
+    parser.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "bench_contact.csv"))
+    args = parser.parse_args()
+    laws = {"penalty": Penalty(1e5, 0.17e5), "auglag": AugmentedLagrangian(1e5, 0.17e5, target_gap=1e-5)}
+    rows = []
+    for name, law in laws.items():
+        model = three_cylinders(law, args.stroke, args.draw)
+        res = jf.run(model, progress=False)
+        h = res.history
+        n_steps, iters = len(h["time"]) - 1, int(h["newton_iters"].sum())
+        state = jax.tree_util.tree_map(jnp.asarray, res.final)
+        with_c = linearisation_ms(model, state, args.repeat)
+        bare = jf.StripModel(model.mesh, model.material, model.phases)  # the same strip, no tools
+        without = linearisation_ms(bare, jf.SimState(state.u, state.material, state.f_int, state.time,
+                                                     state.phase), args.repeat)
+        row = dict(algorithm=name, converged=res.converged, n_steps=n_steps, newton_iters=iters,
+                   iters_per_step=iters / n_steps, augmentations_per_step=h["augmentations"].sum() / n_steps,
+                   compile_s=res.compile_s, wall_s=res.wall_s, ms_per_iteration_run=1e3 * res.wall_s / iters,
+                   ms_linearisation_contact=with_c, ms_linearisation_no_contact=without,
+                   contact_overhead=with_c / without - 1.0, max_penetration=float(h["max_penetration"].max()),
+                   n_active_final=int(h["n_active"][-1]))
+        rows.append(row)
+        print(f"{name:>8}: {n_steps} steps, {row['iters_per_step']:.2f} it/step, "
+              f"{row['augmentations_per_step']:.2f} aug/step, run {res.wall_s:.2f} s = "
+              f"{row['ms_per_iteration_run']:.2f} ms/iteration (compile {res.compile_s:.1f} s); "
+              f"linearisation {with_c:.2f} ms with contact vs {without:.2f} ms without "
+              f"(+{100 * row['contact_overhead']:.0f} %), max penetration {row['max_penetration']:.2e} mm",
+              flush=True)
+    os.makedirs(os.path.dirname(args.out), exist_ok=True)
+    with open(args.out, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    print(f"written {args.out}; device {jax.devices()[0].device_kind}, jax {jax.__version__}")
+
+
+if __name__ == "__main__":
+    main()
