@@ -113,8 +113,10 @@ def _to_host(model, sim: Simulation, monitor, compile_s, wall_s) -> RunResult:
     if not converged:
         t = float(final.time)
         phase = model.phases[int(final.phase)].name
-        message = (f"stopped after step {n - 1} at t = {t:.6g} (phase '{phase}'), while attempting "
-                   f"t = {float(sim.failed_time):.6g}, last residual {float(sim.residual_norm):.3g} N/mm: "
+        attempt = ("" if code == Result.MAX_STEPS else
+                   f", while attempting t = {float(sim.failed_time):.6g}, last residual "
+                   f"{float(sim.residual_norm):.3g} N/mm")
+        message = (f"stopped after step {n - 1} at t = {t:.6g} (phase '{phase}'){attempt}: "
                    f"{describe(code)}. Results up to t = {t:.6g} are kept.")
     return RunResult(model=model, history=history, final=final, simulation=sim, converged=converged,
                      code=code, message=message, compile_s=compile_s, wall_s=wall_s)

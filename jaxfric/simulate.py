@@ -121,7 +121,7 @@ class StepControl(eqx.Module):
         max_cuts: an attempt below nominal / 2**max_cuts stops the run.
         growth: increment growth factor after ``easy_steps`` consecutive easy steps.
         easy_iterations: a step is easy when it needed at most this many Newton iterations.
-        max_steps: size of the history buffer (accepted steps); default 4x the nominal count + 50.
+        max_steps: size of the history buffer (accepted steps); default 10x the nominal count + 100.
     """
 
     max_cuts: int = eqx.field(static=True, default=10)
@@ -591,7 +591,7 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     seg_end = jnp.asarray(sched.seg_end)
     seg_dt = jnp.asarray(sched.seg_dt)
     seg_phase = jnp.asarray(sched.seg_phase, jnp.int32)
-    n_buf = control.max_steps or 4 * sched.n_nominal_steps + 50
+    n_buf = control.max_steps or 10 * sched.n_nominal_steps + 100
     ctx = _Context.build(model)
     state0 = initial_state(model)
     int0 = jnp.array(0, jnp.int32)
