@@ -11,15 +11,14 @@ tangent, contact included) at the final state against the same without contact.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import jaxfric as jf
+from benchutil import median_time, write_rows
 from jaxfric.contact import AugmentedLagrangian, Move, Penalty, RigidTool
 from jaxfric.tools import Tool
 
@@ -39,16 +38,6 @@ def three_cylinders(law, stroke=3.0, draw=3.0, nx=300, ny=3, mu=0.17) -> jf.Stri
     phases = (jf.Phase("clamp", [hold], n_steps=int(round(stroke / 0.1))),
               jf.Phase("draw", [pull], n_steps=int(round(draw / 0.1))))
     return jf.StripModel(mesh, mat, phases, tools=tools, contact=law)
-
-
-def median_time(fn, *args, repeat=20):
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
 
 
 def linearisation_ms(model: jf.StripModel, state, repeat: int) -> float:
@@ -89,12 +78,7 @@ def main():
               f"linearisation {with_c:.2f} ms with contact vs {without:.2f} ms without "
               f"(+{100 * row['contact_overhead']:.0f} %), max penetration {row['max_penetration']:.2e} mm",
               flush=True)
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    with open(args.out, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"written {args.out}; device {jax.devices()[0].device_kind}, jax {jax.__version__}")
+    write_rows(args.out, rows)
 
 
 if __name__ == "__main__":

@@ -12,27 +12,16 @@ at each mesh, prints and writes to ``experiments/results/bench_core.csv``:
 from __future__ import annotations
 
 import argparse
-import csv
 import os
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import jaxfric as jf
+from benchutil import median_time, write_rows
 from jaxfric.assembly import internal_force_and_tangent, mesh_geometry
 from jaxfric.examples import stretch_bend_strip
-
-
-def median_time(fn, *args, repeat=20):
-    jax.block_until_ready(fn(*args))  # compile and warm up
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
 
 
 def bench(nx: int, ny: int, repeat: int = 20) -> dict:
@@ -78,12 +67,7 @@ def main():
               f"{row['wall_s']:.2f} s = {row['ms_per_iteration_run']:.2f} ms/iteration; one iteration: "
               f"assembly {row['ms_assembly']:.2f} ms + block solve {row['ms_solve']:.2f} ms "
               f"(dense solve {row['ms_dense_solve']:.1f} ms)", flush=True)
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    with open(args.out, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"written {args.out}; device {jax.devices()[0].device_kind}, jax {jax.__version__}")
+    write_rows(args.out, rows)
 
 
 if __name__ == "__main__":
