@@ -104,9 +104,10 @@ class RigidTool(eqx.Module):
         self.drive = jnp.asarray(drive, jnp.float64)
         self.candidates = tuple(int(a) for a in np.asarray(candidates).ravel())
         self.controls = tuple(controls)
+        # Static, decided from the argument as given (inside jit, even a converted constant is a tracer).
+        self.frictional = (not is_concrete(mu)) or bool(np.any(np.asarray(mu) > 0))
         mu = jnp.asarray(mu, jnp.float64)
         self.mu = jnp.broadcast_to(mu, (len(self.controls),)) if mu.ndim == 0 else mu
-        self.frictional = (not is_concrete(self.mu)) or bool(np.any(np.asarray(self.mu) > 0))
 
     def __check_init__(self):
         if self.drive.shape != (2,):
@@ -147,7 +148,8 @@ class Penalty(eqx.Module):
         self.eps_n = jnp.asarray(eps_n, jnp.float64)
         self.eps_t = jnp.asarray(eps_t, jnp.float64)
         self.smoothing = jnp.asarray(smoothing, jnp.float64)
-        self.smooth = (not is_concrete(self.smoothing)) or float(self.smoothing) > 0
+        # Decided from the argument as given: inside jit, even a converted constant is a tracer.
+        self.smooth = (not is_concrete(smoothing)) or float(np.asarray(smoothing)) > 0
 
     def __check_init__(self):
         if is_concrete(self.eps_n) and not float(self.eps_n) > 0:

@@ -56,3 +56,18 @@ def test_smoothing_tends_to_the_exact_law_and_is_differentiable_at_the_kinks(s):
         fd = jnp.stack([(f(v0 + h * e) - f(v0 - h * e)) / (2 * h[i]) for i, e in enumerate(jnp.eye(2))], 1)
         assert bool(jnp.all(jnp.isfinite(J)))
         np.testing.assert_allclose(J, fd, rtol=1e-5, atol=1e-6 * EPS_N)
+
+
+def test_static_flags_follow_the_given_values_inside_jit():
+    """Built inside jit from plain numbers, a penalty is not smoothed and a mu = 0 tool is frictionless."""
+    from jaxfric.contact import Move, Penalty, RigidTool
+    from jaxfric.tools import Tool
+
+    @jax.jit
+    def flags(eps):
+        law = Penalty(eps, 0.0)
+        tool = RigidTool("t", Tool.line((0.0, 0.0), (1.0, 0.0)), (0.0, -1.0), [0], (Move(),), 0.0)
+        assert not law.smooth and not tool.frictional
+        return eps
+
+    flags(1e5)
