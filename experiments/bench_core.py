@@ -16,7 +16,6 @@ import os
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 import jaxfric as jf
 from benchutil import median_time, write_rows

@@ -25,18 +25,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .assembly import internal_force, internal_force_and_tangent, mesh_geometry
-from .element import FORMULATIONS, ElementGeometry
-from .contact import (AugmentedLagrangian, ContactState, ContactStep, Force, Move, Penalty, evaluate_pairs,
-                      initial_contact_state, split_pairs, tool_forces)
+from .assembly import internal_force, mesh_geometry
+from .contact import (AugmentedLagrangian, ContactState, ContactStep, Force, Move, Penalty,
+                      initial_contact_state, split_pairs)
 from .contact_laws import SLIP, STICK
-from .linalg import BlockTridiag, Bordered
+from .element import FORMULATIONS, ElementGeometry
 from .loading import Phase, constraint_masks, prescribed_values, schedule
 from .material import J2Material
 from .mesh import StripMesh
 from .newton import Linearization, NewtonOptions, newton_solve
 from .progress import report
 from .results import Result
+from .system import StepArgs, linearize, residual
 
 __all__ = ["StripModel", "SimState", "StepControl", "History", "Simulation", "initial_state",
            "default_observe", "stresses", "solve_step", "linearize_step", "reactions",
@@ -218,122 +218,6 @@ def stresses(model: StripModel, state: SimState) -> jax.Array:
 
 # ---- one step -------------------------------------------------------------------------------------
 
-class _StepArgs(eqx.Module):
-    """Everything the residual of one step depends on (the differentiable data travels here)."""
-
-    mesh: StripMesh
-    material: J2Material
-    geo: ElementGeometry
-    states: object
-    mask: jax.Array
-    values: jax.Array
-    contact: ContactStep | None
-    formulation: str = eqx.field(static=True)
-    force_idx: tuple = eqx.field(static=True)
-
-
-def _constrain_rows(K: BlockTridiag, mask: jax.Array) -> BlockTridiag:
-    """Replace the rows of prescribed dofs by identity rows (keeps the block structure)."""
-    nb, m = K.diag.shape[0], K.diag.shape[1]
-    fixed = mask.reshape(nb, m)
-    keep = jnp.where(fixed, 0.0, 1.0)
-    diag = K.diag * keep[:, :, None] + jax.vmap(jnp.diag)(1.0 - keep)
-    return BlockTridiag(lower=K.lower * keep[1:, :, None], diag=diag, upper=K.upper * keep[:-1, :, None])
-
-
-def _pair_nodes(args: _StepArgs) -> np.ndarray:
-    return np.concatenate([np.asarray(t.candidates) for t in args.contact.tools])
-
-
-def _contact_terms(args: _StepArgs, u, qf, jacobian: bool):
-    """Contact forces at (u, q): per-node forces, per-tool clamping forces, and the pair results."""
-    c = args.contact
-    q = c.q_presc.at[np.asarray(args.force_idx)].set(qf) if args.force_idx else c.q_presc
-    pairs = evaluate_pairs(c, args.mesh.nodes, u, q, jacobian)
-    f_c = jnp.zeros_like(u).at[_pair_nodes(args)].add(jnp.concatenate([p.f for p in pairs]))
-    return q, pairs, f_c, tool_forces(c, pairs)
-
-
-def _contact_out(q, pairs, tool_f):
-    cat = lambda name: jnp.concatenate([getattr(p, name) for p in pairs])  # noqa: E731
-    return dict(q=q, force=tool_f, rn=cat("rn"), rt=cat("rt"), zeta=cat("zeta"), gap=cat("gap"),
-                normal=cat("normal"), status=cat("status"), slip=cat("slip"))
-
-
-def _evaluate(x, args: _StepArgs, jacobian: bool):
-    n = args.mesh.n_dofs
-    u, qf = x[:n].reshape(-1, 2), x[n:]
-    assemble = internal_force_and_tangent if jacobian else internal_force
-    a = assemble(args.mesh, args.material, args.formulation, args.geo, u, args.states)
-    r_u = a.f_int
-    contact = None
-    if args.contact is not None:
-        q, pairs, f_c, tool_f = _contact_terms(args, u, qf, jacobian)
-        r_u = r_u - f_c
-        contact = (q, pairs, tool_f)
-    R = jnp.where(args.mask, x[:n] - args.values, r_u.reshape(-1))
-    if args.force_idx:
-        fi = np.asarray(args.force_idx)
-        c = args.contact
-        R_q = jnp.where(c.force_mask[fi], tool_f[fi] - c.force[fi], qf - c.q_presc[fi])
-        R = jnp.concatenate([R, R_q])
-    return R, a, contact
-
-
-def _residual(x, args: _StepArgs):
-    R, a, contact = _evaluate(x, args, jacobian=False)
-    return R, (a.f_int, a.states, None if contact is None else _contact_out(*contact))
-
-
-def _contact_jacobian(args: _StepArgs, K: BlockTridiag, pairs, keep):
-    """Add the pair Jacobians to the diagonal blocks and build the border of the force-driven tools."""
-    ny1 = args.mesh.ny + 1
-    nodes = _pair_nodes(args)
-    cols = nodes // ny1
-    rows = 2 * (nodes % ny1)[:, None] + np.arange(2)[None, :]
-    dfdx = jnp.concatenate([p.df_dx for p in pairs])
-    # R_u = f_int - f_c: the pair blocks enter with a minus sign (free rows only: `keep`).
-    diag = K.diag.at[cols[:, None, None], rows[:, :, None], rows[:, None, :]].add(-dfdx)
-    K = BlockTridiag(K.lower, diag, K.upper)
-    if not args.force_idx:
-        return K
-    c = args.contact
-    n = args.mesh.n_dofs
-    B_cols, C_rows, D_diag = [], [], []
-    for k in args.force_idx:
-        tool, p = c.tools[k], pairs[k]
-        dofs = (2 * np.asarray(tool.candidates)[:, None] + np.arange(2)[None, :]).ravel()
-        B_cols.append(jnp.zeros(n).at[dofs].add(-p.df_dq.ravel()) * keep)
-        driven = c.force_mask[k]
-        # d(e_q . f)/dx per pair, scattered to the pair's node dofs.
-        row = jnp.zeros(n).at[dofs].add(jnp.einsum("i,pij->pj", tool.drive, p.df_dx).ravel())
-        C_rows.append(jnp.where(driven, row, 0.0))
-        lost = ~jnp.any(p.status > 0)  # no closed pair: regularise the row (Jacobian only)
-        d = jnp.sum(p.df_dq @ tool.drive) + jnp.where(lost, c.law.eps_n, 0.0)
-        D_diag.append(jnp.where(driven, d, 1.0))
-    return Bordered(A=K, B=jnp.stack(B_cols, axis=1), C=jnp.stack(C_rows), D=jnp.diag(jnp.stack(D_diag)))
-
-
-def _linearize(x, args: _StepArgs) -> Linearization:
-    R, a, contact = _evaluate(x, args, jacobian=True)
-    keep = jnp.where(args.mask, 0.0, 1.0)
-    K = a.tangent
-    status = None
-    aux_contact = None
-    if contact is not None:
-        q, pairs, tool_f = contact
-        K = _contact_jacobian(args, K, pairs, keep)
-        aux_contact = _contact_out(q, pairs, tool_f)
-        status = aux_contact["status"]
-    # Prescribed dofs: R = x - values, so their Jacobian rows are identity rows.
-    if isinstance(K, Bordered):
-        J = Bordered(A=_constrain_rows(K.A, args.mask), B=K.B, C=K.C, D=K.D)
-    else:
-        J = _constrain_rows(K, args.mask)
-    return Linearization(R, J, jnp.max(jnp.abs(a.f_int)), a.det_min > 0.0,
-                         (a.f_int, a.states, aux_contact), status)
-
-
 class _Context(eqx.Module):
     """Loop-invariant data of a run, computed once before the loop."""
 
@@ -406,7 +290,7 @@ def _constraint_error(contact_out: dict) -> jax.Array:
     return jnp.maximum(_max_penetration(contact_out), jnp.max(stick_slip))
 
 
-def _augment(model: StripModel, args: "_StepArgs", sol, x_ref, newton: NewtonOptions) -> StepSolution:
+def _augment(model: StripModel, args: "StepArgs", sol, x_ref, newton: NewtonOptions) -> StepSolution:
     """Augmented Lagrangian loop (spec 1.6): while the step's largest penetration or stick slip exceeds
     the target, set lambda <- R and solve again (Uzawa iteration).
 
@@ -421,7 +305,7 @@ def _augment(model: StripModel, args: "_StepArgs", sol, x_ref, newton: NewtonOpt
     def solve(lam_n, lam_t, x0):
         step = eqx.tree_at(lambda c: (c.lam_n, c.lam_t), args.contact, (lam_n, lam_t))
         return newton_solve(eqx.tree_at(lambda a: a.contact, args, step), x0, x_ref,
-                            linearize=_linearize, residual=_residual, options=newton)
+                            linearize=linearize, residual=residual, options=newton)
 
     def pending(c):
         sol, n_aug, _ = c
@@ -449,7 +333,7 @@ def _step_args(model: StripModel, state: SimState, phase, t_target, ctx: "_Conte
     contact, q_start, f_start = (None, None, None)
     if model.tools:
         contact, q_start, f_start = _contact_step(model, state, phase, tau, model.contact)
-    args = _StepArgs(model.mesh, model.material, ctx.geo, state.material, ctx.masks[phase], values,
+    args = StepArgs(model.mesh, model.material, ctx.geo, state.material, ctx.masks[phase], values,
                      contact, model.formulation, model.force_tools)
     return args, q_start, f_start
 
@@ -464,7 +348,7 @@ def linearize_step(model: StripModel, state: SimState, phase, t_target) -> Linea
     converged ``state`` to ``t_target`` in ``phase``, at the unknowns of ``state`` (for inspection,
     debugging and benchmarks; :func:`solve_step` iterates on it)."""
     args, _, _ = _step_args(model, state, phase, t_target, _Context.build(model))
-    return _linearize(_unknowns(model, state, state.u), args)
+    return linearize(_unknowns(model, state, state.u), args)
 
 
 def solve_step(model: StripModel, state: SimState, phase, t_target,
@@ -488,7 +372,7 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
         force_idx = model.force_tools
         q0 = q_guess[np.asarray(force_idx)] if force_idx else jnp.zeros(0)
         x0 = jnp.concatenate([u_guess.reshape(-1), q0])
-    sol = newton_solve(args, x0, x_ref, linearize=_linearize, residual=_residual, options=newton)
+    sol = newton_solve(args, x0, x_ref, linearize=linearize, residual=residual, options=newton)
     if isinstance(model.contact, AugmentedLagrangian):
         sol = _augment(model, args, sol, x_ref, newton)
     else:

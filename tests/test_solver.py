@@ -1,6 +1,5 @@
 """Physics checks of the core solver: patch test, Newton rate, locking, bending, objectivity, failures."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np

@@ -1,0 +1,146 @@
+"""The nonlinear system of one load step: residual and Jacobian of the strip with its tools.
+
+Unknowns x = (u, q_f): the nodal displacements, node-major, and the positions of the tools that are
+force-driven in some phase. Residual (spec 1.3, 1.8):
+
+    R_u = f_int(u) - f_c(u, q)                     free dofs;  u - u_presc on prescribed dofs
+    R_q = sum_a e_q . f_c,a - P                    force-driven phase;  q - q_presc otherwise
+
+The Jacobian is block-tridiagonal (strip, plus a 2x2 block per contact pair on the diagonal), bordered
+by the force-driven tools (:class:`jaxfric.linalg.Bordered`); prescribed dofs get identity rows. All
+derivatives come from automatic differentiation (element tangents, pair Jacobians).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .assembly import internal_force, internal_force_and_tangent
+from .contact import ContactStep, evaluate_pairs, tool_forces
+from .element import ElementGeometry
+from .linalg import BlockTridiag, Bordered
+from .material import J2Material
+from .mesh import StripMesh
+from .newton import Linearization
+
+__all__ = ["StepArgs", "residual", "linearize"]
+
+
+class StepArgs(eqx.Module):
+    """Everything the residual of one step depends on (the differentiable data travels here): the
+    strip, its converged history, the prescribed values and mask of the phase, the contact data."""
+
+    mesh: StripMesh
+    material: J2Material
+    geo: ElementGeometry
+    states: object
+    mask: jax.Array
+    values: jax.Array
+    contact: ContactStep | None
+    formulation: str = eqx.field(static=True)
+    force_idx: tuple = eqx.field(static=True)
+
+
+def _constrain_rows(K: BlockTridiag, mask: jax.Array) -> BlockTridiag:
+    """Replace the rows of prescribed dofs by identity rows (keeps the block structure)."""
+    nb, m = K.diag.shape[0], K.diag.shape[1]
+    fixed = mask.reshape(nb, m)
+    keep = jnp.where(fixed, 0.0, 1.0)
+    diag = K.diag * keep[:, :, None] + jax.vmap(jnp.diag)(1.0 - keep)
+    return BlockTridiag(lower=K.lower * keep[1:, :, None], diag=diag, upper=K.upper * keep[:-1, :, None])
+
+
+def _pair_nodes(args: StepArgs) -> np.ndarray:
+    return np.concatenate([np.asarray(t.candidates) for t in args.contact.tools])
+
+
+def _contact_terms(args: StepArgs, u, qf, jacobian: bool):
+    """Contact forces at (u, q): per-node forces, per-tool clamping forces, and the pair results."""
+    c = args.contact
+    q = c.q_presc.at[np.asarray(args.force_idx)].set(qf) if args.force_idx else c.q_presc
+    pairs = evaluate_pairs(c, args.mesh.nodes, u, q, jacobian)
+    f_c = jnp.zeros_like(u).at[_pair_nodes(args)].add(jnp.concatenate([p.f for p in pairs]))
+    return q, pairs, f_c, tool_forces(c, pairs)
+
+
+def _contact_out(q, pairs, tool_f):
+    cat = lambda name: jnp.concatenate([getattr(p, name) for p in pairs])  # noqa: E731
+    return dict(q=q, force=tool_f, rn=cat("rn"), rt=cat("rt"), zeta=cat("zeta"), gap=cat("gap"),
+                normal=cat("normal"), status=cat("status"), slip=cat("slip"))
+
+
+def _evaluate(x, args: StepArgs, jacobian: bool):
+    n = args.mesh.n_dofs
+    u, qf = x[:n].reshape(-1, 2), x[n:]
+    assemble = internal_force_and_tangent if jacobian else internal_force
+    a = assemble(args.mesh, args.material, args.formulation, args.geo, u, args.states)
+    r_u = a.f_int
+    contact = None
+    if args.contact is not None:
+        q, pairs, f_c, tool_f = _contact_terms(args, u, qf, jacobian)
+        r_u = r_u - f_c
+        contact = (q, pairs, tool_f)
+    R = jnp.where(args.mask, x[:n] - args.values, r_u.reshape(-1))
+    if args.force_idx:
+        fi = np.asarray(args.force_idx)
+        c = args.contact
+        R_q = jnp.where(c.force_mask[fi], tool_f[fi] - c.force[fi], qf - c.q_presc[fi])
+        R = jnp.concatenate([R, R_q])
+    return R, a, contact
+
+
+def residual(x, args: StepArgs):
+    R, a, contact = _evaluate(x, args, jacobian=False)
+    return R, (a.f_int, a.states, None if contact is None else _contact_out(*contact))
+
+
+def _contact_jacobian(args: StepArgs, K: BlockTridiag, pairs, keep):
+    """Add the pair Jacobians to the diagonal blocks and build the border of the force-driven tools."""
+    ny1 = args.mesh.ny + 1
+    nodes = _pair_nodes(args)
+    cols = nodes // ny1
+    rows = 2 * (nodes % ny1)[:, None] + np.arange(2)[None, :]
+    dfdx = jnp.concatenate([p.df_dx for p in pairs])
+    # R_u = f_int - f_c: the pair blocks enter with a minus sign (free rows only: `keep`).
+    diag = K.diag.at[cols[:, None, None], rows[:, :, None], rows[:, None, :]].add(-dfdx)
+    K = BlockTridiag(K.lower, diag, K.upper)
+    if not args.force_idx:
+        return K
+    c = args.contact
+    n = args.mesh.n_dofs
+    B_cols, C_rows, D_diag = [], [], []
+    for k in args.force_idx:
+        tool, p = c.tools[k], pairs[k]
+        dofs = (2 * np.asarray(tool.candidates)[:, None] + np.arange(2)[None, :]).ravel()
+        B_cols.append(jnp.zeros(n).at[dofs].add(-p.df_dq.ravel()) * keep)
+        driven = c.force_mask[k]
+        # d(e_q . f)/dx per pair, scattered to the pair's node dofs.
+        row = jnp.zeros(n).at[dofs].add(jnp.einsum("i,pij->pj", tool.drive, p.df_dx).ravel())
+        C_rows.append(jnp.where(driven, row, 0.0))
+        lost = ~jnp.any(p.status > 0)  # no closed pair: regularise the row (Jacobian only)
+        d = jnp.sum(p.df_dq @ tool.drive) + jnp.where(lost, c.law.eps_n, 0.0)
+        D_diag.append(jnp.where(driven, d, 1.0))
+    return Bordered(A=K, B=jnp.stack(B_cols, axis=1), C=jnp.stack(C_rows), D=jnp.diag(jnp.stack(D_diag)))
+
+
+def linearize(x, args: StepArgs) -> Linearization:
+    R, a, contact = _evaluate(x, args, jacobian=True)
+    keep = jnp.where(args.mask, 0.0, 1.0)
+    K = a.tangent
+    status = None
+    aux_contact = None
+    if contact is not None:
+        q, pairs, tool_f = contact
+        K = _contact_jacobian(args, K, pairs, keep)
+        aux_contact = _contact_out(q, pairs, tool_f)
+        status = aux_contact["status"]
+    # Prescribed dofs: R = x - values, so their Jacobian rows are identity rows.
+    if isinstance(K, Bordered):
+        J = Bordered(A=_constrain_rows(K.A, args.mask), B=K.B, C=K.C, D=K.D)
+    else:
+        J = _constrain_rows(K, args.mask)
+    return Linearization(R, J, jnp.max(jnp.abs(a.f_int)), a.det_min > 0.0,
+                         (a.f_int, a.states, aux_contact), status)
