@@ -48,11 +48,15 @@ def main(argv=None) -> int:
     ax.legend()
     fig.savefig(os.path.join(args.out, "forces.png"))
 
-    fig, ax = figure(1400, 600)
+    fig, (ax_all, ax_end) = figure(1400, 800, nrows=2, gridspec_kw=dict(height_ratios=[1, 2]))
     eqps = element_values_mean(result.final.material.eqps)
-    coll = plot_mesh(ax, np.asarray(model.mesh.nodes) + result.final.u, model.mesh.elements, eqps,
-                     label=f"deformed strip {nx}x{ny}, final state")
-    fig.colorbar(coll, ax=ax, label="equivalent plastic strain")
+    x = np.asarray(model.mesh.nodes) + result.final.u
+    plot_mesh(ax_all, x, model.mesh.elements, eqps, label=f"deformed strip {nx}x{ny}, final state")
+    coll = plot_mesh(ax_end, x, model.mesh.elements, eqps, label="right end (plastic hinge), zoomed")
+    right = x[model.mesh.right]
+    ax_end.set_xlim(right[:, 0].min() - 4.0, right[:, 0].max() + 0.5)
+    ax_end.set_ylim(right[:, 1].min() - 0.5, right[:, 1].max() + 0.5)
+    fig.colorbar(coll, ax=[ax_all, ax_end], label="equivalent plastic strain")
     fig.savefig(os.path.join(args.out, "mesh.png"))
 
     n_steps = len(h["time"]) - 1

@@ -33,6 +33,8 @@ class ProgressMonitor:
         self.stamps: dict[int, float] = {}
         self.start = None
         self._last_draw = 0.0
+        self._last_tenth = 0
+        self._tty = bool(getattr(self.stream, "isatty", lambda: False)())
 
     def __enter__(self):
         global _ACTIVE
@@ -44,7 +46,7 @@ class ProgressMonitor:
     def __exit__(self, *exc):
         global _ACTIVE
         _ACTIVE = self._previous
-        if self.show and self.stamps:
+        if self.show and self.stamps and self._tty:
             self.stream.write("\n")
             self.stream.flush()
         return False
@@ -54,15 +56,25 @@ class ProgressMonitor:
         step, t = np.asarray(step), np.asarray(t)
         # Under vmap the arguments are batched: report the slowest member.
         self.stamps[int(np.min(step))] = now
-        if self.show and (now - self._last_draw >= self.min_interval or np.min(t) >= self.total_time):
-            self._last_draw = now
-            frac = float(np.clip(np.min(t) / self.total_time, 0.0, 1.0))
-            bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
-            self.stream.write(
-                f"\r{self.label}[{bar}] t={float(np.min(t)):.4f}/{self.total_time:g} "
-                f"step {int(np.min(step))} newton {int(np.max(iterations))} cuts {int(np.max(cuts))} "
-                f"{now - self.start:7.1f}s")
-            self.stream.flush()
+        if not self.show:
+            return
+        frac = float(np.clip(np.min(t) / self.total_time, 0.0, 1.0))
+        if self._tty:  # redraw in place, at most every min_interval
+            if now - self._last_draw < self.min_interval and frac < 1.0:
+                return
+            start, end = "\r", ""
+        else:  # a log file: one line per tenth of the load path
+            if int(10 * frac) <= self._last_tenth:
+                return
+            self._last_tenth = int(10 * frac)
+            start, end = "", "\n"
+        self._last_draw = now
+        bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
+        self.stream.write(
+            f"{start}{self.label}[{bar}] t={float(np.min(t)):.4f}/{self.total_time:g} "
+            f"step {int(np.min(step))} newton {int(np.max(iterations))} cuts {int(np.max(cuts))} "
+            f"{now - self.start:7.1f}s{end}")
+        self.stream.flush()
 
     def step_wall_times(self, n_rows: int) -> np.ndarray:
         """Wall time (s) of steps 0..n_rows-1 from the time stamps (row 0: 0)."""
