@@ -65,6 +65,7 @@ def test_penalty_penetration_law_and_auglag_target(stiff_penalty_run, augmented_
     assert augmented_run.history["augmentations"].sum() > 0
 
 
+@pytest.mark.slow  # two more flat-die runs: a validation run (make test-all)
 def test_penalty_approaches_the_augmented_lagrangian(stiff_penalty_run, augmented_run):
     """As eps_n grows, the penalty drawing-force curve and die position approach the AL solution."""
     U_ref, F_ref = drawing_curve(augmented_run)
@@ -112,7 +113,8 @@ def test_bad_contact_input_names_the_field():
                       contact=Penalty(1e5, 0))
 
 
-@pytest.mark.parametrize("law", [Penalty(1e6, 0.0), AugmentedLagrangian(1e5, 0.0, target_gap=1e-7)],
+@pytest.mark.parametrize("law", [Penalty(1e6, 0.0),
+                                 pytest.param(AugmentedLagrangian(1e5, 0.0, target_gap=1e-7), marks=pytest.mark.slow)],
                          ids=["penalty", "auglag"])
 def test_hertz_line_contact(law):
     """A rigid cylinder (R = 10 mm) pressed with P = 1 N/mm on a thick elastic block (half model,

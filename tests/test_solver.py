@@ -101,6 +101,7 @@ def bending_ratio(ny, formulation, nx=40, length=2.0):
     return abs(end_moment(res, model.mesh)) / (E / (1 - nu**2) * t**3 / 12 * 2 * angle / length)
 
 
+@pytest.mark.slow  # five meshes, five compilations: a validation run (make test-all)
 def test_elastic_strip_bending_against_beam_theory():
     """Pure bending of an elastic strip, measured against plane-strain beam theory.
 
