@@ -21,10 +21,10 @@ pair on the diagonal) and the tools add a border (:class:`jaxfric.linalg.Bordere
 every pair force, including the derivatives of n, t and zeta with respect to the node position and
 the tool position, comes from ``jax.jacfwd`` of the pair law.
 
-A force-driven tool that has lost every contact has a zero row dR_q/d(u, q): its Newton row then gets
-the diagonal eps_N (as if one pair were closed), which moves the tool towards the sheet by
-(P - sum f)/eps_N per iteration. Only the Jacobian changes, never the residual, so converged
-solutions are exact; the spec's rule that a force-driven phase starts touching makes it rare.
+A force-driven tool that has lost every contact cannot balance its force, and its balance row no
+longer depends on its position (a singular Newton matrix). Its row then asks it to close the nearest
+gap (see :func:`jaxfric.system._tool_rows`), so one Newton step puts it back on the sheet, where the
+balance row takes over; with P = 0 it rests touching the sheet with zero force.
 """
 
 from __future__ import annotations

@@ -20,6 +20,7 @@ import numpy as np
 
 from .assembly import internal_force, internal_force_and_tangent
 from .contact import ContactStep, evaluate_pairs, tool_forces
+from .tools import GAP_OPEN
 from .element import ElementGeometry
 from .linalg import BlockTridiag, Bordered
 from .material import J2Material
@@ -85,11 +86,38 @@ def _evaluate(x, args: StepArgs, jacobian: bool):
         contact = (q, pairs, tool_f)
     R = jnp.where(args.mask, x[:n] - args.values, r_u.reshape(-1))
     if args.force_idx:
-        fi = np.asarray(args.force_idx)
-        c = args.contact
-        R_q = jnp.where(c.force_mask[fi], tool_f[fi] - c.force[fi], qf - c.q_presc[fi])
-        R = jnp.concatenate([R, R_q])
+        R = jnp.concatenate([R, _tool_rows(args, contact[1], contact[2], qf)])
     return R, a, contact
+
+
+def _seeking(pair) -> tuple:
+    """Whether a force-driven tool seeks the sheet (no pair closed, but some pair projects on a
+    primitive), the index of its nearest pair, and the pairs' gaps (inf where open)."""
+    closed = pair.status > 0
+    valid = pair.gap < GAP_OPEN / 2
+    gap = jnp.where(valid, pair.gap, jnp.inf)
+    nearest = jnp.argmin(gap)
+    return ~jnp.any(closed) & jnp.any(valid), nearest, gap
+
+
+def _tool_rows(args: StepArgs, pairs, tool_f, qf):
+    """Residual rows of the force-driven tools: force balance; q - q_presc when displacement-driven.
+
+    A tool that has lost every contact cannot balance a force, and its balance row does not depend on
+    its position. Its row then asks it to close the nearest gap, R_q = -g_min / (e_q . n), so one Newton
+    step brings it back onto the sheet, where the balance row takes over. With P = 0 the tool rests
+    touching the sheet with zero force, one admissible answer to an otherwise indeterminate position.
+    """
+    c = args.contact
+    rows = []
+    for j, k in enumerate(args.force_idx):
+        tool, p = c.tools[k], pairs[k]
+        seeking, nearest, gap = _seeking(p)
+        closing = jnp.maximum(p.normal[nearest] @ tool.drive, 0.1)  # gap decrease per unit of q
+        seek = -jnp.where(seeking, gap[nearest], 0.0) / closing
+        balance = jnp.where(seeking, seek, tool_f[k] - c.force[k])
+        rows.append(jnp.where(c.force_mask[k], balance, qf[j] - c.q_presc[k]))
+    return jnp.stack(rows)
 
 
 def residual(x, args: StepArgs):
@@ -119,9 +147,12 @@ def _contact_jacobian(args: StepArgs, K: BlockTridiag, pairs, keep):
         driven = c.force_mask[k]
         # d(e_q . f)/dx per pair, scattered to the pair's node dofs.
         row = jnp.zeros(n).at[dofs].add(jnp.einsum("i,pij->pj", tool.drive, p.df_dx).ravel())
-        C_rows.append(jnp.where(driven, row, 0.0))
-        lost = ~jnp.any(p.status > 0)  # no closed pair: regularise the row (Jacobian only)
-        d = jnp.sum(p.df_dq @ tool.drive) + jnp.where(lost, c.law.eps_n, 0.0)
+        seeking, _, _ = _seeking(p)
+        lost = ~jnp.any(p.status > 0)
+        C_rows.append(jnp.where(driven & ~lost, row, 0.0))
+        # Seeking: d(-g_min / (e_q . n))/dq = 1. No pair on any primitive at all: the balance row has no
+        # derivative; eps_n keeps the matrix regular (the attempt then fails, the residual is -P).
+        d = jnp.where(seeking, 1.0, jnp.sum(p.df_dq @ tool.drive) + jnp.where(lost, c.law.eps_n, 0.0))
         D_diag.append(jnp.where(driven, d, 1.0))
     return Bordered(A=K, B=jnp.stack(B_cols, axis=1), C=jnp.stack(C_rows), D=jnp.diag(jnp.stack(D_diag)))
 

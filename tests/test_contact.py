@@ -235,3 +235,30 @@ def test_jvp_of_indentation_with_respect_to_tool_radius():
     fd = (approach(5.0 + h) - approach(5.0 - h)) / (2 * h)
     assert float(value) > 0 and float(tangent) < 0  # a larger cylinder sinks in less
     np.testing.assert_allclose(float(tangent), float(fd), rtol=1e-5)
+
+
+def test_force_driven_tool_loses_and_regains_contact():
+    """A force-driven die (eps_n = 1e9) clamps a strip to 50 N/mm, is released to 0, the strip is
+    lowered 0.01 mm away from it (the die, with nothing to push, seeks the sheet and rests on it with
+    zero force), then the die presses again to 50 N/mm: every step converges and balances its force."""
+    L, h = 6.0, 0.395
+    mesh = jf.strip_mesh(0.0, L, 0.0, h, 30, 2)
+    die = RigidTool("die", Tool.line((-2.0, h), (L + 2.0, h)), drive=(0.0, -1.0), candidates=mesh.top,
+                    controls=(Force(FORCE, start=0.0), Force(0.0), Force(0.0, start=0.0), Force(FORCE)), mu=0.0)
+
+    def bottom(v0, v1):
+        return jf.DirichletBC(mesh.bottom, components=(1,), motion=jf.Ramp((0, v0), (0, v1)))
+
+    hold = jf.DirichletBC(mesh.right, components=(0,))
+    phases = (jf.Phase("clamp", [bottom(0, 0), hold], 5), jf.Phase("release", [bottom(0, 0), hold], 5),
+              jf.Phase("drop", [bottom(0, -0.01), hold], 5), jf.Phase("press", [bottom(-0.01, -0.01), hold], 5))
+    model = jf.StripModel(mesh, jf.J2Material.elastic(69004.0, 0.3), phases, tools=(die,),
+                          contact=Penalty(1e9, 0.0))
+    res = jf.run(model, progress=False)
+    h_ = res.history
+    t = h_["time"]
+    prescribed = np.select([t <= 1, t <= 2, t <= 3], [FORCE * t, FORCE * (2 - t), 0.0], FORCE * (t - 3))
+    np.testing.assert_allclose(h_["tool_force"][:, 0], prescribed, rtol=0, atol=1e-8 * FORCE)
+    dropped = np.isclose(t, 3.0)
+    assert abs(h_["tool_position"][dropped, 0][0] - 0.01) < 1e-8  # it followed the strip down
+    assert h_["n_active"][-1] == mesh.top.size
