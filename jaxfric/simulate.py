@@ -37,6 +37,8 @@ from .newton import Linearization, NewtonOptions, newton_solve
 from .progress import report
 from .results import Result
 from .system import StepArgs, linearize, residual
+from .tools import project
+from ._checks import is_concrete
 
 __all__ = ["StripModel", "SimState", "StepControl", "History", "Simulation", "initial_state",
            "default_observe", "stresses", "solve_step", "linearize_step", "reactions",
@@ -83,6 +85,8 @@ class StripModel(eqx.Module):
                                  f"{len(self.phases)} phases")
             if max(tool.candidates) >= self.mesh.n_nodes or min(tool.candidates) < 0:
                 raise ValueError(f"tool {tool.name!r}: field 'candidates' names nodes outside the mesh")
+            if is_concrete((self.mesh.nodes, tool.geometry)):
+                _check_tool_placement(tool, self.mesh.nodes)
 
     @property
     def n_phases(self) -> int:
@@ -92,6 +96,23 @@ class StripModel(eqx.Module):
     def force_tools(self) -> tuple:
         """Static indices of the tools that are force-driven in some phase (one unknown each)."""
         return tuple(k for k, t in enumerate(self.tools) if t.force_driven)
+
+
+def _check_tool_placement(tool, nodes) -> None:
+    """Before any computation: a tool must not cut into the sheet at rest, and a force-driven tool
+    must have a candidate node that projects on it (otherwise no force can ever balance it)."""
+    idx = np.asarray(tool.candidates)
+    proj = jax.vmap(project, in_axes=(None, 0, None))(tool.geometry, nodes[idx], jnp.zeros(2))
+    gap, valid = np.asarray(proj.gap), np.asarray(proj.valid)
+    scale = 1e-9 * max(1.0, float(np.max(np.abs(np.asarray(nodes)))))
+    inside = valid & (gap < -scale)
+    if inside.any():
+        worst = int(np.argmin(np.where(inside, gap, np.inf)))
+        raise ValueError(f"tool {tool.name!r} intersects the sheet at the start: node {int(idx[worst])} is "
+                         f"{-gap[worst]:.3g} mm inside it; move the tool or the sheet so they at most touch")
+    if tool.force_driven and not valid.any():
+        raise ValueError(f"tool {tool.name!r} is force-driven but none of its candidate nodes projects on it, "
+                         f"so it can never touch the sheet; check its geometry, 'candidates' and 'drive'")
 
 
 class SimState(eqx.Module):

@@ -262,3 +262,21 @@ def test_force_driven_tool_loses_and_regains_contact():
     dropped = np.isclose(t, 3.0)
     assert abs(h_["tool_position"][dropped, 0][0] - 0.01) < 1e-8  # it followed the strip down
     assert h_["n_active"][-1] == mesh.top.size
+
+
+def test_tool_placement_is_checked_before_any_computation():
+    mesh = jf.strip_mesh(0.0, 4.0, 0.0, 1.0, 8, 2)
+    mat = jf.J2Material(**STEEL)
+    phase = (jf.Phase("p", [jf.DirichletBC(mesh.left)]),)
+
+    def model(tool):
+        return jf.StripModel(mesh, mat, phase, tools=(tool,), contact=Penalty(1e5, 0.0))
+
+    cutting = RigidTool("punch", Tool.circle((2.0, 1.5), 1.0), (0.0, -1.0), mesh.top, (Move(),), 0.0)
+    with pytest.raises(ValueError, match="'punch' intersects the sheet"):
+        model(cutting)
+    far_away = RigidTool("die", Tool.line((10.0, 1.0), (12.0, 1.0)), (0.0, -1.0), mesh.top, (Force(5.0),), 0.0)
+    with pytest.raises(ValueError, match="'die' is force-driven but none of its candidate nodes"):
+        model(far_away)
+    touching = RigidTool("die", Tool.line((-1.0, 1.0), (5.0, 1.0)), (0.0, -1.0), mesh.top, (Force(5.0),), 0.0)
+    model(touching)  # exactly touching is the spec's starting position
