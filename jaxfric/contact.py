@@ -41,7 +41,8 @@ from .contact_laws import OPEN, augmented_pair
 from .tools import Tool, project
 
 __all__ = ["Move", "Force", "RigidTool", "Penalty", "AugmentedLagrangian", "ContactState", "ContactStep", "PairResult",
-           "initial_contact_state", "evaluate_pairs", "tool_forces", "split_pairs"]
+           "initial_contact_state", "evaluate_pairs", "tool_forces", "split_pairs", "pair_nodes",
+           "max_penetration"]
 
 
 class Move(eqx.Module):
@@ -307,6 +308,16 @@ def initial_contact_state(tools, nodes: jax.Array) -> ContactState:
     return ContactState(q=zeros_t, q_start=zeros_t, f_start=zeros_t, force=zeros_t, rn=jnp.zeros(m),
                         rt=jnp.zeros(m), zeta=zeta, gap=jnp.concatenate(gaps),
                         normal=jnp.concatenate(normals), status=jnp.full(m, OPEN, jnp.int8))
+
+
+def pair_nodes(tools) -> np.ndarray:
+    """(m,) sheet node of every candidate pair, tool after tool (static)."""
+    return np.concatenate([np.asarray(t.candidates) for t in tools])
+
+
+def max_penetration(status, gap) -> jax.Array:
+    """Largest penetration max(0, -g_N) over the closed pairs (mm)."""
+    return jnp.max(jnp.where(status > 0, jnp.maximum(-gap, 0.0), 0.0))
 
 
 def split_pairs(tools, values):

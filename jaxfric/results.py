@@ -14,7 +14,6 @@ class Result(enum.IntEnum):
     NONFINITE = 2          # a NaN or Inf appeared in the residual or the tangent
     INVERTED_ELEMENT = 3   # det F <= 0 at a Gauss point or an element centroid
     MAX_STEPS = 4          # the history buffer is full before the end of the load path
-    DIVERGED = 5           # the residual grew by orders of magnitude
     AUGMENTATIONS = 6      # the augmented Lagrangian did not reach its target gap
 
 
@@ -28,7 +27,6 @@ _ADVICE = {
                              "where the deformation concentrates",
     Result.MAX_STEPS: "the history buffer is full before the end of the load path; raise "
                       "StepControl.max_steps",
-    Result.DIVERGED: "the Newton residual diverged; reduce the nominal step",
     Result.AUGMENTATIONS: "the augmented Lagrangian needed more augmentations than allowed to reach its "
                           "target gap; raise eps_n, the target_gap or max_augmentations, or reduce the step",
 }

@@ -27,7 +27,7 @@ import numpy as np
 
 from .assembly import internal_force, mesh_geometry
 from .contact import (AugmentedLagrangian, ContactState, ContactStep, Force, Move, Penalty,
-                      initial_contact_state, split_pairs)
+                      initial_contact_state, max_penetration, pair_nodes, split_pairs)
 from .contact_laws import SLIP, STICK
 from .element import FORMULATIONS, ElementGeometry
 from .loading import Phase, constraint_masks, prescribed_values, schedule
@@ -206,7 +206,7 @@ def default_observe(model: StripModel, state: SimState) -> dict:
     if state.contact is not None:
         c = state.contact
         out.update(tool_position=c.q, tool_force=c.force,
-                   max_penetration=jnp.max(jnp.where(c.status > 0, jnp.maximum(-c.gap, 0.0), 0.0)),
+                   max_penetration=max_penetration(c.status, c.gap),
                    n_active=jnp.sum(c.status > 0), n_slip=jnp.sum(c.status == SLIP))
     return out
 
@@ -218,8 +218,7 @@ def contact_force_field(model: StripModel, state: SimState) -> jax.Array:
         return f_c
     c = state.contact
     pair_f = c.rn[:, None] * c.normal + c.rt[:, None] * jnp.stack([-c.normal[:, 1], c.normal[:, 0]], 1)
-    nodes = np.concatenate([np.asarray(t.candidates) for t in model.tools])
-    return f_c.at[nodes].add(pair_f)
+    return f_c.at[pair_nodes(model.tools)].add(pair_f)
 
 
 def reactions(model: StripModel, state: SimState) -> jax.Array:
@@ -301,14 +300,10 @@ class StepSolution(NamedTuple):
     augmentations: jax.Array    # () AL augmentations (0 for the penalty method)
 
 
-def _max_penetration(contact_out: dict) -> jax.Array:
-    return jnp.max(jnp.where(contact_out["status"] > 0, jnp.maximum(-contact_out["gap"], 0.0), 0.0))
-
-
 def _constraint_error(contact_out: dict) -> jax.Array:
     """AL acceptance measure: largest penetration, and largest slip of a sticking pair (mm)."""
     stick_slip = jnp.where(contact_out["status"] == STICK, jnp.abs(contact_out["slip"]), 0.0)
-    return jnp.maximum(_max_penetration(contact_out), jnp.max(stick_slip))
+    return jnp.maximum(max_penetration(contact_out["status"], contact_out["gap"]), jnp.max(stick_slip))
 
 
 def _augment(model: StripModel, args: "StepArgs", sol, x_ref, newton: NewtonOptions) -> StepSolution:
@@ -359,8 +354,13 @@ def _step_args(model: StripModel, state: SimState, phase, t_target, ctx: "_Conte
     return args, q_start, f_start
 
 
-def _unknowns(model: StripModel, state: SimState, u) -> jax.Array:
-    q_f = state.contact.q[np.asarray(model.force_tools)] if model.force_tools else jnp.zeros(0)
+def _tool_q(state: SimState) -> jax.Array:
+    return jnp.zeros(0) if state.contact is None else state.contact.q
+
+
+def _unknowns(model: StripModel, u, q) -> jax.Array:
+    """The Newton unknowns x = (u, q_f) from displacements u and all tool positions q."""
+    q_f = q[np.asarray(model.force_tools)] if model.force_tools else jnp.zeros(0)
     return jnp.concatenate([u.reshape(-1), q_f])
 
 
@@ -369,7 +369,7 @@ def linearize_step(model: StripModel, state: SimState, phase, t_target) -> Linea
     converged ``state`` to ``t_target`` in ``phase``, at the unknowns of ``state`` (for inspection,
     debugging and benchmarks; :func:`solve_step` iterates on it)."""
     args, _, _ = _step_args(model, state, phase, t_target, _Context.build(model))
-    return linearize(_unknowns(model, state, state.u), args)
+    return linearize(_unknowns(model, state.u, _tool_q(state)), args)
 
 
 def solve_step(model: StripModel, state: SimState, phase, t_target,
@@ -385,14 +385,8 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
     t_target = jnp.asarray(t_target, jnp.float64)
     phase = jnp.asarray(phase, jnp.int32)
     args, q_start, f_start = _step_args(model, state, phase, t_target, ctx)
-    x_ref = _unknowns(model, state, state.u)
-    if guess is None:
-        x0 = x_ref
-    else:
-        u_guess, q_guess = guess
-        force_idx = model.force_tools
-        q0 = q_guess[np.asarray(force_idx)] if force_idx else jnp.zeros(0)
-        x0 = jnp.concatenate([u_guess.reshape(-1), q0])
+    x_ref = _unknowns(model, state.u, _tool_q(state))
+    x0 = x_ref if guess is None else _unknowns(model, *guess)
     sol = newton_solve(args, x0, x_ref, linearize=linearize, residual=residual, options=newton)
     if isinstance(model.contact, AugmentedLagrangian):
         sol = _augment(model, args, sol, x_ref, newton)
@@ -436,10 +430,6 @@ def _record(h: History, row, pred, state: SimState, iters, cuts, augmentations, 
 
 
 # ---- drivers --------------------------------------------------------------------------------------
-
-def _tool_q(state: SimState) -> jax.Array:
-    return jnp.zeros(0) if state.contact is None else state.contact.q
-
 
 class _Predictor(eqx.Module):
     """Secant predictor: the last accepted increment of displacements and tool positions together

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .assembly import internal_force, internal_force_and_tangent
-from .contact import ContactStep, evaluate_pairs, tool_forces
+from .contact import ContactStep, evaluate_pairs, pair_nodes, tool_forces
 from .tools import GAP_OPEN
 from .element import ElementGeometry
 from .linalg import BlockTridiag, Bordered
@@ -54,16 +54,12 @@ def _constrain_rows(K: BlockTridiag, mask: jax.Array) -> BlockTridiag:
     return BlockTridiag(lower=K.lower * keep[1:, :, None], diag=diag, upper=K.upper * keep[:-1, :, None])
 
 
-def _pair_nodes(args: StepArgs) -> np.ndarray:
-    return np.concatenate([np.asarray(t.candidates) for t in args.contact.tools])
-
-
 def _contact_terms(args: StepArgs, u, qf, jacobian: bool):
     """Contact forces at (u, q): per-node forces, per-tool clamping forces, and the pair results."""
     c = args.contact
     q = c.q_presc.at[np.asarray(args.force_idx)].set(qf) if args.force_idx else c.q_presc
     pairs = evaluate_pairs(c, args.mesh.nodes, u, q, jacobian)
-    f_c = jnp.zeros_like(u).at[_pair_nodes(args)].add(jnp.concatenate([p.f for p in pairs]))
+    f_c = jnp.zeros_like(u).at[pair_nodes(args.contact.tools)].add(jnp.concatenate([p.f for p in pairs]))
     return q, pairs, f_c, tool_forces(c, pairs)
 
 
@@ -128,7 +124,7 @@ def residual(x, args: StepArgs):
 def _contact_jacobian(args: StepArgs, K: BlockTridiag, pairs, keep):
     """Add the pair Jacobians to the diagonal blocks and build the border of the force-driven tools."""
     ny1 = args.mesh.ny + 1
-    nodes = _pair_nodes(args)
+    nodes = pair_nodes(args.contact.tools)
     cols = nodes // ny1
     rows = 2 * (nodes % ny1)[:, None] + np.arange(2)[None, :]
     dfdx = jnp.concatenate([p.df_dx for p in pairs])
