@@ -166,12 +166,15 @@ class Schedule(eqx.Module):
         starts = (0.0,) + self.seg_end[:-1]
         return int(sum(round((e - s) / d) for s, e, d in zip(starts, self.seg_end, self.seg_dt)))
 
-    def nominal_times(self) -> np.ndarray:
-        """The end times of all nominal steps, (n_nominal_steps,)."""
+    def nominal_steps(self) -> tuple[np.ndarray, np.ndarray]:
+        """End times (n_nominal_steps,) of all nominal steps, and the phase index of each."""
         starts = (0.0,) + self.seg_end[:-1]
-        out = [s + (e - s) * np.arange(1, round((e - s) / d) + 1) / round((e - s) / d)
-               for s, e, d in zip(starts, self.seg_end, self.seg_dt)]
-        return np.concatenate(out)
+        times, phases = [], []
+        for s, e, d, p in zip(starts, self.seg_end, self.seg_dt, self.seg_phase):
+            n = round((e - s) / d)
+            times.append(s + (e - s) * np.arange(1, n + 1) / n)
+            phases.append(np.full(n, p))
+        return np.concatenate(times), np.concatenate(phases)
 
 
 def schedule(phases) -> Schedule:

@@ -543,9 +543,7 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
     remaining rows are not filled and ``code`` holds the failure.
     """
     sched = schedule(model.phases)
-    times = sched.nominal_times()
-    phases = np.searchsorted(np.asarray(sched.seg_end), times - 1e-12, side="left")
-    phases = np.asarray(sched.seg_phase)[np.minimum(phases, len(sched.seg_end) - 1)]
+    times, phases = sched.nominal_steps()
     ctx = _Context.build(model)
     state0 = initial_state(model)
     hist0 = _empty_history(len(times) + 1, observe(model, state0))
