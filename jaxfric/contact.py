@@ -40,7 +40,7 @@ from ._checks import check_nonnegative, is_concrete
 from .contact_laws import OPEN, augmented_pair
 from .tools import Tool, project
 
-__all__ = ["Move", "Force", "RigidTool", "Penalty", "AugmentedLagrangian", "ContactState", "ContactStep", "PairResult",
+__all__ = ["Move", "Force", "RigidTool", "Penalty", "AugmentedLagrangian", "Complementarity", "ContactState", "ContactStep", "PairResult",
            "initial_contact_state", "evaluate_pairs", "tool_forces", "split_pairs", "pair_nodes",
            "max_penetration"]
 
@@ -183,6 +183,33 @@ class AugmentedLagrangian(Penalty):
         if isinstance(max_augmentations, bool) or int(max_augmentations) < 1:
             raise ValueError(f"field 'max_augmentations' must be an integer >= 1, got {max_augmentations!r}")
         self.max_augmentations = int(max_augmentations)
+
+
+class Complementarity(eqx.Module):
+    """Exact contact (spec 1.7, algorithms ``lcp_lemke`` and ``lcp_ssn``): at every Newton iterate the
+    contact conditions of the linearised problem are solved exactly on the bulk stiffness condensed on
+    the candidates of a proximity band; no penalty, no penetration beyond the Newton tolerance.
+
+    Attributes:
+        solver: "ssn" (semismooth Newton, jitted; Lemke fallback if it does not converge) or "lemke"
+            (Lemke's pivoting on the host through ``jax.pure_callback``); static.
+        band: static number of candidate nodes in the condensed problem (the proximity band: the
+            nodes nearest to a tool). None: every candidate node. Too small a band is detected (a node
+            outside it penetrates) and fails the attempt.
+        ssn_max_iter: semismooth Newton iterations before the Lemke fallback (static).
+    """
+
+    solver: str = eqx.field(static=True, default="ssn")
+    band: int | None = eqx.field(static=True, default=None)
+    ssn_max_iter: int = eqx.field(static=True, default=50)
+
+    def __check_init__(self):
+        if self.solver not in ("ssn", "lemke"):
+            raise ValueError(f"field 'solver' must be 'ssn' or 'lemke', got {self.solver!r}")
+        if self.band is not None and (isinstance(self.band, bool) or int(self.band) < 1):
+            raise ValueError(f"field 'band' must be None or an integer >= 1, got {self.band!r}")
+        if int(self.ssn_max_iter) < 1:
+            raise ValueError(f"field 'ssn_max_iter' must be >= 1, got {self.ssn_max_iter!r}")
 
 
 class ContactState(eqx.Module):

@@ -61,6 +61,8 @@ __all__ = [
     "ContactStatus",
     "lemke",
     "lemke_callback",
+    "lemke_contact_callback",
+    "polish",
     "contact_lcp",
     "contact_solution",
     "lemke_contact",
@@ -567,27 +569,81 @@ def lemke_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = N
     and p without the cancellation of alpha (1e3 mm) against dq (typically 1e-3 mm).
     """
     M, q = contact_lcp(K_star, r_star, gap, slip, mu, drive)
-    M, q = np.asarray(M), np.asarray(q)
-    res = lemke(M, q, max_pivots=max_pivots, pivot_tol=pivot_tol)
-    n_c = np.shape(gap)[0]
+    n_q = 0 if drive is None else drive.num_tools
+    shift = 0.0 if drive is None else float(drive.shift)
+    z_c, dq, pivots, status, z = _lemke_unshifted(np.asarray(M), np.asarray(q), n_q, shift, max_pivots,
+                                                  pivot_tol)
     K = jnp.asarray(K_star)
-    C, _ = _coupling(drive, n_c, K.dtype)
-    if drive is None:
-        z_c, dq, status = res.z[: 3 * n_c], np.zeros(0), res.status
-    else:
-        shift = float(drive.shift)
-        tools = 3 * n_c + np.arange(drive.num_tools)
-        z_free = _z_from_basis(M, q + shift * M[:, tools].sum(axis=1), res.basis, res.z)
-        # A tool whose z_q is non-basic sits at z_q = 0, i.e. dq = -alpha.
-        basic = np.isin(q.size + tools, res.basis)     # z_j is basic variable n + j
-        dq = np.where(basic, z_free[tools], -shift)
-        z_c, status = z_free[: 3 * n_c], res.status
-        if status == LemkeStatus.SOLVED:
-            z_c = np.maximum(z_c, 0.0)
-        if status == LemkeStatus.SOLVED and np.any(dq + shift <= 0.0):
-            status = int(LemkeStatus.SHIFT_TOO_SMALL)
+    C, _ = _coupling(drive, np.shape(gap)[0], K.dtype)
     du_c, p = _recover(K, r_star, gap, slip, jnp.asarray(z_c), jnp.asarray(dq), C)
-    return LemkeContactResult(np.asarray(du_c), np.asarray(p), np.asarray(dq), res.z, res.pivots, status)
+    return LemkeContactResult(np.asarray(du_c), np.asarray(p), np.asarray(dq), z, pivots, status)
+
+
+def _lemke_unshifted(M, q, n_q: int, shift: float, max_pivots=None, pivot_tol: float = 1e-12):
+    """Lemke on (M, q) (NumPy); returns ``(z_c, dq, pivots, status, z)``: the candidates' part of z
+    and the tool increments re-solved from the final basis without the shift (see
+    :func:`lemke_contact`)."""
+    res = lemke(M, q, max_pivots=max_pivots, pivot_tol=pivot_tol)
+    n_c3 = q.size - n_q
+    if n_q == 0:
+        return res.z[:n_c3], np.zeros(0), res.pivots, res.status, res.z
+    tools = n_c3 + np.arange(n_q)
+    z_free = _z_from_basis(M, q + shift * M[:, tools].sum(axis=1), res.basis, res.z)
+    # A tool whose z_q is non-basic sits at z_q = 0, i.e. dq = -alpha.
+    basic = np.isin(q.size + tools, res.basis)     # z_j is basic variable n + j
+    dq = np.where(basic, z_free[tools], -shift)
+    z_c, status = z_free[:n_c3], res.status
+    if status == LemkeStatus.SOLVED:
+        z_c = np.maximum(z_c, 0.0)
+    if status == LemkeStatus.SOLVED and np.any(dq + shift <= 0.0):
+        status = int(LemkeStatus.SHIFT_TOO_SMALL)
+    return z_c, dq, res.pivots, status, res.z
+
+
+def lemke_contact_callback(K_star, r_star, gap, slip, mu, drive: ForceDrive | None = None, *,
+                           max_pivots: int | None = None, pivot_tol: float = 1e-12):
+    """:func:`lemke_contact` from inside ``jit``: the LCP is built and the solution recovered in JAX,
+    the pivoting runs on the host through ``jax.pure_callback``. Not differentiable.
+
+    With force-driven tools the tool rows are equalities with a free unknown dq (a mixed LCP). Here
+    they are eliminated before pivoting instead of being shifted by alpha (spec 1.8): from
+    ``w_q = M_qz z + M_qq dq + q_q = 0``, ``dq = -M_qq^-1 (M_qz z + q_q)`` and the LCP in z alone is
+
+        M' = M_zz - M_zq M_qq^-1 M_qz,      q' = q_z - M_zq M_qq^-1 q_q      (unshifted q).
+
+    The solutions are the same (z_q = dq + alpha > 0 makes w_q = 0 in the shifted form), but the
+    shifted data carry alpha K* (1e8 N/mm for alpha = 1e3 mm) next to forces of 1e-2 N/mm, which
+    leaves Lemke's relative pivot and feasibility tests blind to tangential forces below 1e-4 N/mm:
+    on a frictionless clamp it returned a stuck (s = 0) solution with R_T of that size. M_qq =
+    C^T K* C > 0 as long as the tool touches a candidate of the band, which a force-driven phase
+    requires (spec 1.8).
+
+    Returns ``(du_c, p, dq, pivots, status)`` as arrays.
+    """
+    M, q = contact_lcp(K_star, r_star, gap, slip, mu, drive)
+    n_q = 0 if drive is None else drive.num_tools
+    n_c3 = q.shape[-1] - n_q
+    if n_q:
+        tools = slice(n_c3, None)
+        q = q + drive.shift * jnp.sum(M[:, tools], axis=1)           # unshifted: z_q = dq
+        coupling = jnp.linalg.solve(M[tools, tools], jnp.concatenate([M[tools, :n_c3], q[tools, None]], 1))
+        M_red = M[:n_c3, :n_c3] - M[:n_c3, tools] @ coupling[:, :n_c3]
+        q_red = q[:n_c3] - M[:n_c3, tools] @ coupling[:, n_c3]
+    else:
+        M_red, q_red = M, q
+
+    def host(M, q):
+        res = lemke(np.asarray(M), np.asarray(q), max_pivots=max_pivots, pivot_tol=pivot_tol)
+        return res.z.astype(q.dtype), np.int32(res.pivots), np.int32(res.status)
+
+    shapes = (jax.ShapeDtypeStruct((n_c3,), q.dtype), jax.ShapeDtypeStruct((), jnp.int32),
+              jax.ShapeDtypeStruct((), jnp.int32))
+    z_c, pivots, status = jax.pure_callback(host, shapes, M_red, q_red, vmap_method="sequential")
+    dq = -(coupling[:, :n_c3] @ z_c + coupling[:, n_c3]) if n_q else jnp.zeros(0, q.dtype)
+    K = jnp.asarray(K_star)
+    C, _ = _coupling(drive, jnp.shape(gap)[0], K.dtype)
+    du_c, p = _recover(K, r_star, gap, slip, z_c, dq, C)
+    return du_c, p, dq, pivots, status
 
 
 # --------------------------------------------------------------------------------------------
@@ -642,6 +698,55 @@ def _piece(state, mu, c_n, c_t):
                      jnp.stack([jnp.where(is_slip, mu * xi * c_n, zero), jnp.where(is_stick, c_t * one, zero)],
                                -1)], -2)
     return w_f, w_k
+
+
+def _piece_solution(K_star, r_star, d0, C, P, state, mu, c_n, c_t):
+    """x = (du_c, dq) solving the Alart-Curnier equations linearised on the piece ``state`` (and the
+    tool rows ``C^T p = P``): one dense solve of size 2 n_c + n_q."""
+    n_c, n_q = state.shape[0], C.shape[1]
+    w_f, w_k = _piece(state, mu, c_n, c_t)
+    K3 = K_star.reshape(n_c, 2, 2 * n_c)
+    top = jnp.einsum("iab,ibj->iaj", w_f, K3).reshape(2 * n_c, 2 * n_c) + _block_diag(w_k)
+    rhs_top = (jnp.einsum("iab,ib->ia", w_f, r_star.reshape(n_c, 2))
+               + jnp.einsum("iab,ib->ia", w_k, d0.reshape(n_c, 2))).reshape(-1)
+    if n_q == 0:
+        return jnp.linalg.solve(top, rhs_top)
+    # n_q bordering rows, solved densely: K* is dense after condensation anyway.
+    J = jnp.block([[top, -_block_diag(w_k) @ C], [C.T @ K_star, jnp.zeros((n_q, n_q), K_star.dtype)]])
+    return jnp.linalg.solve(J, jnp.concatenate([rhs_top, P + C.T @ r_star]))
+
+
+def polish(K_star, r_star, gap, slip, mu, du_c, dq, drive: ForceDrive | None = None):
+    """Refine a solution found by pivoting: classify each candidate (open / stick / slip with its
+    direction) from ``(du_c, dq)`` and solve the contact equations on that piece exactly (one dense
+    LU of the original data). Returns the refined ``(du_c, p, dq)``, or the given solution if the
+    refined one falls on another piece (then the pivoting's own answer is kept).
+
+    Lemke's answer is exact in its active set but not in its values: the tableau and the basis
+    solve carry the conditioning of the condensed problem (with a force-driven tool eliminated, the
+    common motion of tool and sheet is nearly free), which left the tool's force balance at 2e-8 of
+    the force on a frictionless clamp, above the Newton tolerance.
+    """
+    K_star = jnp.asarray(K_star)
+    dtype = K_star.dtype
+    r_star, gap, slip, mu = (jnp.asarray(a, dtype) for a in (r_star, gap, slip, mu))
+    n_c = gap.shape[0]
+    C, P = _coupling(drive, n_c, dtype)
+    c_n, c_t = diagonal_parameters(K_star)
+    d0 = -_interleave(gap, slip)
+
+    def classify(du, dq):
+        p = (K_star @ du - r_star).reshape(n_c, 2)
+        kin = (du - C @ dq - d0).reshape(n_c, 2)
+        return _alart_curnier(p[:, 0], p[:, 1], kin[:, 0], kin[:, 1], mu, c_n, c_t)[0]
+
+    state = classify(du_c, dq)
+    x = _piece_solution(K_star, r_star, d0, C, P, state, mu, c_n, c_t)
+    du_new, dq_new = x[: 2 * n_c], x[2 * n_c:]
+    keep = jnp.all(classify(du_new, dq_new) == state) & jnp.all(jnp.isfinite(x))
+    du = jnp.where(keep, du_new, du_c)
+    dq = jnp.where(keep, dq_new, dq)
+    return du, K_star @ du - r_star, dq
 
 
 def _keep_tools_touching(state, sig_n, e_dot_n):
@@ -774,17 +879,7 @@ def ssn_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = Non
         return state, theta, res_norm, jnp.max(jnp.abs(p)), sig_n
 
     def newton_point(state):
-        """The solution of the equations linearised on the piece ``state``."""
-        w_f, w_k = _piece(state, mu, c_n, c_t)
-        K3 = K_star.reshape(n_c, 2, 2 * n_c)
-        top = jnp.einsum("iab,ibj->iaj", w_f, K3).reshape(2 * n_c, 2 * n_c) + _block_diag(w_k)
-        rhs_top = (jnp.einsum("iab,ib->ia", w_f, r_star.reshape(n_c, 2))
-                   + jnp.einsum("iab,ib->ia", w_k, d0.reshape(n_c, 2))).reshape(-1)
-        if n_q == 0:
-            return jnp.linalg.solve(top, rhs_top)
-        # n_q bordering rows, solved densely: K* is dense after condensation anyway.
-        J = jnp.block([[top, -_block_diag(w_k) @ C], [C.T @ K_star, jnp.zeros((n_q, n_q), dtype)]])
-        return jnp.linalg.solve(J, jnp.concatenate([rhs_top, P + C.T @ r_star]))
+        return _piece_solution(K_star, r_star, d0, C, P, state, mu, c_n, c_t)
 
     def next_state(state, sig_n):
         return _keep_tools_touching(state, sig_n, C[0::2]) if n_q else state

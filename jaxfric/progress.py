@@ -31,6 +31,7 @@ class ProgressMonitor:
         self.label = label
         self.min_interval = min_interval
         self.stamps: dict[int, float] = {}
+        self.snapshots: dict[int, object] = {}
         self.start = None
         self._last_draw = 0.0
         self._last_tenth = 0
@@ -51,11 +52,13 @@ class ProgressMonitor:
             self.stream.flush()
         return False
 
-    def on_step(self, step, t, iterations, cuts):
+    def on_step(self, step, t, iterations, cuts, snapshot=None):
         now = time.perf_counter()
         step, t = np.asarray(step), np.asarray(t)
         # Under vmap the arguments are batched: report the slowest member.
         self.stamps[int(np.min(step))] = now
+        if snapshot is not None and step.ndim == 0:
+            self.snapshots[int(step)] = snapshot
         if not self.show:
             return
         frac = float(np.clip(np.min(t) / self.total_time, 0.0, 1.0))
@@ -92,7 +95,7 @@ def active() -> "ProgressMonitor | None":
     return _ACTIVE
 
 
-def report(step, t, iterations, cuts):
-    """Host side of the in-loop callback."""
+def report(step, t, iterations, cuts, snapshot=None):
+    """Host side of the in-loop callback; ``snapshot`` (a pytree of arrays, optional) is kept per step."""
     if _ACTIVE is not None:
-        _ACTIVE.on_step(step, t, iterations, cuts)
+        _ACTIVE.on_step(step, t, iterations, cuts, snapshot)

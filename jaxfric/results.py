@@ -15,6 +15,8 @@ class Result(enum.IntEnum):
     INVERTED_ELEMENT = 3   # det F <= 0 at a Gauss point or an element centroid
     MAX_STEPS = 4          # the history buffer is full before the end of the load path
     AUGMENTATIONS = 6      # the augmented Lagrangian did not reach its target gap
+    LCP_FAILED = 7         # the exact contact problem of an iterate had no solution (Lemke ray)
+    CONTACT_BAND = 8       # a candidate outside the proximity band of exact contact penetrates a tool
 
 
 _ADVICE = {
@@ -29,6 +31,10 @@ _ADVICE = {
                       "StepControl.max_steps",
     Result.AUGMENTATIONS: "the augmented Lagrangian needed more augmentations than allowed to reach its "
                           "target gap; raise eps_n, the target_gap or max_augmentations, or reduce the step",
+    Result.LCP_FAILED: "the linearised contact problem had no solution (Lemke ray termination); reduce the "
+                       "nominal step",
+    Result.CONTACT_BAND: "a candidate node outside the proximity band of the exact contact solver penetrates "
+                         "a tool; raise Complementarity.band (or leave it None: all candidates)",
 }
 
 

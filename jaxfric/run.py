@@ -10,10 +10,11 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from .contact import Complementarity
 from .newton import NewtonOptions
 from .progress import ProgressMonitor
 from .results import Result, SimulationError, describe
-from .simulate import (Simulation, StepControl, StripModel, default_observe, simulate,
+from .simulate import (Simulation, StepControl, StripModel, default_observe, initial_state, simulate,
                        simulate_fixed)
 
 __all__ = ["RunResult", "run"]
@@ -33,6 +34,8 @@ class RunResult:
         code: the :class:`~jaxfric.results.Result`.
         message: "" when converged, otherwise where and why the run stopped, and what to try.
         compile_s, wall_s: compilation time and solve time (s).
+        snapshots: with ``run(..., snapshot=fn)``, ``fn(model, state)`` as NumPy pytrees per history
+            row (row 0: the initial state); empty otherwise.
     """
 
     model: StripModel
@@ -44,23 +47,26 @@ class RunResult:
     message: str
     compile_s: float
     wall_s: float
+    snapshots: dict = dataclasses.field(default_factory=dict)
 
 
 _COMPILED: dict = {}
 
 
-def _compiled(model, newton, control, observe, progress, adaptive):
+def _compiled(model, newton, control, observe, snapshot, adaptive):
     """AOT-compile once per structure (shapes, static fields, options); values never recompile."""
     leaves, treedef = jax.tree_util.tree_flatten(model)
     key = (treedef, tuple((np.shape(x), str(getattr(x, "dtype", type(x)))) for x in leaves),
-           newton, control, observe, progress, adaptive)
+           newton, control, observe, snapshot, adaptive)
+    # Every accepted step reports to the host (time stamps for the per-step wall time; the bar is
+    # drawn only when asked for).
     if key not in _COMPILED:
         if adaptive:
             fn = eqx.filter_jit(lambda m: simulate(m, newton=newton, control=control, observe=observe,
-                                                   progress=progress))
+                                                   progress=True, snapshot=snapshot))
         else:
             fn = eqx.filter_jit(lambda m: simulate_fixed(m, newton=newton, observe=observe,
-                                                         progress=progress))
+                                                         progress=True, snapshot=snapshot))
         _COMPILED[key] = fn.lower(model).compile()
     return _COMPILED[key]
 
@@ -68,22 +74,28 @@ def _compiled(model, newton, control, observe, progress, adaptive):
 def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
         control: StepControl = StepControl(), observe: Callable = default_observe,
         progress: bool = True, adaptive: bool = True, raise_on_failure: bool = True,
-        label: str = "") -> RunResult:
+        label: str = "", snapshot: Callable | None = None) -> RunResult:
     """Run ``model`` to the end of its load path.
 
     Compilation is timed apart from the solve. A progress bar on stderr shows steps, pseudo-time and
     Newton iterations when ``progress``. If the run stops early it raises :class:`SimulationError`
     whose ``result`` holds everything converged up to the failure (or returns it, with
-    ``raise_on_failure=False``).
+    ``raise_on_failure=False``). ``snapshot(model, state) -> pytree`` (a module-level function) is
+    evaluated at every accepted step and kept on the host in ``RunResult.snapshots``.
     """
     t0 = time.perf_counter()
-    compiled = _compiled(model, newton, control, observe, progress, adaptive)
+    compiled = _compiled(model, newton, control, observe, snapshot, adaptive)
     compile_s = time.perf_counter() - t0
     with ProgressMonitor(total_time=model.n_phases, show=progress, label=label) as monitor:
         t1 = time.perf_counter()
         sim = jax.block_until_ready(compiled(model))
         wall_s = time.perf_counter() - t1
-    result = _to_host(model, sim, monitor if progress else None, compile_s, wall_s)
+    result = _to_host(model, sim, monitor, compile_s, wall_s)
+    if snapshot is not None:
+        first = eqx.filter_jit(lambda m: snapshot(m, initial_state(m)))(model)
+        snaps = {0: first, **monitor.snapshots}
+        result.snapshots = {k: jax.tree_util.tree_map(np.asarray, v) for k, v in sorted(snaps.items())
+                            if k < len(result.history["time"])}
     if not result.converged and raise_on_failure:
         raise SimulationError(result.message, result.code, result)
     return result
@@ -100,10 +112,10 @@ def _to_host(model, sim: Simulation, monitor, compile_s, wall_s) -> RunResult:
         "cutbacks": np.asarray(h.cutbacks[:n]),
         "augmentations": np.asarray(h.augmentations[:n]),
     }
-    if monitor is not None:
-        history["wall_s"] = monitor.step_wall_times(n)
-    else:  # no per-step stamps: spread the measured solve time evenly
-        history["wall_s"] = np.r_[0.0, np.full(n - 1, wall_s / max(n - 1, 1))]
+    if isinstance(model.contact, Complementarity):
+        stats = np.asarray(h.solver_stats[:n])
+        history.update(lcp_pivots=stats[:, 0], ssn_iters=stats[:, 1], ssn_fallbacks=stats[:, 2])
+    history["wall_s"] = monitor.step_wall_times(n)
     for name, value in h.observed.items():
         history[name] = np.asarray(value[:n])
     code = Result(int(sim.code))

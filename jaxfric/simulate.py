@@ -26,10 +26,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .assembly import internal_force, mesh_geometry
-from .contact import (AugmentedLagrangian, ContactState, ContactStep, Force, Move, Penalty,
+from .contact import (AugmentedLagrangian, Complementarity, ContactState, ContactStep, Force, Move, Penalty,
                       initial_contact_state, max_penetration, pair_nodes, split_pairs)
 from .contact_laws import SLIP, STICK
 from .element import FORMULATIONS, ElementGeometry
+from .exact import exact_solve
 from .loading import Phase, constraint_masks, prescribed_values, schedule
 from .material import J2Material
 from .mesh import StripMesh
@@ -55,7 +56,8 @@ class StripModel(eqx.Module):
         phases: the load path, one :class:`~jaxfric.loading.Phase` per phase.
         formulation: "fbar" (default) or "q4" (plain Q4, for elastic checks only); static.
         tools: rigid tools (:class:`~jaxfric.contact.RigidTool`), one control per phase each.
-        contact: the contact regularisation (:class:`~jaxfric.contact.Penalty`); needed with tools.
+        contact: the contact formulation, needed with tools: :class:`~jaxfric.contact.Penalty`,
+            :class:`~jaxfric.contact.AugmentedLagrangian` or :class:`~jaxfric.contact.Complementarity`.
     """
 
     mesh: StripMesh
@@ -63,7 +65,7 @@ class StripModel(eqx.Module):
     phases: tuple
     formulation: str = eqx.field(static=True, default="fbar")
     tools: tuple = ()
-    contact: Penalty | None = None
+    contact: Penalty | Complementarity | None = None
 
     def __check_init__(self):
         if self.formulation not in FORMULATIONS:
@@ -157,6 +159,8 @@ class History(eqx.Module):
 
     Attributes:
         time, phase, newton_iters, cutbacks, augmentations: (S,) per row.
+        solver_stats: (S, 3) exact contact: Lemke pivots, semismooth Newton iterations, Lemke
+            fallbacks, summed over the step's attempts (zero for the other laws).
         observed: pytree of per-row observations, leading axis S.
         n_rows: () number of filled rows.
     """
@@ -166,6 +170,7 @@ class History(eqx.Module):
     newton_iters: jax.Array
     cutbacks: jax.Array
     augmentations: jax.Array
+    solver_stats: jax.Array
     observed: object
     n_rows: jax.Array
 
@@ -298,6 +303,7 @@ class StepSolution(NamedTuple):
     residual_norm: jax.Array
     residual_history: jax.Array  # of the last Newton solve
     augmentations: jax.Array    # () AL augmentations (0 for the penalty method)
+    stats: jax.Array            # (3,) exact contact: Lemke pivots, SSN iterations, Lemke fallbacks
 
 
 def _constraint_error(contact_out: dict) -> jax.Array:
@@ -338,7 +344,8 @@ def _augment(model: StripModel, args: "StepArgs", sol, x_ref, newton: NewtonOpti
         return new._replace(code=code), n_aug + 1, iters + new.iterations
 
     sol, n_aug, iters = jax.lax.while_loop(pending, body, (sol, jnp.array(0, jnp.int32), sol.iterations))
-    return StepSolution(sol.x, sol.aux, iters, sol.code, sol.residual_norm, sol.residual_history, n_aug)
+    return StepSolution(sol.x, sol.aux, iters, sol.code, sol.residual_norm, sol.residual_history, n_aug,
+                        jnp.zeros(3, jnp.int32))
 
 
 def _step_args(model: StripModel, state: SimState, phase, t_target, ctx: "_Context"):
@@ -387,11 +394,16 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
     args, q_start, f_start = _step_args(model, state, phase, t_target, ctx)
     x_ref = _unknowns(model, state.u, _tool_q(state))
     x0 = x_ref if guess is None else _unknowns(model, *guess)
-    sol = newton_solve(args, x0, x_ref, linearize=linearize, residual=residual, options=newton)
-    if isinstance(model.contact, AugmentedLagrangian):
-        sol = _augment(model, args, sol, x_ref, newton)
+    no_aug = jnp.array(0, jnp.int32)
+    if isinstance(model.contact, Complementarity):
+        sol, stats = exact_solve(args, x0, x_ref, options=newton, law=model.contact)
+        sol = StepSolution(*sol, augmentations=no_aug, stats=stats)
     else:
-        sol = StepSolution(*sol, augmentations=jnp.array(0, jnp.int32))
+        sol = newton_solve(args, x0, x_ref, linearize=linearize, residual=residual, options=newton)
+        if isinstance(model.contact, AugmentedLagrangian):
+            sol = _augment(model, args, sol, x_ref, newton)
+        else:
+            sol = StepSolution(*sol, augmentations=no_aug, stats=jnp.zeros(3, jnp.int32))
     f_int, states, c_out = sol.aux
     new_contact = None
     if model.tools:
@@ -413,20 +425,25 @@ def _empty_history(n: int, row0: dict) -> History:
 
     return History(time=jnp.zeros(n), phase=jnp.zeros(n, jnp.int32),
                    newton_iters=jnp.zeros(n, jnp.int32), cutbacks=jnp.zeros(n, jnp.int32),
-                   augmentations=jnp.zeros(n, jnp.int32),
+                   augmentations=jnp.zeros(n, jnp.int32), solver_stats=jnp.zeros((n, 3), jnp.int32),
                    observed=jax.tree_util.tree_map(buffer, row0), n_rows=jnp.array(1, jnp.int32))
 
 
-def _record(h: History, row, pred, state: SimState, iters, cuts, augmentations, observed) -> History:
+def _record(h: History, row, pred, state: SimState, iters, cuts, augmentations, stats, observed) -> History:
     """Write row ``row`` when ``pred``; leave the buffers unchanged otherwise."""
     def put(buf, value):
         return buf.at[row].set(jnp.where(pred, value, buf[row]))
 
     return History(time=put(h.time, state.time), phase=put(h.phase, state.phase),
                    newton_iters=put(h.newton_iters, iters), cutbacks=put(h.cutbacks, cuts),
-                   augmentations=put(h.augmentations, augmentations),
+                   augmentations=put(h.augmentations, augmentations), solver_stats=put(h.solver_stats, stats),
                    observed=jax.tree_util.tree_map(put, h.observed, observed),
                    n_rows=jnp.where(pred, row + 1, h.n_rows))
+
+
+def _report(row, t, iters, cuts, snapshot, model, state) -> None:
+    extra = () if snapshot is None else (snapshot(model, state),)
+    jax.debug.callback(report, row, t, iters, cuts, *extra)
 
 
 # ---- drivers --------------------------------------------------------------------------------------
@@ -466,6 +483,7 @@ class _Loop(eqx.Module):
     n_easy: jax.Array      # consecutive easy steps
     cuts: jax.Array        # failed attempts since the last accepted step
     iters: jax.Array       # Newton iterations since the last accepted step
+    stats: jax.Array       # (3,) exact-contact solver counts since the last accepted step
     history: History
     code: jax.Array
     failed_t: jax.Array    # target time of the last failed attempt
@@ -474,12 +492,14 @@ class _Loop(eqx.Module):
 
 def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
              control: StepControl = StepControl(), observe: Callable = default_observe,
-             progress: bool = False) -> Simulation:
+             progress: bool = False, snapshot: Callable | None = None) -> Simulation:
     """Run the whole load path with adaptive steps, inside one ``lax.while_loop``.
 
     Pure and jit-able (wrap with ``eqx.filter_jit``; :func:`jaxfric.run.run` does); ``observe(model,
     state) -> pytree`` is recorded at every accepted step and must be a static (hashable) function.
-    With ``progress`` a host callback reports every accepted step (see :mod:`jaxfric.progress`).
+    With ``progress`` a host callback reports every accepted step (see :mod:`jaxfric.progress`);
+    with ``snapshot(model, state) -> pytree`` (static) that pytree travels with the report, so the host
+    can keep full states of chosen steps without a device buffer per step.
     """
     sched = schedule(model.phases)
     n_seg = len(sched.seg_end)
@@ -500,8 +520,9 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
                                                             retry=c.cuts > 0))
         ok = sol.code == Result.SUCCESS
         iters = c.iters + sol.iterations
+        stats = c.stats + sol.stats
         row = c.history.n_rows
-        history = _record(c.history, row, ok, new_state, iters, c.cuts, sol.augmentations,
+        history = _record(c.history, row, ok, new_state, iters, c.cuts, sol.augmentations, stats,
                           observe(model, new_state))
 
         seg_done = ok & (t_try == end)
@@ -516,17 +537,18 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
         full = ok & ~finished & (row + 1 >= n_buf + 1)
         code = jnp.select([too_small, finished, full], [sol.code, Result.SUCCESS, Result.MAX_STEPS],
                           Result.CONTINUE).astype(jnp.int32)
-        if progress:
-            jax.lax.cond(ok, lambda: jax.debug.callback(report, row, t_try, iters, c.cuts), lambda: None)
+        if progress or snapshot is not None:
+            jax.lax.cond(ok, lambda: _report(row, t_try, iters, c.cuts, snapshot, model, new_state),
+                         lambda: None)
         return _Loop(state=_select(ok, new_state, c.state),
                      predictor=c.predictor.after(ok, c.state, new_state),
                      dt=jnp.where(ok, dt_ok, dt_cut), seg=next_seg,
                      n_easy=jnp.where(grow, 0, n_easy), cuts=jnp.where(ok, 0, c.cuts + 1),
-                     iters=jnp.where(ok, 0, iters), history=history, code=code,
+                     iters=jnp.where(ok, 0, iters), stats=jnp.where(ok, 0, stats), history=history, code=code,
                      failed_t=jnp.where(ok, c.failed_t, t_try), r_norm=sol.residual_norm)
 
     init = _Loop(state=state0, predictor=_Predictor.empty(state0),
-                 dt=seg_dt[0], seg=int0, n_easy=int0, cuts=int0, iters=int0,
+                 dt=seg_dt[0], seg=int0, n_easy=int0, cuts=int0, iters=int0, stats=jnp.zeros(3, jnp.int32),
                  history=_empty_history(n_buf + 1, observe(model, state0)),
                  code=jnp.array(Result.CONTINUE, jnp.int32), failed_t=jnp.array(jnp.nan),
                  r_norm=jnp.array(0.0))
@@ -536,7 +558,8 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
 
 
 def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
-                   observe: Callable = default_observe, progress: bool = False) -> Simulation:
+                   observe: Callable = default_observe, progress: bool = False,
+                   snapshot: Callable | None = None) -> Simulation:
     """Run the nominal steps of the load path in a fixed-length ``lax.scan`` (no step cutting).
 
     Reverse-mode differentiable. If a step fails the state stays at the last converged step, the
@@ -557,9 +580,10 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
         ok = alive & (sol.code == Result.SUCCESS)
         row = hist.n_rows
         hist = _record(hist, row, ok, new_state, sol.iterations, jnp.array(0, jnp.int32),
-                       sol.augmentations, observe(model, new_state))
-        if progress:
-            jax.lax.cond(ok, lambda: jax.debug.callback(report, row, t, sol.iterations, 0), lambda: None)
+                       sol.augmentations, sol.stats, observe(model, new_state))
+        if progress or snapshot is not None:
+            jax.lax.cond(ok, lambda: _report(row, t, sol.iterations, 0, snapshot, model, new_state),
+                         lambda: None)
         code = jnp.where(alive & ~ok, sol.code, code).astype(jnp.int32)
         failed_t = jnp.where(alive & ~ok, t, failed_t)
         return (_select(ok, new_state, state), predictor.after(ok, state, new_state), hist, code,

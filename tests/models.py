@@ -56,7 +56,7 @@ def end_moment(result, mesh):
 
 
 def flat_die_strip(law, length=6.0, half_thickness=0.395, nx=30, ny=2, force=50.0, mu=0.15,
-                   draw=0.03, material=None):
+                   draw=0.03, material=None, clamp_steps=10, increments=((1 / 12, 100), (1.0, 275))):
     """A small version of the benchmark's flat die: a force-driven die (line above the strip) clamps
     it with `force` N/mm frictionlessly, then the right end is drawn by `draw` mm with friction `mu`
     (the spec's increments: 100 steps to draw/12, then 275). v = 0 on the bottom (symmetry plane)."""
@@ -72,8 +72,8 @@ def flat_die_strip(law, length=6.0, half_thickness=0.395, nx=30, ny=2, force=50.
     sym = jf.DirichletBC(mesh.bottom, components=(1,))
     hold = jf.DirichletBC(mesh.right, components=(0,))
     pull = jf.DirichletBC(mesh.right, components=(0,), motion=jf.Ramp((0, 0), (draw, 0)))
-    phases = (jf.Phase("clamp", [sym, hold], 10),
-              jf.Phase("draw", [sym, pull], increments=((1 / 12, 100), (1.0, 275))))
+    phases = (jf.Phase("clamp", [sym, hold], clamp_steps),
+              jf.Phase("draw", [sym, pull], increments=increments))
     return jf.StripModel(mesh, material, phases, tools=(tool,), contact=law)
 
 

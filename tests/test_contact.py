@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxfric as jf
-from jaxfric.contact import AugmentedLagrangian, Force, Move, Penalty, RigidTool
+from jaxfric.contact import AugmentedLagrangian, Complementarity, Force, Move, Penalty, RigidTool
 from jaxfric.tools import Tool
 from models import STEEL, flat_die_strip, wrapped_strip
 
@@ -113,9 +113,10 @@ def test_bad_contact_input_names_the_field():
                       contact=Penalty(1e5, 0))
 
 
-@pytest.mark.parametrize("law", [Penalty(1e6, 0.0),
+@pytest.mark.parametrize("law", [Penalty(1e6, 0.0), Complementarity("ssn"),
+                                 pytest.param(Complementarity("lemke"), marks=pytest.mark.slow),
                                  pytest.param(AugmentedLagrangian(1e5, 0.0, target_gap=1e-7), marks=pytest.mark.slow)],
-                         ids=["penalty", "auglag"])
+                         ids=["penalty", "lcp_ssn", "lcp_lemke", "auglag"])
 def test_hertz_line_contact(law):
     """A rigid cylinder (R = 10 mm) pressed with P = 1 N/mm on a thick elastic block (half model,
     graded mesh, 0.005 mm at the contact): half-width a = sqrt(4 P R / (pi E*)) and peak pressure

@@ -1,0 +1,388 @@
+"""Exact contact inside the global Newton loop (benchmarks spec 1.7 and 1.8): ``lcp_ssn``, ``lcp_lemke``.
+
+At every Newton iterate x = (u, q_f) the contact conditions of the linearised problem are solved
+exactly; the contact status comes out of that solve. Steps of one iteration:
+
+1. Bulk operators of the sheet alone: K = d f_int / du and b = -f_int on the free dofs. A prescribed
+   dof i gets the row ``kappa du_i = kappa (u_presc,i - u_i) + f_c,i - f_c,i^prev`` with
+   kappa = 100 K_ii and f_c^prev the contact force of the previous iterate (the reaction's
+   estimate). A candidate node with one prescribed component (the flat die's corner D) thus keeps
+   its contact force in the condensed problem, as the LCP needs, while the prescribed value is met
+   exactly once the forces settle (the error is the change of force over kappa). An identity row
+   would drop the force from the LCP (R_T of a sticking D undetermined), and a huge kappa would cost
+   Lemke its pivoting accuracy.
+2. The proximity band: per candidate node the pair of smallest gap; of those, the ``band`` nodes
+   nearest to a tool (all of them by default). Only the band enters the complementarity problem, so
+   its size follows the contact zone. A node outside the band that penetrates a tool at the converged
+   state fails the attempt (:attr:`~jaxfric.results.Result.CONTACT_BAND`).
+3. Condensation on the band dofs c (spec 1.7 step 2), with the block-tridiagonal structure kept:
+   ``K_ff^-1`` is the block-Thomas solve of K with the band dofs decoupled (their rows and columns
+   replaced by a scaled identity), applied to the 2 n_c + 1 columns ``[K_fc | b_f]`` in one sweep:
+
+       K* = K_cc - K_cf K_ff^-1 K_fc,     r* = b_c - K_cf K_ff^-1 b_f,
+
+   then rotated into each band pair's (n, t) frame.
+4. The linearised contact problem ``K* du_c = r* + p`` with ``g_N = g^i + du_N - (e_q . n) dq``,
+   ``s = s^i + du_T - (e_q . t) dq`` and Signorini-Coulomb, plus the force balance of the force-driven
+   tool (:mod:`jaxfric.lcp`): semismooth Newton (``ssn``, jitted; if it does not converge, Lemke for
+   that iterate, counted as a fallback) or Lemke's pivoting (``lemke``, NumPy on the host through
+   ``jax.pure_callback``).
+5. Back-substitution ``du_f = K_ff^-1 (b_f - K_fc du_c)``; x <- x + (du, dq).
+
+Convergence (spec 1.7 step 7): the bulk residual with the contact forces of the last solve,
+``f_int - f_c(p)`` at the new iterate, passes the Newton test of :mod:`jaxfric.newton` (residual and
+increment), and no pair changed its status (open / stick / slip from the forces, spec section 0).
+
+Not differentiable: exact complementarity has no derivative where a pair changes status, and the
+derivative of the converged step on a fixed status would need the active-set Jacobian. Gradients use
+the penalty or augmented Lagrangian laws (with their optional smoothing); differentiating a run with
+:class:`~jaxfric.contact.Complementarity` raises.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .assembly import internal_force_and_tangent
+from .contact import Complementarity, ContactStep, pair_nodes
+from .lcp import ForceDrive, LemkeStatus, contact_status, diagonal_parameters, lemke_contact_callback, polish, ssn_contact
+from .linalg import BlockTridiag, block_tridiag_solve
+from .newton import NewtonOptions, NewtonSolution
+from .results import Result
+from .tools import project
+
+__all__ = ["exact_solve"]
+
+KAPPA = 1e2       # prescribed rows: kappa = KAPPA K_ii (see the module docstring)
+GAP_FAR = 10.0    # mm: gap given to a band node that projects on no tool (it stays open)
+
+
+class _Iterate(NamedTuple):
+    """Bulk operators and pair geometry at one Newton iterate."""
+
+    f_int: jax.Array      # (n_nodes, 2)
+    K: BlockTridiag       # d f_int / du
+    states: object
+    det_min: jax.Array
+    q: jax.Array          # (n_t,) tool positions
+    gap: jax.Array        # (m,) GAP_OPEN where the pair projects on no primitive
+    normal: jax.Array     # (m, 2)
+    zeta: jax.Array       # (m,)
+    slip: jax.Array       # (m,) slip since the start of the step
+    valid: jax.Array      # (m,) bool
+
+
+def _tool_positions(args, qf) -> jax.Array:
+    """All tool positions: prescribed, or the unknown where the tool is force-driven in this phase."""
+    c = args.contact
+    if not args.force_idx:
+        return c.q_presc
+    idx = np.asarray(args.force_idx)
+    return c.q_presc.at[idx].set(jnp.where(c.force_mask[idx], qf, c.q_presc[idx]))
+
+
+def _geometry(step: ContactStep, nodes_ref, u, q):
+    """Projection of every pair at (u, q): gap, normal, zeta, the slip since the step start, validity."""
+    out = []
+    for k, tool in enumerate(step.tools):  # static: tools differ in structure
+        idx = np.asarray(tool.candidates)
+
+        def one(X, u_a, u_ref, tool=tool, k=k):
+            increment = (u_a - u_ref) - (q[k] - step.q_ref[k]) * tool.drive
+            return project(tool.geometry, X, step.q_ref[k] * tool.drive, displacement=u_ref, increment=increment)
+
+        out.append(jax.vmap(one)(nodes_ref[idx], u[idx], step.u_ref[k]))
+    cat = lambda name: jnp.concatenate([getattr(p, name) for p in out])  # noqa: E731
+    return cat("gap"), cat("normal"), cat("zeta"), cat("zeta_increment"), cat("valid")
+
+
+def _linearize(x, args) -> _Iterate:
+    n = args.mesh.n_dofs
+    u = x[:n].reshape(-1, 2)
+    q = _tool_positions(args, x[n:])
+    a = internal_force_and_tangent(args.mesh, args.material, args.formulation, args.geo, u, args.states)
+    gap, normal, zeta, slip, valid = _geometry(args.contact, args.mesh.nodes, u, q)
+    return _Iterate(a.f_int, a.tangent, a.states, a.det_min, q, gap, normal, zeta, slip, valid)
+
+
+def _tangents(normal):
+    return jnp.stack([-normal[..., 1], normal[..., 0]], axis=-1)
+
+
+def _pair_forces(it: _Iterate, p) -> jax.Array:
+    """(m, 2) force on the sheet of every pair, R_N n + R_T t."""
+    return p[:, :1] * it.normal + p[:, 1:] * _tangents(it.normal)
+
+
+def _residual(x, it: _Iterate, p, args):
+    """Residual of the step at the iterate with contact forces p (m, 2); and the tool forces."""
+    n = args.mesh.n_dofs
+    c = args.contact
+    f_pairs = _pair_forces(it, p)
+    f_c = jnp.zeros_like(it.f_int).at[pair_nodes(c.tools)].add(f_pairs)
+    R = jnp.where(args.mask, x[:n] - args.values, (it.f_int - f_c).reshape(-1))
+    sizes = np.cumsum([0] + [len(t.candidates) for t in c.tools])
+    tool_f = jnp.stack([jnp.sum(f_pairs[sizes[k]:sizes[k + 1]] @ t.drive) for k, t in enumerate(c.tools)])
+    rows = [jnp.where(c.force_mask[k], tool_f[k] - c.force[k], x[n + j] - c.q_presc[k])
+            for j, k in enumerate(args.force_idx)]
+    if rows:
+        R = jnp.concatenate([R, jnp.stack(rows)])
+    return R, tool_f
+
+
+# ---- the proximity band -----------------------------------------------------------------------------
+
+class _Band(NamedTuple):
+    nodes: jax.Array   # (n_c,) sheet nodes
+    pairs: jax.Array   # (n_c,) the pair of each band node (index into the m pairs)
+
+
+def _node_pairs(tools) -> tuple[np.ndarray, np.ndarray]:
+    """Static: the distinct candidate nodes (n_u,) and their pairs (n_u, w), padded with m."""
+    nodes = pair_nodes(tools)
+    unique = np.unique(nodes)
+    width = max(int(np.sum(nodes == a)) for a in unique)
+    table = np.full((unique.size, width), nodes.size, dtype=np.int64)
+    for i, a in enumerate(unique):
+        mine = np.flatnonzero(nodes == a)
+        table[i, : mine.size] = mine
+    return unique, table
+
+
+def _band(it: _Iterate, tools, size: int | None) -> _Band:
+    unique, table = _node_pairs(tools)
+    gap = jnp.concatenate([jnp.where(it.valid, it.gap, jnp.inf), jnp.array([jnp.inf])])
+    g = gap[table]
+    best = jnp.argmin(g, axis=1)
+    pairs = jnp.asarray(table)[jnp.arange(unique.size), best]
+    if size is None or size >= unique.size:
+        return _Band(jnp.asarray(unique), pairs)
+    _, sel = jax.lax.top_k(-jnp.min(g, axis=1), size)
+    return _Band(jnp.asarray(unique)[sel], pairs[sel])
+
+
+# ---- condensation -----------------------------------------------------------------------------------
+
+def _scaled_rows(K: BlockTridiag, mask, kappa) -> BlockTridiag:
+    """Rows of prescribed dofs replaced by kappa_i e_i."""
+    nb, m = K.diag.shape[0], K.diag.shape[1]
+    fixed = mask.reshape(nb, m)
+    keep = jnp.where(fixed, 0.0, 1.0)
+    diag = K.diag * keep[:, :, None] + jax.vmap(jnp.diag)(jnp.where(fixed, kappa.reshape(nb, m), 0.0))
+    return BlockTridiag(lower=K.lower * keep[1:, :, None], diag=diag, upper=K.upper * keep[:-1, :, None])
+
+
+def _decoupled(J: BlockTridiag, band_mask, scale) -> BlockTridiag:
+    """J with the rows and columns of the band dofs replaced by ``scale`` times the identity."""
+    nb, m = J.diag.shape[0], J.diag.shape[1]
+    keep = 1.0 - band_mask.reshape(nb, m)
+    diag = J.diag * keep[:, :, None] * keep[:, None, :] + jax.vmap(jnp.diag)(scale * (1.0 - keep))
+    lower = J.lower * keep[1:, :, None] * keep[:-1, None, :]
+    upper = J.upper * keep[:-1, :, None] * keep[1:, None, :]
+    return BlockTridiag(lower=lower, diag=diag, upper=upper)
+
+
+class _Condensed(NamedTuple):
+    K_star: jax.Array   # (2 n_c, 2 n_c) in the pairs' (n, t) frames
+    r_star: jax.Array   # (2 n_c,)
+    Y: jax.Array        # (n, 2 n_c + 1) = K_ff^-1 [K_fc | b_f] (zero rows at band dofs)
+    dofs: jax.Array     # (2 n_c,) band dofs
+    rotation: jax.Array  # (n_c, 2, 2) columns n, t per band node
+
+
+def _condense(it: _Iterate, args, x, band: _Band, normal, f_c_prev) -> _Condensed:
+    n = args.mesh.n_dofs
+    K = it.K
+    diag = jnp.abs(jax.vmap(jnp.diagonal)(K.diag).reshape(-1))
+    J = _scaled_rows(K, args.mask, KAPPA * diag)
+    b = jnp.where(args.mask, KAPPA * diag * (args.values - x[:n]) - f_c_prev.reshape(-1), -it.f_int.reshape(-1))
+    dofs = (2 * band.nodes[:, None] + jnp.arange(2)[None, :]).reshape(-1)
+    n_c2 = dofs.shape[0]
+    E = jnp.zeros((n, n_c2)).at[dofs, jnp.arange(n_c2)].set(1.0)
+    band_mask = jnp.zeros(n).at[dofs].set(1.0)
+    free = (1.0 - band_mask)[:, None]
+    JE = J.matvec(E)
+    rhs = jnp.concatenate([JE * free, (b[:, None] * free)], axis=1)
+    scale = jnp.mean(jnp.where(args.mask, 0.0, diag)) + jnp.finfo(diag.dtype).tiny
+    Y = block_tridiag_solve(_decoupled(J, band_mask, scale), rhs)
+    JY = J.matvec(Y)[dofs]
+    K_cart = JE[dofs] - JY[:, :n_c2]
+    r_cart = b[dofs] - JY[:, n_c2]
+    rotation = jnp.stack([normal, _tangents(normal)], axis=-1)         # (n_c, 2, 2), columns n, t
+    n_c = band.nodes.shape[0]
+    R = jnp.zeros((n_c, 2, n_c, 2)).at[jnp.arange(n_c), :, jnp.arange(n_c), :].set(rotation)
+    R = R.reshape(n_c2, n_c2)
+    return _Condensed(R.T @ K_cart @ R, R.T @ r_cart, Y, dofs, rotation)
+
+
+# ---- one Newton iteration ---------------------------------------------------------------------------
+
+class _LCPSolution(NamedTuple):
+    du_c: jax.Array     # (2 n_c,) local frames
+    p: jax.Array        # (2 n_c,)
+    dq: jax.Array       # (n_q,)
+    pivots: jax.Array
+    ssn_iters: jax.Array
+    fallback: jax.Array
+    solved: jax.Array
+
+
+def _lemke(K, r, gap, slip, mu, drive):
+    """Lemke on the host, its active set then solved exactly (:func:`jaxfric.lcp.polish`)."""
+    du_c, p, dq, pivots, status = lemke_contact_callback(K, r, gap, slip, mu, drive)
+    du_c, p, dq = polish(K, r, gap, slip, mu, du_c, dq, drive)
+    return du_c, p, dq, pivots, status == LemkeStatus.SOLVED
+
+
+def _solve_contact(law: Complementarity, K, r, gap, slip, mu, drive) -> _LCPSolution:
+    zero = jnp.array(0, jnp.int32)
+    if law.solver == "lemke":
+        du_c, p, dq, pivots, ok = _lemke(K, r, gap, slip, mu, drive)
+        return _LCPSolution(du_c, p, dq, pivots, zero, zero, ok)
+    # Per-candidate Alart-Curnier constants (the diagonal of K*): candidates with prescribed
+    # components (kappa rows) are 1e8 stiffer than the rest, where one mean value misclassifies.
+    c_n, c_t = diagonal_parameters(K)
+    s = ssn_contact(K, r, gap, slip, mu, drive=drive, c_n=c_n, c_t=c_t, max_iter=law.ssn_max_iter)
+
+    def fallback():
+        du_c, p, dq, pivots, ok = _lemke(K, r, gap, slip, mu, drive)
+        return _LCPSolution(du_c, p, dq, pivots, s.iterations, jnp.array(1, jnp.int32), ok)
+
+    return jax.lax.cond(s.converged,
+                        lambda: _LCPSolution(s.du_c, s.p, s.dq, zero, s.iterations, zero, jnp.array(True)),
+                        fallback)
+
+
+def _contact_newton_step(it: _Iterate, args, x, p_prev, law: Complementarity):
+    """The increment (du, dq) of one iteration, the new pair forces (m, 2), the band, the solver stats."""
+    c = args.contact
+    n = args.mesh.n_dofs
+    band = _band(it, c.tools, law.band)
+    valid = it.valid[band.pairs]
+    normal = jnp.where(valid[:, None], it.normal[band.pairs], jnp.array([0.0, 1.0]))
+    gap = jnp.where(valid, it.gap[band.pairs], GAP_FAR)
+    pair_tool = np.concatenate([np.full(len(t.candidates), k) for k, t in enumerate(c.tools)])
+    mu_pairs = jnp.concatenate([jnp.full(len(t.candidates), c.mu[k]) for k, t in enumerate(c.tools)])
+    mu = jnp.where(valid, mu_pairs[band.pairs], 0.0)
+    slip = jnp.where(valid & (mu > 0), it.slip[band.pairs], 0.0)
+    f_c_prev = jnp.zeros_like(it.f_int).at[pair_nodes(c.tools)].add(_pair_forces(it, p_prev))
+    cond = _condense(it, args, x, band, normal, f_c_prev)
+    tangent = _tangents(normal)
+
+    def solve(driven: bool):
+        drive = None
+        if driven:
+            k = args.force_idx[0]
+            mine = (jnp.asarray(pair_tool)[band.pairs] == k) & valid
+            e = c.tools[k].drive
+            drive = ForceDrive.single(jnp.where(mine, normal @ e, 0.0), jnp.where(mine, tangent @ e, 0.0),
+                                      c.force[k])
+        sol = _solve_contact(law, cond.K_star, cond.r_star, gap, slip, mu, drive)
+        dq = sol.dq if driven else jnp.zeros(len(args.force_idx))
+        return sol._replace(dq=dq)
+
+    if not args.force_idx:
+        sol = solve(False)
+    elif len(args.force_idx) == 1:
+        sol = jax.lax.cond(c.force_mask[args.force_idx[0]], lambda: solve(True), lambda: solve(False))
+    else:
+        raise NotImplementedError("exact contact supports at most one force-driven tool per scene")
+
+    n_c = band.nodes.shape[0]
+    du_c = jnp.einsum("iab,ib->ia", cond.rotation, sol.du_c.reshape(n_c, 2)).reshape(-1)
+    du = cond.Y[:, -1] - cond.Y[:, :-1] @ du_c
+    du = du.at[cond.dofs].set(du_c)
+    m = it.gap.shape[0]
+    p = jnp.zeros((m, 2)).at[band.pairs].set(jnp.where(valid[:, None], sol.p.reshape(n_c, 2), 0.0))
+    in_band = jnp.zeros(m, bool).at[band.pairs].set(True)
+    dq_f = []
+    for j, k in enumerate(args.force_idx):
+        # Displacement-driven in this phase: the unknown jumps to its prescribed value.
+        dq_f.append(jnp.where(c.force_mask[k], sol.dq[j], c.q_presc[k] - x[n + j]))
+    dx = jnp.concatenate([du] + ([jnp.stack(dq_f)] if dq_f else []))
+    stats = jnp.stack([sol.pivots, sol.ssn_iters, sol.fallback]).astype(jnp.int32)
+    return dx, p, in_band, stats, sol.solved
+
+
+def _status(p, mu_pairs):
+    return contact_status(p.reshape(-1), mu_pairs).astype(jnp.int8)
+
+
+def _contact_out(it: _Iterate, p, tool_f, status):
+    return dict(q=it.q, force=tool_f, rn=p[:, 0], rt=p[:, 1], zeta=it.zeta, gap=it.gap, normal=it.normal,
+                status=status, slip=it.slip)
+
+
+def _exact_newton(args, x0, x_ref, options: NewtonOptions, law: Complementarity):
+    c = args.contact
+    mu_pairs = jnp.concatenate([jnp.full(len(t.candidates), c.mu[k]) for k, t in enumerate(c.tools)])
+    m = mu_pairs.shape[0]
+    pen_tol = 10.0 * options.du_atol
+
+    def classify(k, x, it, R, dx_norm, same, band_ok, lcp_ok):
+        r_norm = jnp.max(jnp.abs(R))
+        leaves = (R, it.f_int, it.K.diag, it.gap)
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in leaves]))
+        scale = jnp.max(jnp.abs(it.f_int))
+        res_ok = r_norm <= options.atol + options.rtol * jnp.maximum(scale, 1e-6)
+        dx_ok = dx_norm <= options.du_atol + options.du_rtol * jnp.max(jnp.abs(x - x_ref))
+        done = (k >= 1) & res_ok & dx_ok & same
+        # A band too small shows as a converged state with a penetrating outsider, or as a Newton loop
+        # that cannot settle because the outsiders enter and leave the band: both are reported as such.
+        out_of_iterations = k >= options.max_iterations
+        code = jnp.select(
+            [~finite, ~lcp_ok, it.det_min <= 0.0, (done | out_of_iterations) & ~band_ok, done, out_of_iterations],
+            [Result.NONFINITE, Result.LCP_FAILED, Result.INVERTED_ELEMENT, Result.CONTACT_BAND, Result.SUCCESS,
+             Result.MAX_ITERATIONS], Result.CONTINUE)
+        return code.astype(jnp.int32), r_norm
+
+    def body(carry):
+        k, x, it, p, status, _, _, r_hist, stats = carry
+        dx, p_new, in_band, s, lcp_ok = _contact_newton_step(it, args, x, p, law)
+        x = x + dx
+        it = _linearize(x, args)
+        R, _ = _residual(x, it, p_new, args)
+        status_new = _status(p_new, mu_pairs)
+        band_ok = ~jnp.any(~in_band & it.valid & (it.gap < -pen_tol))
+        code, r_norm = classify(k + 1, x, it, R, jnp.max(jnp.abs(dx)), jnp.all(status_new == status),
+                                band_ok, lcp_ok)
+        return k + 1, x, it, p_new, status_new, jnp.max(jnp.abs(dx)), code, r_hist.at[k + 1].set(r_norm), \
+            stats + s
+
+    it0 = _linearize(x0, args)
+    p0 = jnp.zeros((m, 2))
+    R0, _ = _residual(x0, it0, p0, args)
+    code0, r0 = classify(0, x0, it0, R0, jnp.array(jnp.inf), jnp.array(False), jnp.array(True), jnp.array(True))
+    r_hist = jnp.full(options.max_iterations + 1, jnp.nan).at[0].set(r0)
+    status0 = jnp.zeros(m, jnp.int8)
+    carry = (jnp.array(0, jnp.int32), x0, it0, p0, status0, jnp.array(jnp.inf), code0, r_hist,
+             jnp.zeros(3, jnp.int32))
+    k, x, it, p, status, _, code, r_hist, stats = jax.lax.while_loop(lambda c: c[6] == Result.CONTINUE, body,
+                                                                     carry)
+    _, tool_f = _residual(x, it, p, args)
+    aux = (it.f_int, it.states, _contact_out(it, p, tool_f, status))
+    return NewtonSolution(x, aux, k, code, r_hist[k], r_hist), stats
+
+
+@eqx.filter_custom_jvp
+def exact_solve(args, x0, x_ref, *, options: NewtonOptions, law: Complementarity):
+    """Solve one load step with exact contact from the initial guess ``x0`` (``x_ref``: the last
+    converged state, reference of the increment test).
+
+    Returns ``(NewtonSolution, stats)`` with ``stats`` = (Lemke pivots, semismooth Newton iterations,
+    Lemke fallbacks) summed over the step's iterations; the solution's ``aux`` has the layout of the
+    penalty path: (f_int, material states, contact outputs).
+    """
+    return _exact_newton(args, x0, x_ref, options, law)
+
+
+@exact_solve.def_jvp
+def _exact_solve_jvp(primals, tangents, *, options, law):
+    raise NotImplementedError(
+        "derivatives of a run with exact contact (Complementarity, algorithms lcp_lemke / lcp_ssn) are not "
+        "defined; differentiate with Penalty or AugmentedLagrangian (optionally with smoothing) instead")

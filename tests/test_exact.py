@@ -1,0 +1,82 @@
+"""Exact contact in the global Newton loop (spec 1.7, 1.8): lcp_ssn and lcp_lemke against each other
+and against a tight augmented Lagrangian, the force-driven die's balance, zero penetration, global
+Coulomb sliding, the proximity band, and the refusal to differentiate."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxfric as jf
+from jaxfric.contact import AugmentedLagrangian, Complementarity
+from jaxfric.results import Result
+from jaxfric.simulate import initial_state, solve_step
+from models import flat_die_strip
+
+MU, FORCE, DRAW = 0.15, 50.0, 0.01
+SMALL = dict(nx=20, length=4.0, draw=DRAW, clamp_steps=5, increments=((0.25, 20), (1.0, 30)))
+
+
+@pytest.fixture(scope="module")
+def runs():
+    laws = {"auglag": AugmentedLagrangian(1e9, 1.5e8, target_gap=1e-10),
+            "lcp_ssn": Complementarity("ssn"), "lcp_lemke": Complementarity("lemke")}
+    return {name: jf.run(flat_die_strip(law, **SMALL), progress=False) for name, law in laws.items()}
+
+
+def test_lemke_and_semismooth_newton_give_the_same_forces_and_displacements(runs):
+    """Spec 1.7: (a) Lemke and (b) semismooth Newton agree to solver tolerance, step by step."""
+    a, b = runs["lcp_lemke"], runs["lcp_ssn"]
+    assert a.history["time"].shape == b.history["time"].shape
+    np.testing.assert_allclose(a.history["reaction_right"], b.history["reaction_right"], atol=1e-8 * FORCE)
+    np.testing.assert_allclose(a.history["tool_position"], b.history["tool_position"], atol=1e-12)
+    np.testing.assert_allclose(a.final.u, b.final.u, atol=1e-12)
+    np.testing.assert_allclose(a.final.contact.rn, b.final.contact.rn, atol=1e-8 * FORCE)
+    np.testing.assert_allclose(a.final.contact.rt, b.final.contact.rt, atol=1e-8 * FORCE)
+    assert np.array_equal(a.final.contact.status, b.final.contact.status)
+    # Each solver did the work it reports.
+    assert a.history["lcp_pivots"].sum() > 0 and a.history["ssn_iters"].sum() == 0
+    assert b.history["ssn_iters"].sum() > 0 and b.history["ssn_fallbacks"].sum() == 0
+
+
+def test_exact_contact_matches_a_tight_augmented_lagrangian(runs):
+    """The AL run with a 1e-10 mm target converges on the same solution: drawing forces within 1e-6
+    of mu P over the whole stroke, die positions within the AL's residual penetration."""
+    ref, lcp = runs["auglag"], runs["lcp_ssn"]
+    # The AL run cut its first drawing steps (its stiff tangential penalty): compare at the times both
+    # runs reached, which include the clamp and the last three quarters of the stroke.
+    common, i, j = np.intersect1d(lcp.history["time"], ref.history["time"], return_indices=True)
+    assert common.size > 30
+    np.testing.assert_allclose(lcp.history["reaction_right"][i, 0], ref.history["reaction_right"][j, 0],
+                               atol=1e-6 * MU * FORCE)
+    np.testing.assert_allclose(lcp.history["tool_position"][i], ref.history["tool_position"][j], atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ["lcp_ssn", "lcp_lemke"])
+def test_exact_contact_balance_penetration_and_coulomb(runs, name):
+    """At every converged step the force-driven die carries exactly P; no pair penetrates; at the end
+    every closed pair slides and the drawing force is mu P (global Coulomb)."""
+    h = runs[name].history
+    clamp = h["phase"] == 0
+    P = FORCE * np.clip(h["time"], 0.0, 1.0)
+    np.testing.assert_allclose(h["tool_force"][1:, 0], P[1:], atol=1e-8 * FORCE)
+    assert np.all(h["max_penetration"] <= 1e-10)
+    assert h["n_slip"][-1] == h["n_active"][-1] == 21
+    np.testing.assert_allclose(h["reaction_right"][-1, 0], MU * FORCE, rtol=1e-7)
+    assert np.all(np.abs(h["reaction_right"][clamp, 0]) < 1e-8)   # frictionless clamping
+
+
+def test_a_band_smaller_than_the_contact_zone_is_reported():
+    """21 die candidates all close at the first clamp step: a band of 10 cannot hold them."""
+    model = flat_die_strip(Complementarity("ssn", band=10), **SMALL)
+    sol, _ = jax.jit(lambda m: solve_step(m, initial_state(m), 0, 0.2))(model)
+    assert int(sol.code) == Result.CONTACT_BAND
+
+
+def test_exact_contact_refuses_to_be_differentiated():
+    def drawing(mu):
+        model = flat_die_strip(Complementarity("ssn"), mu=mu, **SMALL)
+        return solve_step(model, initial_state(model), 1, 1.05)[1].f_int
+
+    with pytest.raises(NotImplementedError, match="Penalty or AugmentedLagrangian"):
+        jax.jvp(drawing, (jnp.array(MU),), (jnp.array(1.0),))
