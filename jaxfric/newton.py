@@ -44,7 +44,11 @@ class NewtonOptions(eqx.Module):
         rtol, atol: residual test ||R||_inf <= atol + rtol max(scale, 1e-6) (N/mm).
         du_rtol, du_atol: increment test on the last correction, relative to the step's total
             increment ||x - x0||_inf, and absolute (mm).
-        max_iterations: linear solves allowed per attempt.
+        max_iterations: linearisations allowed per attempt (Newton steps and rejected trials).
+        line_search: backtrack (halve the step, at most 4 times) when a Newton step increases the
+            residual norm. It breaks the 2-cycles of penalty friction, where pairs at the Coulomb
+            limit reverse their slip direction every iteration (a slipping pair has no tangential
+            stiffness, so the full step overshoots the slip), and of pairs flipping open/closed.
     """
 
     rtol: float = eqx.field(static=True, default=1e-8)
@@ -52,6 +56,7 @@ class NewtonOptions(eqx.Module):
     du_rtol: float = eqx.field(static=True, default=1e-3)
     du_atol: float = eqx.field(static=True, default=1e-9)
     max_iterations: int = eqx.field(static=True, default=25)
+    line_search: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         for name in ("rtol", "atol", "du_rtol", "du_atol"):
@@ -73,7 +78,7 @@ class Linearization(NamedTuple):
 class NewtonSolution(NamedTuple):
     x: jax.Array
     aux: Any
-    iterations: jax.Array      # () int: linear solves performed
+    iterations: jax.Array      # () int: linearisations performed (Newton steps and rejected trials)
     code: jax.Array            # () int: Result
     residual_norm: jax.Array   # () ||R||_inf at x
     residual_history: jax.Array  # (max_iterations+1,) ||R||_inf after each iteration (nan beyond)
@@ -99,24 +104,37 @@ def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions):
         return code.astype(jnp.int32), r_norm
 
     def cond(carry):
-        return carry[4] == Result.CONTINUE
+        return carry[5] == Result.CONTINUE
 
     def body(carry):
-        k, x, lin, _, _, r_hist = carry
-        dx = linear_solve(lin.jacobian, -lin.residual)
-        x = x + dx
-        new = linearize(x, args)
+        k, n_acc, x, lin, dx, code, alpha, dx_norm, r_hist = carry
+        # A new Newton direction from the last accepted iterate, unless the last trial was rejected:
+        # then the same direction with half the step (backtracking).
+        dx = jax.lax.cond(alpha < 1.0, lambda: dx, lambda: linear_solve(lin.jacobian, -lin.residual))
+        x_trial = x + alpha * dx
+        new = linearize(x_trial, args)
+        # Reject a step that increases ||R||_2 (not the first one, which applies the prescribed
+        # increments and changes which rows carry the residual), down to 1/16 of the full step.
+        worse = ~(jnp.sum(new.residual**2) <= jnp.sum(lin.residual**2))
+        reject = options.line_search & (n_acc >= 1) & worse & (alpha > 1.0 / 16.0)
         # Contact: converged only if no pair changed status (open/stick/slip) in this iteration.
         same = jnp.array(True) if new.status is None else jnp.all(new.status == lin.status)
-        dx_norm = jnp.max(jnp.abs(dx))
-        code, r_norm = classify(k + 1, x, new, dx_norm, same)
-        return k + 1, x, new, dx_norm, code, r_hist.at[k + 1].set(r_norm)
+        step_norm = jnp.max(jnp.abs(alpha * dx))
+        code_new, r_norm = classify(k + 1, x_trial, new, step_norm, same)
+        # A rejected trial still counts as an iteration (it cost a linearisation).
+        code = jnp.where(reject & (k + 1 < options.max_iterations), Result.CONTINUE, code_new).astype(jnp.int32)
+        keep = lambda a, b: jnp.where(reject, a, b)  # noqa: E731
+        return (k + 1, n_acc + jnp.where(reject, 0, 1), keep(x, x_trial), jax.tree_util.tree_map(keep, lin, new),
+                dx, code, jnp.where(reject, 0.5 * alpha, 1.0), keep(dx_norm, step_norm),
+                r_hist.at[k + 1].set(r_norm))
 
     lin0 = linearize(x0, args)
     code0, r0 = classify(0, x0, lin0, jnp.array(jnp.inf), jnp.array(True))
     r_hist = jnp.full(options.max_iterations + 1, jnp.nan).at[0].set(r0)
-    k, x, lin, _, code, r_hist = jax.lax.while_loop(
-        cond, body, (jnp.array(0, jnp.int32), x0, lin0, jnp.array(jnp.inf), code0, r_hist))
+    int0 = jnp.array(0, jnp.int32)
+    k, _, x, lin, _, code, _, _, r_hist = jax.lax.while_loop(
+        cond, body, (int0, int0, x0, lin0, jnp.zeros_like(x0), code0, jnp.array(1.0), jnp.array(jnp.inf),
+                     r_hist))
     return NewtonSolution(x, lin.aux, k, code, r_hist[k], r_hist), lin.jacobian
 
 

@@ -31,6 +31,7 @@ from .contact import (AugmentedLagrangian, Complementarity, ContactState, Contac
 from .contact_laws import SLIP, STICK
 from .element import FORMULATIONS, ElementGeometry
 from .exact import exact_solve
+from .lcp import contact_status
 from .loading import Phase, constraint_masks, prescribed_values, schedule
 from .material import J2Material
 from .mesh import StripMesh
@@ -100,11 +101,17 @@ class StripModel(eqx.Module):
         return tuple(k for k, t in enumerate(self.tools) if t.force_driven)
 
 
+@eqx.filter_jit
+def _project_all(geometry, points):
+    # Compiled once per tool structure and size: building many scenes does not re-dispatch op by op.
+    return jax.vmap(project, in_axes=(None, 0, None))(geometry, points, jnp.zeros(2))
+
+
 def _check_tool_placement(tool, nodes) -> None:
     """Before any computation: a tool must not cut into the sheet at rest, and a force-driven tool
     must have a candidate node that projects on it (otherwise no force can ever balance it)."""
     idx = np.asarray(tool.candidates)
-    proj = jax.vmap(project, in_axes=(None, 0, None))(tool.geometry, nodes[idx], jnp.zeros(2))
+    proj = _project_all(tool.geometry, nodes[idx])
     gap, valid = np.asarray(proj.gap), np.asarray(proj.valid)
     scale = 1e-9 * max(1.0, float(np.max(np.abs(np.asarray(nodes)))))
     inside = valid & (gap < -scale)
@@ -408,6 +415,10 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
     new_contact = None
     if model.tools:
         kept = {k: v for k, v in c_out.items() if k != "slip"}  # slip is a per-attempt measure only
+        # The stored status follows the spec's force thresholds (section 0) for every law, so that the
+        # counts of closed and slipping pairs agree with the forces written out.
+        mu = jnp.concatenate([jnp.full(len(t.candidates), args.contact.mu[k]) for k, t in enumerate(model.tools)])
+        kept["status"] = contact_status(jnp.stack([kept["rn"], kept["rt"]], -1), mu).astype(jnp.int8)
         new_contact = ContactState(q_start=q_start, f_start=f_start, **kept)
     new_state = SimState(u=sol.x[: model.mesh.n_dofs].reshape(-1, 2), material=states, f_int=f_int,
                          time=t_target, phase=phase, contact=new_contact)

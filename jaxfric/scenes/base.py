@@ -2,9 +2,10 @@
 
 A scene module (``flat_die``, ``bead``, ``nine``, ``blankholder``) defines a frozen config dataclass
 whose fields are the spec's config keys with their defaults, a ``VARIANTS`` mapping from variant name to
-field overrides, and ``build(config, algorithm) -> Scene``. A :class:`Scene` is everything a run needs:
-the model (jit-able), the static functions that turn a converged state into history columns and into
-the contact snapshot of ``contact.npz``, and the output metadata (instants, steady window, plot region).
+field overrides, and ``build(config, algorithm, variant) -> Scene``. A :class:`Scene` is everything a
+run needs: the model (jit-able), the static functions that turn a converged state into history columns
+and into the contact snapshot of ``contact.npz``, and the output metadata (instants, steady window, plot
+region).
 """
 
 from __future__ import annotations

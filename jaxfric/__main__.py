@@ -1,0 +1,7 @@
+"""``python -m jaxfric``: the command line of :mod:`jaxfric.cli`."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())

@@ -1,0 +1,542 @@
+"""The per-run output contract (outputs spec, schema_version 1): ``history.csv``, ``summary.json``,
+``contact.npz`` and the figures ``forces.png``, ``contact.png``, ``mesh.png``.
+
+Everything here runs on the host (NumPy) after a run. The derived keys of ``summary.json`` and the
+instant rows of ``contact.npz`` are computed from the values *as written* to ``history.csv`` (the
+``%.12g`` strings parsed back), so that the file set is consistent to round-off by construction.
+
+Named instants and the steady drawing force follow the benchmarks spec (each scene's "Outputs"
+paragraph and section 6). :func:`write_run` never loses data files to a plotting error: the data
+files are written first, figure errors are recorded in ``summary.json`` ``message`` and re-raised at
+the end as :class:`OutputError`.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import math
+import os
+import re
+
+import numpy as np
+
+__all__ = ["SCHEMA_VERSION", "REQUIRED_COLUMNS", "INT_COLUMNS", "ALGORITHM_EXTRAS", "SCENE_PHASES",
+           "SCENE_INSTANTS", "STEADY_TOL", "GAP_NO_PROJECTION", "OutputError", "select_instants",
+           "steady_rows", "steady_drawing_force", "steady_window", "contact_status", "history_table",
+           "write_run", "format_title"]
+
+SCHEMA_VERSION = 1
+
+#: The 12 required columns of ``history.csv``, in order (outputs spec section 2).
+REQUIRED_COLUMNS = ("step", "phase", "time", "drawing_displacement", "drawing_force", "clamping_force",
+                    "tool_position", "max_penetration", "n_active", "n_slip", "newton_iters", "wall_s")
+
+#: Columns written as integers (required and algorithm extras).
+INT_COLUMNS = ("step", "n_active", "n_slip", "newton_iters", "cutbacks", "n_aug", "lcp_pivots",
+               "ssn_iters", "ssn_fallbacks")
+
+#: Algorithm extras, in the order written (after the scene extras).
+ALGORITHM_EXTRAS = ("cutbacks", "n_aug", "lcp_pivots", "ssn_iters", "ssn_fallbacks")
+
+SCENE_PHASES = {
+    "flat_die": ("clamp", "draw"),
+    "bead": ("clamp", "wind", "draw"),
+    "nine": ("clamp", "draw"),
+    "blankholder": ("close", "lock", "draw"),
+}
+
+SCENE_INSTANTS = {
+    "flat_die": ("clamped", "intermediate", "sliding", "final"),
+    "bead": ("clamped", "folded", "drawing", "final"),
+    "nine": ("clamped", "steady", "final"),
+    "blankholder": ("closed", "locked", "drawing", "final"),
+}
+
+STEADY_TOL = 1e-9        # mm; inclusive window tolerance (benchmarks spec section 6)
+GAP_NO_PROJECTION = 1e30  # mm; gap written for a pair with no projection (outputs spec section 4)
+_TIME_TOL = 1e-9         # pseudo-time tolerance for "end of phase k" (time = k)
+_NAME = re.compile(r"[a-z][a-z0-9_]*\Z")
+# History keys of RunResult that are not observations (written under their contract names).
+_RUN_KEYS = ("time", "phase", "phase_name", "newton_iters", "cutbacks", "augmentations", "wall_s",
+             "lcp_pivots", "ssn_iters", "ssn_fallbacks", "step")
+
+# Instant rules per scene (benchmarks spec, scene Outputs). Each rule is one of
+#   ("end", phase)              : the row where `phase` ends (time = its index); omitted if never reached
+#   ("closest", phase, value)   : the `phase` row with drawing_displacement closest to value (mm)
+#   ("first_half_slip",)        : first draw row with n_active > 0 and n_slip >= n_active / 2
+#   ("first_all_slip",)         : first draw row with n_active > 0 and n_slip == n_active
+#   ("final",)                  : the last row
+_INSTANT_RULES = {
+    "flat_die": {"clamped": ("end", "clamp"), "intermediate": ("first_half_slip",),
+                 "sliding": ("first_all_slip",), "final": ("final",)},
+    "bead": {"clamped": ("end", "clamp"), "folded": ("end", "wind"), "drawing": ("closest", "draw", 4.0),
+             "final": ("final",)},
+    "nine": {"clamped": ("end", "clamp"), "steady": ("closest", "draw", 27.5), "final": ("final",)},
+    "blankholder": {"closed": ("end", "close"), "locked": ("end", "lock"),
+                    "drawing": ("closest", "draw", 27.5), "final": ("final",)},
+}
+
+
+class OutputError(RuntimeError):
+    """Some output file could not be written; the data files that could be written are on disk."""
+
+
+# ---- history access ---------------------------------------------------------------------------------
+
+def _phase_names(scene_name: str, history: dict) -> np.ndarray:
+    """Phase name of every history row, from ``phase_name`` or from ``phase`` (names or indices)."""
+    if "phase_name" in history:
+        return np.asarray(history["phase_name"]).astype(str)
+    phase = np.asarray(history["phase"])
+    if phase.dtype.kind in "US":
+        return phase.astype(str)
+    vocabulary = SCENE_PHASES[scene_name]
+    return np.array([vocabulary[int(k)] for k in phase])
+
+
+def _column(history: dict, name: str) -> np.ndarray:
+    if name not in history:
+        raise KeyError(f"history has no column {name!r} (the scene's observe must provide it)")
+    return np.asarray(history[name])
+
+
+# ---- named instants ---------------------------------------------------------------------------------
+
+def select_instants(scene_name: str, history: dict) -> tuple[list, list, list]:
+    """Named instants of a run (benchmarks spec, scene Outputs; outputs spec section 4).
+
+    Args:
+        scene_name: ``flat_die``, ``bead``, ``nine`` or ``blankholder``.
+        history: per-row arrays with ``time``, ``phase_name`` (or ``phase``: names or indices),
+            ``drawing_displacement`` (mm), ``n_active`` and ``n_slip``; row 0 is the initial state.
+
+    Returns:
+        ``(names, rows, fallback)``: instant names in scene order, their history rows (= ``step``), and
+        the state-based instants that never occurred and were put on the last row. An instant whose
+        phase was never reached (``end`` of a phase that was not completed, ``closest`` in a phase that
+        has no row) is omitted; ``final`` (the last row) is always present.
+    """
+    if scene_name not in _INSTANT_RULES:
+        raise ValueError(f"unknown scene {scene_name!r}; choose one of {', '.join(_INSTANT_RULES)}")
+    phases = _phase_names(scene_name, history)
+    time = np.asarray(history["time"], dtype=np.float64)
+    last = len(time) - 1
+    vocabulary = SCENE_PHASES[scene_name]
+    names, rows, fallback = [], [], []
+    for name, rule in _INSTANT_RULES[scene_name].items():
+        kind = rule[0]
+        row = None
+        if kind == "final":
+            row = last
+        elif kind == "end":  # phase k (1-based) ends at time k
+            k = vocabulary.index(rule[1]) + 1
+            hits = np.flatnonzero((phases == rule[1]) & (np.abs(time - k) <= _TIME_TOL))
+            row = int(hits[-1]) if hits.size else None
+        elif kind == "closest":
+            in_phase = np.flatnonzero(phases == rule[1])
+            if in_phase.size:
+                u = np.asarray(history["drawing_displacement"], dtype=np.float64)[in_phase]
+                row = int(in_phase[np.argmin(np.abs(u - rule[2]))])  # first of equals
+        else:  # state-based, in the draw phase
+            draw = np.flatnonzero(phases == "draw")
+            if draw.size:
+                active = np.asarray(history["n_active"])[draw]
+                slip = np.asarray(history["n_slip"])[draw]
+                if kind == "first_half_slip":
+                    ok = (active > 0) & (2 * slip >= active)
+                else:
+                    ok = (active > 0) & (slip == active)
+                hits = draw[ok]
+                if hits.size:
+                    row = int(hits[0])
+                else:
+                    row = last
+                    fallback.append(name)
+        if row is not None:
+            names.append(name)
+            rows.append(row)
+    return names, rows, fallback
+
+
+# ---- steady drawing force ---------------------------------------------------------------------------
+
+def steady_rows(phases, displacement, window) -> np.ndarray:
+    """Indices of the ``draw`` rows whose drawing displacement lies in ``window`` (inclusive, mm,
+    tolerance 1e-9 mm), in step order (benchmarks spec section 6)."""
+    a, b = float(window[0]), float(window[1])
+    u = np.asarray(displacement, dtype=np.float64)
+    mask = (np.asarray(phases).astype(str) == "draw") & (u >= a - STEADY_TOL) & (u <= b + STEADY_TOL)
+    return np.flatnonzero(mask)
+
+
+def steady_drawing_force(history: dict, window) -> float | None:
+    """Steady drawing force F̄ (N/mm) over ``window`` = (a, b) in drawing displacement (mm).
+
+    F̄ = trapz(drawing_force, drawing_displacement) / (U_last - U_first) over the ``draw`` rows in the
+    window (benchmarks spec section 6). Returns None if fewer than 2 rows qualify or if
+    U_last - U_first < (b - a) / 2.
+
+    Args:
+        history: per-row arrays ``phase_name`` (or ``phase`` as names), ``drawing_displacement`` (mm),
+            ``drawing_force`` (N/mm).
+    """
+    phases = history["phase_name"] if "phase_name" in history else history["phase"]
+    u = np.asarray(history["drawing_displacement"], dtype=np.float64)
+    f = np.asarray(history["drawing_force"], dtype=np.float64)
+    rows = steady_rows(phases, u, window)
+    if rows.size < 2:
+        return None
+    u, f = u[rows], f[rows]
+    span = float(u[-1] - u[0])
+    if span <= 0.0 or span < 0.5 * (float(window[1]) - float(window[0])):
+        return None
+    area = float(np.sum(0.5 * (f[1:] + f[:-1]) * np.diff(u)))
+    return area / span
+
+
+def steady_window(scene_name: str, history: dict, default) -> tuple[tuple, str]:
+    """The steady window actually used, and a note for ``summary.json`` ``message`` ("" if unchanged).
+
+    Nine scene (benchmarks spec section 4): the default window [20, 35] mm is valid if the free end is
+    still upstream of shoulder A, ``tail_x`` < -1 mm, up to its end. Otherwise the window ends at the
+    last ``draw`` row before ``tail_x`` first reaches -1 mm. Other scenes use ``default``.
+    """
+    a, b = float(default[0]), float(default[1])
+    if scene_name != "nine" or "tail_x" not in history:
+        return (a, b), ""
+    phases = _phase_names(scene_name, history)
+    u = np.asarray(history["drawing_displacement"], dtype=np.float64)
+    tail = np.asarray(history["tail_x"], dtype=np.float64)
+    draw = np.flatnonzero(phases == "draw")
+    bad = draw[(tail[draw] >= -1.0) & (u[draw] <= b + STEADY_TOL)]
+    if bad.size == 0:
+        return (a, b), ""
+    before = draw[draw < bad[0]]
+    new_b = float(u[before[-1]]) if before.size else a
+    new_b = min(max(new_b, a), b)
+    note = (f"steady window shortened from [{a:g}, {b:g}] to [{a:g}, {new_b:.6g}] mm: the free end "
+            f"reached tail_x = {tail[bad[0]]:.4g} mm >= -1 mm at U = {u[bad[0]]:.6g} mm")
+    return (a, new_b), note
+
+
+# ---- contact status ---------------------------------------------------------------------------------
+
+def contact_status(rn, rt, mu):
+    """Contact status of candidate pairs from their forces (benchmarks spec section 0), int8:
+    0 open (R_N <= 1e-9 N/mm), 1 stick (|R_T| < (1 - 1e-6) μ R_N), 2 slip (otherwise; a closed
+    frictionless pair is "slip"). Works on NumPy and JAX arrays (jit-able)."""
+    import jax.numpy as jnp
+
+    rn, rt, mu = jnp.asarray(rn), jnp.asarray(rt), jnp.asarray(mu)
+    closed = rn > 1e-9
+    stick = jnp.abs(rt) < (1.0 - 1e-6) * mu * rn
+    return jnp.where(closed, jnp.where(stick, 1, 2), 0).astype(jnp.int8)
+
+
+# ---- history.csv ------------------------------------------------------------------------------------
+
+def _format(value, integer: bool) -> str:
+    if integer:
+        return str(int(value))
+    return "%.12g" % float(value)
+
+
+def _extra_columns(history: dict) -> list:
+    """(column name, values) of the scene extras: observations beyond the required columns, vectors
+    split into ``name_0, name_1, ...``; names made contract-valid ([a-z][a-z0-9_]*)."""
+    out = []
+    for key, value in history.items():
+        if key in _RUN_KEYS or key in REQUIRED_COLUMNS:
+            continue
+        value = np.asarray(value)
+        name = re.sub(r"[^a-z0-9_]", "_", str(key).lower())
+        if not _NAME.match(name):
+            name = "x_" + name
+        if value.ndim == 1:
+            out.append((name, value))
+        else:
+            flat = value.reshape(value.shape[0], -1)
+            out.extend((f"{name}_{i}", flat[:, i]) for i in range(flat.shape[1]))
+    return out
+
+
+def history_table(scene, result) -> tuple[list, list, dict]:
+    """The ``history.csv`` table of a run.
+
+    Returns:
+        ``(columns, lines, values)``: the header names, the formatted rows (strings, without line
+        ends), and per column the values as written (int, float or str, parsed back from the text).
+    """
+    h = result.history
+    n = len(np.asarray(h["time"]))
+    phases = _phase_names(scene.name, h) if scene.name in SCENE_PHASES else np.asarray(h["phase_name"])
+    cols = {"step": np.arange(n), "phase": phases}
+    for name in REQUIRED_COLUMNS[2:]:
+        cols[name] = _column(h, name)
+    extras = _extra_columns(h)
+    algo = [("cutbacks", h.get("cutbacks"))]
+    if scene.algorithm == "auglag":
+        algo.append(("n_aug", h.get("augmentations")))
+    algo += [(k, h.get(k)) for k in ("lcp_pivots", "ssn_iters", "ssn_fallbacks")]
+    taken = set(REQUIRED_COLUMNS)
+    for name, value in extras + [(k, v) for k, v in algo if v is not None]:
+        if name in taken:
+            continue
+        taken.add(name)
+        cols[name] = np.asarray(value)
+    columns = list(cols)
+    text = {}
+    for name, value in cols.items():
+        if len(value) != n:
+            raise ValueError(f"history column {name!r} has {len(value)} rows, expected {n}")
+        if name == "phase":
+            text[name] = [str(v) for v in value]
+        else:
+            integer = name in INT_COLUMNS or value.dtype.kind in "iub"
+            text[name] = [_format(v, integer) for v in value]
+    lines = [",".join(text[c][i] for c in columns) for i in range(n)]
+    values = {}
+    for name in columns:
+        if name == "phase":
+            values[name] = list(text[name])
+        elif name in INT_COLUMNS or cols[name].dtype.kind in "iub":
+            values[name] = [int(s) for s in text[name]]
+        else:
+            values[name] = [float(s) for s in text[name]]
+    return columns, lines, values
+
+
+# ---- summary.json -----------------------------------------------------------------------------------
+
+def _json_ready(value):
+    """Plain JSON values: NumPy scalars and arrays to Python, tuples to lists, non-finite to None."""
+    if isinstance(value, dict):
+        return {str(k): _json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_ready(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _json_ready(value.tolist())
+    if hasattr(value, "shape") and hasattr(value, "dtype"):  # JAX array
+        return _json_ready(np.asarray(value).tolist())
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(float(value)) else None
+    if value is None or isinstance(value, str):
+        return value
+    return str(value)
+
+
+def _device() -> str:
+    import jax
+
+    device = jax.devices()[0]
+    return "cpu" if device.platform == "cpu" else str(getattr(device, "device_kind", device.platform))
+
+
+def format_title(scene_name: str, variant: str, algorithm: str, tag: str | None = None) -> str:
+    """Figure title ``<scene> / <variant> / <algorithm>[ / <tag>]`` (outputs spec section 5)."""
+    parts = [scene_name, variant, algorithm] + ([tag] if tag else [])
+    return " / ".join(parts)
+
+
+def _summary(scene, result, tag, values, instants, fallback, window, steady, notes) -> dict:
+    import jax
+
+    n_rows = len(values["step"])
+    n_steps = n_rows - 1
+    n_phases = len(scene.phase_names)
+    converged = abs(values["time"][-1] - n_phases) <= _TIME_TOL
+    message_parts = []
+    if not converged:
+        message_parts.append(result.message or "the run stopped before the end of its last phase")
+    elif not result.converged:
+        message_parts.append(f"solver reported failure after completing all phases: {result.message}")
+    message_parts += [n for n in notes if n]
+    parameters = _json_ready(dict(scene.parameters))
+    mesh = [int(scene.model.mesh.nx), int(scene.model.mesh.ny)]
+    parameters.setdefault("mesh", {"nx": mesh[0], "ny": mesh[1]})
+    mean_aug = None
+    if scene.algorithm == "auglag" and "n_aug" in values and n_steps > 0:
+        mean_aug = float(sum(values["n_aug"])) / n_steps
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "scene": scene.name,
+        "variant": scene.variant,
+        "algorithm": scene.algorithm,
+        "tag": tag,
+        "parameters": parameters,
+        "mesh": mesh,
+        "n_steps": n_steps,
+        "newton_iters_total": int(sum(values["newton_iters"])),
+        "n_cutbacks": int(sum(values.get("cutbacks", [0]))),
+        "wall_s": float(math.fsum(values["wall_s"])),
+        "compile_s": max(float(result.compile_s), 0.0),
+        "converged": bool(converged),
+        "message": "; ".join(message_parts),
+        "max_penetration": float(max(values["max_penetration"])),
+        "steady_window": [float(window[0]), float(window[1])],
+        "steady_drawing_force": steady,
+        "peak_drawing_force": float(max(values["drawing_force"])),
+        "final_clamping_force": float(values["clamping_force"][-1]),
+        "instants": list(instants),
+        "instants_fallback": list(fallback),
+        "mean_augmentations": mean_aug,
+        "dtype": "float64",
+        "device": _device(),
+        "jax_version": jax.__version__,
+        "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
+def _write_summary(path: str, summary: dict) -> None:
+    text = json.dumps(_json_ready(summary), indent=2, allow_nan=False)
+    _write_text(path, text + "\n")
+
+
+def _write_text(path: str, text: str) -> None:
+    tmp = path + ".tmp"
+    with open(tmp, "w", encoding="utf-8", newline="\n") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+# ---- contact.npz ------------------------------------------------------------------------------------
+
+def _pair_arrays(model) -> tuple[np.ndarray, np.ndarray]:
+    sizes = [len(t.candidates) for t in model.tools]
+    node = (np.concatenate([np.asarray(t.candidates) for t in model.tools]) if model.tools
+            else np.zeros(0)).astype(np.int64)
+    tool = np.repeat(np.arange(len(sizes)), sizes).astype(np.int64)
+    return node, tool
+
+
+def contact_arrays(scene, result, names, rows, values) -> dict:
+    """The arrays of ``contact.npz`` (outputs spec section 4) for instants ``names`` at history
+    ``rows``, from ``result.snapshots``; ``values`` are the history columns as written."""
+    model = scene.model
+    pair_node, pair_tool = _pair_arrays(model)
+    m, n_tools = pair_node.size, len(model.tools)
+    n_nodes, n_el = model.mesh.n_nodes, model.mesh.n_elements
+    out = {
+        "instant_names": np.array(list(names), dtype=str).astype("U"),
+        "instant_steps": np.asarray(rows, dtype=np.int64),
+        "instant_drawing_displacement": np.array([values["drawing_displacement"][r] for r in rows],
+                                                 dtype=np.float64),
+        "x0": np.asarray(model.mesh.nodes, dtype=np.float64),
+        "elements": np.asarray(model.mesh.elements, dtype=np.int64),
+        "tool_names": np.array(list(scene.tool_names), dtype=str).astype("U"),
+        "pair_node": pair_node,
+        "pair_tool": pair_tool,
+    }
+    shapes = {"x": (n_nodes, 2), "eqps": (n_el,), "rn": (m,), "rt": (m,), "normal": (m, 2), "gap": (m,),
+              "mu": (m,), "status": (m,), "tool_offset": (n_tools, 2)}
+    for name, row in zip(names, rows):
+        if row not in result.snapshots:
+            raise KeyError(f"no snapshot for history row {row} (instant {name!r}); run with "
+                           f"snapshot=scene.snapshot")
+        snap = result.snapshots[row]
+        for key, shape in shapes.items():
+            value = np.asarray(snap[key])
+            if key == "eqps" and value.ndim == 2:  # per Gauss point: element mean
+                value = value.mean(axis=1)
+            if key == "status":
+                value = value.astype(np.int8)
+            else:
+                value = value.astype(np.float64)
+                if key == "gap":  # "no projection" is 1e30, never inf
+                    value = np.where(np.isfinite(value), np.minimum(value, GAP_NO_PROJECTION),
+                                     GAP_NO_PROJECTION)
+            out[f"{name}__{key}"] = value.reshape(shape)
+    return out
+
+
+# ---- the run directory ------------------------------------------------------------------------------
+
+def write_run(scene, result, out_dir, tag: str | None = None, figures: bool = True) -> dict:
+    """Write the run directory of ``result`` (outputs spec): six files, also for a failed run.
+
+    Order: ``history.csv``, ``summary.json``, ``contact.npz``, then the figures. A failure in a later
+    file never loses the earlier ones; it is recorded in ``summary.json`` ``message`` (rewritten) and
+    raised at the end as :class:`OutputError`.
+
+    Args:
+        scene: the :class:`~jaxfric.scenes.base.Scene` that was run.
+        result: its :class:`~jaxfric.run.RunResult`, run with ``snapshot=scene.snapshot``.
+        out_dir: the run directory (created).
+        tag: study tag (regex ``[A-Za-z0-9][A-Za-z0-9._+-]*``) or None.
+        figures: write the three PNG figures (False only for tests of the data files).
+
+    Returns:
+        the ``summary.json`` object.
+    """
+    if tag is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._+-]*", tag):
+        raise ValueError(f"field 'tag' must match [A-Za-z0-9][A-Za-z0-9._+-]*, got {tag!r}")
+    os.makedirs(out_dir, exist_ok=True)
+    columns, lines, values = history_table(scene, result)
+    text = ",".join(columns) + "\n" + "".join(line + "\n" for line in lines)
+    _write_text(os.path.join(out_dir, "history.csv"), text)
+
+    notes = []
+    bad = [c for c in columns if c != "phase" and not all(math.isfinite(v) for v in values[c])]
+    if bad:
+        notes.append(f"non-finite values in history columns {', '.join(bad)}")
+    if scene.name in _INSTANT_RULES:
+        names, rows, fallback = select_instants(scene.name, {**values, "phase_name": values["phase"]})
+    else:
+        names, rows, fallback = ["final"], [len(lines) - 1], []
+    window, note = steady_window(scene.name, values, scene.steady_window)
+    notes.append(note)
+    steady = steady_drawing_force({**values, "phase_name": values["phase"]}, window)
+    summary = _summary(scene, result, tag, values, names, fallback, window, steady, notes)
+    summary_path = os.path.join(out_dir, "summary.json")
+    _write_summary(summary_path, summary)
+
+    errors = []
+    contact = None
+    try:
+        contact = contact_arrays(scene, result, names, rows, values)
+        tmp = os.path.join(out_dir, "contact.tmp.npz")
+        np.savez_compressed(tmp, **contact)
+        os.replace(tmp, os.path.join(out_dir, "contact.npz"))
+    except Exception as err:  # noqa: BLE001 - recorded, re-raised below
+        errors.append(f"contact.npz not written: {type(err).__name__}: {err}")
+    if figures:
+        from . import figures as fig
+
+        title = format_title(scene.name, scene.variant, scene.algorithm, tag)
+        jobs = [("forces.png", lambda p: fig.forces_figure(p, title, scene.name, values, summary,
+                                                           len(scene.phase_names)))]
+        if contact is not None:
+            outlines = _tool_outlines(scene, contact)
+            jobs += [("contact.png", lambda p: fig.contact_figure(p, title, contact, outlines, scene.roi,
+                                                                  scene.y_scale)),
+                     ("mesh.png", lambda p: fig.mesh_figure(p, title, contact, outlines, scene.roi,
+                                                            scene.y_scale))]
+        else:
+            errors += ["contact.png not drawn: no contact data", "mesh.png not drawn: no contact data"]
+        for name, job in jobs:
+            try:
+                job(os.path.join(out_dir, name))
+            except Exception as err:  # noqa: BLE001 - recorded, re-raised below
+                errors.append(f"{name} not drawn: {type(err).__name__}: {err}")
+    if errors:
+        summary["message"] = "; ".join([m for m in (summary["message"], *errors) if m])
+        _write_summary(summary_path, summary)
+        raise OutputError(f"run directory {out_dir} is incomplete: " + "; ".join(errors))
+    return summary
+
+
+def _tool_outlines(scene, contact: dict) -> dict:
+    """Per instant, the (k, 2) outline of every tool at that instant's offset (mm)."""
+    from .tools import tool_outline
+
+    out = {}
+    for name in contact["instant_names"]:
+        offsets = contact[f"{name}__tool_offset"]
+        out[str(name)] = [np.asarray(tool_outline(t.geometry, offsets[k], 64))
+                          for k, t in enumerate(scene.model.tools)]
+    return out

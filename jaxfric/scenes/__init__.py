@@ -1,0 +1,150 @@
+"""The four benchmark scenes (benchmarks spec sections 2 to 6) and their registry.
+
+    >>> from jaxfric.scenes import make
+    >>> scene = make("nine", "mu017", "penalty", {"mesh": "150x3", "U_draw": "40"})
+    >>> result = jaxfric.run(scene.model, control=scene.control, observe=scene.observe,
+    ...                      snapshot=scene.snapshot)
+
+Each scene module defines a frozen config dataclass (fields = the spec's config keys, with units in
+their metadata), ``VARIANTS`` (field overrides per variant), ``DEFAULT_VARIANT`` and
+``build(config, algorithm, variant) -> Scene``. :func:`make` applies a variant, then user overrides
+(typed values, or strings as given on a command line, converted by :func:`parse_override`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+
+from . import bead, blankholder, flat_die, nine
+from .base import ALGORITHMS, Scene, contact_law
+
+__all__ = ["SCENES", "ALGORITHMS", "Scene", "contact_law", "scene_names", "variants", "default_variant",
+           "config_class", "config_fields", "make", "parse_override", "parse_mesh"]
+
+SCENES = {"flat_die": flat_die, "bead": bead, "nine": nine, "blankholder": blankholder}
+
+_CONFIGS = {"flat_die": flat_die.FlatDieConfig, "bead": bead.BeadConfig, "nine": nine.NineConfig,
+            "blankholder": blankholder.BlankholderConfig}
+
+
+def _module(name: str):
+    if name not in SCENES:
+        raise ValueError(f"unknown scene {name!r}; choose one of {', '.join(SCENES)}")
+    return SCENES[name]
+
+
+def scene_names() -> tuple:
+    """Scene names in spec order."""
+    return tuple(SCENES)
+
+
+def variants(name: str) -> tuple:
+    """Variant names of a scene, in spec order."""
+    return tuple(_module(name).VARIANTS)
+
+
+def default_variant(name: str) -> str:
+    return _module(name).DEFAULT_VARIANT
+
+
+def config_class(name: str) -> type:
+    _module(name)
+    return _CONFIGS[name]
+
+
+def config_fields(name: str) -> list:
+    """[(field, default, unit, doc), ...] of a scene's config, in declaration order."""
+    return [(f.name, f.default, f.metadata.get("unit", ""), f.metadata.get("doc", ""))
+            for f in dataclasses.fields(config_class(name))]
+
+
+def parse_mesh(text) -> tuple[int, int]:
+    """"NXxNY" (e.g. "300x3") -> (nx, ny); a pair of integers is passed through."""
+    if isinstance(text, (tuple, list)) and len(text) == 2:
+        nx, ny = text
+    else:
+        parts = str(text).strip().lower().split("x")
+        if len(parts) != 2:
+            raise ValueError(f"field 'mesh' must read NXxNY (e.g. 300x3), got {text!r}")
+        try:
+            nx, ny = int(parts[0]), int(parts[1])
+        except ValueError:
+            raise ValueError(f"field 'mesh' must read NXxNY with integers (e.g. 300x3), got {text!r}") from None
+    if isinstance(nx, bool) or isinstance(ny, bool) or int(nx) != nx or int(ny) != ny or nx < 1 or ny < 1:
+        raise ValueError(f"field 'mesh' needs integers >= 1, got {text!r}")
+    return int(nx), int(ny)
+
+
+def _field_type(name: str, field: str):
+    hints = typing.get_type_hints(config_class(name))
+    if field not in hints:
+        known = ", ".join(f.name for f in dataclasses.fields(config_class(name)))
+        raise ValueError(f"unknown config field {field!r} of scene '{name}'; known fields: {known}, mesh")
+    hint = hints[field]
+    args = typing.get_args(hint) if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union else ()
+    optional = type(None) in args
+    base = next((a for a in args if a is not type(None)), hint) if args else hint
+    return typing.get_origin(base) or base, optional
+
+
+def parse_override(name: str, field: str, text: str):
+    """Convert the string ``text`` to the type of config field ``field`` of scene ``name``.
+
+    Floats, ints and strings as such; "none" for an optional field; tuples as comma-separated numbers
+    ("20,35" or "(20, 35)"). A bad value or an unknown field gives a one-line ValueError naming it.
+    """
+    kind, optional = _field_type(name, field)
+    raw = str(text).strip()
+    if optional and raw.lower() in ("none", "null", ""):
+        return None
+    try:
+        if kind is float:
+            return float(raw)
+        if kind is int:
+            value = float(raw)
+            if value != int(value):
+                raise ValueError
+            return int(value)
+        if kind is tuple:
+            return tuple(float(v) for v in raw.strip("()[] ").split(","))
+        return raw
+    except ValueError:
+        what = {float: "a number", int: "an integer", tuple: "comma-separated numbers"}.get(kind, "a value")
+        raise ValueError(f"config field '{field}' of scene '{name}' must be {what}, got {text!r}") from None
+
+
+def _coerce(name: str, field: str, value):
+    """A typed override: strings are parsed, ints widened to float for float fields, lists to tuples."""
+    if isinstance(value, str):
+        kind, _ = _field_type(name, field)
+        return value if kind is str else parse_override(name, field, value)
+    kind, optional = _field_type(name, field)
+    if value is None:
+        if not optional:
+            raise ValueError(f"config field '{field}' of scene '{name}' cannot be None")
+        return None
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if kind is tuple and isinstance(value, list):
+        return tuple(value)
+    return value
+
+
+def make(name: str, variant: str | None = None, algorithm: str = "penalty",
+         overrides: dict | None = None) -> Scene:
+    """Build scene ``name``: its variant's field values, then ``overrides`` (field -> value or string;
+    ``mesh`` -> "NXxNY" sets nx and ny), for ``algorithm`` (one of :data:`ALGORITHMS`)."""
+    module = _module(name)
+    variant = module.DEFAULT_VARIANT if variant is None else variant
+    if variant not in module.VARIANTS:
+        raise ValueError(f"unknown variant {variant!r} of scene '{name}'; choose one of "
+                         f"{', '.join(module.VARIANTS)}")
+    values = dict(module.VARIANTS[variant])
+    for field, value in (overrides or {}).items():
+        if field == "mesh":
+            values["nx"], values["ny"] = parse_mesh(value)
+        else:
+            values[field] = _coerce(name, field, value)
+    return module.build(config_class(name)(**values), algorithm, variant)

@@ -1,0 +1,229 @@
+"""Building blocks shared by the four scene modules: config fields with units, validation, the
+per-step columns common to every scene, the ``contact.npz`` snapshot, and the JSON description of a
+load schedule (benchmarks spec sections 0 and 6; outputs spec sections 2 to 4).
+
+Units: mm, MPa, N/mm (per unit out-of-plane width), degrees in configs, s of pseudo-time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ..contact import max_penetration, split_pairs
+from ..contact_laws import SLIP
+from ..loading import Phase
+from ..simulate import StepControl, reactions
+from ..tools import GAP_OPEN
+from .base import ALGORITHMS
+
+__all__ = ["spec_field", "check_config", "check_variant", "check_algorithm", "pair_forces",
+           "tool_resultants", "contact_columns", "phase_progress", "ContactSnapshot", "n_steps",
+           "schedule_entry", "friction_table", "material_dict", "config_dict", "end_reaction",
+           "nominal_step_count", "resolve_eps_t", "step_control"]
+
+
+def spec_field(default, unit: str, doc: str):
+    """A config field with its unit and a one-line description (listed by ``jaxfric scenes``)."""
+    return dataclasses.field(default=default, metadata={"unit": unit, "doc": doc})
+
+
+# ---- validation -------------------------------------------------------------------------------------
+
+def _bad(field: str, value, why: str) -> ValueError:
+    return ValueError(f"config field '{field}' = {value!r} is invalid: {why}")
+
+
+def _number(field: str, value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise _bad(field, value, "it must be a number")
+    v = float(value)
+    if not math.isfinite(v):
+        raise _bad(field, value, "it must be finite")
+    return v
+
+
+def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=None) -> None:
+    """Validate the common fields of a scene config; every error names the field.
+
+    Args:
+        config: the config dataclass.
+        positive: names of fields that must be finite and > 0 (None allowed: derived in build).
+        nonnegative: names of fields that must be finite and >= 0 (None allowed).
+        integers: names of fields that must be integers >= 1 (None allowed).
+        choices: {field: allowed values} for string fields.
+    """
+    for name in positive:
+        v = getattr(config, name)
+        if v is not None and not _number(name, v) > 0:
+            raise _bad(name, v, "it must be > 0")
+    for name in nonnegative:
+        v = getattr(config, name)
+        if v is not None and not _number(name, v) >= 0:
+            raise _bad(name, v, "it must be >= 0")
+    for name in integers:
+        v = getattr(config, name)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1):
+            raise _bad(name, v, "it must be an integer >= 1")
+    for name, allowed in (choices or {}).items():
+        v = getattr(config, name)
+        if v not in allowed:
+            raise _bad(name, v, f"choose one of {', '.join(map(repr, allowed))}")
+    # Every scene carries the material of spec 1.2 and the contact constants of spec 1.5-1.6.
+    if not -1.0 < _number("nu", config.nu) < 0.5:
+        raise _bad("nu", config.nu, "Poisson's ratio must lie in (-1, 0.5)")
+    for name in ("E", "sigma_y", "eps_n", "target_gap", "d_capture"):
+        if not _number(name, getattr(config, name)) > 0:
+            raise _bad(name, getattr(config, name), "it must be > 0")
+    for name in ("A", "n"):
+        if not _number(name, getattr(config, name)) >= 0:
+            raise _bad(name, getattr(config, name), "it must be >= 0")
+    if config.eps_t is not None and not _number("eps_t", config.eps_t) >= 0:
+        raise _bad("eps_t", config.eps_t, "it must be >= 0 (or None: mu * eps_n)")
+    window = config.steady_window
+    if (not isinstance(window, tuple) or len(window) != 2
+            or not _number("steady_window", window[0]) < _number("steady_window", window[1])):
+        raise _bad("steady_window", window, "it must be a pair (a, b) with a < b (mm)")
+
+
+def check_variant(scene: str, variants: dict, variant: str) -> None:
+    if variant not in variants:
+        raise ValueError(f"unknown variant {variant!r} of scene '{scene}'; choose one of "
+                         f"{', '.join(variants)}")
+
+
+def check_algorithm(algorithm: str) -> None:
+    if algorithm not in ALGORITHMS:
+        raise ValueError(f"unknown algorithm {algorithm!r}; choose one of {', '.join(ALGORITHMS)}")
+
+
+def resolve_eps_t(config, mu_max: float) -> float:
+    """eps_t of the config, or the spec rule eps_t = mu eps_n (spec 1.5) when it is None."""
+    return float(mu_max * config.eps_n) if config.eps_t is None else float(config.eps_t)
+
+
+def n_steps(field: str, length: float, increment: float) -> int:
+    """Number of nominal steps of size ``increment`` covering ``length`` (at least 1)."""
+    if not increment > 0:
+        raise _bad(field, increment, "a nominal increment must be > 0")
+    return max(1, int(round(abs(length) / increment)))
+
+
+# ---- per-step columns -------------------------------------------------------------------------------
+
+def pair_forces(state) -> jnp.ndarray:
+    """(m, 2) force on the sheet of every pair, f = R_N n + R_T t with t = (-n_y, n_x) (N/mm)."""
+    c = state.contact
+    tangent = jnp.stack([-c.normal[:, 1], c.normal[:, 0]], axis=1)
+    return c.rn[:, None] * c.normal + c.rt[:, None] * tangent
+
+
+def tool_resultants(model, state) -> tuple:
+    """Per tool, the (2,) resultant of its contact forces on the sheet (N/mm)."""
+    return tuple(jnp.sum(f, axis=0) for f in split_pairs(model.tools, pair_forces(state)))
+
+
+def contact_columns(state) -> dict:
+    """max_penetration (mm), n_active (closed pairs), n_slip (pairs at the Coulomb limit)."""
+    c = state.contact
+    return {"max_penetration": max_penetration(c.status, c.gap),
+            "n_active": jnp.sum(c.status > 0), "n_slip": jnp.sum(c.status == SLIP)}
+
+
+def end_reaction(model, state, nodes) -> jnp.ndarray:
+    """(2,) sum of the reactions f_int - f_c over ``nodes`` (N/mm): the force the support exerts on
+    the sheet there."""
+    return jnp.sum(reactions(model, state)[np.asarray(nodes)], axis=0)
+
+
+def phase_progress(state, phase: int) -> jnp.ndarray:
+    """Progress tau in [0, 1] of phase ``phase`` (0-based): 0 before it, 1 after it. Pseudo-time is
+    linear in the phase's control variable, so control = start + tau (end - start)."""
+    return jnp.clip(state.time - float(phase), 0.0, 1.0)
+
+
+class ContactSnapshot(eqx.Module):
+    """Static ``snapshot(model, state)``: the per-instant arrays of ``contact.npz`` (outputs spec 4).
+
+    Returns x (n_nodes, 2) current coordinates (mm), eqps (n_el,) element mean over the Gauss points,
+    per pair rn, rt (N/mm), gap (mm; 1e30 where the pair has no projection), normal (m, 2) ((0, 0)
+    without projection), status (int8), mu (the tool's coefficient in the state's phase), and
+    tool_offset (n_tools, 2) = q_k e_q,k (mm). Everything comes from the model and the state, so one
+    instance serves every scene.
+    """
+
+    def __call__(self, model, state) -> dict:
+        c = state.contact
+        projects = c.gap < 0.5 * GAP_OPEN
+        mu = jnp.concatenate([jnp.broadcast_to(t.mu[state.phase], (len(t.candidates),))
+                              for t in model.tools])
+        drive = jnp.stack([t.drive for t in model.tools])
+        return {
+            "x": model.mesh.nodes + state.u,
+            "eqps": jnp.mean(state.material.eqps, axis=1),
+            "rn": c.rn,
+            "rt": c.rt,
+            "gap": jnp.where(projects, c.gap, 1e30),
+            "normal": jnp.where(projects[:, None], c.normal, 0.0),
+            "status": c.status.astype(jnp.int8),
+            "mu": mu,
+            "tool_offset": c.q[:, None] * drive,
+        }
+
+
+# ---- JSON description ----------------------------------------------------------------------------
+
+def nominal_step_count(phases) -> int:
+    return sum(n for p in phases for _, n in p.increments)
+
+
+def step_control(phases) -> StepControl:
+    """The spec's step controller (section 1.9: StepControl defaults) with a history buffer of
+    10x the nominal step count + 200 rows.
+
+    Why 10x: the controller halves the increment on a failure and grows it back (x1.5) only after two
+    consecutive steps of at most 6 Newton iterations, so a phase whose steps regularly need 7 or more
+    iterations stays at the cut increment. The Nine clamp (300 x 3, penalty) takes about 9x its nominal
+    110 steps this way. The buffer holds a few dozen scalars per row (~2 MB for the longest scene), so
+    10x costs little, while a full buffer stops the run (Result.MAX_STEPS).
+    """
+    return StepControl(max_steps=10 * nominal_step_count(phases) + 200)
+
+
+def schedule_entry(phase: Phase, control: str, variable: str, unit: str, start: float | None,
+                   end: float) -> dict:
+    """JSON description of one phase: its control variable, range [start, end] and nominal increments
+    (``start`` None: known only at run time, e.g. a force ramp from the reaction reached so far)."""
+    pieces, tau0 = [], 0.0
+    for tau_end, n in phase.increments:
+        if start is None:
+            pieces.append({"from_tau": tau0, "to_tau": tau_end, "n_steps": int(n)})
+        else:
+            lo, hi = start + tau0 * (end - start), start + tau_end * (end - start)
+            pieces.append({"from": lo, "to": hi, "n_steps": int(n), "increment": (hi - lo) / n})
+        tau0 = tau_end
+    return {"name": phase.name, "control": control, "variable": variable, "unit": unit,
+            "range": [None if start is None else float(start), float(end)], "increments": pieces}
+
+
+def friction_table(tool_names, phase_names, mu) -> dict:
+    """{tool: {phase: mu}} from a (n_tools, n_phases) table."""
+    return {t: {p: float(mu[k][j]) for j, p in enumerate(phase_names)} for k, t in enumerate(tool_names)}
+
+
+def material_dict(config) -> dict:
+    return {"E": float(config.E), "nu": float(config.nu), "sigma_y": float(config.sigma_y),
+            "A": float(config.A), "n": float(config.n)}
+
+
+def config_dict(config) -> dict:
+    """Every config field, JSON-ready (tuples become lists)."""
+    out = {}
+    for f in dataclasses.fields(config):
+        v = getattr(config, f.name)
+        out[f.name] = list(v) if isinstance(v, tuple) else v
+    return out

@@ -1,0 +1,171 @@
+"""Scene ``flat_die``: flat die friction test (benchmarks spec section 2).
+
+A half sheet x in [0, L], y in [0, h] (symmetry plane y = 0: v = 0 on BC) is clamped by a rigid flat
+die (a line y = h - d above it, force-driven to F_clamp, frictionless) in phase ``clamp``, then its
+right edge DC is pulled by U_draw in phase ``draw`` with friction mu, until the sheet slides globally.
+
+Tool: ``die`` (e_q = (0, -1)); candidates: the top-surface nodes (edge AD, A and D included).
+Variants: ``const_force`` (the die stays force-driven at F_clamp during ``draw``) and ``const_position``
+(the die is frozen where ``clamp`` left it: ``draw_control`` = "position").
+
+Values tagged [chosen] in the spec (section 9), all config fields here:
+- ``L`` = 48 mm; die over x in [-``die_overhang``, L + ``die_overhang``] with ``die_overhang`` = 2 mm;
+- frictionless ``clamp`` (mu = 0 in that phase, so the tangential history starts at 0 in ``draw``);
+- u = 0 on DC during ``clamp``; clamp in ``n_clamp`` = 10 steps;
+- ``U_draw`` = 0.03 mm, increments ``dU_fine`` = 2.5e-5 mm up to ``U_fine`` = 0.0025 mm, then ``dU`` = 1e-4
+  mm (100 + 275 steps);
+- ``steady_window`` = (0.02, 0.03) mm.
+eps_t = 1.5e8 N/mm [paper] is also mu eps_n (``eps_t`` None: the rule of spec 1.5).
+Figure region [chosen here, the spec gives x only]: x in [-1, L + 1], y in [-0.1, h + 0.1], y x 20.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from ..contact import Force, Move, RigidTool
+from ..loading import DirichletBC, Phase, Ramp
+from ..material import J2Material
+from ..mesh import strip_mesh
+from ..simulate import StripModel
+from ..tools import Tool
+from . import _common as cm
+from .base import Scene, contact_law
+
+__all__ = ["NAME", "FlatDieConfig", "VARIANTS", "DEFAULT_VARIANT", "FlatDieObserve", "build"]
+
+NAME = "flat_die"
+DEFAULT_VARIANT = "const_force"
+PHASES = ("clamp", "draw")
+TOOLS = ("die",)
+INSTANTS = ("clamped", "intermediate", "sliding", "final")
+
+
+@dataclasses.dataclass(frozen=True)
+class FlatDieConfig:
+    """Every value of the flat die scene (spec section 2); defaults are the spec's (``const_force``)."""
+
+    L: float = cm.spec_field(48.0, "mm", "sheet length, x in [0, L] [chosen]")
+    h: float = cm.spec_field(0.395, "mm", "half thickness, y in [0, h] [paper]")
+    nx: int = cm.spec_field(240, "-", "elements along the sheet [paper]")
+    ny: int = cm.spec_field(2, "-", "elements through the half thickness [paper]")
+    die_overhang: float = cm.spec_field(2.0, "mm", "die line from x = -overhang to L + overhang [chosen]")
+    mu: float = cm.spec_field(0.15, "-", "die/sheet friction during draw (0 during clamp) [paper]")
+    E: float = cm.spec_field(69004.0, "MPa", "Young's modulus (Table 1) [paper]")
+    nu: float = cm.spec_field(0.3, "-", "Poisson's ratio [paper]")
+    sigma_y: float = cm.spec_field(80.55923, "MPa", "initial yield stress [paper]")
+    A: float = cm.spec_field(10000.0, "-", "hardening coefficient in sigma_y (1 + A eqps)^n [paper]")
+    n: float = cm.spec_field(0.216, "-", "hardening exponent [paper]")
+    eps_n: float = cm.spec_field(1e9, "N/mm/mm", "normal penalty [paper]")
+    eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n = 1.5e8 [paper]")
+    target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
+    d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
+    F_clamp: float = cm.spec_field(50.0, "N/mm", "clamping force on the half model [paper]")
+    draw_control: str = cm.spec_field("force", "-", "die during draw: 'force' (const_force) or 'position' "
+                                                    "(const_position) [paper]")
+    U_draw: float = cm.spec_field(0.03, "mm", "pull of DC during draw [chosen]")
+    U_fine: float = cm.spec_field(0.0025, "mm", "end of the fine increments [chosen]")
+    dU_fine: float = cm.spec_field(2.5e-5, "mm", "nominal increment up to U_fine [chosen]")
+    dU: float = cm.spec_field(1e-4, "mm", "nominal increment after U_fine [chosen]")
+    n_clamp: int = cm.spec_field(10, "-", "steps of the clamp force ramp [chosen]")
+    steady_window: tuple = cm.spec_field((0.02, 0.03), "mm", "steady window in U [chosen]")
+
+
+VARIANTS = {"const_force": {"draw_control": "force"}, "const_position": {"draw_control": "position"}}
+
+
+class FlatDieObserve(eqx.Module):
+    """Static ``observe(model, state)`` of the flat die (spec section 2, Outputs).
+
+    drawing_force = sum of the DC reactions along +x; clamping_force = sum of R_N over the die pairs
+    (= e_q . resultant, the die being flat); tool_position = d; sum_ft = |sum R_T|; mu_sum_fn = mu sum R_N
+    with the phase's mu; n_candidates = number of die pairs.
+    """
+
+    right: tuple = eqx.field(static=True)    # DC nodes
+    U_draw: float = eqx.field(static=True)   # mm
+
+    def __call__(self, model, state) -> dict:
+        c = state.contact
+        sum_fn = jnp.sum(c.rn)
+        return {
+            "drawing_displacement": self.U_draw * cm.phase_progress(state, 1),
+            "drawing_force": cm.end_reaction(model, state, self.right)[0],
+            "clamping_force": sum_fn,
+            "tool_position": c.q[0],
+            **cm.contact_columns(state),
+            "sum_ft": jnp.abs(jnp.sum(c.rt)),
+            "mu_sum_fn": model.tools[0].mu[state.phase] * sum_fn,
+            "n_candidates": jnp.array(len(model.tools[0].candidates)),
+        }
+
+
+def _check(config: FlatDieConfig) -> None:
+    cm.check_config(config, positive=("L", "h", "die_overhang", "U_fine", "dU_fine", "dU"),
+                    nonnegative=("mu", "F_clamp", "U_draw"), integers=("nx", "ny", "n_clamp"),
+                    choices={"draw_control": ("force", "position")})
+
+
+def _draw_increments(config: FlatDieConfig) -> tuple:
+    """((tau_end, n), ...) of the draw phase: fine steps up to U_fine, then dU steps."""
+    if config.U_fine >= config.U_draw:
+        return ((1.0, cm.n_steps("dU_fine", config.U_draw, config.dU_fine)),)
+    return ((config.U_fine / config.U_draw, cm.n_steps("dU_fine", config.U_fine, config.dU_fine)),
+            (1.0, cm.n_steps("dU", config.U_draw - config.U_fine, config.dU)))
+
+
+def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
+          variant: str = DEFAULT_VARIANT) -> Scene:
+    """The flat die scene for ``config`` (the variant's overrides already applied) and ``algorithm``."""
+    cm.check_variant(NAME, VARIANTS, variant)
+    cm.check_algorithm(algorithm)
+    _check(config)
+    L, h = config.L, config.h
+    mesh = strip_mesh(0.0, L, 0.0, h, config.nx, config.ny)
+    symmetry = DirichletBC(mesh.bottom, (1,))                     # BC: v = 0 (C included)
+    hold = DirichletBC(mesh.right, (0,))                          # DC: u = 0 during clamp
+    pull = DirichletBC(mesh.right, (0,), Ramp((0.0, 0.0), (config.U_draw, 0.0)))
+    draw_increments = _draw_increments(config)
+    phases = (Phase("clamp", [symmetry, hold], config.n_clamp),
+              Phase("draw", [symmetry, pull], increments=draw_increments))
+
+    die = Tool.line((-config.die_overhang, h), (L + config.die_overhang, h), normal_side="right",
+                    d_capture=config.d_capture)
+    draw = Force(config.F_clamp, start=config.F_clamp) if config.draw_control == "force" else Move(0.0, 0.0)
+    mu = (0.0, config.mu) if config.mu > 0 else 0.0
+    tool = RigidTool("die", die, (0.0, -1.0), mesh.top, (Force(config.F_clamp, start=0.0), draw), mu)
+
+    eps_t = cm.resolve_eps_t(config, config.mu)
+    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap)
+    material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
+    model = StripModel(mesh, material, phases, tools=(tool,), contact=law)
+    observe = FlatDieObserve(right=tuple(int(a) for a in mesh.right), U_draw=float(config.U_draw))
+
+    parameters = {
+        "variant": variant,
+        "config": cm.config_dict(config),
+        "geometry": {"L": L, "h": h, "die": {"start": [-config.die_overhang, h],
+                                              "end": [L + config.die_overhang, h], "normal": [0.0, -1.0]}},
+        "material": cm.material_dict(config),
+        "friction": cm.friction_table(TOOLS, PHASES, [(0.0, config.mu)]),
+        "contact": {"algorithm": algorithm, "eps_n": config.eps_n, "eps_t": eps_t,
+                    "target_gap": config.target_gap if algorithm == "auglag" else None,
+                    "d_capture": config.d_capture},
+        "mesh": {"nx": config.nx, "ny": config.ny},
+        "schedule": [
+            cm.schedule_entry(phases[0], "force on the die", "P", "N/mm", 0.0, config.F_clamp),
+            {**cm.schedule_entry(phases[1], "displacement of DC", "U", "mm", 0.0, config.U_draw),
+             "die": "force-driven, P = F_clamp" if config.draw_control == "force"
+             else "position frozen at the end of clamp"},
+        ],
+    }
+    return Scene(
+        name=NAME, variant=variant, algorithm=algorithm, config=config, model=model, observe=observe,
+        snapshot=cm.ContactSnapshot(),
+        control=cm.step_control(phases),
+        phase_names=PHASES, tool_names=TOOLS, clamping_tool=0, instants=INSTANTS,
+        steady_window=tuple(float(v) for v in config.steady_window),
+        roi=(-1.0, L + 1.0, -0.1, h + 0.1), y_scale=20.0, parameters=parameters)

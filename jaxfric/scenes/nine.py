@@ -1,0 +1,187 @@
+"""Scene ``nine``: radial strip drawing test on Nine's drawbead simulator (benchmarks spec section 4).
+
+A strip x in [x_left, x_right], y in [0, t] lies on two fixed shoulders A and C (radius R1, below it);
+the clamping bead B (radius R1, above it) is pushed down by ``stroke`` between them (phase ``clamp``),
+then the right end is pulled by U_draw (phase ``draw``) through the bead and the guide rollers D (above)
+and E (below, radius R2). The left end is free.
+
+Tools, in order: ``A, B, C, D, E`` (full circles). Candidates: bottom-surface nodes vs A, C, E; top-surface
+nodes vs B, D. B is displacement-driven (e_q = (0, -1)); A, C, D, E are fixed.
+
+Values tagged [chosen] in the spec (section 9), all config fields here:
+- reading of Table 3: e is the thickness ``t``, ``L1`` = 2 R1 + e is the pitch A->B and B->C, ``L2`` the
+  distance C->D, ``L3`` D->E, and x_left = -Delta x1 (origin at the centre of A);
+- B starts touching the strip top; D above the strip, E below it;
+- rotating cylinders modelled as frictionless fixed cylinders (``mu_guides`` = 0 on D and E always;
+  ``mu`` on A, B, C: 0 for ``mu000``, 0.17 for ``mu017``);
+- right end held (u = v = 0) during ``clamp``, u = U(t) and v = 0 during ``draw``; left end free;
+- ``U_draw`` = 70 mm; nominal increments ``dq_clamp`` = 0.1 mm and ``dU`` = 0.1 mm;
+- ``steady_window`` = (20, 35) mm;
+- eps_t = mu eps_n [paper] (``eps_t`` None), with mu the largest coefficient of the scene.
+Not in the spec: the seam of each circle (where its arc length jumps) is put where the strip never
+touches it: at the top of B and D (the strip touches their bottoms), at the bottom of A, C and E.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+
+from ..contact import Move, RigidTool
+from ..loading import DirichletBC, Phase, Ramp
+from ..material import J2Material
+from ..mesh import strip_mesh
+from ..simulate import StripModel
+from ..tools import Tool
+from . import _common as cm
+from .base import Scene, contact_law
+
+__all__ = ["NAME", "NineConfig", "VARIANTS", "DEFAULT_VARIANT", "NineObserve", "build"]
+
+NAME = "nine"
+DEFAULT_VARIANT = "mu017"
+PHASES = ("clamp", "draw")
+TOOLS = ("A", "B", "C", "D", "E")
+INSTANTS = ("clamped", "steady", "final")
+
+
+@dataclasses.dataclass(frozen=True)
+class NineConfig:
+    """Every value of the Nine scene (spec section 4); defaults are the spec's (variant ``mu017``)."""
+
+    x_left: float = cm.spec_field(-50.0, "mm", "left (free) end of the strip; -Delta x1 [chosen reading]")
+    x_right: float = cm.spec_field(50.0, "mm", "right (pulled) end of the strip [paper: 100 mm strip]")
+    t: float = cm.spec_field(0.97, "mm", "strip thickness e [paper, chosen reading]")
+    nx: int = cm.spec_field(300, "-", "elements along the strip [paper]")
+    ny: int = cm.spec_field(3, "-", "elements through the thickness [paper]")
+    R1: float = cm.spec_field(5.5, "mm", "radius of A, B, C [paper]")
+    R2: float = cm.spec_field(2.87, "mm", "radius of D, E [paper]")
+    L1: float | None = cm.spec_field(None, "mm", "pitch A->B and B->C; None: 2 R1 + t (= 11.97) [paper]")
+    L2: float = cm.spec_field(2.63, "mm", "horizontal distance C->D [paper, chosen reading]")
+    L3: float = cm.spec_field(12.43, "mm", "horizontal distance D->E [paper, chosen reading]")
+    mu: float = cm.spec_field(0.17, "-", "friction on A, B, C (variant: 0 or 0.17) [paper]")
+    mu_guides: float = cm.spec_field(0.0, "-", "friction on the guide rollers D, E [chosen: rolling]")
+    E: float = cm.spec_field(200000.0, "MPa", "Young's modulus (Table 4) [paper]")
+    nu: float = cm.spec_field(0.3, "-", "Poisson's ratio [paper]")
+    sigma_y: float = cm.spec_field(171.0, "MPa", "initial yield stress [paper]")
+    A: float = cm.spec_field(121.74485, "-", "hardening coefficient in sigma_y (1 + A eqps)^n [paper]")
+    n: float = cm.spec_field(0.23, "-", "hardening exponent [paper]")
+    eps_n: float = cm.spec_field(1e5, "N/mm/mm", "normal penalty [paper]")
+    eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [paper]")
+    target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
+    d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
+    stroke: float = cm.spec_field(11.0, "mm", "downward travel of B during clamp (2 R1) [paper]")
+    U_draw: float = cm.spec_field(70.0, "mm", "pull of the right end during draw [chosen]")
+    dq_clamp: float = cm.spec_field(0.1, "mm", "nominal increment of B's travel [chosen]")
+    dU: float = cm.spec_field(0.1, "mm", "nominal increment of the pull [chosen]")
+    steady_window: tuple = cm.spec_field((20.0, 35.0), "mm", "steady window in U [chosen]")
+    entry_guide: bool = cm.spec_field(True, "-", "hold v = 0 at the left end (a frictionless entry guide); "
+                                      "False: the spec's free end [chosen, see the module docstring]")
+
+
+VARIANTS = {"mu000": {"mu": 0.0}, "mu017": {"mu": 0.17}}
+
+
+class NineObserve(eqx.Module):
+    """Static ``observe(model, state)`` of the Nine scene (spec section 4, Outputs).
+
+    drawing_force = sum of the right-end reactions along +x; clamping_force = e_q . resultant of B
+    (e_q = (0, -1)); tool_position = q_B; drawing_displacement = U (0 before draw).
+    """
+
+    right: tuple = eqx.field(static=True)     # right-end nodes
+    tail: int = eqx.field(static=True)        # bottom-left node
+    U_draw: float = eqx.field(static=True)    # mm
+
+    def __call__(self, model, state) -> dict:
+        c = state.contact
+        f_a, f_b, f_c, f_d, f_e = cm.tool_resultants(model, state)
+        return {
+            "drawing_displacement": self.U_draw * cm.phase_progress(state, 1),
+            "drawing_force": cm.end_reaction(model, state, self.right)[0],
+            "clamping_force": c.force[1],
+            "tool_position": c.q[1],
+            **cm.contact_columns(state),
+            "bead_fx": f_b[0],
+            "tail_x": model.mesh.nodes[self.tail, 0] + state.u[self.tail, 0],
+            "cyl_a_fx": f_a[0], "cyl_a_fy": f_a[1],
+            "cyl_c_fx": f_c[0], "cyl_c_fy": f_c[1],
+            "cyl_d_fy": f_d[1], "cyl_e_fy": f_e[1],
+        }
+
+
+def _check(config: NineConfig) -> None:
+    cm.check_config(config, positive=("t", "R1", "R2", "L1", "dq_clamp", "dU"),
+                    nonnegative=("mu", "mu_guides", "stroke", "U_draw", "L2", "L3"), integers=("nx", "ny"))
+    if not config.x_right > config.x_left:
+        raise ValueError(f"config field 'x_right' = {config.x_right!r} must exceed x_left = {config.x_left!r}")
+
+
+def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant: str = DEFAULT_VARIANT) -> Scene:
+    """The Nine scene for ``config`` (the variant's overrides already applied) and ``algorithm``."""
+    cm.check_variant(NAME, VARIANTS, variant)
+    cm.check_algorithm(algorithm)
+    _check(config)
+    t, R1, R2 = config.t, config.R1, config.R2
+    L1 = 2.0 * R1 + t if config.L1 is None else config.L1
+    # Centres: origin at the centre of A's top; strip bottom on y = 0 (spec section 4 table).
+    centres = {"A": (0.0, -R1), "B": (L1, t + R1), "C": (2.0 * L1, -R1),
+               "D": (2.0 * L1 + config.L2, t + R2), "E": (2.0 * L1 + config.L2 + config.L3, -R2)}
+    radii = {"A": R1, "B": R1, "C": R1, "D": R2, "E": R2}
+    above = {"A": False, "B": True, "C": False, "D": True, "E": False}
+    mu = {"A": config.mu, "B": config.mu, "C": config.mu, "D": config.mu_guides, "E": config.mu_guides}
+
+    mesh = strip_mesh(config.x_left, config.x_right, 0.0, t, config.nx, config.ny)
+    n_clamp = cm.n_steps("dq_clamp", config.stroke, config.dq_clamp)
+    n_draw = cm.n_steps("dU", config.U_draw, config.dU)
+    hold = DirichletBC(mesh.right, (0, 1))
+    pull = DirichletBC(mesh.right, (0, 1), Ramp((0.0, 0.0), (config.U_draw, 0.0)))
+    guide = [DirichletBC(mesh.left, (1,))] if config.entry_guide else []
+    phases = (Phase("clamp", [hold] + guide, n_clamp), Phase("draw", [pull] + guide, n_draw))
+
+    tools = []
+    for name in TOOLS:
+        # Seam opposite the contact side: top for a cylinder above the strip, bottom for one below.
+        seam = 0.5 * math.pi if above[name] else -0.5 * math.pi
+        geometry = Tool.circle(centres[name], radii[name], d_capture=config.d_capture, seam=seam)
+        drive = (0.0, -1.0) if above[name] else (0.0, 1.0)
+        candidates = mesh.top if above[name] else mesh.bottom
+        stroke = config.stroke if name == "B" else 0.0
+        controls = (Move(0.0, stroke), Move(0.0, 0.0))
+        # A frictionless tool gets a scalar 0, so that no friction term is built for it.
+        tools.append(RigidTool(name, geometry, drive, candidates, controls, mu[name] if mu[name] > 0 else 0.0))
+
+    mu_max = max(mu.values())
+    eps_t = cm.resolve_eps_t(config, mu_max)
+    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap)
+    material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
+    model = StripModel(mesh, material, phases, tools=tuple(tools), contact=law)
+    observe = NineObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)),
+                          U_draw=float(config.U_draw))
+
+    parameters = {
+        "variant": variant,
+        "config": cm.config_dict(config),
+        "geometry": {"x_left": config.x_left, "x_right": config.x_right, "t": t, "R1": R1, "R2": R2,
+                     "L1": L1, "L2": config.L2, "L3": config.L3,
+                     "centres": {k: list(v) for k, v in centres.items()},
+                     "stroke": config.stroke, "U_draw": config.U_draw},
+        "material": cm.material_dict(config),
+        "friction": cm.friction_table(TOOLS, PHASES, [(mu[k], mu[k]) for k in TOOLS]),
+        "contact": {"algorithm": algorithm, "eps_n": config.eps_n, "eps_t": eps_t,
+                    "target_gap": config.target_gap if algorithm == "auglag" else None,
+                    "d_capture": config.d_capture},
+        "mesh": {"nx": config.nx, "ny": config.ny},
+        "schedule": [cm.schedule_entry(phases[0], "displacement of B", "q_B", "mm", 0.0, config.stroke),
+                     cm.schedule_entry(phases[1], "displacement of the right end", "U", "mm", 0.0,
+                                       config.U_draw)],
+    }
+    return Scene(
+        name=NAME, variant=variant, algorithm=algorithm, config=config, model=model, observe=observe,
+        snapshot=cm.ContactSnapshot(),
+        control=cm.step_control(phases),
+        phase_names=PHASES, tool_names=TOOLS, clamping_tool=1, instants=INSTANTS,
+        steady_window=tuple(float(v) for v in config.steady_window),
+        roi=(-15.0, 45.0, -15.0, 12.0), y_scale=1.0, parameters=parameters)

@@ -1,0 +1,386 @@
+"""The run output contract (outputs spec): instants, steady force, writer, checker and command line."""
+
+import dataclasses
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+import jaxfric as jf
+from jaxfric import cli, output
+from jaxfric.contract import check_run_dir
+
+# A few-second flat die: 24 x 2 mesh, 2 clamp steps, 3 draw steps to U = 3 um (cf. spec section 2).
+SHORT = ["--mesh", "24x2", "--set", "n_clamp=2", "--set", "U_draw=0.003", "--set", "U_fine=0.001",
+         "--set", "dU_fine=0.0005", "--set", "dU=0.001", "--set", "steady_window=0.002,0.003"]
+OVERRIDES = {"mesh": "24x2", "n_clamp": "2", "U_draw": "0.003", "U_fine": "0.001", "dU_fine": "0.0005",
+             "dU": "0.001", "steady_window": "0.002,0.003"}
+PNGS = ("forces.png", "contact.png", "mesh.png")
+
+
+# ---- named instants ---------------------------------------------------------------------------------
+
+def _history(phases, time, u=None, active=None, slip=None):
+    n = len(phases)
+    return {"phase_name": np.array(phases), "time": np.asarray(time, float),
+            "drawing_displacement": np.zeros(n) if u is None else np.asarray(u, float),
+            "n_active": np.zeros(n, int) if active is None else np.asarray(active),
+            "n_slip": np.zeros(n, int) if slip is None else np.asarray(slip)}
+
+
+def test_flat_die_instants():
+    h = _history(["clamp", "clamp", "clamp", "draw", "draw", "draw", "draw"],
+                 [0, 0.5, 1.0, 1.25, 1.5, 1.75, 2.0],
+                 active=[0, 9, 9, 9, 9, 9, 9], slip=[0, 9, 9, 2, 5, 9, 9])
+    names, rows, fallback = output.select_instants("flat_die", h)
+    assert names == ["clamped", "intermediate", "sliding", "final"]
+    assert rows == [2, 4, 5, 6] and fallback == []
+
+
+def test_flat_die_state_instants_fall_back_to_last_row():
+    h = _history(["clamp", "clamp", "draw", "draw"], [0, 1, 1.5, 2], active=[0, 9, 9, 0], slip=[0, 9, 1, 0])
+    names, rows, fallback = output.select_instants("flat_die", h)
+    assert names == ["clamped", "intermediate", "sliding", "final"]
+    assert rows == [1, 3, 3, 3] and fallback == ["intermediate", "sliding"]
+
+
+def test_instants_of_unreached_phases_are_omitted():
+    # stopped in the middle of clamp: only `final`
+    h = _history(["clamp", "clamp"], [0, 0.5], active=[0, 9], slip=[0, 9])
+    assert output.select_instants("flat_die", h) == (["final"], [1], [])
+    # blankholder stopped during lock: closed and final; no drawing
+    h = _history(["close", "close", "lock"], [0, 1.0, 1.5])
+    assert output.select_instants("blankholder", h) == (["closed", "final"], [1, 2], [])
+
+
+def test_closest_and_end_of_phase_instants():
+    u = [0, 0, 0, 0, 2.0, 3.9, 4.2, 8.0]
+    h = _history(["clamp", "clamp", "wind", "wind", "draw", "draw", "draw", "draw"],
+                 [0, 1, 1.5, 2, 2.25, 2.5, 2.6, 3], u=u)
+    assert output.select_instants("bead", h) == (["clamped", "folded", "drawing", "final"], [1, 3, 5, 7], [])
+    h = _history(["clamp", "clamp", "draw", "draw", "draw"], [0, 1, 1.3, 1.4, 2], u=[0, 0, 20, 28, 70])
+    assert output.select_instants("nine", h) == (["clamped", "steady", "final"], [1, 3, 4], [])
+    h = _history(["close", "close", "lock", "draw", "draw"], [0, 1, 2, 2.5, 3], u=[0, 0, 0, 27, 55])
+    assert output.select_instants("blankholder", h)[:2] == (["closed", "locked", "drawing", "final"],
+                                                            [1, 2, 3, 4])
+    with pytest.raises(ValueError, match="unknown scene"):
+        output.select_instants("cylinder", h)
+
+
+# ---- steady drawing force -----------------------------------------------------------------------------
+
+def test_steady_drawing_force_is_the_trapezoid_mean():
+    u = np.array([0, 0, 10, 20, 25, 30, 35, 40])
+    f = 3.0 + 0.1 * u  # linear: the trapezoid rule is exact, mean over [20, 35] = 3 + 0.1 * 27.5
+    h = {"phase_name": np.array(["clamp", "clamp"] + ["draw"] * 6), "drawing_displacement": u,
+         "drawing_force": f}
+    assert output.steady_drawing_force(h, (20, 35)) == pytest.approx(5.75, rel=1e-14)
+    # the window is inclusive with a tolerance of 1e-9 mm
+    h2 = dict(h, drawing_displacement=np.where(u == 35, 35 + 5e-10, u).astype(float))
+    assert output.steady_drawing_force(h2, (20, 35)) == pytest.approx(5.75, rel=1e-9)
+    h3 = dict(h, drawing_displacement=np.where(u == 35, 35 + 5e-9, u).astype(float))
+    assert output.steady_drawing_force(h3, (20, 35)) == pytest.approx(3 + 0.1 * 25, rel=1e-12)
+
+
+def test_steady_drawing_force_null_cases():
+    h = {"phase_name": np.array(["draw"] * 4), "drawing_displacement": np.array([0.0, 10, 20, 26]),
+         "drawing_force": np.ones(4)}
+    assert output.steady_drawing_force(h, (20, 35)) is None           # one row in the window
+    h["drawing_displacement"] = np.array([0.0, 20, 25, 27])
+    assert output.steady_drawing_force(h, (20, 35)) is None           # covers 7 < 15/2 mm
+    h["drawing_displacement"] = np.array([0.0, 20, 25, 27.5])
+    assert output.steady_drawing_force(h, (20, 35)) == pytest.approx(1.0)  # exactly half: kept
+    h["phase_name"] = np.array(["clamp"] * 4)                          # no draw rows
+    assert output.steady_drawing_force(h, (20, 35)) is None
+
+
+def test_nine_window_is_shortened_when_the_free_end_arrives():
+    u = np.arange(0.0, 40.0, 5.0)
+    tail = -50.0 + 1.5 * u  # reaches -1 mm at U = 32.7 mm
+    h = {"phase": np.array(["draw"] * u.size), "drawing_displacement": u, "tail_x": tail}
+    window, note = output.steady_window("nine", h, (20.0, 35.0))
+    assert window == (20.0, 30.0) and "shortened" in note
+    h["tail_x"] = -50.0 + 0.5 * u
+    assert output.steady_window("nine", h, (20.0, 35.0)) == ((20.0, 35.0), "")
+    assert output.steady_window("bead", h, (4.0, 8.0)) == ((4.0, 8.0), "")
+
+
+def test_contact_status_thresholds():
+    rn = np.array([0.0, 1e-9, 1.0, 1.0, 1.0, 2.0])
+    rt = np.array([0.0, 0.0, 0.1, 0.15, -0.15 * (1 - 5e-7), 0.0])
+    mu = np.array([0.15, 0.15, 0.15, 0.15, 0.15, 0.0])
+    assert np.asarray(output.contact_status(rn, rt, mu)).tolist() == [0, 0, 1, 2, 2, 2]
+
+
+# ---- writer and checker on a real run -------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def flat():
+    from jaxfric import scenes
+
+    scene = scenes.make("flat_die", None, "penalty", dict(OVERRIDES))
+    result = jf.run(scene.model, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
+                    progress=False, raise_on_failure=False)
+    assert result.converged, result.message
+    return scene, result
+
+
+@pytest.fixture(scope="module")
+def good_dir(flat, tmp_path_factory):
+    scene, result = flat
+    path = str(tmp_path_factory.mktemp("run") / "flat")
+    summary = output.write_run(scene, result, path, tag="mesh24x2")
+    return path, summary
+
+
+def test_write_run_passes_the_checker(good_dir, flat):
+    path, summary = good_dir
+    assert check_run_dir(path) == []
+    assert summary["converged"] and summary["message"] == "" and summary["tag"] == "mesh24x2"
+    with open(os.path.join(path, "history.csv")) as f:
+        header = f.readline().strip().split(",")
+    assert header[:12] == list(output.REQUIRED_COLUMNS)
+    assert {"sum_ft", "mu_sum_fn", "n_candidates", "cutbacks"} <= set(header[12:])
+    assert "n_aug" not in header
+    scene, result = flat
+    assert summary["n_steps"] == len(result.history["time"]) - 1
+    assert summary["steady_drawing_force"] is not None
+    with np.load(os.path.join(path, "contact.npz"), allow_pickle=False) as data:
+        assert data["instant_names"].tolist() == summary["instants"]
+        assert data["tool_names"].tolist() == ["die"]
+        assert data["final__status"].dtype == np.int8
+
+
+def test_partial_run_writes_a_conforming_directory(flat, tmp_path):
+    """A run stopped in the middle of `clamp` still writes all six files; only `final` is stored."""
+    scene, result = flat
+    keep = 2
+    partial = dataclasses.replace(
+        result, history={k: v[:keep] for k, v in result.history.items()},
+        snapshots={k: v for k, v in result.snapshots.items() if k < keep}, converged=False,
+        message="stopped after step 1 at t = 0.5 (phase 'clamp'): test")
+    summary = output.write_run(scene, partial, str(tmp_path))
+    assert check_run_dir(str(tmp_path)) == []
+    assert not summary["converged"] and summary["message"].startswith("stopped")
+    assert summary["instants"] == ["final"] and summary["steady_drawing_force"] is None
+
+
+def test_failed_run_writes_a_conforming_directory(flat, tmp_path):
+    """A genuinely failed run (history buffer full in `draw`) writes all six files and passes."""
+    scene, _ = flat
+    scene = dataclasses.replace(scene, control=jf.StepControl(max_steps=5))
+    result = jf.run(scene.model, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
+                    progress=False, raise_on_failure=False)
+    assert not result.converged
+    summary = output.write_run(scene, result, str(tmp_path))
+    assert check_run_dir(str(tmp_path)) == []
+    assert not summary["converged"] and summary["message"]
+    assert summary["instants"][0] == "clamped" and summary["instants"][-1] == "final"
+    assert set(PNGS) <= set(os.listdir(tmp_path))
+
+
+def test_algorithm_extra_columns(flat, tmp_path):
+    scene, result = flat
+    n = len(result.history["time"])
+    history = dict(result.history, augmentations=np.arange(n) % 3, lcp_pivots=np.full(n, 7))
+    params = json.loads(json.dumps(scene.parameters))
+    params["contact"]["target_gap"] = 1e-5
+    auglag = dataclasses.replace(scene, algorithm="auglag", parameters=params)
+    summary = output.write_run(auglag, dataclasses.replace(result, history=history), str(tmp_path),
+                               figures=False)
+    with open(tmp_path / "history.csv") as f:
+        header = f.readline().strip().split(",")
+    assert header[-3:] == ["cutbacks", "n_aug", "lcp_pivots"]
+    assert summary["mean_augmentations"] == pytest.approx(np.sum(np.arange(n) % 3) / (n - 1))
+    problems = [p for p in check_run_dir(str(tmp_path)) if not p.startswith(PNGS)]
+    assert problems == []
+
+
+def test_plot_failure_keeps_the_data_files(flat, tmp_path, monkeypatch):
+    from jaxfric import figures
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no display")
+
+    monkeypatch.setattr(figures, "mesh_figure", broken)
+    scene, result = flat
+    with pytest.raises(output.OutputError, match="mesh.png"):
+        output.write_run(scene, result, str(tmp_path))
+    with open(tmp_path / "summary.json") as f:
+        assert "mesh.png not drawn" in json.load(f)["message"]
+    problems = check_run_dir(str(tmp_path))
+    assert problems == ["mesh.png: missing"]
+
+
+# ---- the checker catches planted defects -----------------------------------------------------------------
+
+def _planted(good_dir, tmp_path, edit):
+    path = str(tmp_path / "run")
+    shutil.copytree(good_dir[0], path)
+    edit(path)
+    return check_run_dir(path)
+
+
+def _edit_csv(fn):
+    def edit(path):
+        p = os.path.join(path, "history.csv")
+        with open(p) as f:
+            lines = f.read().split("\n")
+        with open(p, "w") as f:
+            f.write("\n".join(fn(lines)))
+    return edit
+
+
+def _edit_summary(fn):
+    def edit(path):
+        p = os.path.join(path, "summary.json")
+        with open(p) as f:
+            s = json.load(f)
+        fn(s)
+        with open(p, "w") as f:
+            json.dump(s, f)
+    return edit
+
+
+def _edit_npz(fn):
+    def edit(path):
+        p = os.path.join(path, "contact.npz")
+        with np.load(p, allow_pickle=False) as f:
+            data = {k: f[k] for k in f.files}
+        fn(data)
+        np.savez_compressed(p, **data)
+    return edit
+
+
+def _swap_columns(lines):
+    out = []
+    for line in lines:
+        fields = line.split(",")
+        if len(fields) > 3:
+            fields[2], fields[3] = fields[3], fields[2]
+        out.append(",".join(fields))
+    return out
+
+
+def _nan_in_row(lines):
+    fields = lines[3].split(",")
+    fields[4] = "nan"
+    lines[3] = ",".join(fields)
+    return lines
+
+
+def _flip_status(data):
+    status = data["final__status"].copy()
+    status[0] = 1 if status[0] != 1 else 2
+    data["final__status"] = status
+
+
+PLANTED = {
+    "column order": (_edit_csv(_swap_columns), "first 12 columns"),
+    "NaN": (_edit_csv(_nan_in_row), "non-finite"),
+    "empty field": (_edit_csv(lambda ls: [ls[0], ls[1].replace(",0,", ",,", 1)] + ls[2:]), "empty field"),
+    "step": (_edit_csv(lambda ls: [ls[0], "7" + ls[1][1:]] + ls[2:]), "'step'"),
+    "peak force": (_edit_summary(lambda s: s.update(peak_drawing_force=s["peak_drawing_force"] * 1.001)),
+                   "peak_drawing_force"),
+    "steady force": (_edit_summary(lambda s: s.update(steady_drawing_force=1.0)), "steady_drawing_force"),
+    "converged": (_edit_summary(lambda s: s.update(converged=False, message="x")), "converged"),
+    "variant": (_edit_summary(lambda s: s.update(variant="const_pressure")), "unknown variant"),
+    "missing key": (_edit_summary(lambda s: s.pop("device")), "'device'"),
+    "status": (_edit_npz(_flip_status), "status"),
+    "status dtype": (_edit_npz(lambda d: d.update(final__status=d["final__status"].astype(np.int64))), "int8"),
+    "instants": (_edit_npz(lambda d: d.update(instant_names=d["instant_names"][::-1].copy())), "instant"),
+    "clamping": (_edit_npz(lambda d: d.update(final__rn=d["final__rn"] * 1.01)), "clamping force"),
+    "small png": (lambda p: shutil.copy(os.path.join(os.path.dirname(jf.__file__), "..", "pyproject.toml"),
+                                        os.path.join(p, "mesh.png")), "mesh.png"),
+    "missing file": (lambda p: os.remove(os.path.join(p, "contact.png")), "contact.png: missing"),
+}
+
+
+@pytest.mark.parametrize("defect", list(PLANTED))
+def test_checker_catches_planted_defects(good_dir, tmp_path, defect):
+    edit, words = PLANTED[defect]
+    problems = _planted(good_dir, tmp_path, edit)
+    assert any(words in p for p in problems), problems
+
+
+def test_checker_rejects_nan_in_summary(good_dir, tmp_path):
+    def edit(path):
+        p = os.path.join(path, "summary.json")
+        with open(p) as f:
+            text = f.read()
+        with open(p, "w") as f:
+            f.write(text.replace('"max_penetration": ', '"max_penetration": NaN, "x": ', 1))
+    problems = _planted(good_dir, tmp_path, edit)
+    assert any("finite" in p for p in problems), problems
+
+
+def test_checker_png_size_from_ihdr(good_dir, tmp_path):
+    import matplotlib.pyplot as plt
+
+    def edit(path):
+        fig = plt.figure(figsize=(4, 3), dpi=100)
+        fig.savefig(os.path.join(path, "forces.png"))
+        plt.close(fig)
+    problems = _planted(good_dir, tmp_path, edit)
+    assert any("forces.png: 400 x 300 px" in p for p in problems), problems
+
+
+# ---- command line ---------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv, words", [
+    (["run", "cylinder"], "unknown scene"),
+    (["run", "flat_die", "--variant", "const_pressure"], "unknown variant"),
+    (["run", "nine", "--algorithm", "newton"], "unknown algorithm"),
+    (["run", "flat_die", "--set", "thickness=1"], "thickness"),
+    (["run", "flat_die", "--set", "U_draw=abc"], "U_draw"),
+    (["run", "flat_die", "--set", "U_draw"], "NAME=VALUE"),
+    (["run", "flat_die", "--mesh", "300by3"], "mesh"),
+    (["run", "flat_die", "--mesh", "0x3"], "mesh"),
+    (["run", "flat_die", "--tag", "bad tag"], "tag"),
+    (["run", "flat_die", "--frobnicate"], "unrecognized"),
+    (["run"], "scene"),
+])
+def test_cli_bad_input_is_one_line(capsys, argv, words):
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and words in err and "Traceback" not in err, err
+
+
+def test_cli_scenes_lists_fields(capsys):
+    assert cli.main(["scenes"]) == 0
+    text = capsys.readouterr().out
+    for word in ("flat_die", "bead", "nine", "blankholder", "shape9", "th135_mu017", "F_clamp", "N/mm",
+                 "lcp_ssn"):
+        assert word in text
+
+
+def test_cli_run_end_to_end(flat, tmp_path, capsys):
+    """Same structure as the `flat` fixture, so the compiled run is reused."""
+    out = str(tmp_path / "cli")
+    assert cli.main(["run", "flat_die", *SHORT, "--out", out, "--quiet", "--tag", "t1"]) == 0
+    text = capsys.readouterr().out
+    assert out in text and "steady drawing force" in text and "compile" in text
+    assert check_run_dir(out) == []
+    with open(os.path.join(out, "summary.json")) as f:
+        summary = json.load(f)
+    assert summary["scene"] == "flat_die" and summary["variant"] == "const_force" and summary["tag"] == "t1"
+    assert summary["mesh"] == [24, 2]
+
+
+def test_cli_failed_run_exits_non_zero(flat, tmp_path, capsys, monkeypatch):
+    import sys
+
+    run_module = sys.modules["jaxfric.run"]  # the package attribute `jaxfric.run` is the function
+    scene, result = flat
+    partial = dataclasses.replace(
+        result, history={k: v[:2] for k, v in result.history.items()},
+        snapshots={k: v for k, v in result.snapshots.items() if k < 2}, converged=False,
+        message="stopped after step 1: Newton did not converge")
+    monkeypatch.setattr(run_module, "run", lambda *a, **k: partial)
+    out = str(tmp_path / "cli")
+    assert cli.main(["run", "flat_die", *SHORT, "--out", out, "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Newton did not converge" in err
+    assert check_run_dir(out) == []
