@@ -4,8 +4,10 @@ A 300 x 3 strip (the Nine test's strip, material and cylinders A, B, C of benchm
 contact with three cylinders: B is pushed down by ``stroke`` mm, then the strip is drawn ``draw`` mm,
 with mu = 0.17 and eps_n = 1e5, eps_t = mu eps_n. For each contact algorithm available, prints and
 writes to ``experiments/results/bench_contact.csv``: steps, Newton iterations per step, augmentations
-per step (AL), wall time per Newton iteration of the whole run, and one linearisation (residual +
-tangent, contact included) at the final state against the same without contact.
+per step (AL), semismooth Newton iterations and Lemke pivots per step (exact contact), wall time per
+Newton iteration of the whole run, and one Newton iteration's linear algebra at the final state: for
+penalty and AL one linearisation (residual + tangent, contact included), for exact contact one
+linearisation plus the condensation and the contact solve, against the linearisation without contact.
 """
 
 from __future__ import annotations
@@ -19,7 +21,9 @@ import numpy as np
 
 import jaxfric as jf
 from benchutil import median_time, write_rows
-from jaxfric.contact import AugmentedLagrangian, Move, Penalty, RigidTool
+from jaxfric import exact
+from jaxfric.contact import AugmentedLagrangian, Complementarity, Move, Penalty, RigidTool
+from jaxfric.simulate import _Context, _step_args, _unknowns
 from jaxfric.tools import Tool
 
 R1, PITCH, E_SHEET = 5.5, 11.97, 0.97
@@ -41,8 +45,17 @@ def three_cylinders(law, stroke=3.0, draw=3.0, nx=300, ny=3, mu=0.17) -> jf.Stri
 
 
 def linearisation_ms(model: jf.StripModel, state, repeat: int) -> float:
-    """One residual + tangent evaluation at ``state`` (a draw step)."""
-    fn = jax.jit(lambda m, s: jf.linearize_step(m, s, 1, 1.5)[:2])
+    """One residual + tangent evaluation at ``state`` (a draw step); with exact contact, one whole
+    iteration's algebra: the bulk linearisation, the band's condensation and the contact solve."""
+    if isinstance(model.contact, Complementarity):
+        def iteration(m, s):
+            args, _, _ = _step_args(m, s, jnp.array(1), jnp.array(1.5), _Context.build(m))
+            x = _unknowns(m, s.u, s.contact.q)
+            p = jnp.stack([s.contact.rn, s.contact.rt], -1)
+            return exact._contact_newton_step(exact._linearize(x, args), args, x, p, m.contact)[:2]
+        fn = jax.jit(iteration)
+    else:
+        fn = jax.jit(lambda m, s: jf.linearize_step(m, s, 1, 1.5)[:2])
     return 1e3 * median_time(fn, model, state, repeat=repeat)
 
 
@@ -53,7 +66,8 @@ def main():
     parser.add_argument("--repeat", type=int, default=20)
     parser.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "bench_contact.csv"))
     args = parser.parse_args()
-    laws = {"penalty": Penalty(1e5, 0.17e5), "auglag": AugmentedLagrangian(1e5, 0.17e5, target_gap=1e-5)}
+    laws = {"penalty": Penalty(1e5, 0.17e5), "auglag": AugmentedLagrangian(1e5, 0.17e5, target_gap=1e-5),
+            "lcp_ssn": Complementarity("ssn"), "lcp_lemke": Complementarity("lemke")}
     rows = []
     for name, law in laws.items():
         model = three_cylinders(law, args.stroke, args.draw)
@@ -67,13 +81,17 @@ def main():
                                                      state.phase), args.repeat)
         row = dict(algorithm=name, converged=res.converged, n_steps=n_steps, newton_iters=iters,
                    iters_per_step=iters / n_steps, augmentations_per_step=h["augmentations"].sum() / n_steps,
+                   ssn_iters_per_step=h.get("ssn_iters", np.zeros(1)).sum() / n_steps,
+                   lemke_pivots_per_step=h.get("lcp_pivots", np.zeros(1)).sum() / n_steps,
+                   ssn_fallbacks=int(h.get("ssn_fallbacks", np.zeros(1)).sum()), cutbacks=int(h["cutbacks"].sum()),
                    compile_s=res.compile_s, wall_s=res.wall_s, ms_per_iteration_run=1e3 * res.wall_s / iters,
                    ms_linearisation_contact=with_c, ms_linearisation_no_contact=without,
                    contact_overhead=with_c / without - 1.0, max_penetration=float(h["max_penetration"].max()),
                    n_active_final=int(h["n_active"][-1]))
         rows.append(row)
         print(f"{name:>8}: {n_steps} steps, {row['iters_per_step']:.2f} it/step, "
-              f"{row['augmentations_per_step']:.2f} aug/step, run {res.wall_s:.2f} s = "
+              f"{row['augmentations_per_step']:.2f} aug/step, {row['ssn_iters_per_step']:.1f} ssn it/step, "
+              f"{row['lemke_pivots_per_step']:.0f} pivots/step, {row['cutbacks']} cutbacks, run {res.wall_s:.2f} s = "
               f"{row['ms_per_iteration_run']:.2f} ms/iteration (compile {res.compile_s:.1f} s); "
               f"linearisation {with_c:.2f} ms with contact vs {without:.2f} ms without "
               f"(+{100 * row['contact_overhead']:.0f} %), max penetration {row['max_penetration']:.2e} mm",

