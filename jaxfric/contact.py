@@ -41,7 +41,7 @@ from .contact_laws import OPEN, augmented_pair
 from .tools import Tool, project
 
 __all__ = ["Move", "Force", "RigidTool", "Penalty", "AugmentedLagrangian", "Complementarity", "ContactState", "ContactStep", "PairResult",
-           "initial_contact_state", "evaluate_pairs", "tool_forces", "split_pairs", "pair_nodes",
+           "initial_contact_state", "evaluate_pairs", "tool_forces", "split_pairs", "pair_nodes", "pair_mu",
            "max_penetration"]
 
 
@@ -340,6 +340,11 @@ def initial_contact_state(tools, nodes: jax.Array) -> ContactState:
 def pair_nodes(tools) -> np.ndarray:
     """(m,) sheet node of every candidate pair, tool after tool (static)."""
     return np.concatenate([np.asarray(t.candidates) for t in tools])
+
+
+def pair_mu(tools, mu) -> jax.Array:
+    """(m,) friction coefficient of every candidate pair, from ``mu`` per tool (tool after tool)."""
+    return jnp.concatenate([jnp.full(len(t.candidates), mu[k]) for k, t in enumerate(tools)])
 
 
 def max_penetration(status, gap) -> jax.Array:

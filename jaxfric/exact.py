@@ -49,11 +49,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from .assembly import internal_force_and_tangent
-from .contact import Complementarity, ContactStep, pair_nodes
+from .contact import Complementarity, ContactStep, pair_mu, pair_nodes, split_pairs
 from .lcp import ForceDrive, LemkeStatus, contact_status, diagonal_parameters, lemke_contact_callback, polish, ssn_contact
 from .linalg import BlockTridiag, block_tridiag_solve
 from .newton import NewtonOptions, NewtonSolution
 from .results import Result
+from .system import _constrain_rows
 from .tools import project
 
 __all__ = ["exact_solve"]
@@ -126,8 +127,7 @@ def _residual(x, it: _Iterate, p, args):
     f_pairs = _pair_forces(it, p)
     f_c = jnp.zeros_like(it.f_int).at[pair_nodes(c.tools)].add(f_pairs)
     R = jnp.where(args.mask, x[:n] - args.values, (it.f_int - f_c).reshape(-1))
-    sizes = np.cumsum([0] + [len(t.candidates) for t in c.tools])
-    tool_f = jnp.stack([jnp.sum(f_pairs[sizes[k]:sizes[k + 1]] @ t.drive) for k, t in enumerate(c.tools)])
+    tool_f = jnp.stack([jnp.sum(f @ t.drive) for f, t in zip(split_pairs(c.tools, f_pairs), c.tools)])
     rows = [jnp.where(c.force_mask[k], tool_f[k] - c.force[k], x[n + j] - c.q_presc[k])
             for j, k in enumerate(args.force_idx)]
     if rows:
@@ -168,15 +168,6 @@ def _band(it: _Iterate, tools, size: int | None) -> _Band:
 
 # ---- condensation -----------------------------------------------------------------------------------
 
-def _scaled_rows(K: BlockTridiag, mask, kappa) -> BlockTridiag:
-    """Rows of prescribed dofs replaced by kappa_i e_i."""
-    nb, m = K.diag.shape[0], K.diag.shape[1]
-    fixed = mask.reshape(nb, m)
-    keep = jnp.where(fixed, 0.0, 1.0)
-    diag = K.diag * keep[:, :, None] + jax.vmap(jnp.diag)(jnp.where(fixed, kappa.reshape(nb, m), 0.0))
-    return BlockTridiag(lower=K.lower * keep[1:, :, None], diag=diag, upper=K.upper * keep[:-1, :, None])
-
-
 def _decoupled(J: BlockTridiag, band_mask, scale) -> BlockTridiag:
     """J with the rows and columns of the band dofs replaced by ``scale`` times the identity."""
     nb, m = J.diag.shape[0], J.diag.shape[1]
@@ -199,7 +190,7 @@ def _condense(it: _Iterate, args, x, band: _Band, normal, f_c_prev) -> _Condense
     n = args.mesh.n_dofs
     K = it.K
     diag = jnp.abs(jax.vmap(jnp.diagonal)(K.diag).reshape(-1))
-    J = _scaled_rows(K, args.mask, KAPPA * diag)
+    J = _constrain_rows(K, args.mask, KAPPA * diag)
     b = jnp.where(args.mask, KAPPA * diag * (args.values - x[:n]) - f_c_prev.reshape(-1), -it.f_int.reshape(-1))
     dofs = (2 * band.nodes[:, None] + jnp.arange(2)[None, :]).reshape(-1)
     n_c2 = dofs.shape[0]
@@ -267,8 +258,7 @@ def _contact_newton_step(it: _Iterate, args, x, p_prev, law: Complementarity):
     normal = jnp.where(valid[:, None], it.normal[band.pairs], jnp.array([0.0, 1.0]))
     gap = jnp.where(valid, it.gap[band.pairs], GAP_FAR)
     pair_tool = np.concatenate([np.full(len(t.candidates), k) for k, t in enumerate(c.tools)])
-    mu_pairs = jnp.concatenate([jnp.full(len(t.candidates), c.mu[k]) for k, t in enumerate(c.tools)])
-    mu = jnp.where(valid, mu_pairs[band.pairs], 0.0)
+    mu = jnp.where(valid, pair_mu(c.tools, c.mu)[band.pairs], 0.0)
     slip = jnp.where(valid & (mu > 0), it.slip[band.pairs], 0.0)
     f_c_prev = jnp.zeros_like(it.f_int).at[pair_nodes(c.tools)].add(_pair_forces(it, p_prev))
     cond = _condense(it, args, x, band, normal, f_c_prev)
@@ -320,7 +310,7 @@ def _contact_out(it: _Iterate, p, tool_f, status):
 
 def _exact_newton(args, x0, x_ref, options: NewtonOptions, law: Complementarity):
     c = args.contact
-    mu_pairs = jnp.concatenate([jnp.full(len(t.candidates), c.mu[k]) for k, t in enumerate(c.tools)])
+    mu_pairs = pair_mu(c.tools, c.mu)
     m = mu_pairs.shape[0]
     pen_tol = 10.0 * options.du_atol
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from .assembly import internal_force, mesh_geometry
 from .contact import (AugmentedLagrangian, Complementarity, ContactState, ContactStep, Force, Move, Penalty,
-                      initial_contact_state, max_penetration, pair_nodes, split_pairs)
+                      initial_contact_state, max_penetration, pair_mu, pair_nodes, split_pairs)
 from .contact_laws import SLIP, STICK
 from .element import FORMULATIONS, ElementGeometry
 from .exact import exact_solve
@@ -417,8 +417,8 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
         kept = {k: v for k, v in c_out.items() if k != "slip"}  # slip is a per-attempt measure only
         # The stored status follows the spec's force thresholds (section 0) for every law, so that the
         # counts of closed and slipping pairs agree with the forces written out.
-        mu = jnp.concatenate([jnp.full(len(t.candidates), args.contact.mu[k]) for k, t in enumerate(model.tools)])
-        kept["status"] = contact_status(jnp.stack([kept["rn"], kept["rt"]], -1), mu).astype(jnp.int8)
+        kept["status"] = contact_status(jnp.stack([kept["rn"], kept["rt"]], -1),
+                                        pair_mu(model.tools, args.contact.mu)).astype(jnp.int8)
         new_contact = ContactState(q_start=q_start, f_start=f_start, **kept)
     new_state = SimState(u=sol.x[: model.mesh.n_dofs].reshape(-1, 2), material=states, f_int=f_int,
                          time=t_target, phase=phase, contact=new_contact)

@@ -45,12 +45,14 @@ class StepArgs(eqx.Module):
     force_idx: tuple = eqx.field(static=True)
 
 
-def _constrain_rows(K: BlockTridiag, mask: jax.Array) -> BlockTridiag:
-    """Replace the rows of prescribed dofs by identity rows (keeps the block structure)."""
+def _constrain_rows(K: BlockTridiag, mask: jax.Array, scale=1.0) -> BlockTridiag:
+    """Replace the row of every prescribed dof i by ``scale_i e_i`` (default: identity rows; ``scale``
+    a scalar or one value per dof); keeps the block structure."""
     nb, m = K.diag.shape[0], K.diag.shape[1]
     fixed = mask.reshape(nb, m)
     keep = jnp.where(fixed, 0.0, 1.0)
-    diag = K.diag * keep[:, :, None] + jax.vmap(jnp.diag)(1.0 - keep)
+    scale = jnp.broadcast_to(jnp.asarray(scale, K.diag.dtype), mask.shape).reshape(nb, m)
+    diag = K.diag * keep[:, :, None] + jax.vmap(jnp.diag)((1.0 - keep) * scale)
     return BlockTridiag(lower=K.lower * keep[1:, :, None], diag=diag, upper=K.upper * keep[:-1, :, None])
 
 

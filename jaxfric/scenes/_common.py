@@ -16,7 +16,7 @@ import numpy as np
 
 from ..contact import max_penetration, split_pairs
 from ..contact_laws import SLIP
-from ..loading import Phase
+from ..loading import Phase, schedule
 from ..simulate import StepControl, reactions
 from ..tools import GAP_OPEN
 from .base import ALGORITHMS
@@ -24,7 +24,7 @@ from .base import ALGORITHMS
 __all__ = ["spec_field", "check_config", "check_variant", "check_algorithm", "pair_forces",
            "tool_resultants", "contact_columns", "phase_progress", "ContactSnapshot", "n_steps",
            "schedule_entry", "friction_table", "material_dict", "config_dict", "end_reaction",
-           "nominal_step_count", "resolve_eps_t", "step_control"]
+           "resolve_eps_t", "step_control"]
 
 
 def spec_field(default, unit: str, doc: str):
@@ -177,10 +177,6 @@ class ContactSnapshot(eqx.Module):
 
 # ---- JSON description ----------------------------------------------------------------------------
 
-def nominal_step_count(phases) -> int:
-    return sum(n for p in phases for _, n in p.increments)
-
-
 def step_control(phases) -> StepControl:
     """The spec's step controller (section 1.9: StepControl defaults) with a history buffer of
     10x the nominal step count + 200 rows.
@@ -191,7 +187,7 @@ def step_control(phases) -> StepControl:
     110 steps this way. The buffer holds a few dozen scalars per row (~2 MB for the longest scene), so
     10x costs little, while a full buffer stops the run (Result.MAX_STEPS).
     """
-    return StepControl(max_steps=10 * nominal_step_count(phases) + 200)
+    return StepControl(max_steps=10 * schedule(phases).n_nominal_steps + 200)
 
 
 def schedule_entry(phase: Phase, control: str, variable: str, unit: str, start: float | None,
