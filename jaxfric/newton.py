@@ -73,6 +73,7 @@ class Linearization(NamedTuple):
     valid: jax.Array         # () bool: False for an inadmissible configuration (inverted element)
     aux: Any                 # by-products at x
     status: Any = None       # optional int array (contact status): must not change in the last iteration
+    prescribed_error: Any = None  # optional () max |x - x_presc| over prescribed dofs (mm)
 
 
 class NewtonSolution(NamedTuple):
@@ -110,30 +111,37 @@ def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions):
         k, n_acc, x, lin, dx, code, alpha, dx_norm, r_hist = carry
         # A new Newton direction from the last accepted iterate, unless the last trial was rejected:
         # then the same direction with half the step (backtracking).
-        dx = jax.lax.cond(alpha < 1.0, lambda: dx, lambda: linear_solve(lin.jacobian, -lin.residual))
+        backtrack = alpha < 1.0
+        dx = jax.lax.cond(backtrack, lambda: dx, lambda: linear_solve(lin.jacobian, -lin.residual))
+        alpha = jnp.where(backtrack, alpha, 1.0)
         x_trial = x + alpha * dx
         new = linearize(x_trial, args)
-        # Reject a step that increases ||R||_2 (not the first one, which applies the prescribed
-        # increments and changes which rows carry the residual), down to 1/16 of the full step.
+        # Reject a step that increases ||R||_2, down to 1/16 of the full step. Not the first step when
+        # it applies the prescribed increments (it changes which rows carry the residual); when the
+        # start point already meets them (a predictor), the first step is searched like the others.
         worse = ~(jnp.sum(new.residual**2) <= jnp.sum(lin.residual**2))
-        reject = options.line_search & (n_acc >= 1) & worse & (alpha > 1.0 / 16.0)
         # Contact: converged only if no pair changed status (open/stick/slip) in this iteration.
         same = jnp.array(True) if new.status is None else jnp.all(new.status == lin.status)
         step_norm = jnp.max(jnp.abs(alpha * dx))
         code_new, r_norm = classify(k + 1, x_trial, new, step_norm, same)
+        # (A trial that passes the convergence test is never rejected: at round-off level the norm
+        # may grow by noise.)
+        reject = (options.line_search & ((n_acc >= 1) | start_meets) & worse & (alpha > 1.0 / 16.0)
+                  & (code_new != Result.SUCCESS))
         # A rejected trial still counts as an iteration (it cost a linearisation).
         code = jnp.where(reject & (k + 1 < options.max_iterations), Result.CONTINUE, code_new).astype(jnp.int32)
         keep = lambda a, b: jnp.where(reject, a, b)  # noqa: E731
         return (k + 1, n_acc + jnp.where(reject, 0, 1), keep(x, x_trial), jax.tree_util.tree_map(keep, lin, new),
-                dx, code, jnp.where(reject, 0.5 * alpha, 1.0), keep(dx_norm, step_norm),
+                dx, code, jnp.where(reject, 0.5 * alpha, jnp.inf), keep(dx_norm, step_norm),
                 r_hist.at[k + 1].set(r_norm))
 
     lin0 = linearize(x0, args)
+    start_meets = jnp.array(False) if lin0.prescribed_error is None else lin0.prescribed_error <= 1e-12
     code0, r0 = classify(0, x0, lin0, jnp.array(jnp.inf), jnp.array(True))
     r_hist = jnp.full(options.max_iterations + 1, jnp.nan).at[0].set(r0)
     int0 = jnp.array(0, jnp.int32)
     k, _, x, lin, _, code, _, _, r_hist = jax.lax.while_loop(
-        cond, body, (int0, int0, x0, lin0, jnp.zeros_like(x0), code0, jnp.array(1.0), jnp.array(jnp.inf),
+        cond, body, (int0, int0, x0, lin0, jnp.zeros_like(x0), code0, jnp.array(jnp.inf), jnp.array(jnp.inf),
                      r_hist))
     return NewtonSolution(x, lin.aux, k, code, r_hist[k], r_hist), lin.jacobian
 

@@ -176,5 +176,7 @@ def linearize(x, args: StepArgs) -> Linearization:
         J = Bordered(A=_constrain_rows(K.A, args.mask), B=K.B, C=K.C, D=K.D)
     else:
         J = _constrain_rows(K, args.mask)
+    presc = jnp.max(jnp.where(args.mask, jnp.abs(R[: args.mesh.n_dofs]), 0.0))
     return Linearization(R, J, jnp.max(jnp.abs(a.f_int)), a.det_min > 0.0,
-                         (a.f_int, a.states, aux_contact), status)
+                         (a.f_int, a.states, aux_contact), status, presc)
+
