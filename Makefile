@@ -13,7 +13,7 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 run: $(VENV)/.installed
-	$(PY) -m jaxfric.demo --out demo_out
+	$(VENV)/bin/jaxfric run nine --variant mu017
 
 test: $(VENV)/.installed
 	$(PY) -m pytest -q -m "not slow"
@@ -25,4 +25,4 @@ bench: $(VENV)/.installed
 	$(PY) experiments/bench_core.py
 
 clean:
-	rm -rf $(VENV) demo_out .pytest_cache
+	rm -rf $(VENV) runs .pytest_cache

@@ -161,11 +161,16 @@ def _run(args) -> int:
     steady = summary["steady_drawing_force"]
     a, b = summary["steady_window"]
     print(f"run directory: {out}")
+    print("figures: " + ", ".join(os.path.join(out, f) for f in ("forces.png", "contact.png", "mesh.png")))
     print(f"steady drawing force: {'n/a' if steady is None else f'{steady:.6g} N/mm'} "
           f"(window U in [{a:g}, {b:g}] mm)")
     print(f"steps {summary['n_steps']}, Newton iterations {summary['newton_iters_total']}, "
           f"cutbacks {summary['n_cutbacks']}; solve {summary['wall_s']:.2f} s, compile "
           f"{summary['compile_s']:.2f} s")
+    est = summary["error_estimate"]
+    print(f"wall time {summary['wall_s'] + summary['compile_s']:.2f} s; error estimate of the "
+          f"{est['quantity'].replace('_', ' ')}: +/- {est['absolute']:.3g} N/mm ({100 * est['relative']:.2g} %; "
+          + ", ".join(f"{k} {100 * v:.2g} %" for k, v in est["components"].items()) + ")")
     if not summary["converged"]:
         return _error(f"run did not complete (partial results written to {out}): {summary['message']}",
                       EXIT_FAILED)

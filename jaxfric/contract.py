@@ -250,9 +250,28 @@ _SUMMARY_TYPES = {
     "n_cutbacks": "int", "wall_s": "float", "compile_s": "float", "converged": "bool", "message": "str",
     "max_penetration": "float", "steady_window": "float2", "steady_drawing_force": "float|null",
     "peak_drawing_force": "float", "final_clamping_force": "float", "instants": "strlist",
-    "instants_fallback": "strlist", "mean_augmentations": "float|null", "dtype": "str", "device": "str",
-    "jax_version": "str", "created_utc": "str",
+    "instants_fallback": "strlist", "mean_augmentations": "float|null", "error_estimate": "object", "dtype": "str",
+    "device": "str", "jax_version": "str", "created_utc": "str",
 }
+
+
+def _check_error_estimate(get) -> list:
+    """error_estimate: the main output's value and a finite, non-negative relative error."""
+    est = get("error_estimate")
+    if not isinstance(est, dict):
+        return []
+    keys = ("quantity", "value", "relative", "absolute", "components")
+    missing = [k for k in keys if k not in est]
+    if missing:
+        return [f"summary.json: error_estimate lacks {', '.join(missing)}"]
+    if est["quantity"] not in ("steady_drawing_force", "peak_drawing_force"):
+        return [f"summary.json: error_estimate quantity {est['quantity']!r} is not a drawing force"]
+    rel = est["relative"]
+    if not (_is_number(rel) and math.isfinite(rel) and rel >= 0):
+        return ["summary.json: error_estimate relative must be a finite number >= 0"]
+    if _is_number(get(est["quantity"])) and not _close(est["value"], get(est["quantity"])):
+        return [f"summary.json: error_estimate value != {est['quantity']}"]
+    return []
 
 
 def _type_ok(value, kind: str) -> bool:
@@ -358,6 +377,7 @@ def _check_summary(s: dict, cols: dict | None, out: list) -> None:
             out.append("summary.json: mean_augmentations must be a number for auglag")
     elif get("mean_augmentations") is not None:
         out.append("summary.json: mean_augmentations must be null unless auglag")
+    out += _check_error_estimate(get)
 
 
 def _find_key(obj, key: str) -> list:

@@ -23,8 +23,8 @@ import numpy as np
 
 __all__ = ["SCHEMA_VERSION", "REQUIRED_COLUMNS", "INT_COLUMNS", "ALGORITHM_EXTRAS", "SCENE_PHASES",
            "SCENE_INSTANTS", "STEADY_TOL", "GAP_NO_PROJECTION", "OutputError", "select_instants",
-           "steady_rows", "steady_drawing_force", "steady_window", "contact_status", "history_table",
-           "write_run", "format_title"]
+           "steady_rows", "steady_drawing_force", "error_estimate", "steady_window", "contact_status",
+           "history_table", "write_run", "format_title"]
 
 SCHEMA_VERSION = 1
 
@@ -343,6 +343,46 @@ def format_title(scene_name: str, variant: str, algorithm: str, tag: str | None 
     return " / ".join(parts)
 
 
+SOLVER_RTOL = 1e-8  # Newton's relative residual tolerance (jaxfric.newton.NewtonOptions default)
+
+
+def error_estimate(scene, values: dict, window, steady) -> dict:
+    """An a-posteriori estimate of the error of the run's main output, from this run alone.
+
+    The main output is the steady drawing force F̄ (the peak drawing force where no steady value
+    exists). Three relative contributions, combined in quadrature:
+
+    - ``contact``: the largest penetration over the run divided by the modelled sheet thickness (the
+      half thickness where a scene uses symmetry). A penetration
+      delta shifts the strip's path through the tools by delta, and the bending and friction work that
+      make the drawing force scale with the thickness (force ~ t^2 / R for bending, the path for
+      friction), so delta / t is the order of the relative force error. It is what separates a penalty
+      run from the exact contact (LCP) answer; it vanishes as eps_n grows or the AL target shrinks.
+    - ``scatter``: the standard deviation of the drawing force over the steady window divided by F̄:
+      the force oscillates as the nodes pass the tools, which measures the mesh and step resolution
+      of the steady regime (absent for the peak force).
+    - ``solver``: Newton's relative residual tolerance.
+
+    This is an order-of-magnitude indicator, not a bound; the accuracy-cost study compares it with
+    the error against converged references.
+    """
+    nodes = np.asarray(scene.model.mesh.nodes)
+    left = np.asarray(scene.model.mesh.left)
+    thickness = float(np.ptp(nodes[left, 1])) or 1.0
+    force = np.asarray(values["drawing_force"], dtype=np.float64)
+    parts = {"contact": float(max(values["max_penetration"])) / thickness, "solver": SOLVER_RTOL}
+    if steady is not None:
+        quantity, value = "steady_drawing_force", float(steady)
+        rows = steady_rows(values["phase"], values["drawing_displacement"], window)
+        parts["scatter"] = float(np.std(force[rows])) / abs(value) if value else 0.0
+    else:
+        quantity, value = "peak_drawing_force", float(np.max(force))
+    relative = math.sqrt(math.fsum(v * v for v in parts.values()))
+    return {"quantity": quantity, "value": value, "relative": relative, "absolute": relative * abs(value),
+            "components": parts, "method": "quadrature sum of max_penetration / thickness, steady-window "
+            "force scatter / mean, and the Newton tolerance (jaxfric.output.error_estimate)"}
+
+
 def _summary(scene, result, tag, values, instants, fallback, window, steady, notes) -> dict:
     import jax
 
@@ -385,6 +425,7 @@ def _summary(scene, result, tag, values, instants, fallback, window, steady, not
         "instants": list(instants),
         "instants_fallback": list(fallback),
         "mean_augmentations": mean_aug,
+        "error_estimate": error_estimate(scene, values, window, steady),
         "dtype": "float64",
         "device": _device(),
         "jax_version": jax.__version__,

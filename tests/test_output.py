@@ -153,6 +153,24 @@ def test_write_run_passes_the_checker(good_dir, flat):
         assert data["final__status"].dtype == np.int8
 
 
+def test_error_estimate_components(good_dir, flat):
+    """The estimate is rebuilt from its definition: penetration / thickness, steady-window force
+    scatter / mean, Newton tolerance, in quadrature."""
+    path, summary = good_dir
+    scene, result = flat
+    est = summary["error_estimate"]
+    assert est["quantity"] == "steady_drawing_force" and est["value"] == summary["steady_drawing_force"]
+    t = scene.config.h  # the modelled (half) thickness of the flat die
+    assert est["components"]["contact"] == pytest.approx(summary["max_penetration"] / t, rel=1e-12)
+    hist = result.history
+    rows = output.steady_rows(hist["phase_name"], hist["drawing_displacement"], summary["steady_window"])
+    scatter = np.std(hist["drawing_force"][rows]) / summary["steady_drawing_force"]
+    assert est["components"]["scatter"] == pytest.approx(scatter, rel=1e-9, abs=1e-15)
+    total = np.sqrt(sum(v**2 for v in est["components"].values()))
+    assert est["relative"] == pytest.approx(total, rel=1e-12) and est["relative"] > 0
+    assert est["absolute"] == pytest.approx(total * est["value"], rel=1e-12)
+
+
 def test_partial_run_writes_a_conforming_directory(flat, tmp_path):
     """A run stopped in the middle of `clamp` still writes all six files; only `final` is stored."""
     scene, result = flat
@@ -295,6 +313,7 @@ PLANTED = {
     "small png": (lambda p: shutil.copy(os.path.join(os.path.dirname(jf.__file__), "..", "pyproject.toml"),
                                         os.path.join(p, "mesh.png")), "mesh.png"),
     "missing file": (lambda p: os.remove(os.path.join(p, "contact.png")), "contact.png: missing"),
+    "error estimate": (_edit_summary(lambda s: s["error_estimate"].update(relative=-1.0)), "error_estimate"),
 }
 
 
@@ -362,6 +381,7 @@ def test_cli_run_end_to_end(flat, tmp_path, capsys):
     assert cli.main(["run", "flat_die", *SHORT, "--out", out, "--quiet", "--tag", "t1"]) == 0
     text = capsys.readouterr().out
     assert out in text and "steady drawing force" in text and "compile" in text
+    assert "wall time" in text and "error estimate of the steady drawing force" in text
     assert check_run_dir(out) == []
     with open(os.path.join(out, "summary.json")) as f:
         summary = json.load(f)
