@@ -47,6 +47,17 @@ def check_nonnegative(name: str, value) -> None:
         raise ValueError(f"field '{name}' must be a finite number >= 0, got {v}")
 
 
+def check_int(name: str, value, minimum: int = 1, maximum: int = 2**31 - 1, optional: bool = False) -> int | None:
+    """``value`` must be a Python or NumPy integer (not a bool, not a float) in [minimum, maximum]."""
+    if optional and value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not minimum <= value <= maximum:
+        bound = f"in [{minimum}, {maximum}]" if maximum < 2**31 - 1 else f">= {minimum}"
+        raise ValueError(f"field '{name}' must be an integer {bound}{' or None' if optional else ''}, "
+                         f"got {value!r}")
+    return int(value)
+
+
 def check_finite_array(name: str, value) -> None:
     if is_concrete(value) and not np.all(np.isfinite(np.asarray(value))):
         raise ValueError(f"field '{name}' contains non-finite values")

@@ -145,12 +145,28 @@ def _build(args):
         raise UsageError(str(err)) from None
 
 
+def _writable_dir(out: str) -> None:
+    """Create the run directory now, before the run, and prove it takes a file: an unwritable
+    ``--out`` is bad input, not a failure after minutes of computing."""
+    if not out.strip():
+        raise UsageError("--out must name a directory, got an empty string")
+    try:
+        os.makedirs(out, exist_ok=True)
+        probe = os.path.join(out, ".jaxfric-write-test")
+        with open(probe, "w"):
+            pass
+        os.remove(probe)
+    except OSError as err:
+        raise UsageError(f"--out {out!r} is not a writable directory: {err.strerror or err}") from None
+
+
 def _run(args) -> int:
     scene = _build(args)
     from . import output
     from .run import run
 
-    out = args.out or os.path.join("runs", scene.name, scene.variant, scene.algorithm)
+    out = os.path.join("runs", scene.name, scene.variant, scene.algorithm) if args.out is None else args.out
+    _writable_dir(out)
     label = f"{scene.name}/{scene.variant}/{scene.algorithm} "
     result = run(scene.model, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
                  progress=not args.quiet, raise_on_failure=False, label=label)

@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_nonnegative, is_concrete
+from ._checks import check_int, check_nonnegative, is_concrete
 from .contact_laws import OPEN, augmented_pair
 from .tools import Tool, project
 
@@ -180,9 +180,7 @@ class AugmentedLagrangian(Penalty):
         if is_concrete(target_gap) and not float(target_gap) > 0:
             raise ValueError(f"field 'target_gap' must be > 0, got {float(target_gap)}")
         self.target_gap = jnp.asarray(target_gap, jnp.float64)
-        if isinstance(max_augmentations, bool) or int(max_augmentations) < 1:
-            raise ValueError(f"field 'max_augmentations' must be an integer >= 1, got {max_augmentations!r}")
-        self.max_augmentations = int(max_augmentations)
+        self.max_augmentations = check_int("max_augmentations", max_augmentations, 1, 10_000)
 
 
 class Complementarity(eqx.Module):
@@ -206,10 +204,8 @@ class Complementarity(eqx.Module):
     def __check_init__(self):
         if self.solver not in ("ssn", "lemke"):
             raise ValueError(f"field 'solver' must be 'ssn' or 'lemke', got {self.solver!r}")
-        if self.band is not None and (isinstance(self.band, bool) or int(self.band) < 1):
-            raise ValueError(f"field 'band' must be None or an integer >= 1, got {self.band!r}")
-        if int(self.ssn_max_iter) < 1:
-            raise ValueError(f"field 'ssn_max_iter' must be >= 1, got {self.ssn_max_iter!r}")
+        check_int("band", self.band, optional=True)
+        check_int("ssn_max_iter", self.ssn_max_iter, 1, 10_000)
 
 
 class ContactState(eqx.Module):

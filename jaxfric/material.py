@@ -60,6 +60,12 @@ def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
+def _number_like(name: str, value) -> None:
+    """A material constant must be a number (or an array / tracer of them): name it otherwise."""
+    if value is None or isinstance(value, (str, bytes, bool)):
+        raise ValueError(f"J2Material: {name} = {value!r} is invalid: it must be a number.")
+
+
 class J2Material(eqx.Module):
     """Plane-strain finite-strain J2 plasticity, Hencky energy in log elastic strains,
     sigma_Y = sigma_y (1 + A eqps)^n.
@@ -84,6 +90,8 @@ class J2Material(eqx.Module):
     n: jax.Array
 
     def __init__(self, E, nu, sigma_y, A, n):
+        for name, value in (("E", E), ("nu", nu), ("sigma_y", sigma_y), ("A", A), ("n", n)):
+            _number_like(name, value)
         self.E = jnp.asarray(E, jnp.float64)
         self.nu = jnp.asarray(nu, jnp.float64)
         self.sigma_y = jnp.asarray(sigma_y, jnp.float64)

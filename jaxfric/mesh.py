@@ -16,9 +16,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_positive, check_finite_array
+from ._checks import check_finite, check_finite_array, check_positive
 
-__all__ = ["StripMesh", "strip_mesh", "graded_coordinates"]
+__all__ = ["StripMesh", "strip_mesh", "graded_coordinates", "MAX_ELEMENTS"]
+
+MAX_ELEMENTS = 1_000_000  # per direction: beyond any mesh a 2D strip needs, and far from int32 limits
 
 
 class StripMesh(eqx.Module):
@@ -145,8 +147,10 @@ def strip_mesh(x_left, x_right, y_bottom, thickness, nx: int, ny: int,
         grading_x, grading_y: ratio of successive element sizes (1 = uniform).
     """
     for name, value in (("nx", nx), ("ny", ny)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-            raise ValueError(f"mesh field '{name}' must be an integer >= 1, got {value!r}")
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= MAX_ELEMENTS:
+            raise ValueError(f"mesh field '{name}' must be an integer in [1, {MAX_ELEMENTS}], got {value!r}")
+    for name, value in (("x_left", x_left), ("x_right", x_right), ("y_bottom", y_bottom)):
+        check_finite(name, value)
     check_positive("thickness", thickness)
     check_positive("length (x_right - x_left)", _difference(x_right, x_left))
     check_positive("grading_x", grading_x)

@@ -516,7 +516,10 @@ def write_run(scene, result, out_dir, tag: str | None = None, figures: bool = Tr
     """
     if tag is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._+-]*", tag):
         raise ValueError(f"field 'tag' must match [A-Za-z0-9][A-Za-z0-9._+-]*, got {tag!r}")
-    os.makedirs(out_dir, exist_ok=True)
+    try:
+        os.makedirs(out_dir, exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"run directory {out_dir} cannot be created: {err.strerror or err}") from None
     columns, lines, values = history_table(scene, result)
     text = ",".join(columns) + "\n" + "".join(line + "\n" for line in lines)
     _write_text(os.path.join(out_dir, "history.csv"), text)

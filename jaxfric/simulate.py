@@ -40,7 +40,7 @@ from .progress import report
 from .results import Result
 from .system import StepArgs, linearize, residual
 from .tools import project
-from ._checks import is_concrete
+from ._checks import check_int, check_nonnegative, is_concrete
 
 __all__ = ["StripModel", "SimState", "StepControl", "History", "Simulation", "initial_state",
            "default_observe", "stresses", "solve_step", "linearize_step", "reactions",
@@ -159,6 +159,15 @@ class StepControl(eqx.Module):
     easy_iterations: int = eqx.field(static=True, default=6)
     easy_steps: int = eqx.field(static=True, default=2)
     max_steps: int | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        check_int("max_cuts", self.max_cuts, 0, 60)
+        check_int("easy_iterations", self.easy_iterations, 1)
+        check_int("easy_steps", self.easy_steps, 1)
+        check_int("max_steps", self.max_steps, 1, 10_000_000, optional=True)
+        check_nonnegative("growth", self.growth)
+        if not self.growth >= 1.0:
+            raise ValueError(f"field 'growth' must be a finite number >= 1, got {self.growth!r}")
 
 
 class History(eqx.Module):

@@ -57,7 +57,7 @@ def test_tangent_is_block_tridiagonal_and_matches_dense_jacobian():
     (dict(nx=0), "nx"),
     (dict(ny=0), "ny"),
     (dict(nx=2.5), "nx"),
-    (dict(x_right=float("inf")), "length"),
+    (dict(x_right=float("inf")), "x_right"),
 ])
 def test_bad_mesh_input_names_the_field(kwargs, field):
     args = dict(x_left=0.0, x_right=1.0, y_bottom=0.0, thickness=1.0, nx=2, ny=2)

@@ -14,8 +14,11 @@ their metadata), ``VARIANTS`` (field overrides per variant), ``DEFAULT_VARIANT``
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
+
+from ..mesh import MAX_ELEMENTS
 
 from . import bead, blankholder, flat_die, nine
 from .base import ALGORITHMS, Scene, contact_law
@@ -64,6 +67,8 @@ def parse_mesh(text) -> tuple[int, int]:
     """"NXxNY" (e.g. "300x3") -> (nx, ny); a pair of integers is passed through."""
     if isinstance(text, (tuple, list)) and len(text) == 2:
         nx, ny = text
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in text):
+            raise ValueError(f"field 'mesh' needs two finite integers, got {text!r}")
     else:
         parts = str(text).strip().lower().split("x")
         if len(parts) != 2:
@@ -72,8 +77,8 @@ def parse_mesh(text) -> tuple[int, int]:
             nx, ny = int(parts[0]), int(parts[1])
         except ValueError:
             raise ValueError(f"field 'mesh' must read NXxNY with integers (e.g. 300x3), got {text!r}") from None
-    if isinstance(nx, bool) or isinstance(ny, bool) or int(nx) != nx or int(ny) != ny or nx < 1 or ny < 1:
-        raise ValueError(f"field 'mesh' needs integers >= 1, got {text!r}")
+    if int(nx) != nx or int(ny) != ny or not (1 <= nx <= MAX_ELEMENTS and 1 <= ny <= MAX_ELEMENTS):
+        raise ValueError(f"field 'mesh' needs integers in [1, {MAX_ELEMENTS}], got {text!r}")
     return int(nx), int(ny)
 
 
@@ -89,6 +94,10 @@ def _field_type(name: str, field: str):
     return typing.get_origin(base) or base, optional
 
 
+_BOOLEANS = {"true": True, "yes": True, "on": True, "1": True, "false": False, "no": False, "off": False,
+             "0": False}
+
+
 def parse_override(name: str, field: str, text: str):
     """Convert the string ``text`` to the type of config field ``field`` of scene ``name``.
 
@@ -100,18 +109,21 @@ def parse_override(name: str, field: str, text: str):
     if optional and raw.lower() in ("none", "null", ""):
         return None
     try:
+        if kind is bool:
+            return _BOOLEANS[raw.lower()]
         if kind is float:
             return float(raw)
         if kind is int:
             value = float(raw)
-            if value != int(value):
+            if not math.isfinite(value) or value != int(value) or abs(value) > 2**31 - 1:
                 raise ValueError
             return int(value)
         if kind is tuple:
             return tuple(float(v) for v in raw.strip("()[] ").split(","))
         return raw
-    except ValueError:
-        what = {float: "a number", int: "an integer", tuple: "comma-separated numbers"}.get(kind, "a value")
+    except (ValueError, KeyError):
+        what = {float: "a number", int: "an integer (below 2**31)", tuple: "comma-separated numbers",
+                bool: "true or false"}.get(kind, "a value")
         raise ValueError(f"config field '{field}' of scene '{name}' must be {what}, got {text!r}") from None
 
 
@@ -125,6 +137,8 @@ def _coerce(name: str, field: str, value):
         if not optional:
             raise ValueError(f"config field '{field}' of scene '{name}' cannot be None")
         return None
+    if kind is bool and not isinstance(value, bool):
+        raise ValueError(f"config field '{field}' of scene '{name}' must be True or False, got {value!r}")
     if kind is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
     if kind is tuple and isinstance(value, list):
@@ -142,7 +156,12 @@ def make(name: str, variant: str | None = None, algorithm: str = "penalty",
         raise ValueError(f"unknown variant {variant!r} of scene '{name}'; choose one of "
                          f"{', '.join(module.VARIANTS)}")
     values = dict(module.VARIANTS[variant])
-    for field, value in (overrides or {}).items():
+    overrides = {} if overrides is None else overrides
+    if not isinstance(overrides, dict):
+        raise ValueError(f"field 'overrides' must be a dict of config field -> value, got {type(overrides).__name__}")
+    if "mesh" in overrides and ({"nx", "ny"} & set(overrides)):
+        raise ValueError("give the mesh either as 'mesh' (NXxNY) or as 'nx'/'ny', not both")
+    for field, value in overrides.items():
         if field == "mesh":
             values["nx"], values["ny"] = parse_mesh(value)
         else:

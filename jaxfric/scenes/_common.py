@@ -34,6 +34,9 @@ def spec_field(default, unit: str, doc: str):
 
 # ---- validation -------------------------------------------------------------------------------------
 
+MAX_NOMINAL_STEPS = 1_000_000  # per phase: an increment that needs more is a typo, not a study
+
+
 def _bad(field: str, value, why: str) -> ValueError:
     return ValueError(f"config field '{field}' = {value!r} is invalid: {why}")
 
@@ -108,9 +111,12 @@ def resolve_eps_t(config, mu_max: float) -> float:
 
 def n_steps(field: str, length: float, increment: float) -> int:
     """Number of nominal steps of size ``increment`` covering ``length`` (at least 1)."""
-    if not increment > 0:
+    if not _number(field, increment) > 0:
         raise _bad(field, increment, "a nominal increment must be > 0")
-    return max(1, int(round(abs(length) / increment)))
+    count = abs(_number(field, length)) / increment
+    if count > MAX_NOMINAL_STEPS:
+        raise _bad(field, increment, f"it would take {count:.3g} nominal steps (at most {MAX_NOMINAL_STEPS:,})")
+    return max(1, int(round(count)))
 
 
 # ---- per-step columns -------------------------------------------------------------------------------

@@ -1,0 +1,342 @@
+"""Malformed input through the command line and the Python API.
+
+Requirement: every malformed input (unknown scene, variant, algorithm or field; wrong types; negative,
+zero, NaN and infinite values; meshes of size 0; contradictory options; an unwritable output
+directory; a ``--set`` value that does not parse) gives a non-zero exit status or an exception with a
+one-line message naming the field, no traceback on the command line, and no partial state written as
+if the run had succeeded.
+
+Command-line cases run ``jaxfric.cli.main`` in-process with the simulation replaced by a stub that
+raises :class:`SimulationStarted`: bad input must be refused before any simulation starts, and a case
+that gets through fails fast instead of running one. Each case also runs in an empty working directory
+that must stay empty (no ``runs/...`` written by default).
+
+Related cases elsewhere (not repeated here): ``test_output.test_cli_bad_input_is_one_line``,
+``test_scenes.test_parse_helpers`` / ``test_bad_field_values_name_the_field`` /
+``test_unknown_identifiers``, ``test_mesh.test_bad_mesh_input_names_the_field``,
+``test_material.test_bad_values_raise``, ``test_contact.test_bad_contact_input_names_the_field`` and
+``test_tools.test_bad_input_raises_value_error_naming_the_field``.
+"""
+
+import importlib
+import math
+
+import pytest
+
+import jaxfric as jf
+from jaxfric import cli, output, scenes
+from jaxfric.contact import AugmentedLagrangian, Complementarity, Penalty
+
+NAN, INF = math.nan, math.inf
+PREFIX = "jaxfric: error: "
+TINY = ["--mesh", "4x1"]  # keeps a case that wrongly gets through cheap even without the stub
+# The module `jaxfric.run` (the package attribute `jaxfric.run` is the function).
+RUN_MODULE = importlib.import_module("jaxfric.run")
+
+
+class SimulationStarted(Exception):
+    """Raised by the stubbed simulation: the input got past validation."""
+
+
+@pytest.fixture
+def workdir(tmp_path, monkeypatch):
+    """An empty working directory, and a simulation that refuses to start."""
+    def refuse(*args, **kwargs):
+        raise SimulationStarted("the input reached the simulation")
+
+    monkeypatch.setattr(RUN_MODULE, "run", refuse)
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    return work
+
+
+def cli_error(capsys, argv, codes=(2,)):
+    """Run the command line; check a non-zero status in ``codes`` and one error line; return it."""
+    status = cli.main(argv)
+    captured = capsys.readouterr()
+    assert status in codes, (status, captured.err)
+    assert "Traceback" not in captured.err + captured.out
+    assert captured.err.endswith("\n") and captured.err.count("\n") == 1, repr(captured.err)
+    line = captured.err.rstrip("\n")
+    assert line.startswith(PREFIX) and line[len(PREFIX):].strip(), line
+    return line
+
+
+# ---- command line: bad input is refused before any simulation -------------------------------------------
+
+CLI_CASES = [
+    # unknown scene, variant, algorithm, field, subcommand, option
+    (["run", "Nine"], "unknown scene 'Nine'"),
+    (["run", ""], "unknown scene ''"),
+    (["run", "flat_die", "--variant", "mu017"], "unknown variant 'mu017'"),  # a variant of nine
+    (["run", "bead", "--variant", ""], "unknown variant ''"),
+    (["run", "flat_die", "--variant", "const_force", "--variant", "const"], "unknown variant 'const'"),
+    (["run", "nine", "--algorithm", "Penalty"], "unknown algorithm 'Penalty'"),
+    (["run", "nine", "--algorithm", ""], "unknown algorithm ''"),
+    (["run", "nine", "--set", "MU=0.1"], "'MU'"),
+    (["run", "blankholder", "--set", "mesh_x=3"], "'mesh_x'"),
+    (["frob"], "'frob'"),
+    (["scenes", "nine"], "nine"),
+    (["run", "flat_die", "--quiet=yes"], "--quiet"),
+    # --set syntax
+    (["run", "nine", "--set", "=0.1"], "NAME=VALUE"),
+    (["run", "nine", "--set", "mu:0.1"], "NAME=VALUE"),
+    # --set values that do not parse
+    (["run", "nine", "--set", "mu=0x10"], "'mu'"),
+    (["run", "nine", "--set", "mu=none"], "'mu'"),  # None only for optional fields
+    (["run", "nine", "--set", "U_draw=1\n2"], "'U_draw'"),  # the message stays on one line
+    (["run", "nine", "--set", "nx=2.5"], "'nx'"),
+    (["run", "nine", "--set", "nx=nan"], "'nx'"),
+    (["run", "nine", "--set", "ny=abc"], "'ny'"),
+    (["run", "nine", "--set", "steady_window=20;35"], "'steady_window'"),
+    # negative, zero, NaN, infinite (and overflowing: 1e400 parses as inf) values
+    (["run", "nine", "--set", "mu=-0.17"], "'mu'"),
+    (["run", "flat_die", "--set", "mu=nan"], "'mu'"),
+    (["run", "bead", "--set", "mu_roller=inf"], "'mu_roller'"),
+    (["run", "nine", "--set", "eps_n=0"], "'eps_n'"),
+    (["run", "flat_die", "--set", "eps_n=1e400"], "'eps_n'"),
+    (["run", "bead", "--set", "eps_n=-inf"], "'eps_n'"),
+    (["run", "nine", "--set", "eps_t=nan"], "'eps_t'"),
+    (["run", "flat_die", "--set", "eps_t=-1.5e8"], "'eps_t'"),
+    (["run", "nine", "--algorithm", "auglag", "--set", "target_gap=0"], "'target_gap'"),
+    (["run", "flat_die", "--set", "target_gap=-1e-5"], "'target_gap'"),
+    (["run", "bead", "--set", "E=-200000"], "'E'"),
+    (["run", "flat_die", "--set", "E=inf"], "'E'"),
+    (["run", "nine", "--set", "t=0"], "'t'"),
+    (["run", "blankholder", "--set", "t=-1"], "'t'"),
+    (["run", "bead", "--set", "nu=0.5"], "'nu'"),
+    (["run", "nine", "--set", "nu=-1"], "'nu'"),
+    (["run", "flat_die", "--set", "nu=nan"], "'nu'"),
+    (["run", "bead", "--set", "F_clamp=-600"], "'F_clamp'"),
+    (["run", "blankholder", "--set", "F_clamp=nan"], "'F_clamp'"),
+    (["run", "flat_die", "--set", "F_clamp=1e400"], "'F_clamp'"),
+    (["run", "bead", "--set", "sigma_y=0"], "'sigma_y'"),
+    (["run", "blankholder", "--set", "n=-0.28"], "'n'"),
+    (["run", "flat_die", "--set", "nx=0"], "'nx'"),
+    (["run", "bead", "--set", "n_clamp=-3"], "'n_clamp'"),
+    (["run", "flat_die", "--set", "dU=0"], "'dU'"),
+    (["run", "flat_die", "--set", "steady_window=0.03,0.02"], "'steady_window'"),
+    (["run", "blankholder", "--set", "lock_control=torque"], "'lock_control'"),
+    # meshes of size 0 and malformed meshes
+    (["run", "flat_die", "--mesh", "3x0"], "'mesh'"),
+    (["run", "flat_die", "--mesh", "ax3"], "'mesh'"),
+    (["run", "flat_die", "--mesh", "300"], "'mesh'"),
+    (["run", "flat_die", "--mesh=-1x3"], "'mesh'"),
+    (["run", "flat_die", "--mesh", "-1x3"], "--mesh"),  # argparse takes "-1x3" for an option
+    (["run", "flat_die", "--mesh", "4.5x1"], "'mesh'"),
+    (["run", "flat_die", "--mesh", "4x1x1"], "'mesh'"),
+    (["run", "flat_die", "--mesh", ""], "'mesh'"),
+    (["run", "flat_die", "--mesh"], "--mesh"),
+    (["run", "nine", "--set", "mesh=0x3"], "'mesh'"),
+    (["run", "nine", "--set", "mesh=3"], "'mesh'"),
+    # contradictory options
+    (["run", "flat_die", "--mesh", "4x1", "--set", "mesh=8x1"], "--mesh"),
+    (["run", "flat_die", "--set", "mesh=4x1", "--set", "mesh=8x1"], "'mesh' twice"),
+    (["run", "nine", "--set", "mu=0.1", "--set", "mu=0.2"], "'mu' twice"),
+    # bad tags
+    (["run", "flat_die", "--tag", ""], "--tag"),
+    (["run", "flat_die", "--tag", "a/b"], "--tag"),
+    (["run", "flat_die", "--tag", "-x"], "--tag"),
+    (["run", "flat_die", "--tag", "ok\nno"], "--tag"),
+    # ---- library gaps ----
+    pytest.param(["run", "flat_die", "--set", "nx=1e400"], "'nx'", id="nx=1e400"),
+    pytest.param(["run", "bead", "--set", "ny=-inf"], "'ny'", id="ny=-inf"),
+    pytest.param(["run", "nine", *TINY, "--set", "entry_guide=maybe"], "'entry_guide'", id="entry_guide=maybe"),
+    pytest.param(["run", "flat_die", "--mesh", "99999999999999999999x1"], "'mesh'", id="mesh=99999999999999999999x1"),
+    pytest.param(["run", "flat_die", "--mesh", "4x1", "--set", "nx=8"], "nx", id="--mesh+--set-nx"),
+    pytest.param(["run", "flat_die", "--set", "mesh=4x1", "--set", "nx=8"], "nx", id="--set-mesh+--set-nx"),
+    pytest.param(["run", "flat_die", *TINY, "--set", "dU_fine=1e-300"], "'dU_fine'", id="dU_fine=1e-300"),
+    pytest.param(["run", "flat_die", *TINY, "--out", ""], "--out", id="out=''"),
+]
+
+
+@pytest.mark.parametrize("argv, words", CLI_CASES)
+def test_cli_bad_input_is_refused_in_one_line(workdir, capsys, argv, words):
+    line = cli_error(capsys, argv)
+    assert words in line, line
+    assert list(workdir.iterdir()) == []  # nothing written (no default run directory)
+
+
+def test_cli_bad_input_creates_no_run_directory(workdir, tmp_path, capsys):
+    out = tmp_path / "out" / "run1"
+    line = cli_error(capsys, ["run", "flat_die", "--set", "mu=-0.15", "--out", str(out)])
+    assert "'mu'" in line
+    assert not (tmp_path / "out").exists()
+
+
+# ---- command line: an unwritable output directory -------------------------------------------------------
+
+@pytest.fixture
+def blocker(tmp_path):
+    """A regular file, so that no directory can be created at or under it (also as root)."""
+    path = tmp_path / "file"
+    path.write_text("not a directory\n")
+    return path
+
+
+UNWRITABLE = [pytest.param(("sub",), id="under-a-file"), pytest.param((), id="a-file")]
+
+
+@pytest.mark.parametrize("parts", UNWRITABLE)
+def test_cli_unwritable_out_is_refused_before_the_run(workdir, blocker, capsys, parts):
+    out = blocker.joinpath(*parts)
+    line = cli_error(capsys, ["run", "flat_die", *TINY, "--quiet", "--out", str(out)])
+    assert "--out" in line or str(out) in line, line
+    assert blocker.read_text() == "not a directory\n"
+
+
+@pytest.mark.parametrize("parts", UNWRITABLE)
+def test_cli_unwritable_out_after_a_run_is_one_line(workdir, blocker, capsys, monkeypatch, parts):
+    """Whatever the run gave, a directory that cannot be made is one error line, exit 1 or 2."""
+    monkeypatch.setattr(RUN_MODULE, "run", lambda *a, **k: object())  # never read: makedirs fails first
+    out = blocker.joinpath(*parts)
+    line = cli_error(capsys, ["run", "flat_die", *TINY, "--quiet", "--out", str(out)], codes=(1, 2))
+    assert str(out) in line or "--out" in line, line
+    assert blocker.read_text() == "not a directory\n"
+    assert list(workdir.iterdir()) == []
+
+
+def test_write_run_bad_tag_writes_nothing(tmp_path):
+    out = tmp_path / "run"
+    scene = scenes.make("flat_die", overrides={"mesh": "4x1"})
+    with pytest.raises(ValueError, match="'tag'") as info:
+        output.write_run(scene, None, str(out), tag="two words")
+    assert "\n" not in str(info.value)
+    assert not out.exists()
+
+
+# ---- Python API ------------------------------------------------------------------------------------------
+
+MESH = dict(x_left=0.0, x_right=1.0, y_bottom=0.0, thickness=1.0, nx=2, ny=2)
+BEAD = dict(E=200000.0, nu=0.3, sigma_y=169.0, A=127.42425, n=0.225)
+FAST = {"mesh": "4x1"}
+
+
+def _mesh(**kw):
+    return lambda: jf.strip_mesh(**{**MESH, **kw})
+
+
+def _material(**kw):
+    return lambda: jf.J2Material(**{**BEAD, **kw})
+
+
+def _make(name, **overrides):
+    return lambda: scenes.make(name, overrides=overrides)
+
+
+API_CASES = [
+    # strip_mesh: meshes of size 0, wrong types, non-finite sizes
+    pytest.param(_mesh(nx=-3), "'nx'", id="mesh-nx=-3"),
+    pytest.param(_mesh(ny=True), "'ny'", id="mesh-ny=True"),
+    pytest.param(_mesh(nx="4"), "'nx'", id="mesh-nx='4'"),
+    pytest.param(_mesh(thickness="abc"), "'thickness'", id="mesh-thickness='abc'"),
+    pytest.param(_mesh(thickness=INF), "'thickness'", id="mesh-thickness=inf"),
+    pytest.param(_mesh(x_right=0.0), "length", id="mesh-length=0"),
+    pytest.param(_mesh(grading_x=0.0), "'grading_x'", id="mesh-grading_x=0"),
+    pytest.param(_mesh(grading_y=-1.0), "'grading_y'", id="mesh-grading_y=-1"),
+    # J2Material (values beyond test_material.BAD_VALUES)
+    pytest.param(lambda: jf.J2Material.elastic(0.0, 0.3), "J2Material: E = ", id="elastic-E=0"),
+    pytest.param(lambda: jf.J2Material.elastic(1.0, NAN), "J2Material: nu = ", id="elastic-nu=nan"),
+    pytest.param(_material(nu=[0.3, 0.6]), "J2Material: nu = ", id="mat-nu=[0.3,0.6]"),
+    pytest.param(_material(E=-200000.0), "J2Material: E = ", id="mat-E<0"),
+    pytest.param(_material(nu=0.5), "J2Material: nu = ", id="mat-nu=0.5"),
+    pytest.param(_material(sigma_y=-169.0), "J2Material: sigma_y = ", id="mat-sigma_y<0"),
+    pytest.param(_material(A=0.0, n=-0.5), "J2Material: n = ", id="mat-softening-n"),
+    pytest.param(_material(A=-0.5), "J2Material: A = ", id="mat-softening-A"),
+    # contact laws
+    pytest.param(lambda: Penalty(-1e5, 1e4), "'eps_n'", id="penalty-eps_n<0"),
+    pytest.param(lambda: Penalty(NAN, 1e4), "'eps_n'", id="penalty-eps_n=nan"),
+    pytest.param(lambda: Penalty(1e5, INF), "'eps_t'", id="penalty-eps_t=inf"),
+    pytest.param(lambda: Penalty(1e5, -1.0), "'eps_t'", id="penalty-eps_t<0"),
+    pytest.param(lambda: Penalty(1e5, 1e4, smoothing=-1.0), "'smoothing'", id="penalty-smoothing<0"),
+    pytest.param(lambda: Penalty("stiff", 1e4), "'eps_n'", id="penalty-eps_n='stiff'"),
+    pytest.param(lambda: Penalty([1e5, 2e5], 1e4), "'eps_n'", id="penalty-eps_n=array"),
+    pytest.param(lambda: AugmentedLagrangian(1e5, 1e4, target_gap=-1e-5), "'target_gap'",
+                 id="al-target_gap<0"),
+    pytest.param(lambda: AugmentedLagrangian(1e5, 1e4, target_gap=NAN), "'target_gap'",
+                 id="al-target_gap=nan"),
+    pytest.param(lambda: AugmentedLagrangian(1e5, 1e4, max_augmentations=0), "'max_augmentations'",
+                 id="al-max_augmentations=0"),
+    pytest.param(lambda: Complementarity(solver="newton"), "'solver'", id="lcp-solver"),
+    pytest.param(lambda: Complementarity(band=0), "'band'", id="lcp-band=0"),
+    pytest.param(lambda: Complementarity(ssn_max_iter=0), "'ssn_max_iter'", id="lcp-ssn_max_iter=0"),
+    # Newton options
+    pytest.param(lambda: jf.NewtonOptions(max_iterations=0), "'max_iterations'",
+                 id="newton-max_iterations=0"),
+    pytest.param(lambda: jf.NewtonOptions(max_iterations=-1), "'max_iterations'",
+                 id="newton-max_iterations<0"),
+    pytest.param(lambda: jf.NewtonOptions(rtol=-1e-8), "'rtol'", id="newton-rtol<0"),
+    pytest.param(lambda: jf.NewtonOptions(du_rtol=NAN), "'du_rtol'", id="newton-du_rtol=nan"),
+    # scenes.make: unknown names, wrong types, bad values
+    pytest.param(_make("flat_die", friction=0.1), "'friction'", id="make-unknown-field"),
+    pytest.param(_make("flat_die", nx=2.5), "'nx'", id="make-nx=2.5"),
+    pytest.param(_make("flat_die", nx="a"), "'nx'", id="make-nx='a'"),
+    pytest.param(_make("flat_die", nx=True), "'nx'", id="make-nx=True"),
+    pytest.param(_make("flat_die", mu="abc"), "'mu'", id="make-mu='abc'"),
+    pytest.param(_make("flat_die", mu=[0.1]), "'mu'", id="make-mu=[0.1]"),
+    pytest.param(_make("flat_die", mu=None), "'mu'", id="make-mu=None"),
+    pytest.param(_make("flat_die", mu=1j), "'mu'", id="make-mu=1j"),
+    pytest.param(_make("bead", E=NAN), "'E'", id="make-E=nan"),
+    pytest.param(_make("nine", eps_n=-INF), "'eps_n'", id="make-eps_n=-inf"),
+    pytest.param(_make("flat_die", mesh=(0, 3)), "'mesh'", id="make-mesh=(0,3)"),
+    pytest.param(_make("flat_die", mesh=(2.5, 3)), "'mesh'", id="make-mesh=(2.5,3)"),
+    pytest.param(_make("flat_die", mesh=None), "'mesh'", id="make-mesh=None"),
+    pytest.param(_make("flat_die", steady_window=(1.0,)), "'steady_window'", id="make-steady_window=(1,)"),
+    pytest.param(_make("flat_die", draw_control=3), "'draw_control'", id="make-draw_control=3"),
+    pytest.param(_make("nine", x_left=50.0, x_right=-50.0, **FAST), "'x_right'", id="make-x_right<x_left"),
+    pytest.param(_make("bead", x_jaw=INF, **FAST), "'x_jaw'", id="make-x_jaw=inf"),
+    pytest.param(lambda: scenes.make("flat_die", 3), "variant 3", id="make-variant=3"),
+    pytest.param(lambda: scenes.make("flat_die", algorithm=None), "algorithm None", id="make-algorithm=None"),
+    pytest.param(lambda: scenes.make(None), "scene None", id="make-scene=None"),
+    pytest.param(lambda: scenes.variants("drawbead"), "'drawbead'", id="variants-unknown"),
+    pytest.param(lambda: scenes.parse_override("bead", "eps_n", ""), "'eps_n'", id="parse_override-empty"),
+    # ---- library gaps ----
+    pytest.param(_mesh(y_bottom=NAN), "'y_bottom'", id="mesh-y_bottom=nan"),
+    pytest.param(_material(E="steel"), "J2Material: E = ", id="mat-E='steel'"),
+    pytest.param(_material(E=None), "J2Material: E = ", id="mat-E=None"),
+    pytest.param(lambda: AugmentedLagrangian(1e5, 1e4, max_augmentations=2.5), "'max_augmentations'",
+                 id="al-max_augmentations=2.5"),
+    pytest.param(lambda: AugmentedLagrangian(1e5, 1e4, max_augmentations="x"), "'max_augmentations'",
+                 id="al-max_augmentations='x'"),
+    pytest.param(lambda: AugmentedLagrangian(1e5, 1e4, max_augmentations=INF), "'max_augmentations'",
+                 id="al-max_augmentations=inf"),
+    pytest.param(lambda: Complementarity(band=2.5), "'band'", id="lcp-band=2.5"),
+    pytest.param(lambda: Complementarity(band="a"), "'band'", id="lcp-band='a'"),
+    pytest.param(lambda: Complementarity(ssn_max_iter=NAN), "'ssn_max_iter'", id="lcp-ssn_max_iter=nan"),
+    pytest.param(lambda: jf.NewtonOptions(max_iterations=NAN), "'max_iterations'",
+                 id="newton-max_iterations=nan"),
+    pytest.param(lambda: jf.NewtonOptions(max_iterations=2.5), "'max_iterations'",
+                 id="newton-max_iterations=2.5"),
+    pytest.param(lambda: jf.NewtonOptions(max_iterations="5"), "'max_iterations'",
+                 id="newton-max_iterations='5'"),
+    pytest.param(lambda: jf.NewtonOptions(atol=INF), "'atol'", id="newton-atol=inf"),
+    pytest.param(lambda: jf.NewtonOptions(rtol="tight"), "'rtol'", id="newton-rtol='tight'"),
+    pytest.param(lambda: jf.StepControl(max_steps=0), "'max_steps'", id="stepcontrol-max_steps=0"),
+    pytest.param(lambda: jf.StepControl(max_cuts=-1, growth=NAN), "'max_cuts'", id="stepcontrol-max_cuts<0"),
+    pytest.param(_make("nine", entry_guide="maybe", **FAST), "'entry_guide'", id="make-entry_guide='maybe'"),
+    pytest.param(_make("nine", entry_guide=3, **FAST), "'entry_guide'", id="make-entry_guide=3"),
+    pytest.param(_make("flat_die", mesh="4x1", nx=8), "mesh", id="make-mesh+nx"),
+    pytest.param(lambda: scenes.make("flat_die", overrides=[("mu", 0.1)]), "overrides",
+                 id="make-overrides=list"),
+    pytest.param(lambda: scenes.parse_override("nine", "nx", "inf"), "'nx'", id="parse_override-nx=inf"),
+    pytest.param(lambda: scenes.parse_mesh((INF, 3)), "'mesh'", id="parse_mesh-(inf,3)"),
+    pytest.param(lambda: scenes.parse_mesh(("a", 3)), "'mesh'", id="parse_mesh-('a',3)"),
+]
+
+
+@pytest.mark.parametrize("build, field", API_CASES)
+def test_api_bad_input_raises_one_line_naming_the_field(build, field):
+    with pytest.raises((ValueError, TypeError)) as info:
+        build()
+    message = str(info.value)
+    assert field in message and "\n" not in message, message
+
+
+def test_string_false_does_not_silently_mean_true():
+    try:
+        scene = scenes.make("nine", overrides={**FAST, "entry_guide": "false"})
+    except ValueError as err:
+        assert "'entry_guide'" in str(err) and "\n" not in str(err)
+    else:
+        assert scene.config.entry_guide is False, repr(scene.config.entry_guide)
