@@ -80,3 +80,37 @@ def test_exact_contact_refuses_to_be_differentiated():
 
     with pytest.raises(NotImplementedError, match="Penalty or AugmentedLagrangian"):
         jax.jvp(drawing, (jnp.array(MU),), (jnp.array(1.0),))
+
+
+def _at_common_times(a, b, name):
+    common, i, j = np.intersect1d(a.history["time"], b.history["time"], return_indices=True)
+    return common, a.history[name][i], b.history[name][j]
+
+
+def test_penalty_converges_to_the_exact_solution_and_the_augmented_lagrangian_reaches_it(runs):
+    """Spec 8, algorithm limits: as eps_n grows (eps_t = mu eps_n), the penalty run approaches the
+    exact one, its errors falling like 1/eps_n (the penetration P / (n eps_n) and the elastic slip of
+    sticking pairs scale so); the augmented Lagrangian reaches the exact answer at the moderate
+    eps_n = 1e5 by augmenting (target gap 1e-9 mm, which also bounds the stick slip)."""
+    exact = runs["lcp_ssn"]
+    errors = []
+    for eps_n in (1e5, 1e6, 1e7):
+        pen = jf.run(flat_die_strip(jf.contact.Penalty(eps_n, MU * eps_n), **SMALL), progress=False)
+        common, q_pen, q_ref = _at_common_times(pen, exact, "tool_position")
+        _, f_pen, f_ref = _at_common_times(pen, exact, "reaction_right")
+        assert common.size > 30
+        errors.append((np.max(np.abs(q_pen - q_ref)), np.max(np.abs(f_pen[:, 0] - f_ref[:, 0]))))
+    errors = np.array(errors)
+    # Die position: the mean penetration P / (21 eps_n) at the end of the clamp, exactly 1/eps_n.
+    assert errors[0, 0] == pytest.approx(FORCE / (21 * 1e5), rel=0.05)
+    ratios = errors[:-1] / errors[1:]
+    assert np.all(ratios > 5.0), errors     # one decade of eps_n: about one decade of error
+    assert errors[-1, 1] < 1e-3 * MU * FORCE, errors
+    al = jf.run(flat_die_strip(AugmentedLagrangian(1e5, MU * 1e5, target_gap=1e-9, max_augmentations=60), **SMALL),
+                progress=False)
+    common, q_al, q_ref = _at_common_times(al, exact, "tool_position")
+    _, f_al, f_ref = _at_common_times(al, exact, "reaction_right")
+    assert common.size > 30 and al.history["augmentations"].sum() > 0
+    # Measured: 1.4e-11 mm and 3.1e-6 N/mm (4e-7 mu P), 135 augmentations in all.
+    np.testing.assert_allclose(q_al, q_ref, atol=1e-10)
+    np.testing.assert_allclose(f_al[:, 0], f_ref[:, 0], atol=1e-6 * MU * FORCE)

@@ -34,6 +34,8 @@ def spec_field(default, unit: str, doc: str):
 
 # ---- validation -------------------------------------------------------------------------------------
 
+BAND_DOC = ("exact contact (lcp_*): candidate nodes nearest to a tool that enter the complementarity problem; "
+            "None: all. Too small a band stops the step with CONTACT_BAND")
 MAX_NOMINAL_STEPS = 1_000_000  # per phase: an increment that needs more is a typo, not a study
 
 

@@ -80,6 +80,7 @@ class BeadConfig:
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [chosen]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
+    band: int | None = cm.spec_field(None, "-", cm.BAND_DOC)
     n_clamp: int = cm.spec_field(10, "-", "steps of the clamp force ramp [chosen]")
     dtheta: float = cm.spec_field(0.5, "deg", "nominal increment of the jaw angle [chosen]")
     ds: float = cm.spec_field(0.05, "mm", "nominal increment of the jaw travel [chosen]")
@@ -137,7 +138,7 @@ class BeadObserve(eqx.Module):
 def _check(config: BeadConfig) -> None:
     cm.check_config(config, positive=("t", "R_r", "r_e", "F_clamp", "dtheta", "ds"),
                     nonnegative=("mu_clamp", "mu_roller", "theta", "s_draw"),
-                    integers=("nx", "ny", "n_clamp"))
+                    integers=("nx", "ny", "band", "n_clamp"))
     if not config.x_right > config.x_left:
         raise ValueError(f"config field 'x_right' = {config.x_right!r} must exceed x_left = {config.x_left!r}")
     if not config.x_clamp_left < config.x_clamp_right:
@@ -195,7 +196,7 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
              RigidTool("roller", roller, (0.0, 1.0), mesh.bottom, fixed, mu_r))
 
     eps_t = cm.resolve_eps_t(config, max(config.mu_clamp, config.mu_roller))
-    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap)
+    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=tools, contact=law)
     observe = BeadObserve(jaw=tuple(int(a) for a in jaw), tail=int(mesh.node_index(0, 0)), theta=theta,

@@ -91,6 +91,7 @@ class BlankholderConfig:
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [chosen]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
+    band: int | None = cm.spec_field(None, "-", cm.BAND_DOC)
     F_clamp: float = cm.spec_field(300.0, "N/mm", "clamping force on the lower tool [chosen]")
     U_pull: float = cm.spec_field(55.0, "mm", "pull of the right end during draw [chosen]")
     lock_control: str = cm.spec_field("force", "-", "lower tool during draw: 'force' (P = F_clamp) or "
@@ -159,7 +160,7 @@ class BlankholderObserve(eqx.Module):
 def _check(config: BlankholderConfig) -> None:
     cm.check_config(config, positive=("H", "R", "r", "Rp", "L", "t", "r_e", "element_length", "ds_close", "dU"),
                     nonnegative=("mu", "F_clamp", "U_pull", "upstream_margin", "grip_length", "land_margin"),
-                    integers=("nx", "ny", "n_lock"), choices={"lock_control": ("force", "position")})
+                    integers=("nx", "ny", "band", "n_lock"), choices={"lock_control": ("force", "position")})
     if config.R > config.H:
         raise ValueError(f"config field 'R' = {config.R!r} must not exceed H = {config.H!r} (the nose sits "
                          "on flanks of height H - R)")
@@ -228,7 +229,7 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
                        (Move(0.0, config.H), Force(config.F_clamp), draw), mu))
 
     eps_t = cm.resolve_eps_t(config, config.mu)
-    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap)
+    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=tools, contact=law)
     observe = BlankholderObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)),

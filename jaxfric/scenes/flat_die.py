@@ -63,6 +63,7 @@ class FlatDieConfig:
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n = 1.5e8 [paper]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
+    band: int | None = cm.spec_field(None, "-", cm.BAND_DOC)
     F_clamp: float = cm.spec_field(50.0, "N/mm", "clamping force on the half model [paper]")
     draw_control: str = cm.spec_field("force", "-", "die during draw: 'force' (const_force) or 'position' "
                                                     "(const_position) [paper]")
@@ -105,7 +106,7 @@ class FlatDieObserve(eqx.Module):
 
 def _check(config: FlatDieConfig) -> None:
     cm.check_config(config, positive=("L", "h", "die_overhang", "U_fine", "dU_fine", "dU"),
-                    nonnegative=("mu", "F_clamp", "U_draw"), integers=("nx", "ny", "n_clamp"),
+                    nonnegative=("mu", "F_clamp", "U_draw"), integers=("nx", "ny", "band", "n_clamp"),
                     choices={"draw_control": ("force", "position")})
 
 
@@ -139,7 +140,7 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
     tool = RigidTool("die", die, (0.0, -1.0), mesh.top, (Force(config.F_clamp, start=0.0), draw), mu)
 
     eps_t = cm.resolve_eps_t(config, config.mu)
-    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap)
+    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=(tool,), contact=law)
     observe = FlatDieObserve(right=tuple(int(a) for a in mesh.right), U_draw=float(config.U_draw))

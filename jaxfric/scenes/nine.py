@@ -27,6 +27,9 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
 - ``U_draw`` = 70 mm; nominal increments ``dq_clamp`` = 0.1 mm and ``dU`` = 0.1 mm;
 - ``steady_window`` = (20, 35) mm;
 - eps_t = mu eps_n [paper] (``eps_t`` None), with mu the largest coefficient of the scene.
+- exact contact (lcp_*): ``band`` = 128 of the 602 candidate nodes (at 300 x 3) enter the complementarity
+  problem, the nearest to a tool; at most about 60 pairs are closed at once (A, B, C wraps and the
+  guides), so the band holds them with margin while the problem stays a fifth of the full size.
 Not in the spec: the seam of each circle (where its arc length jumps) is put where the strip never
 touches it: at the top of B and D (the strip touches their bottoms), at the bottom of A, C and E.
 """
@@ -81,6 +84,7 @@ class NineConfig:
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [paper]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
+    band: int | None = cm.spec_field(128, "-", cm.BAND_DOC)
     stroke: float = cm.spec_field(11.0, "mm", "downward travel of B during clamp (2 R1) [paper]")
     U_draw: float = cm.spec_field(70.0, "mm", "pull of the right end during draw [chosen]")
     dq_clamp: float = cm.spec_field(0.1, "mm", "nominal increment of B's travel [chosen]")
@@ -123,7 +127,7 @@ class NineObserve(eqx.Module):
 
 def _check(config: NineConfig) -> None:
     cm.check_config(config, positive=("t", "R1", "R2", "L1", "dq_clamp", "dU"),
-                    nonnegative=("mu", "mu_guides", "stroke", "U_draw", "L2", "L3"), integers=("nx", "ny"))
+                    nonnegative=("mu", "mu_guides", "stroke", "U_draw", "L2", "L3"), integers=("nx", "ny", "band"))
     if not config.x_right > config.x_left:
         raise ValueError(f"config field 'x_right' = {config.x_right!r} must exceed x_left = {config.x_left!r}")
 
@@ -164,7 +168,7 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
 
     mu_max = max(mu.values())
     eps_t = cm.resolve_eps_t(config, mu_max)
-    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap)
+    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=tuple(tools), contact=law)
     observe = NineObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)),
