@@ -125,10 +125,13 @@ def _to_host(model, sim: Simulation, monitor, compile_s, wall_s) -> RunResult:
     if not converged:
         t = float(final.time)
         phase = model.phases[int(final.phase)].name
+        r = float(sim.residual_norm)
+        residual = f"{r:.3g} N/mm" if np.isfinite(r) else "non-finite"
+        cuts = int(sim.pending_cuts)
         attempt = ("" if code == Result.MAX_STEPS else
-                   f", while attempting t = {float(sim.failed_time):.6g}, last residual "
-                   f"{float(sim.residual_norm):.3g} N/mm")
-        message = (f"stopped after step {n - 1} at t = {t:.6g} (phase '{phase}'){attempt}: "
-                   f"{describe(code)}. Results up to t = {t:.6g} are kept.")
+                   f", while attempting t = {float(sim.failed_time):.10g} after {cuts} failed attempt"
+                   f"{'s' if cuts != 1 else ''} of that step, last residual {residual}")
+        message = (f"stopped after step {n - 1} at t = {t:.10g} (phase '{phase}'){attempt}: "
+                   f"{describe(code)}. Results up to t = {t:.10g} are kept.")
     return RunResult(model=model, history=history, final=final, simulation=sim, converged=converged,
                      code=code, message=message, compile_s=compile_s, wall_s=wall_s)

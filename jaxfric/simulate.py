@@ -195,6 +195,8 @@ class Simulation(eqx.Module):
     """Outcome of a simulation: its history, final converged state and result code.
 
     ``failed_time`` is the pseudo-time the last failed attempt was aiming at (nan if none failed).
+    ``pending_cuts`` counts the failed attempts after the last accepted step: the cutbacks of the step
+    that stopped the run, which no history row records (0 when the run completed).
     """
 
     history: History
@@ -202,6 +204,7 @@ class Simulation(eqx.Module):
     code: jax.Array
     failed_time: jax.Array
     residual_norm: jax.Array
+    pending_cuts: jax.Array | int = 0
 
 
 def initial_state(model: StripModel) -> SimState:
@@ -574,7 +577,7 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
                  r_norm=jnp.array(0.0))
     out = jax.lax.while_loop(lambda c: c.code == Result.CONTINUE, body, init)
     return Simulation(history=out.history, final=out.state, code=out.code, failed_time=out.failed_t,
-                      residual_norm=out.r_norm)
+                      residual_norm=out.r_norm, pending_cuts=out.cuts)
 
 
 def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
@@ -614,4 +617,5 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
     (state, _, hist, code, failed_t, r_norm), _ = jax.lax.scan(
         body, init, (jnp.asarray(times), jnp.asarray(phases, jnp.int32)))
     code = jnp.where(code == Result.CONTINUE, Result.SUCCESS, code).astype(jnp.int32)
-    return Simulation(history=hist, final=state, code=code, failed_time=failed_t, residual_norm=r_norm)
+    return Simulation(history=hist, final=state, code=code, failed_time=failed_t, residual_norm=r_norm,
+                      pending_cuts=jnp.where(code == Result.SUCCESS, 0, 1).astype(jnp.int32))
