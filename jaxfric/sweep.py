@@ -11,9 +11,10 @@ sweep over mu does not batch the mesh. Every member runs the adaptive load loop 
 until the last member has finished, and a finished member's state no longer changes.
 
 Cost: every loop iteration computes all members, so the sweep costs about the slowest member's number
-of attempts times the batched cost of one attempt. On a CPU the batched linear algebra is not faster
-per member than a single run; the gain is one compilation and one dispatch for the whole sweep (and
-the width of a GPU).
+of attempts times the batched cost of one attempt, and both branches of every ``lax.cond`` run. On
+two CPU cores this is slower than looping over single runs (16 friction coefficients on the flat die:
+2x the loop, 31x one run; ``experiments/RESULTS.md``). What it offers is one compiled function of all
+members (to differentiate or transform as a whole) and, on a GPU, the width of the device.
 """
 
 from __future__ import annotations

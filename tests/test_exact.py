@@ -87,6 +87,7 @@ def _at_common_times(a, b, name):
     return common, a.history[name][i], b.history[name][j]
 
 
+@pytest.mark.slow  # about 30 s: three penalty runs and an AL run with 135 augmentations (make test-all)
 def test_penalty_converges_to_the_exact_solution_and_the_augmented_lagrangian_reaches_it(runs):
     """Spec 8, algorithm limits: as eps_n grows (eps_t = mu eps_n), the penalty run approaches the
     exact one, its errors falling like 1/eps_n (the penetration P / (n eps_n) and the elastic slip of
