@@ -109,7 +109,7 @@ def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions):
     def body(carry):
         k, n_acc, x, lin, dx, code, alpha, dx_norm, r_hist = carry
         # A new Newton direction from the last accepted iterate, unless the last trial was rejected:
-        # then the same direction with half the step (backtracking).
+        # then the same direction with a quarter of the last trial step (backtracking).
         backtrack = alpha < 1.0
         dx = jax.lax.cond(backtrack, lambda: dx, lambda: linear_solve(lin.jacobian, -lin.residual))
         alpha = jnp.where(backtrack, alpha, 1.0)

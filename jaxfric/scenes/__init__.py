@@ -19,7 +19,6 @@ import types
 import typing
 
 from ..mesh import MAX_ELEMENTS
-
 from . import bead, blankholder, flat_die, nine
 from .base import ALGORITHMS, Scene, contact_law
 
