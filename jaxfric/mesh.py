@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_finite, check_finite_array, check_positive
+from ._checks import check_finite, check_finite_array, check_int, check_positive
 
 __all__ = ["StripMesh", "strip_mesh", "graded_coordinates", "MAX_ELEMENTS"]
 
@@ -37,9 +37,7 @@ class StripMesh(eqx.Module):
 
     def __check_init__(self):
         for name in ("nx", "ny"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"mesh field '{name}' must be an integer >= 1, got {value!r}")
+            check_int(name, getattr(self, name))
         expected = ((self.nx + 1) * (self.ny + 1), 2)
         if tuple(self.nodes.shape) != expected:
             raise ValueError(f"mesh field 'nodes' must have shape {expected}, got {self.nodes.shape}")
@@ -146,9 +144,8 @@ def strip_mesh(x_left, x_right, y_bottom, thickness, nx: int, ny: int,
         nx, ny: elements along x and through the thickness (>= 1).
         grading_x, grading_y: ratio of successive element sizes (1 = uniform).
     """
-    for name, value in (("nx", nx), ("ny", ny)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= MAX_ELEMENTS:
-            raise ValueError(f"mesh field '{name}' must be an integer in [1, {MAX_ELEMENTS}], got {value!r}")
+    check_int("nx", nx, 1, MAX_ELEMENTS)
+    check_int("ny", ny, 1, MAX_ELEMENTS)
     for name, value in (("x_left", x_left), ("x_right", x_right), ("y_bottom", y_bottom)):
         check_finite(name, value)
     check_positive("thickness", thickness)
