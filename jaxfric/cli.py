@@ -1,7 +1,9 @@
-"""Command line: ``jaxfric scenes`` and ``jaxfric run SCENE ...`` (outputs spec section 1).
+"""Command line: ``jaxfric scenes``, ``jaxfric run SCENE ...`` (outputs spec section 1) and
+``jaxfric fit SCENE --data CSV --param NAMES ...`` (:mod:`jaxfric.fit`).
 
     jaxfric scenes
     jaxfric run nine --variant mu017 --algorithm auglag --mesh 150x3 --set U_draw=40 --out runs/x
+    jaxfric fit nine --data runs/x/history.csv --param mu --mesh 100x2 --set U_draw=10 --set mu=0.12
 
 ``run`` builds the scene (:func:`jaxfric.scenes.make`), runs it with a progress bar, writes the run
 directory (:func:`jaxfric.output.write_run`) and prints where the files are, the steady drawing force,
@@ -51,7 +53,25 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", metavar="DIR", help="run directory (default runs/SCENE/VARIANT/ALGORITHM)")
     run.add_argument("--tag", help="study tag recorded in summary.json (regex [A-Za-z0-9][A-Za-z0-9._+-]*)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
-    # Room for later subcommands: "report" (tables and figures over run directories) and "fit".
+    fit = sub.add_parser("fit", help="identify parameters from a measured drawing-force curve",
+                         description="Fit scene config values (e.g. mu, R1) to a measured drawing-force curve "
+                                     "(CSV with drawing_displacement and drawing_force; a history.csv of "
+                                     "'jaxfric run' is valid) by Levenberg-Marquardt; writes fit.json, "
+                                     "fit_history.csv and fit.png.")
+    fit.add_argument("scene", help="flat_die, bead, nine or blankholder")
+    fit.add_argument("--data", required=True, metavar="CSV", help="measured curve")
+    fit.add_argument("--param", required=True, metavar="NAME[,NAME...]", help="config fields to fit, e.g. mu,R1")
+    fit.add_argument("--variant", help="scene variant (default: the scene's first)")
+    fit.add_argument("--algorithm", default="penalty", help=f"one of {', '.join(ALGORITHMS)} (default penalty)")
+    fit.add_argument("--mesh", metavar="NXxNY", help="elements along x and through the thickness")
+    fit.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
+                     help="override a config field; for a fitted field this is its start value")
+    fit.add_argument("--bounds", action="append", default=[], metavar="NAME=LOW:HIGH",
+                     help="bounds of a fitted parameter (default [0, inf))")
+    fit.add_argument("--window", type=float, metavar="MM",
+                     help="fit the mean force over windows of this length instead of every point")
+    fit.add_argument("--out", metavar="DIR", help="output directory (default fits/SCENE/VARIANT)")
+    fit.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
 
 
@@ -79,6 +99,8 @@ def main(argv=None) -> int:
     try:
         if args.command == "scenes":
             return _scenes()
+        if args.command == "fit":
+            return _fit(args)
         return _run(args)
     except UsageError as err:
         return _error(err, EXIT_USAGE)
@@ -116,10 +138,8 @@ def _overrides(pairs) -> dict:
     return out
 
 
-def _build(args):
-    """The scene of the command line; bad input -> UsageError naming it."""
-    import re
-
+def _check_scene_args(args):
+    """Scene, variant and algorithm of the command line; bad input -> UsageError naming it."""
     from . import scenes
 
     if args.scene not in scenes.scene_names():
@@ -129,6 +149,15 @@ def _build(args):
                          f"{', '.join(scenes.variants(args.scene))}")
     if args.algorithm not in ALGORITHMS:
         raise UsageError(f"unknown algorithm {args.algorithm!r}; choose one of {', '.join(ALGORITHMS)}")
+
+
+def _build(args):
+    """The scene of the command line; bad input -> UsageError naming it."""
+    import re
+
+    from . import scenes
+
+    _check_scene_args(args)
     if args.tag is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._+-]*", args.tag):
         raise UsageError(f"--tag {args.tag!r} must match [A-Za-z0-9][A-Za-z0-9._+-]*")
     overrides = _overrides(args.overrides)
@@ -192,6 +221,69 @@ def _run(args) -> int:
                       EXIT_FAILED)
     if summary["message"]:
         print(f"note: {summary['message']}")
+    return EXIT_OK
+
+
+def _bounds(pairs, names) -> dict:
+    out = {}
+    for text in pairs:
+        name, sep, rng = text.partition("=")
+        low, colon, high = rng.partition(":")
+        name = name.strip()
+        if not sep or not colon:
+            raise UsageError(f"--bounds expects NAME=LOW:HIGH, got {text!r}")
+        if name not in names:
+            raise UsageError(f"--bounds names {name!r}, which --param does not fit ({', '.join(names)})")
+        try:
+            out[name] = (float(low), float(high))
+        except ValueError:
+            raise UsageError(f"--bounds {text!r}: LOW and HIGH must be numbers") from None
+    return out
+
+
+def _fit(args) -> int:
+    _check_scene_args(args)
+    from . import scenes
+    from .fit import FitError, fit, write_fit
+
+    names = tuple(n.strip() for n in args.param.split(","))
+    if not all(names):
+        raise UsageError(f"--param expects NAME[,NAME...], got {args.param!r}")
+    overrides = _overrides(args.overrides)
+    if "mesh" in overrides and args.mesh is not None:
+        raise UsageError("give the mesh either with --mesh or with --set mesh=..., not both")
+    bounds = _bounds(args.bounds, names)
+    variant = args.variant or scenes.default_variant(args.scene)
+    out = os.path.join("fits", args.scene, variant) if args.out is None else args.out
+    try:
+        if args.mesh is not None:
+            overrides["mesh"] = "x".join(str(v) for v in scenes.parse_mesh(args.mesh))
+        for field, value in overrides.items():
+            if field != "mesh":
+                scenes.parse_override(args.scene, field, value)
+    except (ValueError, TypeError) as err:
+        raise UsageError(str(err)) from None
+    if not os.path.isfile(args.data):
+        raise UsageError(f"--data {args.data!r} is not a file")
+    _writable_dir(out)
+    try:
+        result = fit(args.scene, args.data, names, variant=variant, algorithm=args.algorithm,
+                     overrides=overrides, bounds=bounds, window=args.window, progress=not args.quiet)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    except FitError as err:
+        return _error(f"fit failed: {err}", EXIT_FAILED)
+    write_fit(result, out)
+    print(f"fit directory: {out} (fit.json, fit_history.csv, fit.png)")
+    for name in names:
+        lo, hi = result.ci95[name]
+        print(f"{name} = {result.params[name]:.8g} +/- {result.stderr[name]:.3g} (95 %: [{lo:.6g}, {hi:.6g}]; "
+              f"start {result.start[name]:g})")
+    print(f"residual rms {result.residual_rms:.4g} N/mm over {result.n_points} "
+          f"{'points' if result.window is None else 'windows'}; {result.n_simulations} simulations, "
+          f"{result.wall_s:.1f} s")
+    if not result.converged:
+        return _error(f"fit did not converge (last values written to {out}): {result.message}", EXIT_FAILED)
     return EXIT_OK
 
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from ._checks import check_finite
 
-__all__ = ["Motion", "Ramp", "Affine", "RigidMotion", "DirichletBC", "Phase", "constraint_masks",
+__all__ = ["Motion", "Ramp", "Affine", "RigidMotion", "DirichletBC", "Phase", "with_steps", "constraint_masks",
            "prescribed_values", "Schedule", "schedule"]
 
 
@@ -152,6 +152,22 @@ class Phase(eqx.Module):
             raise ValueError(f"field 'increments' of phase {name!r} must have increasing breakpoints "
                              f"ending at 1 and step counts >= 1, got {increments}")
         self.increments = increments
+
+
+def with_steps(phases, times, phase_index) -> tuple:
+    """``phases`` with their nominal increments replaced by the given steps: ``times`` (increasing
+    global pseudo-times, each the end of one step) and the phase index of each step. Used to replay
+    the accepted steps of an adaptive run as the nominal steps of another (the step controller still
+    cuts a step that fails, and grows back to the given step, never beyond)."""
+    times, phase_index = np.asarray(times, float), np.asarray(phase_index, int)
+    out = []
+    for k, phase in enumerate(phases):
+        tau = times[phase_index == k] - k
+        if tau.size == 0 or abs(tau[-1] - 1.0) > 1e-9:
+            raise ValueError(f"field 'times' must cover phase {phase.name!r} up to its end")
+        tau[-1] = 1.0
+        out.append(Phase(phase.name, phase.bcs, increments=tuple((float(t), 1) for t in tau)))
+    return tuple(out)
 
 
 class Schedule(eqx.Module):

@@ -1,0 +1,504 @@
+"""Identification of scene parameters from a measured drawing-force curve.
+
+    >>> from jaxfric.fit import fit, write_fit
+    >>> res = fit("nine", "measured.csv", ["mu"], overrides={"mesh": "40x2", "U_draw": 10})
+    >>> res.params, res.stderr            # {"mu": 0.1700...}, {"mu": 1.2e-3}
+    >>> write_fit(res, "fits/nine")       # fit.json, fit.png, fit_history.csv
+
+**The measurement.** A CSV (or a mapping of arrays) with at least the columns ``drawing_displacement``
+(mm) and ``drawing_force`` (N/mm). Rows at displacement <= 0 are dropped (before drawing the force is
+not a drawing force, and a ``history.csv`` written by ``jaxfric run`` carries its clamping rows there);
+the remaining displacements must increase strictly and lie inside the simulated stroke.
+
+**The model of the measurement.** The simulated drawing force, linearly interpolated at the measured
+displacements, along a *frozen step sequence*: the accepted steps of an adaptive run at the current
+parameters become the nominal steps of the runs that follow (:func:`jaxfric.loading.with_steps`). A
+frozen sequence makes the simulated curve a smooth function of the parameters, where an adaptive run
+would change its steps, and with them its force by the discretisation noise, whenever the parameters
+move. A frozen step that fails at other parameters is still cut by the step controller (only there),
+since Newton at the edge of its convergence region, where the controller leaves the accepted steps,
+does not survive a change of 1e-3 in mu on the Nine test. When the fit has converged on one sequence, the adaptive run is
+repeated at the optimum and the fit continues on the new sequence until the sequence no longer changes,
+so the answer is the parameters at which the ordinary adaptive run (``jaxfric run``) reproduces the
+data best.
+
+**The optimiser.** Levenberg-Marquardt (Gauss-Newton with Marquardt's scaled damping) on the residuals
+r = F_sim(x_k; p) - F_k, with the Jacobian from forward-mode differentiation through the whole loading
+path (one ``jax.jacfwd``: the primal plus n tangents per simulation). For a handful of parameters and a
+few hundred smooth residuals this converges quadratically near the optimum in a few simulations, where
+L-BFGS (gradient-only) would need many more, each costing a full simulation; and J^T J gives the
+Gauss-Newton covariance for free. Bounds are kept by projecting every trial point on the box
+(``optax.projections.projection_box``); updates are applied with ``optax.apply_updates``.
+
+**Uncertainty.** With independent measurement errors of equal variance, cov(p) = s^2 (J^T J)^-1 with
+s^2 = |r|^2 / (m - n) at the optimum; ``stderr`` is the square root of its diagonal and the 95 %
+interval is p +/- t_{0.975, m-n} stderr (linearised, so it assumes the model is nearly linear in p over
+the interval, which holds for the small intervals of a well-posed fit).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from .loading import with_steps
+from .newton import NewtonOptions
+from .params import Parameterization, parameterize
+from .results import Result, describe
+from .run import run
+from .simulate import simulate
+
+__all__ = ["Measurement", "FitResult", "FitError", "read_measurement", "bin_means", "fit", "write_fit"]
+
+_COLUMNS = ("drawing_displacement", "drawing_force")
+
+
+class FitError(RuntimeError):
+    """The simulation at the start values fails: the fit cannot begin (not an input error)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Measurement:
+    """A measured drawing-force curve: displacement (mm, strictly increasing, > 0) and force (N/mm)."""
+
+    displacement: np.ndarray
+    force: np.ndarray
+    source: str = ""
+
+
+def read_measurement(data) -> Measurement:
+    """A :class:`Measurement` from a CSV path or a mapping with the columns ``drawing_displacement``
+    and ``drawing_force``. Raises ValueError (one line, naming the file and column) when a column is
+    missing, a value is not a finite number, or the displacement does not increase."""
+    if isinstance(data, Measurement):
+        return data
+    if isinstance(data, (str, os.PathLike)):
+        source = os.fspath(data)
+        try:
+            with open(source, newline="") as f:
+                rows = list(csv.DictReader(f))
+        except OSError as err:
+            raise ValueError(f"measurement file {source!r} cannot be read: {err.strerror or err}") from None
+        except (csv.Error, UnicodeDecodeError) as err:
+            raise ValueError(f"measurement file {source!r} is not a CSV file: {err}") from None
+        header = rows[0].keys() if rows else ()
+        missing = [c for c in _COLUMNS if c not in header]
+        if missing:
+            raise ValueError(f"measurement file {source!r} lacks the column(s) {', '.join(missing)}"
+                             + ("" if rows else " (no data rows)"))
+        columns = {}
+        for c in _COLUMNS:
+            values = []
+            for k, row in enumerate(rows):
+                try:
+                    values.append(float(row[c]))
+                except (TypeError, ValueError):
+                    raise ValueError(f"measurement file {source!r}: column {c!r} row {k + 1} is not a "
+                                     f"number: {row[c]!r}") from None
+            columns[c] = np.array(values)
+    else:
+        source = "data"
+        try:
+            missing = [c for c in _COLUMNS if c not in data]
+        except TypeError:
+            raise ValueError("field 'data' must be a CSV path or a mapping with the columns "
+                             "drawing_displacement and drawing_force") from None
+        if missing:
+            raise ValueError(f"field 'data' lacks the column(s) {', '.join(missing)}")
+        try:
+            columns = {c: np.asarray(data[c], dtype=float).ravel() for c in _COLUMNS}
+        except (TypeError, ValueError):
+            raise ValueError("field 'data': drawing_displacement and drawing_force must be numbers") from None
+        if columns[_COLUMNS[0]].shape != columns[_COLUMNS[1]].shape:
+            raise ValueError("field 'data': drawing_displacement and drawing_force differ in length")
+    x, f = columns["drawing_displacement"], columns["drawing_force"]
+    for name, v in (("drawing_displacement", x), ("drawing_force", f)):
+        bad = np.flatnonzero(~np.isfinite(v))
+        if bad.size:
+            raise ValueError(f"measurement {source!r}: column {name!r} holds a non-finite value at row "
+                             f"{bad[0] + 1} ({v[bad[0]]})")
+    keep = x > 0
+    x, f = x[keep], f[keep]
+    if x.size == 0:
+        raise ValueError(f"measurement {source!r}: no row with drawing_displacement > 0")
+    step = np.diff(x)
+    if np.any(step <= 0):
+        k = int(np.flatnonzero(step <= 0)[0])
+        raise ValueError(f"measurement {source!r}: drawing_displacement must increase strictly; it goes "
+                         f"from {x[k]} to {x[k + 1]}")
+    return Measurement(displacement=x, force=f, source=source)
+
+
+@dataclasses.dataclass
+class FitResult:
+    """Outcome of :func:`fit`.
+
+    Attributes:
+        scene, variant, algorithm, overrides: what was simulated.
+        names: fitted parameter names; params, stderr, ci95: {name: value} (ci95: (low, high)).
+        start: {name: start value}; bounds: {name: (low, high)}; window: fitted window length (mm)
+            or None (pointwise).
+        covariance: (n, n) Gauss-Newton covariance at the optimum.
+        residual_rms: sqrt(mean r^2) (N/mm) at the optimum; cost: |r|^2 / 2.
+        n_points: fitted observations (measured points, or windows); n_simulations: simulations run (adaptive planning runs and
+            frozen-sequence runs, each frozen-sequence run with its n forward-mode tangents);
+            n_replans: adaptive runs after the first.
+        wall_s: total wall time (s), compilation included; converged; message.
+        iterations: per accepted or rejected trial, a dict (iteration, accepted, cost, damping, params).
+        measurement: the :class:`Measurement`; fitted_force, start_force: simulated force at the
+            measured displacements (pointwise, whatever ``window``), at the optimum and at the start.
+    """
+
+    scene: str
+    variant: str
+    algorithm: str
+    overrides: dict
+    names: tuple
+    params: dict
+    stderr: dict
+    ci95: dict
+    start: dict
+    bounds: dict
+    window: float | None
+    covariance: np.ndarray
+    residual_rms: float
+    cost: float
+    n_points: int
+    n_simulations: int
+    n_replans: int
+    wall_s: float
+    converged: bool
+    message: str
+    iterations: list
+    measurement: Measurement
+    fitted_force: np.ndarray
+    start_force: np.ndarray
+
+
+def bin_means(x, f, edges):
+    """Mean of the piecewise-linear curve through (x, f) over each interval [edges[j], edges[j+1]]
+    (x increasing; equal neighbours allowed; works on NumPy and JAX arrays alike)."""
+    xp = jnp if isinstance(x, jax.Array) else np
+    seg = 0.5 * (f[1:] + f[:-1]) * (x[1:] - x[:-1])
+    cum = xp.concatenate([xp.zeros(1), xp.cumsum(seg)])
+    i = xp.clip(xp.searchsorted(x, edges, side="right"), 1, x.shape[0] - 1)
+    x0, x1, f0, f1 = x[i - 1], x[i], f[i - 1], f[i]
+    fe = f0 + (f1 - f0) * (edges - x0) / xp.where(x1 > x0, x1 - x0, 1.0)
+    area = cum[i - 1] + 0.5 * (f0 + fe) * (edges - x0)
+    return (area[1:] - area[:-1]) / (edges[1:] - edges[:-1])
+
+
+_CURVES = {}  # compiled curves by scene, parameters and step sequence: repeated fits reuse them
+
+
+class _Curve:
+    """The fitted observations (the simulated force at the measured displacements, or its means over
+    the windows ``edges``) along one frozen step sequence, with their Jacobian; compiled once per
+    sequence."""
+
+    def __init__(self, par: Parameterization, plan_history: dict, x: np.ndarray, edges, newton: NewtonOptions):
+        self.times = np.asarray(plan_history["time"][1:])
+        step_phase = np.asarray(plan_history["phase"][1:])
+        observe, control = par.scene.observe, par.scene.control
+
+        def curve(p):
+            model = par.model(p)
+            model = eqx.tree_at(lambda m: m.phases, model, with_steps(model.phases, self.times, step_phase))
+            sim = simulate(model, newton=newton, control=control, observe=observe)
+            h = sim.history
+            rows = jnp.arange(h.time.shape[0], dtype=h.n_rows.dtype)
+            # Unfilled rows get displacements beyond every measured one (interp needs increasing x).
+            xr = jnp.where(rows < h.n_rows, h.observed["drawing_displacement"], 1e30 * (1.0 + rows.astype(float)))
+            fr = jnp.where(rows < h.n_rows, h.observed["drawing_force"], 0.0)
+            pointwise = jnp.interp(jnp.asarray(x), xr, fr)
+            obs = pointwise if edges is None else bin_means(xr, fr, jnp.asarray(edges))
+            return obs, (obs, pointwise, sim.code, jnp.sum(h.cutbacks))
+
+        self._fn = jax.jit(jax.jacfwd(curve, has_aux=True))
+
+    def same_plan(self, other: "_Curve") -> bool:
+        return self.times.shape == other.times.shape and np.allclose(self.times, other.times, rtol=0, atol=1e-12)
+
+    def __call__(self, p):
+        jac, (obs, pointwise, code, cuts) = self._fn(jnp.asarray(p, jnp.float64))
+        return np.asarray(obs), np.asarray(jac), np.asarray(pointwise), int(code), int(cuts)
+
+
+def _plan(par: Parameterization, p, newton: NewtonOptions):
+    """Adaptive run at ``p``: its history (for the frozen step sequence), or a failure message."""
+    res = run(par.model(jnp.asarray(p)), newton=newton, control=par.scene.control, observe=par.scene.observe,
+              progress=False, raise_on_failure=False)
+    return res.history, (None if res.converged else res.message)
+
+
+def _bounds(names, p0, bounds) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = np.zeros(len(names)), np.full(len(names), np.inf)
+    bounds = dict(bounds or {})
+    unknown = [k for k in bounds if k not in names]
+    if unknown:
+        raise ValueError(f"field 'bounds' names {unknown[0]!r}, which is not a fitted parameter "
+                         f"({', '.join(names)})")
+    for i, name in enumerate(names):
+        if name in bounds:
+            try:
+                a, b = (float(v) for v in bounds[name])
+            except (TypeError, ValueError):
+                raise ValueError(f"field 'bounds' of {name!r} must be a pair (low, high) of numbers, got "
+                                 f"{bounds[name]!r}") from None
+            if math.isnan(a) or math.isnan(b) or not a < b:
+                raise ValueError(f"field 'bounds' of {name!r} must satisfy low < high, got {bounds[name]!r}")
+            lo[i], hi[i] = a, b
+        if not lo[i] <= p0[i] <= hi[i]:
+            raise ValueError(f"field 'bounds' of {name!r} = [{lo[i]:g}, {hi[i]:g}] excludes the start value "
+                             f"{p0[i]:g}; set the start with --set {name}=VALUE")
+    return lo, hi
+
+
+def _lm_step(jac, r, damping):
+    """Levenberg-Marquardt step: (J^T J + damping diag(J^T J)) dp = -J^T r."""
+    a = jac.T @ jac
+    d = np.diag(a).copy()
+    d[d <= 0] = 1.0
+    return np.linalg.solve(a + damping * np.diag(d), -jac.T @ r)
+
+
+def _windows(x: np.ndarray, window, n_params: int):
+    """Window edges over [x_0, x_last] of width about ``window`` (mm), or None (pointwise)."""
+    if window is None:
+        return None
+    w = float(window)
+    if not (math.isfinite(w) and w > 0):
+        raise ValueError(f"field 'window' must be a finite length > 0 (mm), got {window!r}")
+    n = int((x[-1] - x[0]) // w)
+    if n < max(n_params, 1):
+        raise ValueError(f"field 'window' = {w:g} mm leaves {n} window(s) over the measured stroke "
+                         f"[{x[0]:g}, {x[-1]:g}] mm, fewer than the {n_params} parameter(s)")
+    return np.linspace(x[0], x[-1], n + 1)
+
+
+def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str = "penalty",
+        overrides: dict | None = None, bounds: dict | None = None, window: float | None = None,
+        newton: NewtonOptions = NewtonOptions(), max_iter: int = 30, xtol: float = 1e-7,
+        max_replans: int = 4, progress: bool = True) -> FitResult:
+    """Fit the config fields ``params`` of ``scene`` to the measured drawing-force curve ``data``.
+
+    Args:
+        scene, variant, algorithm, overrides: the scene, as for :func:`jaxfric.scenes.make`; the
+            start values of the parameters are the config's (variant, then overrides).
+        data: CSV path, mapping or :class:`Measurement` (see :func:`read_measurement`).
+        params: names of config fields to fit (see :func:`jaxfric.params.parameterize`).
+        bounds: {name: (low, high)}; default [0, inf) for every parameter.
+        window: None: fit the force at every measured point. A length (mm): fit the mean force over
+            consecutive windows of about that length, measured and simulated alike. On a coarse mesh
+            the simulated force ripples as nodes pass over a curved tool (node spacing = period); a
+            window of a few node spacings fits the trend, not the ripple.
+        max_iter: Levenberg-Marquardt trials (accepted or not) per step sequence.
+        xtol: converged when an accepted step changes every p_i by at most xtol (|p_i| + xtol).
+        max_replans: adaptive runs at the optimum, to settle the step sequence.
+
+    Raises ValueError (one line, naming the field) on bad input, before any simulation, and
+    :class:`FitError` when the simulation at the start values fails.
+    """
+    t_start = time.perf_counter()
+    names = (params,) if isinstance(params, str) else tuple(params)
+    meas = read_measurement(data)
+    if meas.displacement.size < len(names):
+        raise ValueError(f"measurement {meas.source!r} has {meas.displacement.size} point(s) at displacement > 0, "
+                         f"fewer than the {len(names)} parameter(s)")
+    for name, value in (("max_iter", max_iter), ("max_replans", max_replans)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"field {name!r} must be an integer >= 1, got {value!r}")
+    edges = _windows(meas.displacement, window, len(names))
+    observed = meas.force if edges is None else bin_means(meas.displacement, meas.force, edges)
+    par = parameterize(scene, names, variant=variant, algorithm=algorithm, overrides=overrides)
+    lo, hi = _bounds(names, par.p0, bounds)
+    project = jax.jit(lambda p: optax.projections.projection_box(p, jnp.asarray(lo), jnp.asarray(hi)))
+    say = (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)
+    counts = {"simulations": 0, "replans": 0}
+
+    def planned(p):
+        """A curve on the step sequence of the adaptive run at p; None and the reason if it fails."""
+        history, failure = _plan(par, p, newton)
+        counts["simulations"] += 1
+        if failure:
+            return None, failure
+        top = float(np.max(history["drawing_displacement"]))
+        if meas.displacement[-1] > top * (1 + 1e-12):
+            raise ValueError(f"measurement {meas.source!r} reaches drawing_displacement {meas.displacement[-1]:g} "
+                             f"mm, beyond the simulated stroke {top:g} mm (raise the scene's stroke field)")
+        key = (scene, names, par.scene.variant, algorithm, repr(sorted((overrides or {}).items())), newton,
+               history["time"].tobytes(), meas.displacement.tobytes(), None if edges is None else edges.tobytes())
+        if key not in _CURVES:
+            while len(_CURVES) >= 8:
+                _CURVES.pop(next(iter(_CURVES)))
+            _CURVES[key] = _Curve(par, history, meas.displacement, edges, newton)
+        return _CURVES[key], ""
+
+    def evaluate(curve, p):
+        obs, jac, pointwise, code, cuts = curve(p)
+        counts["simulations"] += 1
+        r = obs - observed
+        cost = 0.5 * float(r @ r) if code == Result.SUCCESS and np.all(np.isfinite(r)) else math.inf
+        return {"p": p, "r": r, "jac": jac, "pointwise": pointwise, "cost": cost, "code": code, "cuts": cuts}
+
+    say(f"fit {scene}: planning the step sequence at " + ", ".join(f"{n} = {v:g}" for n, v in zip(names, par.p0)))
+    curve, failure = planned(par.p0)
+    if curve is None:
+        raise FitError(f"the simulation at the start values does not complete: {failure}")
+    cur = evaluate(curve, par.p0.copy())
+    if not math.isfinite(cur["cost"]):
+        raise FitError(f"the replayed step sequence fails at the start values ({describe(cur['code'])})")
+    start_force = cur["pointwise"]
+    damping, k, converged, message = 1e-3, 0, False, ""
+    iterations = [{"iteration": 0, "accepted": True, "cost": cur["cost"], "damping": damping,
+                   **dict(zip(names, cur["p"].tolist()))}]
+    while True:
+        settled = False
+        for _ in range(max_iter):
+            k += 1
+            dp = _lm_step(cur["jac"], cur["r"], damping)
+            trial = np.asarray(project(optax.apply_updates(jnp.asarray(cur["p"]), jnp.asarray(dp))))
+            new = evaluate(curve, trial)
+            accepted = new["cost"] <= cur["cost"]
+            iterations.append({"iteration": k, "accepted": bool(accepted), "cost": new["cost"], "damping": damping,
+                               **dict(zip(names, trial.tolist()))})
+            say(f"  trial {k}: misfit {new['cost']:.6g} ({'accepted' if accepted else 'rejected'}, "
+                f"{new['cuts']} cutbacks) at " + ", ".join(f"{n} = {v:.10g}" for n, v in zip(names, trial)))
+            if accepted:
+                moved = np.abs(trial - cur["p"])
+                cur, damping = new, max(damping / 3.0, 1e-9)
+                if np.all(moved <= xtol * (np.abs(trial) + xtol)) or cur["cost"] == 0.0:
+                    settled = True
+                    break
+            else:
+                damping *= 10.0
+                if damping > 1e12:
+                    message = "no decrease of the misfit even with very small steps (damping > 1e12)"
+                    settled = True
+                    break
+        if not settled:
+            message = f"no convergence in {max_iter} trials on this step sequence"
+            break
+        if message:
+            break
+        # Re-plan at the optimum: the answer must hold for the adaptive run at these values.
+        again, failure = planned(cur["p"])
+        if again is None:
+            message = f"the adaptive run at the fitted values does not complete: {failure}"
+            break
+        if again.same_plan(curve):
+            converged = True
+            break
+        if counts["replans"] >= max_replans:
+            message = f"the step sequence still changed after {max_replans} re-plans"
+            break
+        counts["replans"] += 1
+        say(f"  re-planned the step sequence at the optimum ({len(again.times)} steps, was {len(curve.times)})")
+        curve, damping = again, 1e-3
+        cur = evaluate(curve, cur["p"])
+        if not math.isfinite(cur["cost"]):
+            message = f"the re-planned step sequence fails at the fitted values ({describe(cur['code'])})"
+            break
+
+    p, r, jac = cur["p"], cur["r"], cur["jac"]
+    m, n = len(r), len(names)
+    s2 = 2.0 * cur["cost"] / max(m - n, 1)
+    try:
+        cov = s2 * np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        cov = np.full((n, n), np.inf)
+    err = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    from scipy.stats import t as student_t
+
+    q = float(student_t.ppf(0.975, max(m - n, 1)))
+    return FitResult(
+        scene=scene, variant=par.scene.variant, algorithm=algorithm, overrides=dict(overrides or {}),
+        names=names, params=dict(zip(names, p.tolist())), stderr=dict(zip(names, err.tolist())),
+        ci95={nm: (float(v - q * e), float(v + q * e)) for nm, v, e in zip(names, p, err)},
+        start=dict(zip(names, par.p0.tolist())), bounds={nm: (float(a), float(b)) for nm, a, b in zip(names, lo, hi)},
+        window=None if edges is None else float(edges[1] - edges[0]),
+        covariance=cov, residual_rms=float(np.sqrt(np.mean(r**2))), cost=cur["cost"], n_points=m,
+        n_simulations=counts["simulations"], n_replans=counts["replans"], wall_s=time.perf_counter() - t_start,
+        converged=converged, message=message or "converged", iterations=iterations, measurement=meas,
+        fitted_force=cur["pointwise"], start_force=start_force)
+
+
+def _json_number(v):
+    return v if math.isfinite(v) else None
+
+
+def write_fit(result: FitResult, out: str) -> dict:
+    """Write ``fit.json``, ``fit_history.csv`` and ``fit.png`` into ``out``; returns the JSON dict."""
+    os.makedirs(out, exist_ok=True)
+    summary = {
+        "scene": result.scene, "variant": result.variant, "algorithm": result.algorithm,
+        "overrides": {k: str(v) for k, v in result.overrides.items()},
+        "params": result.params, "stderr": {k: _json_number(v) for k, v in result.stderr.items()},
+        "ci95": {k: [_json_number(a), _json_number(b)] for k, (a, b) in result.ci95.items()},
+        "start": result.start, "bounds": {k: [a, _json_number(b)] for k, (a, b) in result.bounds.items()},
+        "covariance": [[_json_number(float(v)) for v in row] for row in result.covariance],
+        "window": result.window, "residual_rms": result.residual_rms, "n_points": result.n_points,
+        "n_simulations": result.n_simulations, "n_replans": result.n_replans,
+        "wall_s": result.wall_s, "converged": result.converged, "message": result.message,
+        "measurement": result.measurement.source,
+    }
+    with open(os.path.join(out, "fit.json"), "w") as f:
+        json.dump(summary, f, indent=2)
+    keys = list(result.iterations[0])
+    with open(os.path.join(out, "fit_history.csv"), "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(result.iterations)
+    _plot(result, os.path.join(out, "fit.png"))
+    return summary
+
+
+def _plot(result: FitResult, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
+    x = result.measurement.displacement
+    ax.plot(x, result.measurement.force, ".", ms=3, color="0.4", label="measured")
+    ax.plot(x, result.start_force, "--", color="tab:blue", lw=1,
+            label="start: " + ", ".join(f"{k} = {v:.4g}" for k, v in result.start.items()))
+    ax.plot(x, result.fitted_force, "-", color="tab:red", lw=1.5,
+            label="fitted: " + ", ".join(f"{k} = {v:.5g} +/- {result.stderr[k]:.2g}" for k, v in result.params.items()))
+    ax.set_xlabel("drawing displacement (mm)")
+    ax.set_ylabel("drawing force (N/mm)")
+    ax.set_title(f"{result.scene} {result.variant}: measured and fitted drawing force")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    its = [row for row in result.iterations if row["accepted"]]
+    bx.semilogy([row["iteration"] for row in its], [max(row["cost"], 1e-300) for row in its], "o-", color="k",
+                label="misfit |r|^2/2 (accepted)")
+    bx.set_xlabel("Levenberg-Marquardt trial")
+    bx.set_ylabel("misfit (N/mm)^2")
+    bx.grid(alpha=0.3)
+    cx = bx.twinx()
+    for name in result.names:
+        start = result.start[name] if result.start[name] != 0 else 1.0
+        cx.plot([row["iteration"] for row in its], [row[name] / start for row in its], "s--", ms=3,
+                label=f"{name} / start")
+    cx.set_ylabel("parameter / start value")
+    lines = bx.get_legend_handles_labels()
+    more = cx.get_legend_handles_labels()
+    bx.legend(lines[0] + more[0], lines[1] + more[1], fontsize=8)
+    bx.set_title(f"convergence: {result.n_simulations} simulations, {result.wall_s:.1f} s"
+                 + ("" if result.converged else " (not converged)"))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,138 @@
+"""Identification (``jaxfric fit`` and :func:`jaxfric.fit.fit`) and differentiable scene parameters.
+
+The fast case is the flat die at 24 x 1 (0.7 s a run): drawing the clamped sheet, the force rises
+through the elastic stick range (slope set by E) to the sliding plateau mu F_clamp. The measurement is
+the run's own ``history.csv``, so the fit must return the values it was made with. The Nine
+identification of the issue (mu = 0.17 from synthetic data, with and without noise) is
+``experiments/identify_nine.py`` (results in RESULTS.md); the slow test below runs its noise-free case.
+"""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from jaxfric import scenes
+from jaxfric.cli import main
+from jaxfric.fit import bin_means, fit, read_measurement
+from jaxfric.params import parameterize
+
+FLAT = ["flat_die", "--variant", "const_force", "--mesh", "24x1"]
+
+
+@pytest.fixture(scope="module")
+def flat_history(tmp_path_factory):
+    out = tmp_path_factory.mktemp("flat_run")
+    assert main(["run", *FLAT, "--quiet", "--out", str(out)]) == 0
+    return os.path.join(out, "history.csv")
+
+
+def test_cli_fit_recovers_mu_from_a_run_history(flat_history, tmp_path, capsys):
+    out = tmp_path / "fit"
+    code = main(["fit", *FLAT, "--data", flat_history, "--param", "mu", "--set", "mu=0.1", "--quiet",
+                 "--bounds", "mu=0:1", "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    summary = json.loads((out / "fit.json").read_text())
+    assert summary["converged"]
+    # Noise-free data from the same model: the misfit vanishes at the true value, to solver tolerance.
+    assert abs(summary["params"]["mu"] - 0.15) < 1e-7
+    assert summary["stderr"]["mu"] < 1e-6
+    assert summary["n_simulations"] >= 3 and summary["wall_s"] > 0
+    assert (out / "fit.png").stat().st_size > 10_000
+    assert "mu = 0.15" in capsys.readouterr().out
+
+
+def test_fit_with_noise_reports_an_interval_that_holds_the_truth(flat_history):
+    meas = read_measurement(flat_history)
+    rng = np.random.default_rng(3)
+    noisy = {"drawing_displacement": meas.displacement,
+             "drawing_force": meas.force + 0.01 * 7.5 * rng.standard_normal(meas.force.size)}
+    res = fit("flat_die", noisy, ["mu"], variant="const_force", overrides={"mesh": "24x1", "mu": 0.1},
+              progress=False)
+    assert res.converged
+    lo, hi = res.ci95["mu"]
+    assert lo < 0.15 < hi
+    # 1 % noise on ~380 points: the interval is narrow.
+    assert hi - lo < 2e-3
+    assert res.residual_rms == pytest.approx(0.075, rel=0.2)
+
+
+def test_bin_means_are_exact_for_a_piecewise_linear_curve():
+    x = np.array([0.0, 0.0, 1.0, 3.0])
+    f = np.array([5.0, 0.0, 2.0, 2.0])
+    # Mean over [0.5, 2.0]: integral of the interpolant (0.5 * (1 + 2) * 0.5 + 2 * 1) / 1.5.
+    np.testing.assert_allclose(bin_means(x, f, np.array([0.5, 2.0, 3.0])), [2.75 / 1.5, 2.0])
+
+
+@pytest.mark.parametrize("scene, variant, names", [
+    ("nine", "mu017", ["mu", "R1"]), ("nine", "mu017", ["stroke", "sigma_y"]),
+    ("bead", "th090_mu017", ["R_r", "mu_roller", "F_clamp"]),
+    ("blankholder", "shape3", ["R", "H", "mu", "F_clamp"]),
+    ("flat_die", "const_force", ["mu", "F_clamp", "E"]),
+])
+def test_parameterized_model_equals_the_built_model(scene, variant, names):
+    """The affine splice reproduces the scene built at other values exactly (every array leaf)."""
+    import equinox as eqx
+    import jax
+
+    par = parameterize(scene, names, variant=variant, overrides={"mesh": "20x2"})
+    p = par.p0 * (1.0 + 0.03 * np.arange(1, len(names) + 1))
+    built = scenes.make(scene, variant, "penalty", {"mesh": "20x2", **dict(zip(names, p.tolist()))}).model
+    spliced = par.model(p)
+    a, b = (jax.tree_util.tree_leaves(eqx.filter(m, eqx.is_array)) for m in (built, spliced))
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
+        np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--param", "nx"], "not differentiable"),
+    (["--param", "dU"], "changes the model's structure"),
+    (["--param", "target_gap"], "does not enter"),
+    (["--param", "bogus"], "unknown parameter 'bogus'"),
+    (["--param", "mu,mu"], "twice"),
+    (["--param", "mu", "--bounds", "mu=0.2:1"], "excludes the start value"),
+    (["--param", "mu", "--bounds", "mu=1:0"], "low < high"),
+    (["--param", "mu", "--bounds", "E=0:1"], "does not fit"),
+    (["--param", "mu", "--bounds", "mu=a:b"], "must be numbers"),
+    (["--param", "mu", "--window", "0"], "'window'"),
+    (["--param", "mu", "--window", "1"], "fewer than the 1 parameter"),
+    (["--param", "mu", "--set", "mu=x"], "must be a number"),
+])
+def test_cli_fit_rejects_bad_input_in_one_line(flat_history, tmp_path, capsys, args, needle):
+    code = main(["fit", *FLAT, "--data", flat_history, "--quiet", "--out", str(tmp_path / "o"), *args])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert needle in err and err.count("\n") == 1 and "Traceback" not in err
+    assert not (tmp_path / "o" / "fit.json").exists()
+
+
+@pytest.mark.parametrize("content, needle", [
+    ("drawing_displacement,other\n0.1,1\n", "lacks the column(s) drawing_force"),
+    ("drawing_displacement,drawing_force\n0.1,nan\n0.2,1\n", "non-finite"),
+    ("drawing_displacement,drawing_force\n0.1,1\n0.3,1\n0.2,1\n", "increase strictly"),
+    ("drawing_displacement,drawing_force\n0.0,1\n", "no row with drawing_displacement > 0"),
+    ("drawing_displacement,drawing_force\n0.1,abc\n", "is not a number"),
+    ("", "lacks the column(s)"),
+])
+def test_malformed_measurements(tmp_path, capsys, content, needle):
+    path = tmp_path / "m.csv"
+    path.write_text(content)
+    code = main(["fit", *FLAT, "--data", str(path), "--param", "mu", "--quiet", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2 and needle in err and err.count("\n") == 1
+
+
+def test_fewer_points_than_parameters_and_a_stroke_too_long(tmp_path):
+    with pytest.raises(ValueError, match="fewer than the 2 parameter"):
+        fit("flat_die", {"drawing_displacement": [0.01], "drawing_force": [1.0]}, ["mu", "E"],
+            variant="const_force", overrides={"mesh": "24x1"}, progress=False)
+    with pytest.raises(ValueError, match="beyond the simulated stroke"):
+        fit("flat_die", {"drawing_displacement": [0.01, 0.5], "drawing_force": [1.0, 2.0]}, ["mu"],
+            variant="const_force", overrides={"mesh": "24x1"}, progress=False)
+
+
+def test_missing_data_file(tmp_path, capsys):
+    code = main(["fit", *FLAT, "--data", str(tmp_path / "none.csv"), "--param", "mu", "--quiet"])
+    assert code == 2 and "is not a file" in capsys.readouterr().err
