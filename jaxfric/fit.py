@@ -305,7 +305,9 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
             window of a few node spacings fits the trend, not the ripple.
         max_iter: Levenberg-Marquardt trials (accepted or not) per step sequence.
         xtol: converged when an accepted step changes every p_i by at most xtol (|p_i| + xtol).
-        max_replans: adaptive runs at the optimum, to settle the step sequence.
+        max_replans: adaptive runs at the optimum, to settle the step sequence. 0: fit on the
+            sequence planned at the start values (cheaper; the answer then carries the difference
+            between that sequence and the one an adaptive run at the optimum would take).
 
     Raises ValueError (one line, naming the field) on bad input, before any simulation, and
     :class:`FitError` when the simulation at the start values fails.
@@ -316,9 +318,9 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
     if meas.displacement.size < len(names):
         raise ValueError(f"measurement {meas.source!r} has {meas.displacement.size} point(s) at displacement > 0, "
                          f"fewer than the {len(names)} parameter(s)")
-    for name, value in (("max_iter", max_iter), ("max_replans", max_replans)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"field {name!r} must be an integer >= 1, got {value!r}")
+    for name, value, least in (("max_iter", max_iter, 1), ("max_replans", max_replans, 0)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise ValueError(f"field {name!r} must be an integer >= {least}, got {value!r}")
     edges = _windows(meas.displacement, window, len(names))
     observed = meas.force if edges is None else bin_means(meas.displacement, meas.force, edges)
     par = parameterize(scene, names, variant=variant, algorithm=algorithm, overrides=overrides)
@@ -391,6 +393,9 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
             message = f"no convergence in {max_iter} trials on this step sequence"
             break
         if message:
+            break
+        if max_replans == 0:
+            converged = True
             break
         # Re-plan at the optimum: the answer must hold for the adaptive run at these values.
         again, failure = planned(cur["p"])

@@ -30,12 +30,17 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+from jax.ad_checkpoint import checkpoint_name
 
 from ._checks import check_int, check_nonnegative
 from .linalg import linear_solve
 from .results import Result
 
-__all__ = ["NewtonOptions", "Linearization", "NewtonSolution", "newton_solve"]
+__all__ = ["NewtonOptions", "Linearization", "NewtonSolution", "newton_solve", "SOLUTION_NAME"]
+
+# ``jax.ad_checkpoint.checkpoint_name`` of a converged step solution, for a rematerialisation policy
+# that saves it (``jax.checkpoint_policies.save_only_these_names(SOLUTION_NAME)``).
+SOLUTION_NAME = "jaxfric_step_solution"
 
 
 class NewtonOptions(eqx.Module):
@@ -165,7 +170,13 @@ def newton_solve(args, x0, x_ref, *, linearize: Callable, residual: Callable,
 def _newton_solve_jvp(primals, tangents, *, linearize, residual, options):
     args, x0, x_ref = primals
     args_dot = tangents[0]  # the initial guess and the reference do not change the solution
-    solution, jacobian = _newton(args, x0, x_ref, linearize, options)
+    solution, _ = _newton(args, x0, x_ref, linearize, options)
+    # The converged point is all the derivative needs: named, so that a checkpointed load loop can
+    # keep it and, in the backward pass, rebuild the Jacobian at it by one linearisation instead of
+    # re-running the Newton iterations (see SOLUTION_NAME).
+    x_star = checkpoint_name(solution.x, SOLUTION_NAME)
+    jacobian = linearize(x_star, args).jacobian
+    solution = solution._replace(x=x_star)
     diff, static = eqx.partition(args, eqx.is_inexact_array)
     diff_dot = jtu.tree_map(
         lambda a, t: None if a is None else (jnp.zeros_like(a) if t is None else t),

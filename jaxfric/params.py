@@ -31,8 +31,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import scenes
+from .loading import with_steps
+from .newton import NewtonOptions
+from .run import run
+from .simulate import simulate, simulate_fixed
 
-__all__ = ["Parameterization", "parameterize", "AFFINE_RTOL"]
+__all__ = ["Parameterization", "parameterize", "path_function", "AFFINE_RTOL"]
 
 AFFINE_RTOL = 1e-9  # affinity check, relative to the size of a leaf and of its change
 
@@ -160,3 +164,46 @@ def parameterize(scene: str, names, *, variant: str | None = None, algorithm: st
     return Parameterization(names=names, p0=p0, scene=base, moved=tuple(moved), _base=tuple(leaves0),
                             _slopes=tuple(per_leaf), _treedef=treedef0, _static=static0)
 
+
+
+def path_function(par: Parameterization, *, newton: NewtonOptions = NewtonOptions(), reverse: bool = False,
+                  checkpoint: bool = True):
+    """``f(p) -> (history, result code)`` along the step sequence of the adaptive run at the start
+    values: differentiable through every step of the loading path.
+
+    ``history`` is the simulation's :class:`~jaxfric.simulate.History`: ``history.observed`` holds the
+    scene's columns (``drawing_force``, ``clamping_force``, ...), rows 0 .. ``history.n_rows`` - 1
+    filled (row 0: the initial state), e.g. the last drawing force is
+    ``history.observed["drawing_force"][history.n_rows - 1]``. Why frozen steps: the adaptive controller would choose other
+    steps at other parameter values, and the forces would then change by the discretisation noise of
+    the new sequence, which no derivative describes.
+
+    ``reverse=False``: the steps are replayed by the adaptive loop (:func:`~jaxfric.simulate.simulate`
+    with the accepted steps as nominal steps), which still cuts a step that fails at other values, so
+    the replay completes wherever the original run would; forward mode (``jax.jvp``, ``jax.jacfwd``).
+    ``reverse=True``: replayed in a fixed-length scan (:func:`~jaxfric.simulate.simulate_fixed`,
+    checkpointed per step when ``checkpoint``), which ``jax.grad``/``jax.vjp`` differentiate; a step
+    that fails is not cut but stops the replay (non-zero code, the rows after it zero). Newton at the
+    edge of its convergence region, where an adaptive run leaves some steps, can fail on a change of
+    round-off alone (the blankholder's close: a replay of its own steps with the parameters as traced
+    values instead of arguments fails at step 56), so reverse mode suits paths whose steps converge
+    with margin. Raises ValueError if the adaptive run at the start values fails.
+    """
+    scene = par.scene
+    res = run(scene.model, newton=newton, control=scene.control, observe=scene.observe, progress=False,
+              raise_on_failure=False)
+    if not res.converged:
+        raise ValueError(f"the adaptive run at the start values does not complete: {res.message}")
+    times, step_phase = np.asarray(res.history["time"][1:]), np.asarray(res.history["phase"][1:])
+    fresh = np.asarray(res.history["cutbacks"][1:]) > 0   # accepted as retries: no secant predictor
+
+    def f(p):
+        model = par.model(p)
+        model = eqx.tree_at(lambda m: m.phases, model, with_steps(model.phases, times, step_phase))
+        if reverse:
+            sim = simulate_fixed(model, newton=newton, observe=scene.observe, checkpoint=checkpoint, fresh=fresh)
+        else:
+            sim = simulate(model, newton=newton, control=scene.control, observe=scene.observe)
+        return sim.history, sim.code
+
+    return f

@@ -35,7 +35,7 @@ from .lcp import contact_status
 from .loading import Phase, constraint_masks, prescribed_values, schedule
 from .material import J2Material
 from .mesh import StripMesh
-from .newton import Linearization, NewtonOptions, newton_solve
+from .newton import SOLUTION_NAME, Linearization, NewtonOptions, newton_solve
 from .progress import report
 from .results import Result
 from .system import StepArgs, linearize, residual
@@ -582,40 +582,70 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
 
 def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
                    observe: Callable = default_observe, progress: bool = False,
-                   snapshot: Callable | None = None) -> Simulation:
+                   snapshot: Callable | None = None, checkpoint: bool = True, fresh=None) -> Simulation:
     """Run the nominal steps of the load path in a fixed-length ``lax.scan`` (no step cutting).
 
     Reverse-mode differentiable. If a step fails the state stays at the last converged step, the
     remaining rows are not filled and ``code`` holds the failure.
+
+    ``fresh``: optional (n_steps,) booleans, known at trace time: the steps whose Newton iterations
+    start from the last converged state instead of the secant prediction. Replaying the accepted steps
+    of an adaptive run (:func:`jaxfric.loading.with_steps`), the steps accepted after a cutback were
+    retries, which start so; marking them reproduces the adaptive run's iterations exactly.
+
+    Memory of reverse mode: the history rows are scan outputs, not a carried buffer, so a step's carry
+    is the converged state alone (displacements, tool positions, material and contact state). With
+    ``checkpoint`` (default) every step is rematerialised in the backward pass (``jax.checkpoint``):
+    the forward pass keeps only the carry at each step, n_steps x (carry size), and the backward pass
+    re-solves one step at a time, so the memory grows as n_steps x state size, whatever the cost of a
+    step's linearisation and factorisation. Without it every step's Newton residuals and factors are
+    kept (n_steps x step intermediates), several times more; the factor is measured by
+    ``experiments/bench_grad_memory.py``. Forward mode (``jax.jvp``) is unaffected.
     """
-    sched = schedule(model.phases)
-    times, phases = sched.nominal_steps()
+    times, phases = schedule(model.phases).nominal_steps()
     ctx = _Context.build(model)
     state0 = initial_state(model)
-    hist0 = _empty_history(len(times) + 1, observe(model, state0))
+    row0 = observe(model, state0)
+
+    fresh = np.zeros(len(times), bool) if fresh is None else np.asarray(fresh, bool)
+    if fresh.shape != times.shape:
+        raise ValueError(f"field 'fresh' must have one entry per step ({len(times)}), got shape {fresh.shape}")
 
     def body(c, xs):
-        state, predictor, hist, code, failed_t, r_norm = c
-        t, p = xs
+        state, predictor, code, failed_t, r_norm = c
+        t, p, retry = xs
         sol, new_state = solve_step(model, state, p, t, newton, ctx,
-                                    guess=predictor.guess(state, t - state.time, p))
+                                    guess=predictor.guess(state, t - state.time, p, retry=retry))
         alive = code == Result.CONTINUE
         ok = alive & (sol.code == Result.SUCCESS)
-        row = hist.n_rows
-        hist = _record(hist, row, ok, new_state, sol.iterations, jnp.array(0, jnp.int32),
-                       sol.augmentations, sol.stats, observe(model, new_state))
         if progress or snapshot is not None:
-            jax.lax.cond(ok, lambda: _report(row, t, sol.iterations, 0, snapshot, model, new_state),
-                         lambda: None)
+            jax.lax.cond(ok, lambda: _report(jnp.sum(times <= t), t, sol.iterations, 0, snapshot, model,
+                                             new_state), lambda: None)
         code = jnp.where(alive & ~ok, sol.code, code).astype(jnp.int32)
         failed_t = jnp.where(alive & ~ok, t, failed_t)
-        return (_select(ok, new_state, state), predictor.after(ok, state, new_state), hist, code,
-                failed_t, jnp.where(alive, sol.residual_norm, r_norm)), None
+        row = (ok, new_state.time, new_state.phase, sol.iterations, sol.augmentations, sol.stats,
+               observe(model, new_state))
+        return (_select(ok, new_state, state), predictor.after(ok, state, new_state), code, failed_t,
+                jnp.where(alive, sol.residual_norm, r_norm)), row
 
-    init = (state0, _Predictor.empty(state0), hist0,
-            jnp.array(Result.CONTINUE, jnp.int32), jnp.array(jnp.nan), jnp.array(0.0))
-    (state, _, hist, code, failed_t, r_norm), _ = jax.lax.scan(
-        body, init, (jnp.asarray(times), jnp.asarray(phases, jnp.int32)))
+    step = jax.checkpoint(body, policy=jax.checkpoint_policies.save_only_these_names(SOLUTION_NAME)) if checkpoint else body
+    init = (state0, _Predictor.empty(state0), jnp.array(Result.CONTINUE, jnp.int32), jnp.array(jnp.nan),
+            jnp.array(0.0))
+    (state, _, code, failed_t, r_norm), rows = jax.lax.scan(
+        step, init, (jnp.asarray(times), jnp.asarray(phases, jnp.int32), jnp.asarray(fresh)))
+    ok, t, ph, iters, augs, stats, observed = rows
+    n_ok = jnp.sum(ok).astype(jnp.int32)   # a failed step stops the run: the ok steps come first
+
+    def column(first, values):
+        first = jnp.asarray(first, values.dtype)
+        filled = jnp.where(ok.reshape(ok.shape + (1,) * (values.ndim - 1)), values, jnp.zeros_like(values))
+        return jnp.concatenate([first[None], filled])
+
+    hist = History(time=column(0.0, t), phase=column(0, ph.astype(jnp.int32)),
+                   newton_iters=column(0, iters.astype(jnp.int32)), cutbacks=column(0, jnp.zeros_like(iters, jnp.int32)),
+                   augmentations=column(0, augs.astype(jnp.int32)), solver_stats=column(jnp.zeros(3, jnp.int32),
+                                                                                       stats.astype(jnp.int32)),
+                   observed=jax.tree_util.tree_map(column, row0, observed), n_rows=1 + n_ok)
     code = jnp.where(code == Result.CONTINUE, Result.SUCCESS, code).astype(jnp.int32)
     return Simulation(history=hist, final=state, code=code, failed_time=failed_t, residual_norm=r_norm,
                       pending_cuts=jnp.where(code == Result.SUCCESS, 0, 1).astype(jnp.int32))

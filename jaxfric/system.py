@@ -177,6 +177,10 @@ def linearize(x, args: StepArgs) -> Linearization:
     else:
         J = _constrain_rows(K, args.mask)
     presc = jnp.max(jnp.where(args.mask, jnp.abs(R[: args.mesh.n_dofs]), 0.0))
+    if args.force_idx:
+        # Tools with a position unknown that are displacement-driven in this phase: R_q = q - q_presc.
+        held = ~jnp.stack([args.contact.force_mask[k] for k in args.force_idx])
+        presc = jnp.maximum(presc, jnp.max(jnp.where(held, jnp.abs(R[args.mesh.n_dofs:]), 0.0)))
     return Linearization(R, J, jnp.max(jnp.abs(a.f_int)), a.det_min > 0.0,
                          (a.f_int, a.states, aux_contact), status, presc)
 

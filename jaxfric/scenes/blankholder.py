@@ -24,6 +24,18 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
 - close/lock split (``lock_control`` = "force"; "position" keeps s = H during draw); v = 0 at the right
   end, u = 0 there during close and lock;
 - increments ``ds_close`` = 0.05 mm, ``n_lock`` = 10 steps, ``dU`` = 0.1 mm; ``steady_window`` = (35, 55) mm.
+- the upper die is set ``clearance`` = 0.05 mm above the sheet for the whole run (its control holds it
+  at q = -clearance along e_q = (0, -1); its geometry is the spec's, so at rest the lands still touch).
+  Why: with the lands touching, the sheet lies on both lands (2 L) at zero gap and zero force, an
+  indeterminate contact state. At any stroke s > 0 the exact solution lifts it off every land node but
+  the one at each fillet edge (shape3: gap rising by 0.11 s per mm from it), but zero-gap pairs count
+  as closed, and with eps_n stiffer than the sheet's bending at the node scale ((4 E I / eps_n)^(1/4)
+  = 0.7 mm) a Newton step only sees the tension at the first closed node: the lift-off front advances
+  one node per iteration, so the first step needs about L / element_length + 3 iterations whatever its
+  size (15 at 2 mm, 28 at 1 mm; at 0.5 mm it diverges), more than max_iterations = 25. With the
+  clearance the sheet first meets the die at isolated points. The lock ramp closes the clearance (the
+  lower tool rises by it); 0.05 mm is 5 % of t and well below the 0.2 mm left over the nose at
+  closure. ``clearance`` = 0 is the spec's layout.
 The spec's stop rule (a reaction above F_clamp at the end of ``close`` ends the run unconverged) needs
 the run driver: the lock ramp alone would simply lower the force.
 """
@@ -90,6 +102,7 @@ class BlankholderConfig:
     eps_n: float = cm.spec_field(1e5, "N/mm/mm", "normal penalty [chosen]")
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [chosen]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
+    clearance: float = cm.spec_field(0.05, "mm", "the upper die is set this far above the sheet [chosen]")
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(None, "-", cm.BAND_DOC)
     F_clamp: float = cm.spec_field(300.0, "N/mm", "clamping force on the lower tool [chosen]")
@@ -159,7 +172,8 @@ class BlankholderObserve(eqx.Module):
 
 def _check(config: BlankholderConfig) -> None:
     cm.check_config(config, positive=("H", "R", "r", "Rp", "L", "t", "r_e", "element_length", "ds_close", "dU"),
-                    nonnegative=("mu", "F_clamp", "U_pull", "upstream_margin", "grip_length", "land_margin"),
+                    nonnegative=("mu", "F_clamp", "U_pull", "upstream_margin", "grip_length", "land_margin",
+                                 "clearance"),
                     integers=("nx", "ny", "band", "n_lock"), choices={"lock_control": ("force", "position")})
     if config.R > config.H:
         raise ValueError(f"config field 'R' = {config.R!r} must not exceed H = {config.H!r} (the nose sits "
@@ -222,7 +236,8 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
               Phase("draw", [pull], cm.n_steps("dU", config.U_pull, config.dU)))
 
     mu = config.mu if config.mu > 0 else 0.0
-    fixed = (Move(0.0, 0.0),) * 3
+    # The die is set `clearance` above the sheet (along its e_q = (0, -1)) and held there (module doc).
+    fixed = (Move(-config.clearance, -config.clearance), Move(0.0, 0.0), Move(0.0, 0.0))
     draw = Force(config.F_clamp, start=config.F_clamp) if config.lock_control == "force" else Move(0.0, 0.0)
     tools = (RigidTool("upper", _upper_die(config, x_g, groove["alpha"]), (0.0, -1.0), mesh.top, fixed, mu),
              RigidTool("lower", _lower_tool(config, x_far), (0.0, 1.0), mesh.bottom,
@@ -239,7 +254,8 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
         "variant": variant,
         "config": cm.config_dict(config),
         "geometry": {"H": config.H, "R": config.R, "r": config.r, "Rp": config.Rp, "L": config.L,
-                     "t": config.t, "r_e": config.r_e, "x_g": x_g, "T_R": list(groove["T_R"]),
+                     "t": config.t, "r_e": config.r_e, "clearance": config.clearance, "x_g": x_g,
+                     "T_R": list(groove["T_R"]),
                      "T_L": [-groove["T_R"][0], groove["T_R"][1]], "x_left": x_left, "x_right": x_right,
                      "X_far": x_far, "U_pull": config.U_pull},
         "material": cm.material_dict(config),

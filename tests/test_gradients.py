@@ -1,0 +1,77 @@
+"""Derivatives of scene outputs with respect to every differentiable parameter of every scene, through
+the whole loading path (:func:`jaxfric.params.path_function`): forward mode (``jax.jacfwd`` through
+the adaptive replay of the frozen steps), reverse mode (``jax.jacrev`` through the checkpointed
+fixed-step replay) and central finite differences, in float64.
+
+Tolerances. Forward and reverse mode compute the same implicit-function derivative by two
+association orders: they agree to 1e-8 relative to the largest entry of each output's row. Central
+differences with h = 1e-4 |p| have a truncation error of order h^2 |f^(3)| / 6 (~1e-9 relative) and
+a round-off error of about r / h, with r the force left by Newton (tolerances tightened to rtol 1e-12,
+atol 1e-10; with the flat die's penalty of 1e9 N/mm/mm the contact forces carry ~1e-9 N/mm of
+round-off). With mu = 0.15 (h = 1.5e-5) that is ~1e-4 N/mm against entries of order 1 to 50 N/mm:
+1e-5 relative to the largest entry of a row, the issue's figure for smooth regimes, holds with margin;
+h = 1e-6 |p| does not (2e-4, round-off). h is small enough that no contact pair changes status
+(stick/slip, open/closed) between p - h and p + h on these paths.
+
+Each scene runs a short path at a coarse mesh; flat die is in the fast suite, the other scenes are
+``slow``.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxfric.newton import NewtonOptions
+from jaxfric.params import parameterize, path_function
+
+TIGHT = NewtonOptions(rtol=1e-12, atol=1e-10)
+
+CASES = {
+    "flat_die": ("const_force", {"mesh": "12x1", "U_draw": 0.01}, ["mu", "F_clamp", "E", "sigma_y"]),
+    "nine": ("mu017", {"mesh": "40x2", "U_draw": 1.0}, ["mu", "R1", "stroke", "sigma_y"]),
+    "bead": ("th090_mu017", {"mesh": "60x2", "s_draw": 0.5}, ["R_r", "mu_roller", "F_clamp", "E"]),
+    "blankholder": ("shape3", {"element_length": 2.0, "U_pull": 1.0}, ["R", "H", "mu", "F_clamp"]),
+}
+
+
+def _check(scene):
+    variant, overrides, names = CASES[scene]
+    par = parameterize(scene, names, variant=variant, overrides=overrides)
+    forward, backward = path_function(par, newton=TIGHT), path_function(par, newton=TIGHT, reverse=True)
+
+    def outputs(p, f=forward):
+        h, code = f(p)
+        last = h.n_rows - 1
+        return jnp.stack([h.observed["drawing_force"][last], h.observed["clamping_force"][last]]), code
+
+    p0 = jnp.asarray(par.p0)
+    value, code = jax.jit(outputs)(p0)
+    assert int(code) == 0
+    jac_fwd = np.asarray(jax.jit(jax.jacfwd(lambda p: outputs(p)[0]))(p0))
+    jac_rev = np.asarray(jax.jit(jax.jacrev(lambda p: outputs(p, backward)[0]))(p0))
+    assert int(jax.jit(lambda p: outputs(p, backward)[1])(p0)) == 0, f"{scene}: the fixed-step replay fails"
+    scale = np.max(np.abs(jac_fwd), axis=1, keepdims=True)
+    np.testing.assert_allclose(jac_rev / scale, jac_fwd / scale, atol=1e-8, err_msg="reverse vs forward")
+    # Differences along the fixed replay: the very same steps at p + h and p - h (the adaptive replay
+    # could cut a step at one of them and change the path by more than the derivative's tolerance).
+    primal = jax.jit(lambda p: outputs(p, backward))
+    fd = np.zeros_like(jac_fwd)
+    for i, name in enumerate(names):
+        h = 1e-4 * abs(float(p0[i]))
+        (up, c1), (down, c2) = primal(p0.at[i].add(h)), primal(p0.at[i].add(-h))
+        assert int(c1) == 0 and int(c2) == 0, f"{scene}: replay fails at {name} +/- h"
+        fd[:, i] = (np.asarray(up) - np.asarray(down)) / (2 * h)
+    np.testing.assert_allclose(jac_fwd / scale, fd / scale, atol=1e-5,
+                               err_msg=f"{scene}: jacfwd vs central differences, columns {names}")
+    assert np.all(np.isfinite(jac_fwd)) and np.any(jac_fwd != 0)
+
+
+def test_flat_die_derivatives_of_every_parameter():
+    _check("flat_die")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene", ["nine", "bead", "blankholder"])
+def test_scene_derivatives_of_every_parameter(scene):
+    _check(scene)
