@@ -16,7 +16,7 @@ run: $(VENV)/.installed
 	$(VENV)/bin/jaxfric run nine --variant mu017
 
 test: $(VENV)/.installed
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -m "not slow" --durations=15
 
 test-all: $(VENV)/.installed
 	$(PY) -m pytest -q

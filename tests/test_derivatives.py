@@ -54,6 +54,7 @@ def test_jvp_matches_central_differences(index, name):
     np.testing.assert_allclose(float(tangent), float(fd), rtol=1e-5, err_msg=f"d reaction / d {name}")
 
 
+@pytest.mark.slow  # 35 s; the fast suite checks reverse against forward mode in test_gradients.py
 def test_reverse_mode_through_the_fixed_step_scan_agrees_with_forward_mode():
     grad = jax.jit(jax.grad(lambda p: final_reaction(p, fixed=True)))(P0)
     jac_fwd = jax.jit(jax.jacfwd(lambda p: final_reaction(p, fixed=True)))(P0)

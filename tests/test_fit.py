@@ -43,6 +43,7 @@ def test_cli_fit_recovers_mu_from_a_run_history(flat_history, tmp_path, capsys):
     assert "mu = 0.15" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_fit_with_noise_reports_an_interval_that_holds_the_truth(flat_history):
     meas = read_measurement(flat_history)
     rng = np.random.default_rng(3)

@@ -7,7 +7,7 @@ Tolerances. Forward and reverse mode compute the same implicit-function derivati
 association orders: they agree to 1e-8 relative to the largest entry of each output's row. Central
 differences with h = 1e-4 |p| have a truncation error of order h^2 |f^(3)| / 6 (~1e-9 relative) and
 a round-off error of about r / h, with r the force left by Newton (tolerances tightened to rtol 1e-12,
-atol 1e-10; with the flat die's penalty of 1e9 N/mm/mm the contact forces carry ~1e-9 N/mm of
+atol 1e-10 on the flat die, rtol 1e-11, atol 1e-9 on the curved tools; with the flat die's penalty of 1e9 N/mm/mm the contact forces carry ~1e-9 N/mm of
 round-off). With mu = 0.15 (h = 1.5e-5) that is ~1e-4 N/mm against entries of order 1 to 50 N/mm:
 1e-5 relative to the largest entry of a row, the issue's figure for smooth regimes, holds with margin;
 h = 1e-6 |p| does not (2e-4, round-off). h is small enough that no contact pair changes status
@@ -26,19 +26,22 @@ from jaxfric.newton import NewtonOptions
 from jaxfric.params import parameterize, path_function
 
 TIGHT = NewtonOptions(rtol=1e-12, atol=1e-10)
+# The curved tools of nine, bead and blankholder leave ~1e-10 N/mm of residual that Newton cannot
+# remove (contact round-off): atol 1e-10 stops their adaptive runs; 1e-9 is reachable.
+CURVED = NewtonOptions(rtol=1e-11, atol=1e-9)
 
 CASES = {
-    "flat_die": ("const_force", {"mesh": "12x1", "U_draw": 0.01}, ["mu", "F_clamp", "E", "sigma_y"]),
-    "nine": ("mu017", {"mesh": "40x2", "U_draw": 1.0}, ["mu", "R1", "stroke", "sigma_y"]),
-    "bead": ("th090_mu017", {"mesh": "60x2", "s_draw": 0.5}, ["R_r", "mu_roller", "F_clamp", "E"]),
-    "blankholder": ("shape3", {"element_length": 2.0, "U_pull": 1.0}, ["R", "H", "mu", "F_clamp"]),
+    "flat_die": ("const_force", {"mesh": "12x1", "U_draw": 0.01}, ["mu", "F_clamp", "E", "sigma_y"], TIGHT),
+    "nine": ("mu017", {"mesh": "40x2", "U_draw": 1.0}, ["mu", "R1", "stroke", "sigma_y"], CURVED),
+    "bead": ("th090_mu017", {"mesh": "60x2", "s_draw": 0.5}, ["R_r", "mu_roller", "F_clamp", "E"], CURVED),
+    "blankholder": ("shape3", {"element_length": 2.0, "U_pull": 1.0}, ["R", "H", "mu", "F_clamp"], CURVED),
 }
 
 
 def _check(scene):
-    variant, overrides, names = CASES[scene]
+    variant, overrides, names, newton = CASES[scene]
     par = parameterize(scene, names, variant=variant, overrides=overrides)
-    forward, backward = path_function(par, newton=TIGHT), path_function(par, newton=TIGHT, reverse=True)
+    forward, backward = path_function(par, newton=newton), path_function(par, newton=newton, reverse=True)
 
     def outputs(p, f=forward):
         h, code = f(p)
