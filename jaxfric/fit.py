@@ -46,18 +46,15 @@ import os
 import sys
 import time
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .loading import with_steps
 from .newton import NewtonOptions
-from .params import Parameterization, parameterize
+from .params import Parameterization, parameterize, path_function
 from .results import Result, describe
 from .run import run
-from .simulate import simulate
 
 __all__ = ["Measurement", "FitResult", "FitError", "read_measurement", "bin_means", "fit", "write_fit"]
 
@@ -209,21 +206,17 @@ class _Curve:
 
     def __init__(self, par: Parameterization, plan_history: dict, x: np.ndarray, edges, newton: NewtonOptions):
         self.times = np.asarray(plan_history["time"][1:])
-        step_phase = np.asarray(plan_history["phase"][1:])
-        observe, control = par.scene.observe, par.scene.control
+        path = path_function(par, newton=newton, plan=plan_history)
 
         def curve(p):
-            model = par.model(p)
-            model = eqx.tree_at(lambda m: m.phases, model, with_steps(model.phases, self.times, step_phase))
-            sim = simulate(model, newton=newton, control=control, observe=observe)
-            h = sim.history
+            h, code = path(p)
             rows = jnp.arange(h.time.shape[0], dtype=h.n_rows.dtype)
             # Unfilled rows get displacements beyond every measured one (interp needs increasing x).
             xr = jnp.where(rows < h.n_rows, h.observed["drawing_displacement"], 1e30 * (1.0 + rows.astype(float)))
             fr = jnp.where(rows < h.n_rows, h.observed["drawing_force"], 0.0)
             pointwise = jnp.interp(jnp.asarray(x), xr, fr)
             obs = pointwise if edges is None else bin_means(xr, fr, jnp.asarray(edges))
-            return obs, (obs, pointwise, sim.code, jnp.sum(h.cutbacks))
+            return obs, (obs, pointwise, code, jnp.sum(h.cutbacks))
 
         self._fn = jax.jit(jax.jacfwd(curve, has_aux=True))
 

@@ -167,7 +167,7 @@ def parameterize(scene: str, names, *, variant: str | None = None, algorithm: st
 
 
 def path_function(par: Parameterization, *, newton: NewtonOptions = NewtonOptions(), reverse: bool = False,
-                  checkpoint: bool = True):
+                  checkpoint: bool = True, plan: dict | None = None):
     """``f(p) -> (history, result code)`` along the step sequence of the adaptive run at the start
     values: differentiable through every step of the loading path.
 
@@ -187,15 +187,19 @@ def path_function(par: Parameterization, *, newton: NewtonOptions = NewtonOption
     edge of its convergence region, where an adaptive run leaves some steps, can fail on a change of
     round-off alone (the blankholder's close: a replay of its own steps with the parameters as traced
     values instead of arguments fails at step 56), so reverse mode suits paths whose steps converge
-    with margin. Raises ValueError if the adaptive run at the start values fails.
+    with margin. ``plan``: the history (``RunResult.history``) of a completed run whose steps to replay
+    instead (for example an adaptive run at other values); default: an adaptive run at the start
+    values, and ValueError if it fails.
     """
     scene = par.scene
-    res = run(scene.model, newton=newton, control=scene.control, observe=scene.observe, progress=False,
-              raise_on_failure=False)
-    if not res.converged:
-        raise ValueError(f"the adaptive run at the start values does not complete: {res.message}")
-    times, step_phase = np.asarray(res.history["time"][1:]), np.asarray(res.history["phase"][1:])
-    fresh = np.asarray(res.history["cutbacks"][1:]) > 0   # accepted as retries: no secant predictor
+    if plan is None:
+        res = run(scene.model, newton=newton, control=scene.control, observe=scene.observe, progress=False,
+                  raise_on_failure=False)
+        if not res.converged:
+            raise ValueError(f"the adaptive run at the start values does not complete: {res.message}")
+        plan = res.history
+    times, step_phase = np.asarray(plan["time"][1:]), np.asarray(plan["phase"][1:])
+    fresh = np.asarray(plan["cutbacks"][1:]) > 0   # accepted as retries: no secant predictor
 
     def f(p):
         model = par.model(p)
