@@ -13,8 +13,8 @@ round-off). With mu = 0.15 (h = 1.5e-5) that is ~1e-4 N/mm against entries of or
 h = 1e-6 |p| does not (2e-4, round-off). h is small enough that no contact pair changes status
 (stick/slip, open/closed) between p - h and p + h on these paths.
 
-Each scene runs a short path at a coarse mesh; flat die is in the fast suite, the other scenes are
-``slow``.
+Each scene runs a short path at a coarse mesh; all are ``slow`` (``make test-all``): even the flat
+die compiles four replays (90 s on two cores), more than the 10-minute fast suite can hold.
 """
 
 import jax
@@ -71,6 +71,7 @@ def _check(scene):
     assert np.all(np.isfinite(jac_fwd)) and np.any(jac_fwd != 0)
 
 
+@pytest.mark.slow  # 90 s on two cores (four compiled replays); the fast suite keeps test_derivatives.py
 def test_flat_die_derivatives_of_every_parameter():
     _check("flat_die")
 
