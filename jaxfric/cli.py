@@ -160,6 +160,18 @@ def _build(args):
     _check_scene_args(args)
     if args.tag is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._+-]*", args.tag):
         raise UsageError(f"--tag {args.tag!r} must match [A-Za-z0-9][A-Za-z0-9._+-]*")
+    overrides = _scene_overrides(args)
+    try:
+        return scenes.make(args.scene, args.variant, args.algorithm, overrides)
+    except (ValueError, TypeError) as err:
+        raise UsageError(str(err)) from None
+
+
+def _scene_overrides(args) -> dict:
+    """The --set and --mesh values as config overrides, each checked against the scene's field types
+    (bad input -> UsageError naming the field or value)."""
+    from . import scenes
+
     overrides = _overrides(args.overrides)
     if "mesh" in overrides and args.mesh is not None:
         raise UsageError("give the mesh either with --mesh or with --set mesh=..., not both")
@@ -169,9 +181,9 @@ def _build(args):
         for field, value in overrides.items():
             if field != "mesh":
                 scenes.parse_override(args.scene, field, value)  # names the bad field / value
-        return scenes.make(args.scene, args.variant, args.algorithm, overrides)
     except (ValueError, TypeError) as err:
         raise UsageError(str(err)) from None
+    return overrides
 
 
 def _writable_dir(out: str) -> None:
@@ -249,20 +261,10 @@ def _fit(args) -> int:
     names = tuple(n.strip() for n in args.param.split(","))
     if not all(names):
         raise UsageError(f"--param expects NAME[,NAME...], got {args.param!r}")
-    overrides = _overrides(args.overrides)
-    if "mesh" in overrides and args.mesh is not None:
-        raise UsageError("give the mesh either with --mesh or with --set mesh=..., not both")
+    overrides = _scene_overrides(args)
     bounds = _bounds(args.bounds, names)
     variant = args.variant or scenes.default_variant(args.scene)
     out = os.path.join("fits", args.scene, variant) if args.out is None else args.out
-    try:
-        if args.mesh is not None:
-            overrides["mesh"] = "x".join(str(v) for v in scenes.parse_mesh(args.mesh))
-        for field, value in overrides.items():
-            if field != "mesh":
-                scenes.parse_override(args.scene, field, value)
-    except (ValueError, TypeError) as err:
-        raise UsageError(str(err)) from None
     if not os.path.isfile(args.data):
         raise UsageError(f"--data {args.data!r} is not a file")
     _writable_dir(out)

@@ -52,9 +52,8 @@ import numpy as np
 import optax
 
 from .newton import NewtonOptions
-from .params import Parameterization, parameterize, path_function
+from .params import Parameterization, adaptive_run, parameterize, path_function
 from .results import Result, describe
-from .run import run
 
 __all__ = ["Measurement", "FitResult", "FitError", "read_measurement", "bin_means", "fit", "write_fit"]
 
@@ -228,13 +227,6 @@ class _Curve:
         return np.asarray(obs), np.asarray(jac), np.asarray(pointwise), int(code), int(cuts)
 
 
-def _plan(par: Parameterization, p, newton: NewtonOptions):
-    """Adaptive run at ``p``: its history (for the frozen step sequence), or a failure message."""
-    res = run(par.model(jnp.asarray(p)), newton=newton, control=par.scene.control, observe=par.scene.observe,
-              progress=False, raise_on_failure=False)
-    return res.history, (None if res.converged else res.message)
-
-
 def _bounds(names, p0, bounds) -> tuple[np.ndarray, np.ndarray]:
     lo, hi = np.zeros(len(names)), np.full(len(names), np.inf)
     bounds = dict(bounds or {})
@@ -324,10 +316,11 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
 
     def planned(p):
         """A curve on the step sequence of the adaptive run at p; None and the reason if it fails."""
-        history, failure = _plan(par, p, newton)
+        res = adaptive_run(par, p, newton)
         counts["simulations"] += 1
-        if failure:
-            return None, failure
+        if not res.converged:
+            return None, res.message
+        history = res.history
         top = float(np.max(history["drawing_displacement"]))
         if meas.displacement[-1] > top * (1 + 1e-12):
             raise ValueError(f"measurement {meas.source!r} reaches drawing_displacement {meas.displacement[-1]:g} "

@@ -36,7 +36,7 @@ from .newton import NewtonOptions
 from .run import run
 from .simulate import simulate, simulate_fixed
 
-__all__ = ["Parameterization", "parameterize", "path_function", "AFFINE_RTOL"]
+__all__ = ["Parameterization", "parameterize", "adaptive_run", "path_function", "AFFINE_RTOL"]
 
 AFFINE_RTOL = 1e-9  # affinity check, relative to the size of a leaf and of its change
 
@@ -73,6 +73,15 @@ class Parameterization:
         leaves = [jnp.asarray(b) if s is None else jnp.asarray(b) + jnp.tensordot(dp, jnp.asarray(s), axes=1)
                   for b, s in zip(self._base, self._slopes)]
         return eqx.combine(jax.tree_util.tree_unflatten(self._treedef, leaves), self._static)
+
+
+def _on_line(leaves, base, change) -> bool:
+    """Whether every leaf equals base + change to AFFINE_RTOL of the leaf's size and of its change."""
+    for a, b, d in zip(leaves, base, change):
+        size = np.max(np.abs(b), initial=0.0) + np.max(np.abs(a - b), initial=0.0)
+        if np.max(np.abs(a - b - d), initial=0.0) > AFFINE_RTOL * max(size, 1e-300):
+            return False
+    return True
 
 
 def _step(value: float) -> float:
@@ -134,20 +143,16 @@ def parameterize(scene: str, names, *, variant: str | None = None, algorithm: st
     for i, name in enumerate(names):
         one, two = build(p0 + h[i] * np.eye(n)[i]), build(p0 + 2 * h[i] * np.eye(n)[i])
         slope = [(a - b) / h[i] for a, b in zip(one, leaves0)]
-        for a, b, s in zip(two, leaves0, slope):
-            size = np.max(np.abs(b), initial=0.0) + np.max(np.abs(a - b), initial=0.0)
-            if np.max(np.abs(a - b - 2 * h[i] * s), initial=0.0) > AFFINE_RTOL * max(size, 1e-300):
-                raise ValueError(f"parameter {name!r} of scene '{scene}' is not differentiable here: it enters "
-                                 f"the model nonlinearly")
+        if not _on_line(two, leaves0, [2 * h[i] * s for s in slope]):
+            raise ValueError(f"parameter {name!r} of scene '{scene}' is not differentiable here: it enters "
+                             f"the model nonlinearly")
         slopes.append(slope)
     for i, j in itertools.combinations(range(n), 2):
         both = build(p0 + h[i] * np.eye(n)[i] + h[j] * np.eye(n)[j])
-        for a, b, si, sj in zip(both, leaves0, slopes[i], slopes[j]):
-            size = np.max(np.abs(b), initial=0.0) + np.max(np.abs(a - b), initial=0.0)
-            if np.max(np.abs(a - b - h[i] * si - h[j] * sj), initial=0.0) > AFFINE_RTOL * max(size, 1e-300):
-                raise ValueError(f"parameters {names[i]!r} and {names[j]!r} of scene '{scene}' are not "
-                                 f"differentiable together: they enter the model jointly (a cross term, "
-                                 f"e.g. eps_t = max(mu) eps_n); fit them one at a time")
+        if not _on_line(both, leaves0, [h[i] * si + h[j] * sj for si, sj in zip(slopes[i], slopes[j])]):
+            raise ValueError(f"parameters {names[i]!r} and {names[j]!r} of scene '{scene}' are not "
+                             f"differentiable together: they enter the model jointly (a cross term, "
+                             f"e.g. eps_t = max(mu) eps_n); fit them one at a time")
     per_leaf, moved = [], [0] * n
     for k in range(len(leaves0)):
         stack = np.stack([slopes[i][k] for i in range(n)])
@@ -164,6 +169,14 @@ def parameterize(scene: str, names, *, variant: str | None = None, algorithm: st
     return Parameterization(names=names, p0=p0, scene=base, moved=tuple(moved), _base=tuple(leaves0),
                             _slopes=tuple(per_leaf), _treedef=treedef0, _static=static0)
 
+
+
+def adaptive_run(par: Parameterization, p, newton: NewtonOptions = NewtonOptions()):
+    """The ordinary adaptive run (:func:`jaxfric.run.run`, no progress bar, no exception) of the model
+    at parameter values ``p``: the step sequence that :func:`path_function` replays."""
+    scene = par.scene
+    return run(par.model(jnp.asarray(p)), newton=newton, control=scene.control, observe=scene.observe,
+               progress=False, raise_on_failure=False)
 
 
 def path_function(par: Parameterization, *, newton: NewtonOptions = NewtonOptions(), reverse: bool = False,
@@ -193,8 +206,7 @@ def path_function(par: Parameterization, *, newton: NewtonOptions = NewtonOption
     """
     scene = par.scene
     if plan is None:
-        res = run(scene.model, newton=newton, control=scene.control, observe=scene.observe, progress=False,
-                  raise_on_failure=False)
+        res = adaptive_run(par, par.p0, newton)
         if not res.converged:
             raise ValueError(f"the adaptive run at the start values does not complete: {res.message}")
         plan = res.history
