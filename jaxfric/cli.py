@@ -72,6 +72,17 @@ def build_parser() -> argparse.ArgumentParser:
                      help="fit the mean force over windows of this length instead of every point")
     fit.add_argument("--out", metavar="DIR", help="output directory (default fits/SCENE/VARIANT)")
     fit.add_argument("--quiet", action="store_true", help="no progress lines")
+    report = sub.add_parser("report", help="studies across many runs (accuracy-cost)",
+                            description="Error against run time: references, the sweep of algorithms, "
+                                        "penalties, meshes and steps, Pareto plots and what to pick for "
+                                        "10 %%, 1 %% and 0.1 %% accuracy (jaxfric.accuracy).")
+    report.add_argument("which", choices=["accuracy-cost"], help="the report")
+    report.add_argument("--quick", action="store_true", help="the small sweep (a few minutes)")
+    report.add_argument("--test", action="append", default=None, metavar="NAME",
+                        help="run only this test (repeatable), e.g. flat_die_const_force")
+    report.add_argument("--out", metavar="DIR", help="output directory (default runs/report/accuracy_cost)")
+    report.add_argument("--rerun", action="store_true", help="recompute runs already in DIR")
+    report.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
 
 
@@ -101,6 +112,8 @@ def main(argv=None) -> int:
             return _scenes()
         if args.command == "fit":
             return _fit(args)
+        if args.command == "report":
+            return _report(args)
         return _run(args)
     except UsageError as err:
         return _error(err, EXIT_USAGE)
@@ -291,3 +304,26 @@ def _fit(args) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def _report(args) -> int:
+    from . import accuracy
+
+    out = os.path.join("runs", "report", "accuracy_cost") if args.out is None else args.out
+    _writable_dir(out)
+    known = [t.name for t in (accuracy.QUICK_TESTS if args.quick else accuracy.TESTS)]
+    for name in args.test or []:
+        if name not in known:
+            raise UsageError(f"--test {name!r} is not a test of this report; choose from {', '.join(known)}")
+    log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
+    rows = accuracy.accuracy_cost(out, quick=args.quick, tests=args.test, rerun=args.rerun,
+                                  progress=not args.quiet, log=log)
+    print(f"report: {os.path.join(out, 'accuracy_cost.md')}; table: {os.path.join(out, 'accuracy_cost.csv')}; "
+          f"plots: {os.path.join(out, 'pareto_*.png')}")
+    failed = [r for r in rows if not r["converged"]]
+    if any(r["family"] == "reference" for r in failed):
+        return _error("a reference run did not complete; its errors are missing (see the report)", EXIT_FAILED)
+    if failed:
+        print(f"note: {len(failed)} of {len(rows)} runs did not complete (listed in the report)")
+    return EXIT_OK
+

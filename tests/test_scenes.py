@@ -1,6 +1,7 @@
 """The four benchmark scenes (benchmarks spec sections 2-6): registry, configs, geometry of the spec,
 validation, and one short run per scene at a coarse mesh with a physical check."""
 
+import dataclasses
 import json
 import math
 
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 
 from jaxfric.contact import pair_nodes
+from jaxfric.results import Result
 from jaxfric.run import run
 from jaxfric.scenes import (ALGORITHMS, config_fields, make, parse_mesh, parse_override, scene_names,
                             variants)
@@ -400,3 +402,17 @@ def test_blankholder_short_run():
     locked = h["time"] >= 2.0
     np.testing.assert_allclose(h["clamping_force"][locked], 300.0, rtol=1e-8)
     assert h["drawing_displacement"][-1] == pytest.approx(1.0)
+
+
+def test_blankholder_starts_closing_at_the_spec_mesh():
+    """Shape 1 at its spec mesh (309 x 2): the first 40 steps of 'close' converge, and the run then ends
+    on its 40-row history buffer (MAX_STEPS), not on a Newton failure. Guards the first-step line
+    search (jaxfric.system.linearize, the prescribed-values test): counting the lower tool's row
+    q - q_presc in that test stopped this run at step 4 of 'close'."""
+    scene = make("blankholder", "shape1")
+    control = dataclasses.replace(scene.control, max_steps=40)
+    result = run(scene.model, control=control, observe=scene.observe, progress=False,
+                 raise_on_failure=False)
+    assert result.code == Result.MAX_STEPS, result.message
+    h = result.history
+    assert np.all(h["phase_name"] == "close") and h["tool_position"][-1] > 0

@@ -1,0 +1,386 @@
+"""Error against run time: converged references, error measures, the sweep and its report.
+
+``jaxfric report accuracy-cost [--quick] [--out DIR]`` (and ``experiments/accuracy_cost.py``) runs, per
+test (flat die ``const_force`` / ``const_position``, Nine ``mu000`` / ``mu017``):
+
+- a **reference**: ``auglag`` with target gap ``REF_GAP``, on the reference mesh (each sweep mesh at
+  most as fine) with half the nominal increments; and two **checks** of it, the mesh refined once more
+  (element size halved in both directions) and the increments halved once more. The reference counts as
+  converged for a measure when both checks change it by less than a tenth of the smallest error of that
+  measure in the sweep (the table says, per measure, whether it did);
+- the **sweep**: ``penalty`` over five decades of eps_N, ``auglag`` over eps_N x target gap, ``lcp_ssn``,
+  and, with the scene's default algorithm and penalty, coarser/finer meshes and larger/smaller steps;
+- for every run: solve wall time and compile time apart, Newton iterations, and the **error measures**
+  (:func:`error_measures`) against the reference.
+
+It writes ``accuracy_cost.csv`` (one row per run), ``pareto_<test>.png`` (error against wall time, one
+curve per family, the Pareto front marked) and ``accuracy_cost.md`` (the recommendations: for 10 %, 1 %
+and 0.1 % the cheapest run that reaches it, per test). Runs are resumable (:mod:`jaxfric.batch`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+
+import numpy as np
+
+from .batch import run_case, write_csv
+
+__all__ = ["TESTS", "QUICK_TESTS", "Test", "error_measures", "accuracy_cost", "MEASURES", "LEVELS"]
+
+REF_GAP = 1e-8          # mm, target gap of the reference's augmented Lagrangian
+LEVELS = (0.1, 0.01, 0.001)
+GRID = 200
+FLOOR = 1e-12           # errors below this are shown at it on log axes
+MEASURES = ("err_steady", "err_peak", "err_clamp", "err_curve_l2", "err_pressure")
+MEASURE_DOC = {
+    "err_steady": "relative error of the mean steady drawing force",
+    "err_peak": "relative error of the peak drawing force",
+    "err_clamp": "relative error of the final clamping force",
+    "err_curve_l2": "L2 error of the drawing-force curve over the draw stroke, relative to the reference's L2 norm",
+    "err_pressure": "contact-pressure distribution at the named instant: largest difference of the cumulative "
+                    "normal force along x, relative to the reference's total normal force (per tool, summed)",
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Test:
+    """One test of the report: a scene variant and its sweep.
+
+    Attributes:
+        scene, variant: the scene variant.
+        base: overrides common to every run (e.g. a shortened stroke).
+        mesh: (nx, ny) of the sweep's algorithm runs.
+        ref_mesh: (nx, ny) of the reference (its check refines it once more).
+        meshes: the mesh family (default algorithm).
+        step_fields: config fields of the nominal increments (scaled by the step factor; an integer
+            field is a step count and is divided by it).
+        step_factors: the step family (default algorithm), factors on the nominal increments.
+        penalties: eps_N of the penalty family.
+        auglag: (eps_N, target gap) pairs of the auglag family.
+        instant: the named instant of the pressure comparison.
+        ssn: include ``lcp_ssn``.
+    """
+
+    scene: str
+    variant: str
+    base: dict
+    mesh: tuple
+    ref_mesh: tuple
+    meshes: tuple
+    step_fields: tuple
+    step_factors: tuple
+    penalties: tuple
+    auglag: tuple
+    instant: str
+    ssn: bool = True
+
+    @property
+    def name(self) -> str:
+        return f"{self.scene}_{self.variant}"
+
+
+_FLAT_STEPS = ("dU_fine", "dU", "n_clamp")
+_NINE_STEPS = ("dq_clamp", "dU")
+# [chosen] Nine: the strip is drawn 36 mm (the steady window [20, 35] mm and one more), not 70.
+_NINE_BASE = {"U_draw": 36.0}
+
+TESTS = (
+    Test("flat_die", "const_force", {}, (120, 1), (240, 2), ((60, 1), (120, 1), (240, 2)), _FLAT_STEPS,
+         (2.0, 0.5), (1e5, 1e6, 1e7, 1e8, 1e9), ((1e6, 1e-5), (1e6, 1e-6), (1e7, 1e-6), (1e7, 1e-7)), "final"),
+    Test("flat_die", "const_position", {}, (120, 1), (240, 2), ((60, 1), (120, 1), (240, 2)), _FLAT_STEPS,
+         (2.0, 0.5), (1e5, 1e6, 1e7, 1e8, 1e9), ((1e6, 1e-5), (1e6, 1e-6), (1e7, 1e-6), (1e7, 1e-7)), "final"),
+    Test("nine", "mu000", _NINE_BASE, (100, 2), (200, 4), ((50, 2), (100, 2), (200, 4)), _NINE_STEPS,
+         (2.0, 0.5), (1e2, 1e3, 1e4, 1e5, 1e6), ((1e4, 1e-3), (1e4, 1e-4), (1e5, 1e-4), (1e5, 1e-5)), "steady",
+         ssn=False),
+    Test("nine", "mu017", _NINE_BASE, (100, 2), (200, 4), ((50, 2), (100, 2), (200, 4)), _NINE_STEPS,
+         (2.0, 0.5), (1e2, 1e3, 1e4, 1e5, 1e6), ((1e4, 1e-3), (1e4, 1e-4), (1e5, 1e-4), (1e5, 1e-5)), "steady",
+         ssn=False),
+)
+
+# --quick: the flat die at force control on small meshes, a short sweep (a few minutes on 2 cores).
+QUICK_TESTS = (
+    Test("flat_die", "const_force", {"U_draw": 0.01}, (30, 1), (60, 1), ((15, 1), (30, 1)), _FLAT_STEPS,
+         (2.0,), (1e6, 1e8), ((1e6, 1e-6),), "final"),
+)
+
+
+# ---- cases --------------------------------------------------------------------------------------------
+
+def _steps(test: Test, factor: float) -> dict:
+    """Overrides for nominal increments scaled by ``factor`` (step counts divided by it)."""
+    from . import scenes
+
+    defaults = {f.name: f.default for f in dataclasses.fields(scenes.config_class(test.scene))}
+    out = {}
+    for name in test.step_fields:
+        value = test.base.get(name, defaults[name])
+        out[name] = max(1, math.ceil(value / factor)) if isinstance(value, int) else value * factor
+    return out
+
+
+def _mesh(m) -> str:
+    return f"{m[0]}x{m[1]}"
+
+
+def cases(test: Test) -> list[tuple]:
+    """(label, family, algorithm, overrides) of the sweep, the reference (family ``reference``) and its
+    two checks (``ref_check``)."""
+    from . import scenes
+
+    default_eps = next(f.default for f in dataclasses.fields(scenes.config_class(test.scene)) if f.name == "eps_n")
+    mesh = _mesh(test.mesh)
+    out = [(f"penalty_eps{e:.0e}", "penalty", "penalty", {"mesh": mesh, "eps_n": e}) for e in test.penalties]
+    out += [(f"auglag_eps{e:.0e}_gap{g:.0e}", "auglag", "auglag", {"mesh": mesh, "eps_n": e, "target_gap": g})
+            for e, g in test.auglag]
+    if test.ssn:
+        out.append(("lcp_ssn", "lcp_ssn", "lcp_ssn", {"mesh": mesh}))
+    out += [(f"mesh_{_mesh(m)}", "mesh", "penalty", {"mesh": _mesh(m), "eps_n": default_eps}) for m in test.meshes]
+    out += [(f"step_x{f:g}", "step", "penalty", {"mesh": mesh, "eps_n": default_eps, **_steps(test, f)})
+            for f in test.step_factors]
+    ref = {"eps_n": default_eps, "target_gap": REF_GAP, **_steps(test, 0.5)}
+    fine = (2 * test.ref_mesh[0], 2 * test.ref_mesh[1])
+    out += [("reference", "reference", "auglag", {"mesh": _mesh(test.ref_mesh), **ref}),
+            ("ref_check_mesh", "ref_check", "auglag", {"mesh": _mesh(fine), **ref}),
+            ("ref_check_step", "ref_check", "auglag", {"mesh": _mesh(test.ref_mesh), **ref, **_steps(test, 0.25)})]
+    return [(label, family, algorithm, {**test.base, **ov}) for label, family, algorithm, ov in out]
+
+
+# ---- error measures -----------------------------------------------------------------------------------
+
+def _draw_curve(h: dict):
+    sel = h["phase"] == "draw"
+    if sel.sum() < 2:
+        return None
+    x, y = h["drawing_displacement"][sel], h["drawing_force"][sel]
+    order = np.argsort(x, kind="stable")
+    return x[order], y[order]
+
+
+def _rel(a, b):
+    if a is None or b is None or not math.isfinite(a) or not math.isfinite(b):
+        return None
+    return abs(a - b) / abs(b) if b != 0 else (0.0 if a == 0 else None)
+
+
+def _cumulative_difference(contact: dict, ref: dict, instant: str):
+    """Largest difference of the cumulative normal force along x, per tool, over the reference's total
+    normal force (summed over tools): a pressure-distribution distance that needs no common mesh."""
+    keys = (f"{instant}__rn", f"{instant}__x")
+    if not all(k in contact and k in ref for k in keys):
+        return None
+    total, worst = 0.0, 0.0
+    for k in np.unique(ref["pair_tool"]):
+        curves = []
+        for c in (contact, ref):
+            sel = c["pair_tool"] == k
+            x = c[f"{instant}__x"][c["pair_node"][sel], 0]
+            rn = c[f"{instant}__rn"][sel]
+            order = np.argsort(x)
+            curves.append((x[order], np.cumsum(rn[order])))
+        (xa, fa), (xb, fb) = curves
+        if fb.size == 0 or fb[-1] == 0:
+            continue
+        grid = np.union1d(xa, xb)
+        step = lambda xs, fs: np.concatenate([[0.0], fs])[np.searchsorted(xs, grid, side="right")]  # noqa: E731
+        worst += float(np.max(np.abs(step(xa, fa) - step(xb, fb))))
+        total += float(fb[-1])
+    return worst / total if total > 0 else None
+
+
+def error_measures(run: dict, ref: dict, instant: str) -> dict:
+    """The error measures of a run against the reference (each run as returned by
+    :func:`jaxfric.batch.run_case`); None where a quantity is missing (a run that stopped early)."""
+    s, r = run["summary"], ref["summary"]
+    out = {"err_steady": _rel(s.get("steady_drawing_force"), r.get("steady_drawing_force")),
+           "err_peak": _rel(s.get("peak_drawing_force"), r.get("peak_drawing_force")),
+           "err_clamp": _rel(s.get("final_clamping_force"), r.get("final_clamping_force")),
+           "err_curve_l2": None, "err_pressure": None}
+    a = _draw_curve(run["history"]) if run["history"] else None
+    b = _draw_curve(ref["history"]) if ref["history"] else None
+    if a is not None and b is not None and s.get("converged"):
+        grid = np.linspace(b[0][0], b[0][-1], GRID)
+        fa, fb = np.interp(grid, *a), np.interp(grid, *b)
+        norm = math.sqrt(np.trapezoid(fb**2, grid))
+        out["err_curve_l2"] = math.sqrt(np.trapezoid((fa - fb) ** 2, grid)) / norm if norm > 0 else None
+    if run["contact"] and ref["contact"]:
+        out["err_pressure"] = _cumulative_difference(run["contact"], ref["contact"], instant)
+    return out
+
+
+# ---- the report ---------------------------------------------------------------------------------------
+
+def _row(test: Test, label, family, algorithm, overrides, c, ref) -> dict:
+    s = c["summary"]
+    row = {"test": test.name, "scene": test.scene, "variant": test.variant, "run": label, "family": family,
+           "algorithm": algorithm, "mesh": overrides.get("mesh"), "eps_n": overrides.get("eps_n"),
+           "target_gap": overrides.get("target_gap") if algorithm == "auglag" else None,
+           "converged": bool(s.get("converged")), "n_steps": s.get("n_steps"),
+           "newton_iters_total": s.get("newton_iters_total"), "cutbacks": s.get("n_cutbacks"),
+           "wall_s": s.get("wall_s"), "compile_s": s.get("compile_s"),
+           "max_penetration": s.get("max_penetration"),
+           "steady_drawing_force": s.get("steady_drawing_force"),
+           "peak_drawing_force": s.get("peak_drawing_force"),
+           "final_clamping_force": s.get("final_clamping_force"),
+           "error_estimate": (s.get("error_estimate") or {}).get("relative")}
+    usable = ref is not None and ref["summary"].get("converged") and s.get("converged")
+    row.update(error_measures(c, ref, test.instant) if usable else dict.fromkeys(MEASURES))
+    row["message"] = s.get("message", "")
+    return row
+
+
+def accuracy_cost(out: str, quick: bool = False, tests=None, rerun: bool = False, progress: bool = False,
+                  log=print) -> list[dict]:
+    """Run the sweep of every test (``TESTS``, or ``QUICK_TESTS`` with ``quick``; ``tests``: names to
+    keep) into ``out``, and write the CSV, the Pareto plots and the recommendations. Returns the rows."""
+    chosen = [t for t in (QUICK_TESTS if quick else TESTS) if tests is None or t.name in tests]
+    if not chosen:
+        raise ValueError(f"no test selected; choose from {', '.join(t.name for t in (QUICK_TESTS if quick else TESTS))}")
+    rows, checks = [], {}
+    csv_path = os.path.join(out, "accuracy_cost.csv")
+    for test in chosen:
+        plan = cases(test)
+        # The reference first: every error is measured against it.
+        order = sorted(plan, key=lambda p: p[1] != "reference")
+        done = {}
+        for label, family, algorithm, ov in order:
+            done[label] = run_case(os.path.join(out, "runs", test.name, label), test.scene, test.variant,
+                                   algorithm, ov, rerun=rerun, progress=progress, log=log)
+            ref = done["reference"]
+            rows = [r for r in rows if not (r["test"] == test.name and r["run"] == label)]
+            rows.append(_row(test, label, family, algorithm, ov, done[label], ref))
+            write_csv(csv_path, rows)
+        checks[test.name] = _reference_check([r for r in rows if r["test"] == test.name])
+        _pareto_figure(os.path.join(out, f"pareto_{test.name}.png"), test,
+                       [r for r in rows if r["test"] == test.name])
+    with open(os.path.join(out, "accuracy_cost.md"), "w") as fh:
+        fh.write(report_markdown(rows, checks, quick))
+    return rows
+
+
+def _reference_check(rows: list[dict]) -> dict:
+    """Per measure: the largest change of the reference under its two checks, the smallest sweep error,
+    and whether the change is below a tenth of it."""
+    sweep = [r for r in rows if r["family"] not in ("reference", "ref_check") and r["converged"]]
+    ref_checks = [r for r in rows if r["family"] == "ref_check"]
+    out = {}
+    for m in MEASURES:
+        changes = [r[m] for r in ref_checks if r[m] is not None]
+        errors = [r[m] for r in sweep if r[m] is not None and r[m] > 0]
+        change = max(changes) if len(changes) == len(ref_checks) and changes else None
+        smallest = min(errors) if errors else None
+        ok = change is not None and smallest is not None and change < 0.1 * smallest
+        out[m] = {"change": change, "smallest_error": smallest, "converged": ok,
+                  "checks_converged": all(r["converged"] for r in ref_checks)}
+    return out
+
+
+def pareto_front(points: list[tuple]) -> list[tuple]:
+    """The (cost, error, ...) points no other point beats in both cost and error, by increasing cost."""
+    front, best = [], math.inf
+    for p in sorted(points, key=lambda p: (p[0], p[1])):
+        if p[1] < best:
+            front.append(p)
+            best = p[1]
+    return front
+
+
+def _pareto_figure(path: str, test: Test, rows: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
+    markers = {"penalty": "o-", "auglag": "s-", "lcp_ssn": "D", "mesh": "^-", "step": "v-"}
+    for ax, measure in zip(axes, ("err_steady", "err_curve_l2")):
+        pts = []
+        for family, style in markers.items():
+            sel = [r for r in rows if r["family"] == family and r["converged"] and r[measure] is not None]
+            if not sel:
+                continue
+            sel.sort(key=lambda r: r["wall_s"])
+            x = [r["wall_s"] for r in sel]
+            y = [max(r[measure], FLOOR) for r in sel]
+            ax.plot(x, y, style, label=family, alpha=0.85)
+            pts += [(r["wall_s"], max(r[measure], FLOOR), r["run"]) for r in sel]
+        front = pareto_front(pts)
+        if front:
+            ax.step([p[0] for p in front], [p[1] for p in front], where="post", color="k", lw=1, alpha=0.6,
+                    label="Pareto front")
+            ax.plot([p[0] for p in front], [p[1] for p in front], "o", mfc="none", mec="k", ms=11)
+            for x, y, label in front:
+                ax.annotate(label, (x, y), textcoords="offset points", xytext=(5, 3), fontsize=6)
+        for level in LEVELS:
+            ax.axhline(level, color="gray", ls=":", lw=0.8)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("solve wall time (s, compilation apart)")
+        ax.set_ylabel(MEASURE_DOC[measure].split(" of the ")[0] + (" (steady force)" if measure == "err_steady"
+                                                                   else " (force curve, L2)"))
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"{test.scene} / {test.variant}: error against run time (reference: auglag, target gap "
+                 f"{REF_GAP:g} mm, mesh {_mesh(test.ref_mesh)}, half steps)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, float):
+        return f"{v:.3g}"
+    return str(v)
+
+
+def recommendations(rows: list[dict], measure: str = "err_steady") -> list[dict]:
+    """Per test and level: the cheapest converged sweep run whose ``measure`` is within the level."""
+    out = []
+    for test in dict.fromkeys(r["test"] for r in rows):
+        sweep = [r for r in rows if r["test"] == test and r["family"] not in ("reference", "ref_check")
+                 and r["converged"] and r[measure] is not None]
+        for level in LEVELS:
+            ok = [r for r in sweep if r[measure] <= level]
+            best = min(ok, key=lambda r: r["wall_s"]) if ok else None
+            out.append({"test": test, "level": level, "run": best and best["run"],
+                        "algorithm": best and best["algorithm"], "mesh": best and best["mesh"],
+                        "error": best and best[measure], "wall_s": best and best["wall_s"]})
+    return out
+
+
+def report_markdown(rows: list[dict], checks: dict, quick: bool) -> str:
+    lines = ["Error measures (each relative, against the test's reference): " +
+             "; ".join(f"`{m}` {doc}" for m, doc in MEASURE_DOC.items()) + ". Wall time is the solve time "
+             "(compilation apart, in the CSV).", ""]
+    lines += ["**What to pick** (the cheapest run of the sweep that reaches the level on the steady drawing "
+              "force; `–`: none of the sweep does):", "",
+              "| test | 10 % | 1 % | 0.1 % |", "|---|---|---|---|"]
+    recs = recommendations(rows)
+    for test in dict.fromkeys(r["test"] for r in recs):
+        cells = []
+        for level in LEVELS:
+            r = next(x for x in recs if x["test"] == test and x["level"] == level)
+            cells.append("–" if r["run"] is None else f"`{r['run']}` (mesh {r['mesh']}): {_fmt(r['error'])} in "
+                         f"{r['wall_s']:.3g} s")
+        lines.append(f"| {test} | " + " | ".join(cells) + " |")
+    lines += ["", "**Is the reference converged?** Largest change of each measure when the reference's mesh or "
+              "its steps are halved once more, against a tenth of the smallest error of the sweep:", "",
+              "| test | measure | change | smallest sweep error | converged |", "|---|---|---|---|---|"]
+    for test, per in checks.items():
+        for m, c in per.items():
+            lines.append(f"| {test} | {m} | {_fmt(c['change'])} | {_fmt(c['smallest_error'])} | "
+                         f"{'yes' if c['converged'] else '**no**'} |")
+    lines += ["", "**Every run:**", "", "| test | run | converged | steps | Newton it. | wall s | max pen. (mm) | "
+              + " | ".join(MEASURES) + " | estimate |", "|" + "---|" * (8 + len(MEASURES))]
+    for r in rows:
+        lines.append(f"| {r['test']} | {r['run']} | {'yes' if r['converged'] else '**no**'} | {_fmt(r['n_steps'])} | "
+                     f"{_fmt(r['newton_iters_total'])} | {_fmt(r['wall_s'])} | {_fmt(r['max_penetration'])} | "
+                     + " | ".join(_fmt(r[m]) for m in MEASURES) + f" | {_fmt(r['error_estimate'])} |")
+    bad = [r for r in rows if not r["converged"]]
+    if bad:
+        lines += ["", "Runs that did not complete:", ""] + [f"- {r['test']} `{r['run']}`: {r['message']}" for r in bad]
+    return "\n".join(lines) + "\n"
