@@ -52,8 +52,8 @@ def case(study: str, name: str, scene_name: str, variant: str, algorithm: str, o
          opts) -> dict:
     """Run one case into ``runs/<name>`` of the study (or read it back): :func:`jaxfric.batch.run_case`."""
     return run_case(os.path.join(ROOT, study, "runs", name), scene_name, variant, algorithm, overrides,
-                    rerun=opts.rerun, progress=opts.progress, figures=opts.run_figures, tag=study,
-                    log=lambda m: print(f"[{study}] {m}", flush=True))
+                    rerun=opts.rerun and _selected(opts, name), progress=opts.progress,
+                    figures=opts.run_figures, tag=study, log=lambda m: print(f"[{study}] {m}", flush=True))
 
 
 def common(summary: dict) -> dict:
@@ -126,7 +126,13 @@ def _plt():
 
 
 def _selected(opts, name: str) -> bool:
+    """Whether case ``name`` is to be run (``--only``)."""
     return not opts.only or any(s in name for s in opts.only)
+
+
+def _want(opts, study: str, name: str) -> bool:
+    """Whether case ``name`` enters the table: selected, or not selected but already on disk (read back)."""
+    return _selected(opts, name) or os.path.exists(os.path.join(ROOT, study, "runs", name, "summary.json"))
 
 
 def _machine(rows_cases: list[dict]) -> str:
@@ -148,7 +154,7 @@ def penalty_sensitivity(opts) -> None:
     for variant in ("mu000", "mu017"):
         for eps in EPS_PENALTY:
             name = f"{variant}_eps{eps:.0e}"
-            if not _selected(opts, name):
+            if not _want(opts, study, name):
                 continue
             c = case(study, name, "nine", variant, "penalty", {"mesh": NINE_MESH, "eps_n": eps}, opts)
             s = c["summary"]
@@ -190,7 +196,7 @@ def auglag_sensitivity(opts) -> None:
         for eps in EPS_AUGLAG:
             for gap in TARGET_GAPS:
                 name = f"{variant}_eps{eps:.0e}_gap{gap:.0e}"
-                if not _selected(opts, name):
+                if not _want(opts, study, name):
                     continue
                 c = case(study, name, "nine", variant, "auglag",
                          {"mesh": NINE_MESH, "eps_n": eps, "target_gap": gap}, opts)
@@ -265,7 +271,7 @@ def mesh_convergence(opts) -> None:
     rows, cases = [], []
     for nx, ny in MESHES:
         name = f"{nx}x{ny}"
-        if not _selected(opts, name):
+        if not _want(opts, study, name):
             continue
         c = case(study, name, "nine", "mu000", "penalty", {"mesh": name, "eps_n": 1e5}, opts)
         s = c["summary"]
@@ -326,7 +332,7 @@ def blankholder_shapes(opts) -> None:
 
     rows, cases = [], []
     for variant in blankholder.VARIANTS:
-        if not _selected(opts, variant):
+        if not _want(opts, study, variant):
             continue
         c = case(study, variant, "blankholder", variant, "penalty", {}, opts)
         s, h = c["summary"], c["history"]
@@ -420,14 +426,14 @@ def algorithm_agreement(opts) -> None:
         runs = {}
         for algorithm in ALGORITHMS:
             label = f"{name}_{variant}_{algorithm}"
-            if _selected(opts, label):
+            if _want(opts, study, label):
                 runs[algorithm] = case(study, label, name, variant, algorithm, {}, opts)
         if not runs:
             continue
         ref_alg = "lcp_lemke" if runs.get("lcp_lemke", {}).get("summary", {}).get("converged") else None
         if ref_alg is None:
             label = f"{name}_{variant}_auglag_gap1e-06"
-            if _selected(opts, label):
+            if _want(opts, study, label):
                 runs["auglag_gap1e-06"] = case(study, label, name, variant, "auglag", {"target_gap": 1e-6}, opts)
                 if runs["auglag_gap1e-06"]["summary"].get("converged"):
                     ref_alg = "auglag_gap1e-06"
@@ -501,8 +507,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("study", choices=[*STUDIES, "all"])
     p.add_argument("--only", action="append", default=[],
-                   help="run only cases whose name contains TEXT (repeatable); the table then holds "
-                        "only those")
+                   help="run only cases whose name contains TEXT (repeatable); cases already on disk "
+                        "are read back into the table")
     p.add_argument("--rerun", action="store_true", help="recompute cases already on disk")
     p.add_argument("--no-run-figures", dest="run_figures", action="store_false",
                    help="skip the three per-run PNGs (the study figures are always drawn)")

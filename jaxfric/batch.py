@@ -45,7 +45,8 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
         log(f"{out}: {scene_name}/{variant}/{algorithm} {overrides}")
         try:
             scene = scenes.make(scene_name, variant, algorithm, dict(overrides))
-            result = run(scene.model, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
+            result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                         snapshot=scene.snapshot,
                          progress=progress, raise_on_failure=False, label=f"{os.path.basename(out)} ")
             output.write_run(scene, result, out, tag=tag, figures=figures)
         except output.OutputError as err:  # partial run directory; the reason is in summary.json

@@ -222,7 +222,7 @@ def _run(args) -> int:
     out = os.path.join("runs", scene.name, scene.variant, scene.algorithm) if args.out is None else args.out
     _writable_dir(out)
     label = f"{scene.name}/{scene.variant}/{scene.algorithm} "
-    result = run(scene.model, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
+    result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
                  progress=not args.quiet, raise_on_failure=False, label=label)
     try:
         summary = output.write_run(scene, result, out, tag=args.tag)

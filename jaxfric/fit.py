@@ -203,7 +203,7 @@ class _Curve:
     the windows ``edges``) along one frozen step sequence, with their Jacobian; compiled once per
     sequence."""
 
-    def __init__(self, par: Parameterization, plan_history: dict, x: np.ndarray, edges, newton: NewtonOptions):
+    def __init__(self, par: Parameterization, plan_history: dict, x: np.ndarray, edges, newton: NewtonOptions | None):
         self.times = np.asarray(plan_history["time"][1:])
         path = path_function(par, newton=newton, plan=plan_history)
 
@@ -274,7 +274,7 @@ def _windows(x: np.ndarray, window, n_params: int):
 
 def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str = "penalty",
         overrides: dict | None = None, bounds: dict | None = None, window: float | None = None,
-        newton: NewtonOptions = NewtonOptions(), max_iter: int = 30, xtol: float = 1e-7,
+        newton: NewtonOptions | None = None, max_iter: int = 30, xtol: float = 1e-7,
         max_replans: int = 4, progress: bool = True) -> FitResult:
     """Fit the config fields ``params`` of ``scene`` to the measured drawing-force curve ``data``.
 

@@ -171,15 +171,17 @@ def parameterize(scene: str, names, *, variant: str | None = None, algorithm: st
 
 
 
-def adaptive_run(par: Parameterization, p, newton: NewtonOptions = NewtonOptions()):
+def adaptive_run(par: Parameterization, p, newton: NewtonOptions | None = None):
     """The ordinary adaptive run (:func:`jaxfric.run.run`, no progress bar, no exception) of the model
-    at parameter values ``p``: the step sequence that :func:`path_function` replays."""
+    at parameter values ``p``: the step sequence that :func:`path_function` replays. ``newton``:
+    default the scene's options."""
     scene = par.scene
+    newton = scene.newton if newton is None else newton
     return run(par.model(jnp.asarray(p)), newton=newton, control=scene.control, observe=scene.observe,
                progress=False, raise_on_failure=False)
 
 
-def path_function(par: Parameterization, *, newton: NewtonOptions = NewtonOptions(), reverse: bool = False,
+def path_function(par: Parameterization, *, newton: NewtonOptions | None = None, reverse: bool = False,
                   checkpoint: bool = True, plan: dict | None = None):
     """``f(p) -> (history, result code)`` along the step sequence of the adaptive run at the start
     values: differentiable through every step of the loading path.
@@ -205,6 +207,7 @@ def path_function(par: Parameterization, *, newton: NewtonOptions = NewtonOption
     values, and ValueError if it fails.
     """
     scene = par.scene
+    newton = scene.newton if newton is None else newton
     if plan is None:
         res = adaptive_run(par, par.p0, newton)
         if not res.converged:

@@ -104,7 +104,7 @@ def _outcome(res) -> str:
 
 def _run(case, scene, observe=None, control=None):
     """Run ``scene`` without raising, record it for the table, and check what every run must satisfy."""
-    res = run(scene.model, control=control or scene.control, observe=observe or scene.observe,
+    res = run(scene.model, newton=scene.newton, control=control or scene.control, observe=observe or scene.observe,
               progress=False, raise_on_failure=False)
     h = res.history
     _TABLE.append((case, _outcome(res), str(len(h["time"]) - 1), str(int(h["cutbacks"].sum())),

@@ -121,7 +121,7 @@ def flat():
     from jaxfric import scenes
 
     scene = scenes.make("flat_die", None, "penalty", dict(OVERRIDES))
-    result = jf.run(scene.model, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
+    result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
                     progress=False, raise_on_failure=False)
     assert result.converged, result.message
     return scene, result
@@ -189,7 +189,7 @@ def test_failed_run_writes_a_conforming_directory(flat, tmp_path):
     """A genuinely failed run (history buffer full in `draw`) writes all six files and passes."""
     scene, _ = flat
     scene = dataclasses.replace(scene, control=jf.StepControl(max_steps=5))
-    result = jf.run(scene.model, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
+    result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
                     progress=False, raise_on_failure=False)
     assert not result.converged
     summary = output.write_run(scene, result, str(tmp_path))

@@ -301,7 +301,7 @@ def test_blankholder_tools_at_rest():
 # ---- short runs at a coarse mesh ----------------------------------------------------------------
 
 def _run(scene):
-    result = run(scene.model, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
+    result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
                  progress=False)
     h = result.history
     for key in REQUIRED + EXTRA[scene.name]:
@@ -411,7 +411,7 @@ def test_blankholder_starts_closing_at_the_spec_mesh():
     q - q_presc in that test stopped this run at step 4 of 'close'."""
     scene = make("blankholder", "shape1")
     control = dataclasses.replace(scene.control, max_steps=40)
-    result = run(scene.model, control=control, observe=scene.observe, progress=False,
+    result = run(scene.model, newton=scene.newton, control=control, observe=scene.observe, progress=False,
                  raise_on_failure=False)
     assert result.code == Result.MAX_STEPS, result.message
     h = result.history

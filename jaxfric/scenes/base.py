@@ -14,6 +14,7 @@ import dataclasses
 from typing import Callable
 
 from ..contact import AugmentedLagrangian, Complementarity, Penalty
+from ..newton import NewtonOptions
 from ..simulate import StepControl, StripModel
 
 __all__ = ["ALGORITHMS", "Scene", "contact_law"]
@@ -56,6 +57,7 @@ class Scene:
         roi: plot region (x_min, x_max, y_min, y_max) in mm.
         y_scale: display exaggeration of y in the figures (1: equal aspect).
         parameters: JSON-ready resolved configuration (``summary.json`` ``parameters``).
+        newton: Newton's options for this scene (default: the spec's 25 iterations per attempt).
     """
 
     name: str
@@ -74,3 +76,4 @@ class Scene:
     roi: tuple
     y_scale: float
     parameters: dict
+    newton: NewtonOptions = NewtonOptions()

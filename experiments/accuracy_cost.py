@@ -1,0 +1,45 @@
+"""Error against run time (issue 5): ``python experiments/accuracy_cost.py [--quick] [--test NAME ...]``.
+
+Runs :func:`jaxfric.accuracy.accuracy_cost` (the same as ``jaxfric report accuracy-cost``) into
+``experiments/results/accuracy_cost/`` (run directories under ``runs/``, not committed; a run already on
+disk is read back, so an interrupted sweep resumes) and writes its section of ``experiments/RESULTS.md``
+(between ``<!-- BEGIN study:accuracy_cost -->`` and ``<!-- END study:accuracy_cost -->``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from studies import write_section  # noqa: E402
+
+from jaxfric import accuracy  # noqa: E402
+
+OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "accuracy_cost")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--test", action="append", default=None, help="test name (repeatable); default all")
+    p.add_argument("--rerun", action="store_true")
+    a = p.parse_args(argv)
+    out = OUT + ("_quick" if a.quick else "")
+    accuracy.accuracy_cost(out, quick=a.quick, tests=a.test, rerun=a.rerun,
+                           log=lambda m: print(m, flush=True))
+    # The section covers every test on disk, not only this invocation's.
+    rows = accuracy.collect(out, quick=a.quick)
+    rel = os.path.relpath(out, os.path.dirname(os.path.abspath(__file__)))
+    figures = "\n".join(f"![{name}]({rel}/pareto_{name}.png)" for name in dict.fromkeys(r["test"] for r in rows))
+    write_section("accuracy_cost" + ("_quick" if a.quick else ""),
+                  f"### Error against run time{' (quick)' if a.quick else ''}\n\nRegenerate: `python "
+                  f"experiments/accuracy_cost.py{' --quick' if a.quick else ''}` (or `jaxfric report "
+                  f"accuracy-cost{' --quick' if a.quick else ''}`). Table: `{rel}/accuracy_cost.csv`.\n\n"
+                  + accuracy.report_markdown(rows, accuracy.reference_checks(rows), a.quick) + "\n" + figures)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

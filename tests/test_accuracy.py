@@ -1,0 +1,111 @@
+"""The accuracy-cost report (jaxfric.accuracy): error measures, the Pareto front, the sweep's plan, and
+(slow) the quick report end to end."""
+
+from __future__ import annotations
+
+import csv
+import os
+
+import numpy as np
+import pytest
+
+from jaxfric import accuracy
+from jaxfric.cli import main
+
+
+def _run(u, force, converged=True, contact=None, **summary):
+    phase = np.array(["clamp"] + ["draw"] * (len(u) - 1))
+    s = {"converged": converged, "steady_drawing_force": None, "peak_drawing_force": float(np.max(force)),
+         "final_clamping_force": 50.0, **summary}
+    return {"summary": s, "history": {"phase": phase, "drawing_displacement": np.asarray(u, float),
+                                      "drawing_force": np.asarray(force, float)}, "contact": contact or {}}
+
+
+def _contact(x, rn, instant="final"):
+    x = np.asarray(x, float)
+    return {"pair_tool": np.zeros(len(x), int), "pair_node": np.arange(len(x)),
+            f"{instant}__x": np.stack([x, np.zeros_like(x)], axis=1), f"{instant}__rn": np.asarray(rn, float)}
+
+
+def test_pareto_front_keeps_the_points_nothing_beats():
+    pts = [(1.0, 0.5, "a"), (2.0, 0.1, "b"), (3.0, 0.2, "c"), (0.5, 1.0, "d"), (2.5, 0.1, "e")]
+    assert [p[2] for p in accuracy.pareto_front(pts)] == ["d", "a", "b"]
+
+
+def test_error_measures_against_the_reference():
+    u = np.linspace(0.0, 1.0, 21)
+    ref = _run(u, 10 + u, steady_drawing_force=10.5, contact=_contact([0.0, 2.0], [1.0, 1.0]))
+    same = accuracy.error_measures(ref, ref, "final")
+    assert all(v == 0 for v in same.values()), same
+    # 1 % higher everywhere: steady, peak and curve errors are 1 %; the clamping force did not change.
+    run = _run(u, 1.01 * (10 + u), steady_drawing_force=1.01 * 10.5,
+               contact=_contact([0.0, 1.0, 2.0], [1.0, 1.0, 0.0]))
+    err = accuracy.error_measures(run, ref, "final")
+    for key in ("err_steady", "err_peak", "err_curve_l2"):
+        assert err[key] == pytest.approx(0.01, rel=1e-9), key
+    assert err["err_clamp"] == 0
+    # The second unit force moved from x = 2 to x = 1: cumulative forces differ by 1 over [1, 2), an
+    # area of 1, over total force 2 x contact length 2.
+    assert err["err_pressure"] == pytest.approx(0.25, rel=1e-12)
+
+
+def test_pressure_distance_ignores_round_off_in_positions():
+    rng = np.random.default_rng(0)
+    x = np.sort(rng.uniform(0, 10, 40))
+    rn = rng.uniform(0, 5, 40)
+    shifted = _contact(x + 1e-13 * rng.standard_normal(40), rn)
+    assert accuracy._cumulative_difference(shifted, _contact(x, rn), "final") < 1e-12
+
+
+def test_a_stopped_run_has_no_curve_error():
+    u = np.linspace(0.0, 1.0, 11)
+    ref = _run(u, 10 + u)
+    assert accuracy.error_measures(_run(u[:5], 10 + u[:5], converged=False), ref, "final")["err_curve_l2"] is None
+
+
+@pytest.mark.parametrize("test", accuracy.TESTS + accuracy.QUICK_TESTS, ids=lambda t: t.name)
+def test_plan_of_each_test(test):
+    plan = accuracy.cases(test)
+    labels = [p[0] for p in plan]
+    assert len(labels) == len(set(labels))
+    families = {p[1] for p in plan}
+    assert {"penalty", "auglag", "mesh", "step", "reference", "ref_check"} <= families
+    ref = next(p[3] for p in plan if p[1] == "reference")
+    nx_ref, ny_ref = map(int, ref["mesh"].split("x"))
+    for label, family, _, ov in plan:
+        nx, ny = map(int, ov["mesh"].split("x"))
+        if family != "ref_check":
+            assert nx <= nx_ref and ny <= ny_ref, label  # no sweep run finer than the reference
+    # The reference takes half the nominal increments; its step check a quarter.
+    check = next(p[3] for p in plan if p[0] == "ref_check_step")
+    base = next(p[3] for p in plan if p[0] == "step_x2")
+    for field in test.step_fields:
+        if isinstance(ref[field], float):
+            assert ref[field] == pytest.approx(base[field] / 4) and check[field] == pytest.approx(base[field] / 8)
+    assert ref["target_gap"] == accuracy.REF_GAP
+
+
+def test_report_rejects_an_unknown_test(capsys, tmp_path):
+    assert main(["report", "accuracy-cost", "--quick", "--test", "nine_mu017", "--out", str(tmp_path)]) == 2
+    assert "--test" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_quick_report_end_to_end(tmp_path):
+    """``jaxfric report accuracy-cost --quick``: every run converges, the CSV has one row per run with
+    its errors, the figure and the recommendations are written, and the reference's curve is converged
+    (its checks move it less than a tenth of the smallest error of the sweep). About 3 minutes."""
+    out = tmp_path / "ac"
+    assert main(["report", "accuracy-cost", "--quick", "--out", str(out), "--quiet"]) == 0
+    with open(out / "accuracy_cost.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == len(accuracy.cases(accuracy.QUICK_TESTS[0]))
+    assert all(r["converged"] == "True" for r in rows)
+    assert all(r["err_curve_l2"] != "" for r in rows)
+    assert os.path.exists(out / "pareto_flat_die_const_force.png")
+    text = (out / "accuracy_cost.md").read_text()
+    assert "What to pick" in text and "| flat_die_const_force | err_curve_l2 |" in text.replace("`", "")
+    # A looser penalty penetrates more and errs more on the curve.
+    by = {r["run"]: r for r in rows}
+    assert float(by["penalty_eps1e+06"]["max_penetration"]) > float(by["penalty_eps1e+08"]["max_penetration"])
+    assert float(by["penalty_eps1e+06"]["err_curve_l2"]) > float(by["penalty_eps1e+08"]["err_curve_l2"])
