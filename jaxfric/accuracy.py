@@ -327,6 +327,7 @@ def _pareto_figure(path: str, test: Test, rows: list[dict]) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     panels = list(dict.fromkeys([test.main, "err_curve_l2", "err_pressure"]))
     fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.8))
@@ -353,6 +354,7 @@ def _pareto_figure(path: str, test: Test, rows: list[dict]) -> None:
             ax.axhline(level, color="gray", ls=":", lw=0.8)
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel("solve wall time (s, compilation apart)")
         ax.set_ylabel({"err_steady": "relative error, steady drawing force", "err_peak": "relative error, peak force",
                        "err_curve_l2": "relative L2 error, drawing-force curve",
