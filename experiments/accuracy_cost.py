@@ -25,10 +25,15 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true")
     p.add_argument("--test", action="append", default=None, help="test name (repeatable); default all")
     p.add_argument("--rerun", action="store_true")
+    p.add_argument("--collect", action="store_true",
+                   help="run nothing: rewrite the CSV, plots and section from the runs on disk")
     a = p.parse_args(argv)
     out = OUT + ("_quick" if a.quick else "")
-    accuracy.accuracy_cost(out, quick=a.quick, tests=a.test, rerun=a.rerun,
-                           log=lambda m: print(m, flush=True))
+    if a.collect:
+        accuracy.write_report(out, a.quick)
+    else:
+        accuracy.accuracy_cost(out, quick=a.quick, tests=a.test, rerun=a.rerun,
+                               log=lambda m: print(m, flush=True))
     # The section covers every test on disk, not only this invocation's.
     rows = accuracy.collect(out, quick=a.quick)
     rel = os.path.relpath(out, os.path.dirname(os.path.abspath(__file__)))
