@@ -111,12 +111,14 @@ def write_section(study: str, body: str) -> None:
         fh.write(text)
 
 
-def failures(rows: list[dict]) -> str:
+def failures(rows: list[dict], missing=()) -> str:
     bad = [r for r in rows if not r.get("converged")]
-    if not bad:
-        return "All runs converged."
-    return "Runs that did not complete (partial results kept in their run directories):\n\n" + "\n".join(
-        f"- `{r['case']}`: {r.get('message') or 'no message'}" for r in bad)
+    text = "All runs converged." if not bad else (
+        "Runs that did not complete (partial results kept in their run directories):\n\n" + "\n".join(
+            f"- `{r['case']}`: {r.get('message') or 'no message'}" for r in bad))
+    if missing:
+        text += "\n\n**Not run yet** (the study is incomplete): " + ", ".join(f"`{m}`" for m in missing) + "."
+    return text
 
 
 def _plt():
@@ -129,13 +131,17 @@ def _plt():
 
 
 def _selected(opts, name: str) -> bool:
-    """Whether case ``name`` is to be run (``--only``)."""
-    return not opts.only or any(s in name for s in opts.only)
+    """Whether case ``name`` is to be run (``--only``; none with ``--collect``)."""
+    return not opts.collect and (not opts.only or any(s in name for s in opts.only))
 
 
 def _want(opts, study: str, name: str) -> bool:
-    """Whether case ``name`` enters the table: selected, or not selected but already on disk (read back)."""
-    return _selected(opts, name) or os.path.exists(os.path.join(ROOT, study, "runs", name, "summary.json"))
+    """Whether case ``name`` enters the table: selected, or not selected but already on disk (read back).
+    Cases left out are listed in the section (``opts.missing``)."""
+    ok = _selected(opts, name) or os.path.exists(os.path.join(ROOT, study, "runs", name, "summary.json"))
+    if not ok:
+        opts.missing.append(name)
+    return ok
 
 
 def _machine(rows_cases: list[dict]) -> str:
@@ -174,7 +180,7 @@ def penalty_sensitivity(opts) -> None:
             "max_penetration", "steady_drawing_force", "converged"]
     write_section(study, _header(study, cases, "Nine test, `penalty`, mesh 300 x 3, eps_T = mu eps_N, "
                                  "the step controller of spec 1.9 for every run.") + "\n\n"
-                  + markdown_table(rows, cols) + "\n\n" + failures(rows)
+                  + markdown_table(rows, cols) + "\n\n" + failures(rows, opts.missing)
                   + "\n\n![cost against accuracy](results/studies/penalty_sensitivity/figure.png)")
 
 
@@ -218,7 +224,7 @@ def auglag_sensitivity(opts) -> None:
     write_section(study, _header(study, cases, "Nine test, `auglag`, mesh 300 x 3, eps_T = mu eps_N; "
                                  "`wall_rel` is relative to the (mu000, eps_N = 1e2) penalty run of "
                                  "study (1).") + "\n\n" + markdown_table(rows, cols) + "\n\n"
-                  + failures(rows) + "\n\n![cost against accuracy](results/studies/auglag_sensitivity/figure.png)")
+                  + failures(rows, opts.missing) + "\n\n![cost against accuracy](results/studies/auglag_sensitivity/figure.png)")
 
 
 def _read_table(study: str) -> list[dict]:
@@ -312,7 +318,7 @@ def mesh_convergence(opts) -> None:
     write_section(study, _header(study, cases, "Nine test `mu000`, `penalty`, eps_N = 1e5, the same "
                                  "nominal increments for every mesh. `rel_diff_to_finest` is against "
                                  "1200 x 6 (against the finest converged mesh, named, when 1200 x 6 is "
-                                 "missing).") + "\n\n" + markdown_table(rows, cols) + "\n\n" + failures(rows)
+                                 "missing).") + "\n\n" + markdown_table(rows, cols) + "\n\n" + failures(rows, opts.missing)
                   + "\n\n![mesh convergence](results/studies/mesh_convergence/figure.png)")
 
 
@@ -381,7 +387,7 @@ def blankholder_shapes(opts) -> None:
             "clamping_force_end_close", "final_clamping_force", "max_eqps", "n_steps", "wall_s", "converged"]
     write_section(study, _header(study, cases, "The nine blankholder shapes of Table 7, `penalty`, spec "
                                  "mesh and parameters.") + "\n\n" + markdown_table(rows, cols) + "\n\n"
-                  + failures(rows) + "\n\n![blankholder shapes](results/studies/blankholder_shapes/figure.png)")
+                  + failures(rows, opts.missing) + "\n\n![blankholder shapes](results/studies/blankholder_shapes/figure.png)")
 
 
 # -------------------------------------------------------------------------- (5) algorithm agreement
@@ -469,7 +475,7 @@ def algorithm_agreement(opts) -> None:
                                  "reference is `lcp_lemke`, or `auglag` with target gap 1e-6 where Lemke "
                                  "did not converge. Curves compared on 200 points over the common "
                                  "`draw` range (and `theta_deg` over `wind` for the bead).")
-                  + "\n\n" + markdown_table(rows, cols) + "\n\n" + failures(rows)
+                  + "\n\n" + markdown_table(rows, cols) + "\n\n" + failures(rows, opts.missing)
                   + "\n\n![algorithm agreement](results/studies/algorithm_agreement/figure.png)")
 
 
@@ -517,8 +523,13 @@ def main(argv=None) -> int:
     p.add_argument("--no-run-figures", dest="run_figures", action="store_false",
                    help="skip the three per-run PNGs (the study figures are always drawn)")
     p.add_argument("--quiet", dest="progress", action="store_false", help="no progress bars")
+    p.add_argument("--collect", action="store_true",
+                   help="run nothing: rewrite the table, figures and section from the runs on disk")
     opts = p.parse_args(argv)
+    opts.missing = []
     for name in (STUDIES if opts.study == "all" else [opts.study]):
+        opts.missing = []
+        os.makedirs(os.path.join(ROOT, name), exist_ok=True)
         STUDIES[name](opts)
     return 0
 
