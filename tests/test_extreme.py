@@ -157,8 +157,13 @@ def _assert_cuts_recorded(scene, res, control):
             lo, hi = min(prev_dt, rest), min(control.growth * prev_dt, dt_nom, rest)
         else:
             lo = hi = min(dt_nom, rest)
-        first = (t[i] - t[i - 1]) * 2.0 ** cuts[i]
-        assert lo * (1 - 1e-6) <= first <= hi * (1 + 1e-6), (i, t[i - 1], t[i], int(cuts[i]), lo, hi)
+        dt = t[i] - t[i - 1]
+        first = dt * 2.0 ** cuts[i]
+        # Where halving would go below the smallest increment, a failed first attempt is retried once
+        # at the same length (from the converged state instead of the prediction): that cut did not halve.
+        floor = dt < 2 * dt_nom / 2.0 ** control.max_cuts * (1 + 1e-6)
+        retried = floor and cuts[i] >= 1 and lo * (1 - 1e-6) <= first / 2 <= hi * (1 + 1e-6)
+        assert retried or lo * (1 - 1e-6) <= first <= hi * (1 + 1e-6), (i, t[i - 1], t[i], int(cuts[i]), lo, hi)
         prev_dt, prev_seg = t[i] - t[i - 1], seg
 
 
@@ -501,7 +506,7 @@ EXPECTED_FAILURES = {
     ("bead", "eps_n=1e9"): (Result.MAX_ITERATIONS, "wind"),
     ("bead", "eps_n=1e12"): (Result.MAX_ITERATIONS, "clamp"),
     ("blankholder", "full clearance"): (Result.MAX_ITERATIONS, "close"),
-    ("blankholder", "t/R=0.02"): (Result.MAX_ITERATIONS, "close"),
+    ("blankholder", "t/R=0.02"): (Result.MAX_STEPS, "close"),
     ("blankholder", "t/R=0.5"): (Result.MAX_ITERATIONS, "close"),
     ("blankholder", "eps_n=1e9"): (Result.MAX_ITERATIONS, "close"),
     ("blankholder", "eps_n=1e12"): (Result.MAX_ITERATIONS, "close"),
