@@ -42,7 +42,8 @@ def main(argv=None) -> int:
                   f"### Error against run time{' (quick)' if a.quick else ''}\n\nRegenerate: `python "
                   f"experiments/accuracy_cost.py{' --quick' if a.quick else ''}` (or `jaxfric report "
                   f"accuracy-cost{' --quick' if a.quick else ''}`). Table: `{rel}/accuracy_cost.csv`.\n\n"
-                  + accuracy.report_markdown(rows, accuracy.reference_checks(rows), a.quick) + "\n" + figures)
+                  + accuracy.report_markdown(rows, accuracy.reference_checks(rows), a.quick) + "\n" + figures,
+                  command=f"python experiments/accuracy_cost.py{' --quick' if a.quick else ''}")
     return 0
 
 

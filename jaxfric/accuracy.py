@@ -305,19 +305,23 @@ def reference_checks(rows: list[dict]) -> dict:
 
 
 def _reference_check(rows: list[dict]) -> dict:
-    """Per measure: the largest change of the reference under its two checks, the smallest sweep error,
-    and whether the change is below a tenth of it."""
+    """Per measure: the reference's uncertainty (the largest change under its two checks), the resolution
+    (10 x the uncertainty, or round-off), the smallest sweep error at or above it, and whether the
+    uncertainty is below a tenth of that error. An error below the resolution cannot be told from the
+    reference's own error: it is reported as unresolved, never as a number."""
     sweep = [r for r in rows if r["family"] not in ("reference", "ref_check") and r["converged"]]
     ref_checks = [r for r in rows if r["family"] == "ref_check"]
     out = {}
     for m in MEASURES:
         changes = [r[m] for r in ref_checks if r[m] is not None]
-        errors = [r[m] for r in sweep if r[m] is not None and r[m] > 0]
-        change = max(changes) if len(changes) == len(ref_checks) and changes else None
+        change = max(changes) if ref_checks and len(changes) == len(ref_checks) else None
+        resolution = None if change is None else max(10.0 * change, ROUNDOFF)
+        errors = [r[m] for r in sweep if r[m] is not None and resolution is not None and r[m] >= resolution]
         smallest = min(errors) if errors else None
-        roundoff = change is not None and change <= ROUNDOFF and (smallest is None or smallest <= ROUNDOFF)
-        ok = roundoff or (change is not None and smallest is not None and change < 0.1 * smallest)
-        out[m] = {"change": change, "smallest_error": smallest, "converged": ok, "roundoff": roundoff,
+        ok = change is not None and (smallest is None or change < 0.1 * smallest)
+        out[m] = {"change": change, "resolution": resolution, "smallest_error": smallest, "converged": ok,
+                  "n_unresolved": sum(1 for r in sweep if r[m] is not None and resolution is not None
+                                      and r[m] < resolution),
                   "checks_converged": all(r["converged"] for r in ref_checks)}
     return out
 
@@ -389,52 +393,74 @@ def _fmt(v) -> str:
 
 def recommendations(rows: list[dict], measures: dict | None = None) -> list[dict]:
     """Per test and level: the cheapest converged sweep run whose main measure (``measures``: test name
-    -> measure; default each test's ``main``) is within the level."""
+    -> measure; default each test's ``main``) is within the level. A level below the reference's
+    resolution (:func:`_reference_check`) cannot be verified and gets no run (``unverifiable``)."""
     mains = {t.name: t.main for t in (*TESTS, *QUICK_TESTS)}
     mains.update(measures or {})
     out = []
     for test in dict.fromkeys(r["test"] for r in rows):
         measure = mains.get(test, "err_steady")
-        sweep = [r for r in rows if r["test"] == test and r["family"] not in ("reference", "ref_check")
+        test_rows = [r for r in rows if r["test"] == test]
+        resolution = _reference_check(test_rows)[measure]["resolution"]
+        sweep = [r for r in test_rows if r["family"] not in ("reference", "ref_check")
                  and r["converged"] and r[measure] is not None]
         for level in LEVELS:
-            ok = [r for r in sweep if r[measure] <= level]
+            unverifiable = resolution is None or level < resolution
+            ok = [] if unverifiable else [r for r in sweep if r[measure] <= level]
             best = min(ok, key=lambda r: r["wall_s"]) if ok else None
-            out.append({"test": test, "level": level, "measure": measure, "run": best and best["run"],
-                        "algorithm": best and best["algorithm"], "mesh": best and best["mesh"],
-                        "error": best and best[measure], "wall_s": best and best["wall_s"]})
+            out.append({"test": test, "level": level, "measure": measure, "unverifiable": unverifiable,
+                        "run": best and best["run"], "algorithm": best and best["algorithm"],
+                        "mesh": best and best["mesh"], "error": best and best[measure],
+                        "resolution": resolution, "wall_s": best and best["wall_s"]})
     return out
+
+
+def _error_cell(value, resolution) -> str:
+    if value is None:
+        return "–"
+    if resolution is not None and value < resolution:
+        return f"< {resolution:.1g}"
+    return _fmt(value)
 
 
 def report_markdown(rows: list[dict], checks: dict, quick: bool) -> str:
     lines = ["Error measures (each relative, against the test's reference): " +
              "; ".join(f"`{m}` {doc}" for m, doc in MEASURE_DOC.items()) + ". Wall time is the solve time "
-             "(compilation apart, in the CSV).", ""]
+             "(compilation apart, in the CSV). An error below the reference's resolution (10 x its own "
+             "uncertainty, table below) is shown as `< resolution`: it cannot be told apart from the "
+             "reference's error.", ""]
     lines += ["**What to pick** (the cheapest run of the sweep that reaches the level on the test's main "
-              "measure; `–`: none of the sweep does):", "",
-              "| test | measure | 10 % | 1 % | 0.1 % |", "|---|---|---|---|---|"]
+              "measure; `–`: none of the sweep does; `unverifiable`: the level is below the reference's "
+              "resolution):", "", "| test | measure | 10 % | 1 % | 0.1 % |", "|---|---|---|---|---|"]
     recs = recommendations(rows)
     for test in dict.fromkeys(r["test"] for r in recs):
         cells = []
         for level in LEVELS:
             r = next(x for x in recs if x["test"] == test and x["level"] == level)
-            cells.append("–" if r["run"] is None else f"`{r['run']}` (mesh {r['mesh']}): {_fmt(r['error'])} in "
+            cells.append("unverifiable" if r["unverifiable"] else "–" if r["run"] is None else
+                         f"`{r['run']}` (mesh {r['mesh']}): {_error_cell(r['error'], r['resolution'])} in "
                          f"{r['wall_s']:.3g} s")
-        lines.append(f"| {test} | `{recs[[x['test'] for x in recs].index(test)]['measure']}` | " + " | ".join(cells)
-                     + " |")
-    lines += ["", "**Is the reference converged?** Largest change of each measure when the reference's mesh or "
-              "its steps are halved once more, against a tenth of the smallest error of the sweep:", "",
-              "| test | measure | change | smallest sweep error | converged |", "|---|---|---|---|---|"]
+        measure = next(x for x in recs if x["test"] == test)["measure"]
+        lines.append(f"| {test} | `{measure}` | " + " | ".join(cells) + " |")
+    lines += ["", "**Is the reference converged?** Its uncertainty is the largest change of a measure when its "
+              "mesh or its steps are halved once more; it must be below a tenth of the smallest error reported "
+              "(errors below 10 x the uncertainty are reported as unresolved):", "",
+              "| test | measure | uncertainty | resolution | smallest resolved error | unresolved runs | converged |",
+              "|---|---|---|---|---|---|---|"]
     for test, per in checks.items():
         for m, c in per.items():
-            lines.append(f"| {test} | {m} | {_fmt(c['change'])} | {_fmt(c['smallest_error'])} | "
-                         f"{'round-off: exact for every run' if c['roundoff'] else 'yes' if c['converged'] else '**no**'} |")
+            lines.append(f"| {test} | {m} | {_fmt(c['change'])} | {_fmt(c['resolution'])} | "
+                         f"{_fmt(c['smallest_error'])} | {c['n_unresolved']} | "
+                         f"{'yes' if c['converged'] else '**no**'} |")
     lines += ["", "**Every run:**", "", "| test | run | converged | steps | Newton it. | wall s | max pen. (mm) | "
               + " | ".join(MEASURES) + " | estimate |", "|" + "---|" * (8 + len(MEASURES))]
     for r in rows:
+        res = checks.get(r["test"], {})
+        cells = [_fmt(r[m]) if r["family"] in ("reference", "ref_check") else
+                 _error_cell(r[m], res.get(m, {}).get("resolution")) for m in MEASURES]
         lines.append(f"| {r['test']} | {r['run']} | {'yes' if r['converged'] else '**no**'} | {_fmt(r['n_steps'])} | "
                      f"{_fmt(r['newton_iters_total'])} | {_fmt(r['wall_s'])} | {_fmt(r['max_penetration'])} | "
-                     + " | ".join(_fmt(r[m]) for m in MEASURES) + f" | {_fmt(r['error_estimate'])} |")
+                     + " | ".join(cells) + f" | {_fmt(r['error_estimate'])} |")
     bad = [r for r in rows if not r["converged"]]
     if bad:
         lines += ["", "Runs that did not complete:", ""] + [f"- {r['test']} `{r['run']}`: {r['message']}" for r in bad]
