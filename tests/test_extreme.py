@@ -503,18 +503,11 @@ EXPECTED_FAILURES = {
     ("nine", "eps_n=1e9"): (Result.MAX_ITERATIONS, "clamp"),
     ("nine", "eps_n=eps_t=1e12"): (Result.MAX_ITERATIONS, "clamp"),
     ("bead", "t/R_r=0.02"): (Result.MAX_STEPS, "wind"),
-    ("bead", "eps_n=1e9"): (Result.MAX_ITERATIONS, "wind"),
+    ("bead", "eps_n=1e9"): (Result.MAX_STEPS, "wind"),
     ("bead", "eps_n=1e12"): (Result.MAX_ITERATIONS, "clamp"),
-    ("blankholder", "full clearance"): (Result.MAX_ITERATIONS, "close"),
     ("blankholder", "t/R=0.02"): (Result.MAX_STEPS, "close"),
-    ("blankholder", "t/R=0.5"): (Result.MAX_ITERATIONS, "close"),
     ("blankholder", "eps_n=1e9"): (Result.MAX_ITERATIONS, "close"),
     ("blankholder", "eps_n=1e12"): (Result.MAX_ITERATIONS, "close"),
-    ("blankholder", "ny=1"): (Result.MAX_ITERATIONS, "close"),
-    ("blankholder", "ny=12"): (Result.MAX_ITERATIONS, "close"),
-    ("blankholder", "mu=0.15"): (Result.MAX_ITERATIONS, "close"),
-    ("blankholder", "mu=0.5"): (Result.MAX_ITERATIONS, "close"),
-    ("blankholder", "mu=1.0"): (Result.MAX_ITERATIONS, "close"),
     ("contact cycle", "penalty 1e12"): (Result.MAX_ITERATIONS, "clamp"),
 }
 
@@ -585,8 +578,10 @@ def test_bead_edges(case):
 
     Clean failures: t = 0.1 mm (t/R_r = 0.02) needs many cut steps that do not grow back (more than 6
     Newton iterations each) and fills the history buffer (10 x nominal + 200 = 280 rows) at theta =
-    9 deg: MAX_STEPS. eps_n = 1e9 (1e4 x the spec) stops in wind (theta = 1.2 deg) and 1e12 at the
-    start of wind (after 227 clamp rows for 2 nominal steps) with MAX_ITERATIONS after 10 cuts.
+    9 deg: MAX_STEPS. eps_n = 1e9 (1e4 x the spec) fills the buffer too, in wind at theta = 1.6 deg
+    (since the controller retries a failed attempt at the smallest increment from the converged
+    state; it stopped with MAX_ITERATIONS at 1.2 deg before), and 1e12 stops at the start of wind
+    (after 227 clamp rows for 2 nominal steps) with MAX_ITERATIONS after 10 cuts.
     """
     scene = make("bead", "th090_mu017", "penalty", {**BEAD, **BEAD_CASES[case]})
     res = _run(f"bead {case}", scene)
@@ -616,12 +611,10 @@ def test_blankholder_edges(case):
     F_clamp and holds it while the sheet is pulled 1 mm. Checks: contact physics, s = H at the end of
     close, F_clamp from the end of lock on.
 
-    Clean failures (reported): only eps_n = 1e2 gets past the first close step. With eps_n >= 1e5,
-    with or without friction, at 1 or 12 elements through, thin or thick, the first close step
-    (the bead nose touching the sheet at x = 0, the upper lands touching its top, all at zero gap)
-    stops with MAX_ITERATIONS even at nominal / 1024 = 2.4e-4 mm of stroke. The frictionless case is
-    the one of tests/test_scenes.py::test_blankholder_short_run, which fails the same way; the spec's
-    own mesh (element length 0.5 mm, ds_close 0.05 mm, mu 0.15) stops after 4 close steps.
+    Clean failures (reported; measured with the scene's 60 Newton iterations and the controller's retry
+    at the smallest increment, which brought the other eight cases through): t/R = 0.02 fills its
+    history buffer in close (500 rows at t = 0.67), eps_n = 1e9 stops at step 214 of close and 1e12 at
+    its first step (MAX_ITERATIONS).
     """
     scene = make("blankholder", "shape1", "penalty", {**BLANK, **BLANK_CASES[case]})
     res = _run(f"blankholder {case}", scene)
