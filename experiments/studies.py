@@ -242,12 +242,17 @@ def cost_accuracy_figure() -> None:
     fig, ax = plt.subplots(figsize=(7.5, 5.5))
     colours = {"mu000": "tab:blue", "mu017": "tab:red"}
     for variant, colour in colours.items():
-        pts = [(float(r["max_penetration"]), float(r["wall_s"]), float(r["eps_n"])) for r in pen
-               if r["variant"] == variant and r["max_penetration"] and r["wall_s"]]
+        pts = [(float(r["max_penetration"]), float(r["wall_s"]), float(r["eps_n"]), r["converged"] == "True")
+               for r in pen if r["variant"] == variant and r["max_penetration"] and r["wall_s"]]
         if pts:
             pts.sort(key=lambda p: p[2])
             ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", color=colour,
                     label=f"penalty, {variant}")
+            stopped = [p for p in pts if not p[3]]
+            if stopped:  # a run that stopped early: its cost and penetration up to where it stopped
+                ax.plot([p[0] for p in stopped], [p[1] for p in stopped], "x", ms=12, color="k",
+                        label="stopped early (cost up to there)" if variant == "mu000" else None)
+            pts = [p[:3] for p in pts]
             for x, y, e in pts:
                 ax.annotate(f"{e:.0e}", (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7,
                             color=colour)
