@@ -318,7 +318,7 @@ def mesh_convergence(opts) -> None:
     fig.tight_layout()
     fig.savefig(os.path.join(ROOT, study, "figure.png"), dpi=130)
     plt.close(fig)
-    cols = ["nx", "ny", "n_elements", "steady_drawing_force", "rel_diff_to_finest", "n_steps",
+    cols = ["nx", "ny", "n_elements", "steady_drawing_force", "rel_diff_to_finest", "finest", "n_steps",
             "newton_iters_total", "wall_s", "converged"]
     write_section(study, _header(study, cases, "Nine test `mu000`, `penalty`, eps_N = 1e5, the same "
                                  "nominal increments for every mesh. `rel_diff_to_finest` is against "
