@@ -33,7 +33,7 @@ import sys
 import numpy as np
 
 from jaxfric import scenes
-from jaxfric.batch import run_case, write_csv
+from jaxfric.batch import phase_curve, run_case, write_csv
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.join(HERE, "results", "studies")
@@ -402,18 +402,8 @@ def _variants():
             yield name, variant
 
 
-def _on_grid(h: dict, x_name: str, y_name: str, phase: str):
-    """y on GRID points spanning ``phase`` of x, or None if the phase is missing or degenerate."""
-    sel = h["phase"] == phase
-    if sel.sum() < 2:
-        return None
-    x, y = h[x_name][sel], h[y_name][sel]
-    order = np.argsort(x, kind="stable")
-    return x[order], y[order]
-
-
 def _curve_diff(h, ref, x_name, y_name, phase):
-    a, b = _on_grid(h, x_name, y_name, phase), _on_grid(ref, x_name, y_name, phase)
+    a, b = phase_curve(h, x_name, y_name, phase), phase_curve(ref, x_name, y_name, phase)
     if a is None or b is None:
         return None
     lo, hi = max(a[0][0], b[0][0]), min(a[0][-1], b[0][-1])

@@ -26,7 +26,7 @@ import os
 
 import numpy as np
 
-from .batch import run_case, write_csv
+from .batch import phase_curve, run_case, write_csv
 
 __all__ = ["TESTS", "QUICK_TESTS", "Test", "cases", "error_measures", "accuracy_cost", "collect", "reference_checks",
            "recommendations", "pareto_front", "report_markdown", "write_report", "MEASURES", "LEVELS"]
@@ -161,15 +161,6 @@ def cases(test: Test) -> list[tuple]:
 
 # ---- error measures -----------------------------------------------------------------------------------
 
-def _draw_curve(h: dict):
-    sel = h["phase"] == "draw"
-    if sel.sum() < 2:
-        return None
-    x, y = h["drawing_displacement"][sel], h["drawing_force"][sel]
-    order = np.argsort(x, kind="stable")
-    return x[order], y[order]
-
-
 def _rel(a, b):
     if a is None or b is None or not math.isfinite(a) or not math.isfinite(b):
         return None
@@ -215,8 +206,9 @@ def error_measures(run: dict, ref: dict, instant: str) -> dict:
            "err_peak": _rel(s.get("peak_drawing_force"), r.get("peak_drawing_force")),
            "err_clamp": _rel(s.get("final_clamping_force"), r.get("final_clamping_force")),
            "err_curve_l2": None, "err_pressure": None}
-    a = _draw_curve(run["history"]) if run["history"] else None
-    b = _draw_curve(ref["history"]) if ref["history"] else None
+    draw = ("drawing_displacement", "drawing_force", "draw")
+    a = phase_curve(run["history"], *draw) if run["history"] else None
+    b = phase_curve(ref["history"], *draw) if ref["history"] else None
     if a is not None and b is not None and s.get("converged"):
         grid = np.linspace(b[0][0], b[0][-1], GRID)
         fa, fb = np.interp(grid, *a), np.interp(grid, *b)

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-__all__ = ["read_history", "run_case", "write_csv"]
+__all__ = ["read_history", "phase_curve", "run_case", "write_csv"]
 
 
 def read_history(path: str) -> dict:
@@ -26,6 +26,16 @@ def read_history(path: str) -> dict:
         return {}
     return {k: (np.array([r[k] for r in rows]) if k == "phase" else np.array([float(r[k]) for r in rows]))
             for k in rows[0]}
+
+
+def phase_curve(history: dict, x_name: str, y_name: str, phase: str):
+    """(x, y) of the rows of ``phase``, sorted by x, or None if the phase has fewer than two rows."""
+    sel = history["phase"] == phase
+    if sel.sum() < 2:
+        return None
+    x, y = history[x_name][sel], history[y_name][sel]
+    order = np.argsort(x, kind="stable")
+    return x[order], y[order]
 
 
 def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, overrides: dict, *,
