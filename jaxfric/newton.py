@@ -94,8 +94,11 @@ def _all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
 
 
-def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions):
-    """The Newton loop; returns the solution and the Jacobian at it (for the JVP rule)."""
+def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions, search=True):
+    """The Newton loop; returns the solution and the Jacobian at it (for the JVP rule).
+
+    ``search`` (bool, may be traced): False switches the line search of ``options`` off.
+    """
 
     def classify(k, x, lin, dx_norm, same_status):
         r_norm = jnp.max(jnp.abs(lin.residual))
@@ -133,8 +136,8 @@ def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions):
         code_new, r_norm = classify(k + 1, x_trial, new, step_norm, same)
         # (A trial that passes the convergence test is never rejected: at round-off level the norm
         # may grow by noise.)
-        reject = (options.line_search & ((n_acc >= 1) | start_meets) & worse & (alpha > 1.0 / 16.0)
-                  & (code_new != Result.SUCCESS))
+        reject = (options.line_search & search & ((n_acc >= 1) | start_meets) & worse
+                  & (alpha > 1.0 / 16.0) & (code_new != Result.SUCCESS))
         # A rejected trial still counts as an iteration (it cost a linearisation).
         code = jnp.where(reject & (k + 1 < options.max_iterations), Result.CONTINUE, code_new).astype(jnp.int32)
         keep = lambda a, b: jnp.where(reject, a, b)  # noqa: E731
@@ -155,22 +158,23 @@ def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions):
 
 @eqx.filter_custom_jvp
 def newton_solve(args, x0, x_ref, *, linearize: Callable, residual: Callable,
-                 options: NewtonOptions) -> NewtonSolution:
+                 options: NewtonOptions, search=True) -> NewtonSolution:
     """Solve R(x, args) = 0 by Newton from the initial guess ``x0``; differentiable in ``args``.
 
     ``x_ref`` (the last converged state) is the reference of the increment test. Neither ``x0`` nor
     ``x_ref`` changes the solution, so neither carries a derivative. ``linearize`` and ``residual``
     must be pure, module-level functions of (x, args): all data they use travels in ``args`` so that
-    derivatives reach it.
+    derivatives reach it. ``search`` (bool, may be traced) False switches the line search off for this
+    solve (the step controller's last attempt at the smallest increment).
     """
-    return _newton(args, x0, x_ref, linearize, options)[0]
+    return _newton(args, x0, x_ref, linearize, options, search)[0]
 
 
 @newton_solve.def_jvp
-def _newton_solve_jvp(primals, tangents, *, linearize, residual, options):
+def _newton_solve_jvp(primals, tangents, *, linearize, residual, options, search=True):
     args, x0, x_ref = primals
     args_dot = tangents[0]  # the initial guess and the reference do not change the solution
-    solution, _ = _newton(args, x0, x_ref, linearize, options)
+    solution, _ = _newton(args, x0, x_ref, linearize, options, search)
     # The converged point is all the derivative needs: named, so that a checkpointed load loop can
     # keep it and, in the backward pass, rebuild the Jacobian at it by one linearisation instead of
     # re-running the Newton iterations (see SOLUTION_NAME).

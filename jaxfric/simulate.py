@@ -150,7 +150,8 @@ class StepControl(eqx.Module):
     Attributes:
         max_cuts: an attempt below nominal / 2**max_cuts stops the run. (At the smallest increment a
             failed first attempt, started from the secant prediction, is retried once from the
-            converged state before the run stops.)
+            converged state; then the increment gets one last attempt with Newton's line search off,
+            before the run stops.)
         growth: increment growth factor after ``easy_steps`` consecutive easy steps.
         easy_iterations: a step is easy when it needed at most this many Newton iterations.
         max_steps: size of the history buffer (accepted steps); default 10x the nominal count + 100.
@@ -333,7 +334,8 @@ def _constraint_error(contact_out: dict) -> jax.Array:
     return jnp.maximum(max_penetration(contact_out["status"], contact_out["gap"]), jnp.max(stick_slip))
 
 
-def _augment(model: StripModel, args: "StepArgs", sol, x_ref, newton: NewtonOptions) -> StepSolution:
+def _augment(model: StripModel, args: "StepArgs", sol, x_ref, newton: NewtonOptions,
+             search=True) -> StepSolution:
     """Augmented Lagrangian loop (spec 1.6): while the step's largest penetration or stick slip exceeds
     the target, set lambda <- R and solve again (Uzawa iteration).
 
@@ -348,7 +350,7 @@ def _augment(model: StripModel, args: "StepArgs", sol, x_ref, newton: NewtonOpti
     def solve(lam_n, lam_t, x0):
         step = eqx.tree_at(lambda c: (c.lam_n, c.lam_t), args.contact, (lam_n, lam_t))
         return newton_solve(eqx.tree_at(lambda a: a.contact, args, step), x0, x_ref,
-                            linearize=linearize, residual=residual, options=newton)
+                            linearize=linearize, residual=residual, options=newton, search=search)
 
     def pending(c):
         sol, n_aug, _ = c
@@ -401,10 +403,12 @@ def linearize_step(model: StripModel, state: SimState, phase, t_target) -> Linea
 
 
 def solve_step(model: StripModel, state: SimState, phase, t_target,
-               newton: NewtonOptions = NewtonOptions(), ctx: "_Context | None" = None, guess=None):
+               newton: NewtonOptions = NewtonOptions(), ctx: "_Context | None" = None, guess=None,
+               search=True):
     """Solve one load step from the converged ``state`` to pseudo-time ``t_target`` in phase ``phase``.
 
     ``guess`` is Newton's initial point ``(u (n_nodes, 2), q (n_tools,))`` (default: the last state).
+    ``search`` False switches Newton's line search off (penalty and augmented Lagrangian laws).
 
     Returns the :class:`StepSolution` (iterations, code, residual history, AL augmentations) and the
     new :class:`SimState` (meaningful only when ``solution.code == Result.SUCCESS``).
@@ -420,9 +424,10 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
         sol, stats = exact_solve(args, x0, x_ref, options=newton, law=model.contact)
         sol = StepSolution(*sol, augmentations=no_aug, stats=stats)
     else:
-        sol = newton_solve(args, x0, x_ref, linearize=linearize, residual=residual, options=newton)
+        sol = newton_solve(args, x0, x_ref, linearize=linearize, residual=residual, options=newton,
+                           search=search)
         if isinstance(model.contact, AugmentedLagrangian):
-            sol = _augment(model, args, sol, x_ref, newton)
+            sol = _augment(model, args, sol, x_ref, newton, search)
         else:
             sol = StepSolution(*sol, augmentations=no_aug, stats=jnp.zeros(3, jnp.int32))
     f_int, states, c_out = sol.aux
@@ -513,6 +518,8 @@ class _Loop(eqx.Module):
     code: jax.Array
     failed_t: jax.Array    # target time of the last failed attempt
     r_norm: jax.Array      # residual norm of the last attempt
+    plain: jax.Array       # this attempt runs Newton without the line search (last one at the floor)
+    last_code: jax.Array   # result code of the last attempt
 
 
 def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
@@ -542,7 +549,7 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
         t_try = jnp.where(t_start + c.dt >= end - 1e-9 * dt_nom, end, t_start + c.dt)
         sol, new_state = solve_step(model, c.state, seg_phase[c.seg], t_try, newton, ctx,
                                     guess=c.predictor.guess(c.state, t_try - t_start, seg_phase[c.seg],
-                                                            retry=c.cuts > 0))
+                                                            retry=c.cuts > 0), search=~c.plain)
         ok = sol.code == Result.SUCCESS
         iters = c.iters + sol.iterations
         stats = c.stats + sol.stats
@@ -563,26 +570,36 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
         # what fails: blankholder shape4, spec mesh, step 31 of 'close' failed from the prediction and
         # converges in 14 iterations from the converged state).
         again = at_floor & (c.cuts == 0)
-        too_small = at_floor & (c.cuts > 0)
+        # Then one last attempt with Newton's line search off. The line search rejects every step that
+        # raises the residual norm; when a front of pairs switches between stick and slip across a
+        # clamp, each full step raises it a little on the way to convergence, and the backtracked steps
+        # crawl (bead th045_mu000, augmented Lagrangian, step 71 of 'wind': no convergence in 25
+        # iterations with the line search, plain Newton converges in 11).
+        # If that fails too, the run stops with the code and residual of the attempt before it (the
+        # last one with the line search): a plain Newton that strays ends in whatever it met first.
+        plain = at_floor & ~again & ~c.plain
+        too_small = at_floor & ~again & c.plain
         finished = seg_done & (c.seg == n_seg - 1)
         full = ok & ~finished & (row + 1 >= n_buf + 1)
-        code = jnp.select([too_small, finished, full], [sol.code, Result.SUCCESS, Result.MAX_STEPS],
+        code = jnp.select([too_small, finished, full], [c.last_code, Result.SUCCESS, Result.MAX_STEPS],
                           Result.CONTINUE).astype(jnp.int32)
         if progress or snapshot is not None:
             jax.lax.cond(ok, lambda: _report(row, t_try, iters, c.cuts, snapshot, model, new_state),
                          lambda: None)
         return _Loop(state=_select(ok, new_state, c.state),
                      predictor=c.predictor.after(ok, c.state, new_state),
-                     dt=jnp.where(ok, dt_ok, jnp.where(again, t_try - t_start, dt_cut)), seg=next_seg,
+                     dt=jnp.where(ok, dt_ok, jnp.where(again | plain, t_try - t_start, dt_cut)), seg=next_seg,
                      n_easy=jnp.where(grow, 0, n_easy), cuts=jnp.where(ok, 0, c.cuts + 1),
                      iters=jnp.where(ok, 0, iters), stats=jnp.where(ok, 0, stats), history=history, code=code,
-                     failed_t=jnp.where(ok, c.failed_t, t_try), r_norm=sol.residual_norm)
+                     failed_t=jnp.where(ok, c.failed_t, t_try),
+                     r_norm=jnp.where(too_small, c.r_norm, sol.residual_norm),
+                     plain=~ok & (c.plain | plain), last_code=sol.code.astype(jnp.int32))
 
     init = _Loop(state=state0, predictor=_Predictor.empty(state0),
                  dt=seg_dt[0], seg=int0, n_easy=int0, cuts=int0, iters=int0, stats=jnp.zeros(3, jnp.int32),
                  history=_empty_history(n_buf + 1, observe(model, state0)),
                  code=jnp.array(Result.CONTINUE, jnp.int32), failed_t=jnp.array(jnp.nan),
-                 r_norm=jnp.array(0.0))
+                 r_norm=jnp.array(0.0), plain=jnp.array(False), last_code=int0)
     out = jax.lax.while_loop(lambda c: c.code == Result.CONTINUE, body, init)
     return Simulation(history=out.history, final=out.state, code=out.code, failed_time=out.failed_t,
                       residual_norm=out.r_norm, pending_cuts=out.cuts)
