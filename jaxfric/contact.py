@@ -240,7 +240,8 @@ class ContactStep(eqx.Module):
     tools: tuple
     law: Penalty
     mu: tuple            # per tool, () coefficient of this phase
-    lam_n: tuple         # per tool, (n_k,) frozen normal multipliers (0 for the penalty method)
+    lam_n: tuple         # per tool, (n_k,) frozen normal multipliers (0 for the penalty method; exact
+                         # contact: the last converged R_N, which only guesses Lemke's starting basis)
     lam_t: tuple         # per tool, (n_k,) frozen tangential multipliers (R_T,n for the penalty method)
     u_ref: tuple         # per tool, (n_k, 2) candidate displacements at the slip reference configuration
     q_ref: jax.Array     # (n_t,) tool positions at the slip reference configuration

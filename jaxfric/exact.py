@@ -50,7 +50,8 @@ import numpy as np
 
 from .assembly import internal_force_and_tangent
 from .contact import Complementarity, ContactStep, pair_mu, pair_nodes, split_pairs
-from .lcp import ForceDrive, LemkeStatus, contact_status, diagonal_parameters, lemke_contact_callback, polish, ssn_contact
+from .lcp import (ForceDrive, LemkeStatus, contact_status, diagonal_parameters, lemke_contact_callback, lemke_start,
+                  polish, ssn_contact)
 from .linalg import BlockTridiag, block_tridiag_solve
 from .newton import NewtonOptions, NewtonSolution
 from .results import Result
@@ -223,17 +224,19 @@ class _LCPSolution(NamedTuple):
     solved: jax.Array
 
 
-def _lemke(K, r, gap, slip, mu, drive):
-    """Lemke on the host, its active set then solved exactly (:func:`jaxfric.lcp.polish`)."""
-    du_c, p, dq, pivots, status = lemke_contact_callback(K, r, gap, slip, mu, drive)
+def _lemke(K, r, gap, slip, mu, drive, hint):
+    """Lemke on the host, warm-started from the basis of the forces ``hint`` (the last iterate's),
+    its active set then solved exactly (:func:`jaxfric.lcp.polish`)."""
+    du_c, p, dq, pivots, status = lemke_contact_callback(K, r, gap, slip, mu, drive,
+                                                         start=lemke_start(hint, slip, mu))
     du_c, p, dq = polish(K, r, gap, slip, mu, du_c, dq, drive)
     return du_c, p, dq, pivots, status == LemkeStatus.SOLVED
 
 
-def _solve_contact(law: Complementarity, K, r, gap, slip, mu, drive) -> _LCPSolution:
+def _solve_contact(law: Complementarity, K, r, gap, slip, mu, drive, hint) -> _LCPSolution:
     zero = jnp.array(0, jnp.int32)
     if law.solver == "lemke":
-        du_c, p, dq, pivots, ok = _lemke(K, r, gap, slip, mu, drive)
+        du_c, p, dq, pivots, ok = _lemke(K, r, gap, slip, mu, drive, hint)
         return _LCPSolution(du_c, p, dq, pivots, zero, zero, ok)
     # Per-candidate Alart-Curnier constants (the diagonal of K*): candidates with prescribed
     # components (kappa rows) are 1e8 stiffer than the rest, where one mean value misclassifies.
@@ -241,7 +244,7 @@ def _solve_contact(law: Complementarity, K, r, gap, slip, mu, drive) -> _LCPSolu
     s = ssn_contact(K, r, gap, slip, mu, drive=drive, c_n=c_n, c_t=c_t, max_iter=law.ssn_max_iter)
 
     def fallback():
-        du_c, p, dq, pivots, ok = _lemke(K, r, gap, slip, mu, drive)
+        du_c, p, dq, pivots, ok = _lemke(K, r, gap, slip, mu, drive, hint)
         return _LCPSolution(du_c, p, dq, pivots, s.iterations, jnp.array(1, jnp.int32), ok)
 
     return jax.lax.cond(s.converged,
@@ -249,8 +252,11 @@ def _solve_contact(law: Complementarity, K, r, gap, slip, mu, drive) -> _LCPSolu
                         fallback)
 
 
-def _contact_newton_step(it: _Iterate, args, x, p_prev, law: Complementarity):
-    """The increment (du, dq) of one iteration, the new pair forces (m, 2), the band, the solver stats."""
+def _contact_newton_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
+    """The increment (du, dq) of one iteration, the new pair forces (m, 2), the band, the solver stats.
+
+    ``hint`` (m, 2): forces whose active set starts Lemke (the last iterate's, or at the first
+    iteration the last converged step's)."""
     c = args.contact
     n = args.mesh.n_dofs
     band = _band(it, c.tools, law.band)
@@ -272,7 +278,8 @@ def _contact_newton_step(it: _Iterate, args, x, p_prev, law: Complementarity):
             e = c.tools[k].drive
             drive = ForceDrive.single(jnp.where(mine, normal @ e, 0.0), jnp.where(mine, tangent @ e, 0.0),
                                       c.force[k])
-        sol = _solve_contact(law, cond.K_star, cond.r_star, gap, slip, mu, drive)
+        sol = _solve_contact(law, cond.K_star, cond.r_star, gap, slip, mu, drive,
+                             jnp.where(valid[:, None], hint[band.pairs], 0.0))
         dq = sol.dq if driven else jnp.zeros(len(args.force_idx))
         return sol._replace(dq=dq)
 
@@ -333,7 +340,8 @@ def _exact_newton(args, x0, x_ref, options: NewtonOptions, law: Complementarity)
 
     def body(carry):
         k, x, it, p, status, _, _, r_hist, stats = carry
-        dx, p_new, in_band, s, lcp_ok = _contact_newton_step(it, args, x, p, law)
+        dx, p_new, in_band, s, lcp_ok = _contact_newton_step(it, args, x, p, law,
+                                                             jnp.where(k == 0, p_step, p))
         x = x + dx
         it = _linearize(x, args)
         R, _ = _residual(x, it, p_new, args)
@@ -346,6 +354,8 @@ def _exact_newton(args, x0, x_ref, options: NewtonOptions, law: Complementarity)
 
     it0 = _linearize(x0, args)
     p0 = jnp.zeros((m, 2))
+    # The last converged forces (simulate passes them as lam_n, lam_t): Lemke's first starting basis.
+    p_step = jnp.stack([jnp.concatenate(c.lam_n), jnp.concatenate(c.lam_t)], -1)
     R0, _ = _residual(x0, it0, p0, args)
     code0, r0 = classify(0, x0, it0, R0, jnp.array(jnp.inf), jnp.array(False), jnp.array(True), jnp.array(True))
     r_hist = jnp.full(options.max_iterations + 1, jnp.nan).at[0].set(r0)

@@ -62,6 +62,7 @@ __all__ = [
     "lemke",
     "lemke_callback",
     "lemke_contact_callback",
+    "lemke_start",
     "polish",
     "contact_lcp",
     "contact_solution",
@@ -348,7 +349,7 @@ def _leads_to_ray(T: np.ndarray, row: int, col: int, next_col: int, pivot_tol: f
     return not np.any(new > pivot_tol * np.max(np.abs(new)))
 
 
-def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12) -> LemkeResult:
+def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12, start=None) -> LemkeResult:
     """Solve the LCP ``w = M z + q, z >= 0, w >= 0, z.w = 0`` by Lemke's complementary pivoting.
 
     Lemke (1965), "Bimatrix equilibrium points and mathematical programming"; Cottle, Pang &
@@ -375,6 +376,15 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12) -> L
     basic values are recomputed by one LU solve of the basis against the original data, so the
     round-off of the Gauss-Jordan pivots does not accumulate into the answer.
 
+    Warm start. ``start`` names a complementary basis to begin from (True: z_i basic, False:
+    w_i basic), e.g. the active set of the previous Newton iterate. If its basic solution
+    ``B^-1 q`` is feasible it is the answer, after one LU solve and no pivot. Otherwise Lemke runs
+    with the covering vector ``d = B 1`` in place of e: then ``B^-1 (q + d z0) = B^-1 q + z0 1``, so
+    z0 enters at ``-min B^-1 q`` on the guessed basis, as the cold start does on the identity (all
+    False is the cold start exactly). The processability argument above is made for d = e, and the
+    rows of ``[x, B^-1]`` need not start lexicographically positive, so a warm run that does not end
+    on a verified solution within ``n`` pivots is dropped for the cold start.
+
     Pure function of arrays (NumPy, float64), suitable for ``jax.pure_callback``
     (see :func:`lemke_callback`).
 
@@ -384,6 +394,7 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12) -> L
         max_pivots: pivot budget; default 50 n.
         pivot_tol: relative pivot tolerance: a pivot must exceed ``pivot_tol`` times the largest
             entry of the entering column.
+        start: optional (n,) bools, the complementary basis to start from (see "Warm start").
 
     Returns:
         :class:`LemkeResult` ``(z, w, pivots, status, basis)``. On failure z is the last basic
@@ -398,18 +409,62 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12) -> L
         max_pivots = 50 * n
     if np.all(q >= 0.0):
         return LemkeResult(np.zeros(n), q.copy(), 0, int(LemkeStatus.SOLVED), np.arange(n))
-
+    if start is not None and np.any(start):
+        warm = _lemke_warm(M, q, np.asarray(start, bool).reshape(n), min(max_pivots, n), pivot_tol)
+        if warm is not None:
+            return warm
     # Tableau of  I w - M z - e z0 = q  ; columns: w (0..n-1), z (n..2n-1), z0 (2n), rhs (2n+1).
     # The w columns hold B^-1 of the current basis: the initial basis is the identity.
-    z0 = 2 * n
     T = np.hstack([np.eye(n), -M, -np.ones((n, 1)), q[:, None]])
-    basis = np.arange(n)                         # variable index basic in each row
+    return _pivot(T, np.arange(n), M, q, np.ones(n), max_pivots, pivot_tol)
+
+
+def _basis_columns(M, basis, d) -> np.ndarray:
+    """The basis matrix: the original columns ``(I, -M, -d)`` of the basic variables."""
+    n = M.shape[0]
+    cols = np.zeros((n, n))
+    for k, var in enumerate(basis):
+        if var < n:
+            cols[var, k] = 1.0
+        elif var < 2 * n:
+            cols[:, k] = -M[:, var - n]
+        else:
+            cols[:, k] = -d
+    return cols
+
+
+def _lemke_warm(M, q, start, max_pivots, pivot_tol) -> LemkeResult | None:
+    """Lemke from the complementary basis ``start`` (see :func:`lemke`); None if it does not end on
+    a verified solution (singular basis, ray, pivot budget)."""
+    n = q.size
+    basis = np.where(start, n + np.arange(n), np.arange(n))
+    B = _basis_columns(M, basis, np.ones(n))
+    try:
+        x = np.linalg.solve(B, q)
+        z = np.zeros(n)
+        z[basis[start] - n] = np.maximum(x[start], 0.0)
+        if _is_solution(M, q, z):  # the guessed basis is feasible (to round-off): no pivot
+            return LemkeResult(z, M @ z + q, 0, int(LemkeStatus.SOLVED), basis)
+        B_inv = np.linalg.inv(B)
+    except np.linalg.LinAlgError:
+        return None
+    # B^-1 [I, -M, -d, q] with d = B 1: the z0 column is -1 and the right-hand side is x.
+    T = np.hstack([B_inv, -B_inv @ M, -np.ones((n, 1)), x[:, None]])
+    res = _pivot(T, basis, M, q, B @ np.ones(n), max_pivots, pivot_tol)
+    return res if res.status == LemkeStatus.SOLVED and _is_solution(M, q, res.z) else None
+
+
+def _pivot(T, basis, M, q, d, max_pivots, pivot_tol) -> LemkeResult:
+    """Lemke's pivoting on the tableau ``T = B^-1 [I, -M, -d, q]`` of the complementary basis
+    ``basis`` (covering vector d): z0 enters first; then the complement of each leaving variable."""
+    n = q.size
+    z0 = 2 * n
 
     def original_column(var):
-        """Column of ``var`` in the original system ``[I, -M, -e]``."""
+        """Column of ``var`` in the original system ``[I, -M, -d]``."""
         if var < n:
             return np.eye(1, n, var).ravel()
-        return -M[:, var - n] if var < 2 * n else -np.ones(n)
+        return -M[:, var - n] if var < 2 * n else -d
 
     def pivot(row, col):
         T[row] /= T[row, col]
@@ -418,8 +473,8 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12) -> L
         T[...] -= np.outer(factor, T[row])
         basis[row] = col
 
-    # First pivot: z0 enters at -min q, and a row of the most negative q leaves.
-    row = _first_leaving_row(q)
+    # First pivot: z0 enters at -min x, and a row of the most negative basic value leaves.
+    row = _first_leaving_row(T[:, -1])
     leaving = basis[row]
     pivot(row, z0)
     pivots = 1
@@ -431,7 +486,7 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12) -> L
             status = LemkeStatus.RAY
             # z0 may have reached 0 within round-off together with rows judged just below it;
             # then the point is a solution, not a ray. Verified on the original data.
-            z = _z_from_basis(M, q, basis, T[:, -1])
+            z = _z_from_basis(M, q, basis, T[:, -1], d)
             if _is_solution(M, q, np.maximum(z, 0.0)):
                 status = LemkeStatus.SOLVED
             break
@@ -444,7 +499,7 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12) -> L
             break
         entering = _complement(int(leaving), n)
 
-    z = _z_from_basis(M, q, basis, T[:, -1])
+    z = _z_from_basis(M, q, basis, T[:, -1], d)
     if status == LemkeStatus.SOLVED:
         # Basic values that should be >= 0 can come back as -1e-17 after the refinement.
         z = np.maximum(z, 0.0)
@@ -503,22 +558,16 @@ def _is_solution(M, q, z) -> bool:
     return bool(np.all(w >= -tol) and np.all((z == 0.0) | (np.abs(w) <= tol)))
 
 
-def _z_from_basis(M, q, basis, fallback):
-    """z from the basis: ``B x_B = q`` solved with the original columns (I, -M, -e) by one LU.
+def _z_from_basis(M, q, basis, fallback, d=None):
+    """z from the basis: ``B x_B = q`` solved with the original columns (I, -M, -d) by one LU
+    (d = e unless given).
 
     Solving once with the original data, instead of reading the Gauss-Jordan tableau, keeps the
     round-off of the pivots out of the answer. ``fallback`` (the tableau's x) serves if B is
     numerically singular.
     """
     n = q.size
-    cols = np.zeros((n, n))
-    for k, var in enumerate(basis):
-        if var < n:
-            cols[var, k] = 1.0
-        elif var < 2 * n:
-            cols[:, k] = -M[:, var - n]
-        else:
-            cols[:, k] = -1.0
+    cols = _basis_columns(M, basis, np.ones(n) if d is None else d)
     try:
         values = np.linalg.solve(cols, q)
     except np.linalg.LinAlgError:
@@ -600,8 +649,28 @@ def _lemke_unshifted(M, q, n_q: int, shift: float, max_pivots=None, pivot_tol: f
     return z_c, dq, res.pivots, status, res.z
 
 
+def lemke_start(p, slip, mu) -> jax.Array:
+    """A complementary basis guessed from contact forces ``p`` (2 n_c,), e.g. those of the previous
+    Newton iterate, for :func:`lemke`'s warm start: (3 n_c,) bools, True where z is basic.
+
+    Per candidate (z = (g_N, lambda+, lambda-), w = (R_N, phi+, phi-)): closed (R_N above the open
+    threshold) makes R_N basic, open makes g_N basic. A sticking pair has phi+ and phi- basic; a
+    slipping one the lambda of its slip direction (R_T = +mu R_N: phi+ = 0, lambda+ basic, s < 0).
+    Where R_T says nothing (open, or mu = 0) the sign of the step slip ``slip`` picks the lambda.
+    """
+    p = jnp.asarray(p).reshape(-1, 2)
+    R_N, R_T = p[:, 0], p[:, 1]
+    mu = jnp.asarray(mu, p.dtype)
+    closed = R_N > OPEN_FORCE
+    stick = closed & (jnp.abs(R_T) < (1.0 - STICK_MARGIN) * mu * R_N)
+    by_force = closed & (mu > 0.0)
+    plus = ~stick & jnp.where(by_force, R_T > 0.0, jnp.asarray(slip) < 0.0)
+    minus = ~stick & ~plus
+    return jnp.stack([~closed, plus, minus], -1).reshape(-1)
+
+
 def lemke_contact_callback(K_star, r_star, gap, slip, mu, drive: ForceDrive | None = None, *,
-                           max_pivots: int | None = None, pivot_tol: float = 1e-12):
+                           max_pivots: int | None = None, pivot_tol: float = 1e-12, start=None):
     """:func:`lemke_contact` from inside ``jit``: the LCP is built and the solution recovered in JAX,
     the pivoting runs on the host through ``jax.pure_callback``. Not differentiable.
 
@@ -618,6 +687,8 @@ def lemke_contact_callback(K_star, r_star, gap, slip, mu, drive: ForceDrive | No
     C^T K* C > 0 as long as the tool touches a candidate of the band, which a force-driven phase
     requires (spec 1.8).
 
+    ``start``: optional (3 n_c,) bools, the starting basis of :func:`lemke` (see :func:`lemke_start`).
+
     Returns ``(du_c, p, dq, pivots, status)`` as arrays.
     """
     M, q = contact_lcp(K_star, r_star, gap, slip, mu, drive)
@@ -632,13 +703,15 @@ def lemke_contact_callback(K_star, r_star, gap, slip, mu, drive: ForceDrive | No
     else:
         M_red, q_red = M, q
 
-    def host(M, q):
-        res = lemke(np.asarray(M), np.asarray(q), max_pivots=max_pivots, pivot_tol=pivot_tol)
+    def host(M, q, start):
+        res = lemke(np.asarray(M), np.asarray(q), max_pivots=max_pivots, pivot_tol=pivot_tol,
+                    start=np.asarray(start))
         return res.z.astype(q.dtype), np.int32(res.pivots), np.int32(res.status)
 
     shapes = (jax.ShapeDtypeStruct((n_c3,), q.dtype), jax.ShapeDtypeStruct((), jnp.int32),
               jax.ShapeDtypeStruct((), jnp.int32))
-    z_c, pivots, status = jax.pure_callback(host, shapes, M_red, q_red, vmap_method="sequential")
+    start = jnp.zeros(n_c3, bool) if start is None else jnp.asarray(start, bool)
+    z_c, pivots, status = jax.pure_callback(host, shapes, M_red, q_red, start, vmap_method="sequential")
     dq = -(coupling[:, :n_c3] @ z_c + coupling[:, n_c3]) if n_q else jnp.zeros(0, q.dtype)
     K = jnp.asarray(K_star)
     C, _ = _coupling(drive, jnp.shape(gap)[0], K.dtype)

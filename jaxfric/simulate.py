@@ -303,7 +303,10 @@ def _contact_step(model: StripModel, state: SimState, phase, tau, law) -> tuple:
         reset = new_phase & (tool.mu[phase] != tool.mu[state.phase])
         lam_t.append(jnp.where(reset, 0.0, rt))
     # Penalty: lambda_N = 0. Augmented Lagrangian: warm start from the last converged R_N (spec 1.6).
-    lam_n = split_pairs(model.tools, c.rn if isinstance(law, AugmentedLagrangian) else jnp.zeros_like(c.rn))
+    # Exact contact has no multipliers here; (lambda_N, lambda_T) = the last converged forces only
+    # guess the active set that Lemke starts from.
+    warm = isinstance(law, (AugmentedLagrangian, Complementarity))
+    lam_n = split_pairs(model.tools, c.rn if warm else jnp.zeros_like(c.rn))
     step = ContactStep(tools=model.tools, law=law, mu=mu_now, lam_n=lam_n, lam_t=tuple(lam_t),
                        u_ref=_candidates(model, state.u), q_ref=c.q, q_presc=jnp.stack(q_table)[phase],
                        force=jnp.stack(f_table)[phase], force_mask=jnp.asarray(force_mask)[phase])

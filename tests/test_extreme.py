@@ -674,7 +674,8 @@ def test_force_driven_tool_loses_and_regains_contact(law):
     phases = (jf.Phase("clamp", [bottom(0, 0), hold], 5), jf.Phase("release", [bottom(0, 0), hold], 5),
               jf.Phase("drop", [bottom(0, -0.01), hold], 5), jf.Phase("press", [bottom(-0.01, -0.01), hold], 5))
     model = jf.StripModel(mesh, jf.J2Material.elastic(69004.0, 0.3), phases, tools=(die,), contact=law)
-    scene = types.SimpleNamespace(model=model, control=jf.StepControl(), observe=jf.default_observe)
+    scene = types.SimpleNamespace(model=model, control=jf.StepControl(), observe=jf.default_observe,
+                                  newton=jf.NewtonOptions())
     case = {1e2: "penalty 1e2", 1e12: "penalty 1e12"}.get(float(law.eps_n), "auglag 1e-8")
     res = _run(f"die loses/regains contact, {case}", scene)
     if not _converged_or_expected_failure("contact cycle", case, res):

@@ -30,6 +30,8 @@ from jaxfric.lcp import (
     lemke,
     lemke_callback,
     lemke_contact,
+    lemke_contact_callback,
+    lemke_start,
     ssn_contact,
 )
 
@@ -190,6 +192,46 @@ def test_lemke_random_monotone_lcps(kind, n):
         assert_lcp_solution(M, q, res.z, res.w)
         if kind == "positive_definite":  # unique solution
             np.testing.assert_allclose(res.z, z_star, atol=1e-9 * (1 + np.abs(z_star).max()))
+
+
+def test_lemke_warm_start_gives_the_cold_solution():
+    """Random positive definite LCPs (unique solution): from a random complementary basis Lemke ends on
+    the solution of the cold start; from the solution's own basis it needs no pivot."""
+    rng = np.random.default_rng(7)
+    warm_pivots = []
+    for trial in range(40):
+        n = int(rng.integers(2, 40))
+        A = rng.standard_normal((n, n))
+        S = rng.standard_normal((n, n))
+        M = A @ A.T + 0.3 * (S - S.T) + 1e-2 * np.eye(n)
+        q = rng.standard_normal(n)
+        cold = lemke(M, q)
+        assert cold.status == LemkeStatus.SOLVED
+        for start in (rng.random(n) < 0.5, cold.z > 0.0):
+            warm = lemke(M, q, start=start)
+            assert warm.status == LemkeStatus.SOLVED, trial
+            assert_lcp_solution(M, q, warm.z, warm.w)
+            np.testing.assert_allclose(warm.z, cold.z, atol=1e-9 * (1 + np.abs(cold.z).max()))
+        assert warm.pivots == 0
+        warm_pivots.append(lemke(M, q, start=rng.random(n) < 0.5).pivots)
+    # All False is the cold start itself.
+    assert lemke(M, q, start=np.zeros(n, bool)).pivots == cold.pivots
+    assert np.mean(warm_pivots) > 0  # random guesses do pivot
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.3])
+def test_lemke_start_from_the_solution_forces(mu):
+    """The basis guessed from a contact solution's forces (lemke_start) is that solution's: the contact
+    LCP then solves with no pivot, and the forces and displacements are the cold start's."""
+    K, r, gap, slip, mu_c = random_problem(3, 12, mu)
+    cold = lemke_contact(K, r, gap, slip, mu_c)
+    assert cold.status == LemkeStatus.SOLVED and cold.pivots > 0
+    start = lemke_start(cold.p, slip + cold.du_c[1::2], mu_c)
+    du, p, _, pivots, status = jax.jit(lambda *a: lemke_contact_callback(*a, start=start))(K, r, gap, slip, mu_c)
+    assert int(status) == LemkeStatus.SOLVED and int(pivots) == 0
+    scale = np.abs(cold.p).max()
+    np.testing.assert_allclose(p, cold.p, rtol=0, atol=1e-9 * scale)
+    np.testing.assert_allclose(du, cold.du_c, rtol=0, atol=1e-9 * np.abs(cold.du_c).max())
 
 
 def test_lemke_callback_under_jit_and_vmap():
