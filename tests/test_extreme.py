@@ -658,8 +658,8 @@ def test_force_driven_tool_loses_and_regains_contact(law):
     from it (the die follows it with zero force), and the die presses again to 50 N/mm. Every step
     converges and balances the die force; the die ends where the strip went; all pairs close again.
 
-    Clean failure: eps_n = 1e12 stops with MAX_ITERATIONS in the clamp (t = 0.81, last residual 7.8e-8
-    N/mm, after 10 cuts): one ulp of the top coordinate (5.6e-17 mm at y = 0.395) is 5.6e-5 N/mm of
+    Clean failure: eps_n = 1e12 stops with MAX_ITERATIONS in the clamp (t = 0.81, last residual 6.5e-8
+    N/mm, after 11 failed attempts): one ulp of the top coordinate (5.6e-17 mm at y = 0.395) is 5.6e-5 N/mm of
     contact force there, far above the residual tolerance (~1.6e-8 N/mm), so convergence is left to
     round-off (the 12 x 1 flat die at 1e12 converges, this 30 x 2 strip does not)."""
     L, h, force = 6.0, 0.395, 50.0

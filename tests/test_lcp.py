@@ -234,6 +234,26 @@ def test_lemke_start_from_the_solution_forces(mu):
     np.testing.assert_allclose(du, cold.du_c, rtol=0, atol=1e-9 * np.abs(cold.du_c).max())
 
 
+@pytest.mark.parametrize("mu", [0.0, 0.3, 0.9])
+def test_lemke_warm_start_on_contact_lcps(mu):
+    """Contact LCPs (M = A K* B, not positive definite: warm runs may end on rays and restart, or fall
+    back to the cold start): from random starting bases and from the solution's basis with every slip
+    direction reversed, the forces and displacements are those of the cold start."""
+    rng = np.random.default_rng(11)
+    solve = jax.jit(lambda K, r, g, s, m, start: lemke_contact_callback(K, r, g, s, m, start=start))
+    for seed in range(6):
+        K, r, gap, slip, mu_c = random_problem(seed, 15, mu)
+        cold = lemke_contact(K, r, gap, slip, mu_c)
+        assert cold.status == LemkeStatus.SOLVED
+        best = np.asarray(lemke_start(cold.p, slip + cold.du_c[1::2], mu_c)).reshape(-1, 3)
+        flipped = best[:, [0, 2, 1]] & ~best[:, [1, 2]].all(axis=1, keepdims=True)  # reversed slips
+        for start in (rng.random(45) < 0.5, flipped.reshape(-1)):
+            du, p, _, _, status = solve(K, r, gap, slip, mu_c, start)
+            assert int(status) == LemkeStatus.SOLVED
+            np.testing.assert_allclose(p, cold.p, rtol=0, atol=1e-8 * np.abs(cold.p).max())
+            np.testing.assert_allclose(du, cold.du_c, rtol=0, atol=1e-8 * np.abs(cold.du_c).max())
+
+
 def test_lemke_callback_under_jit_and_vmap():
     M, q, *_ = zip(*[contact_lcp(*random_problem(s, 4, 0.3)) for s in range(3)])
     M, q = jnp.stack(M), jnp.stack(q)
