@@ -589,11 +589,14 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
         # iterations with the line search, plain Newton converges in 11).
         # If that fails too, the run stops with the code and residual of the attempt before it (the
         # last one with the line search): a plain Newton that strays ends in whatever it met first.
-        plain = at_floor & ~again & ~c.plain
-        too_small = at_floor & ~again & c.plain
+        # (Exact contact has no line search to switch off: no such attempt.)
+        searched = not isinstance(model.contact, Complementarity)
+        plain = at_floor & ~again & ~c.plain & searched
+        too_small = at_floor & ~again & ~plain
         finished = seg_done & (c.seg == n_seg - 1)
         full = ok & ~finished & (row + 1 >= n_buf + 1)
-        code = jnp.select([too_small, finished, full], [c.last_code, Result.SUCCESS, Result.MAX_STEPS],
+        code = jnp.select([too_small, finished, full], [jnp.where(c.plain, c.last_code, sol.code),
+                                                        Result.SUCCESS, Result.MAX_STEPS],
                           Result.CONTINUE).astype(jnp.int32)
         if progress or snapshot is not None:
             jax.lax.cond(ok, lambda: _report(row, t_try, iters, c.cuts, snapshot, model, new_state),
@@ -604,7 +607,7 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
                      n_easy=jnp.where(grow, 0, n_easy), cuts=jnp.where(ok, 0, c.cuts + 1),
                      iters=jnp.where(ok, 0, iters), stats=jnp.where(ok, 0, stats), history=history, code=code,
                      failed_t=jnp.where(ok, c.failed_t, t_try),
-                     r_norm=jnp.where(too_small, c.r_norm, sol.residual_norm),
+                     r_norm=jnp.where(too_small & c.plain, c.r_norm, sol.residual_norm),
                      plain=~ok & (c.plain | plain), last_code=sol.code.astype(jnp.int32))
 
     init = _Loop(state=state0, predictor=_Predictor.empty(state0),
