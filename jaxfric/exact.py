@@ -50,8 +50,8 @@ import numpy as np
 
 from .assembly import internal_force_and_tangent
 from .contact import Complementarity, ContactStep, pair_mu, pair_nodes, split_pairs
-from .lcp import (ForceDrive, LemkeStatus, contact_status, diagonal_parameters, lemke_contact_callback, lemke_start,
-                  polish, ssn_contact)
+from .lcp import (ForceDrive, LemkeStatus, contact_status, diagonal_parameters, lemke_contact_callback,
+                  lemke_start, polish, ssn_contact)
 from .linalg import BlockTridiag, block_tridiag_solve
 from .newton import NewtonOptions, NewtonSolution
 from .results import Result

@@ -456,9 +456,10 @@ def _lemke_warm(M, q, start, max_pivots, pivot_tol, restarts: int = 3) -> LemkeR
 
     A run that ends on a ray (or on a point that fails the check on the original data) is restarted
     from the complementary basis it reached, at most ``restarts`` times: the variables basic there,
-    with z0 exchanged for a variable of the pair whose two variables are both non-basic. On the bead's clamp, where a guess
-    from the last iterate has 40 to 60 slip directions wrong, the first run ends on a ray after about
-    a hundred pivots and the restart solves in two (cold start: 1200 pivots).
+    with z0 exchanged for a variable of the pair whose two variables are both non-basic. On the
+    bead's clamp, where a guess from the last iterate has 40 to 60 slip directions wrong, the first
+    run ends on a ray after about a hundred pivots and the restart solves in two (cold start: 1200
+    pivots).
     """
     n = q.size
     pivots = 0
