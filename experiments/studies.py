@@ -256,12 +256,16 @@ def cost_accuracy_figure() -> None:
             for x, y, e in pts:
                 ax.annotate(f"{e:.0e}", (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7,
                             color=colour)
-        pts = [(float(r["max_penetration"]), float(r["wall_s"]), float(r["eps_n"]), float(r["target_gap"]))
+        pts = [(float(r["max_penetration"]), float(r["wall_s"]), float(r["eps_n"]), float(r["target_gap"]),
+                r["converged"] == "True")
                for r in al if r["variant"] == variant and r["max_penetration"] and r["wall_s"]]
         if pts:
             ax.plot([p[0] for p in pts], [p[1] for p in pts], "s", mfc="none", color=colour,
                     label=f"auglag, {variant}")
-            for x, y, e, g in pts:
+            stopped = [p for p in pts if not p[4]]
+            if stopped:
+                ax.plot([p[0] for p in stopped], [p[1] for p in stopped], "x", ms=12, color="k")
+            for x, y, e, g, _ in pts:
                 ax.annotate(f"({e:.0e}, {g:.0e})", (x, y), textcoords="offset points", xytext=(4, -9),
                             fontsize=6, color=colour)
     ax.set_xscale("log")
