@@ -61,7 +61,8 @@ def common(summary: dict) -> dict:
     get = summary.get
     return {"n_steps": get("n_steps"), "cutbacks": get("n_cutbacks"),
             "newton_iters_total": get("newton_iters_total"), "wall_s": _r(get("wall_s")),
-            "compile_s": _r(get("compile_s")), "max_penetration": _r(get("max_penetration")),
+            "cpu_s": _r(get("cpu_s")), "compile_s": _r(get("compile_s")),
+            "max_penetration": _r(get("max_penetration")),
             "steady_drawing_force": _r(get("steady_drawing_force")), "converged": bool(get("converged"))}
 
 
@@ -220,7 +221,7 @@ def auglag_sensitivity(opts) -> None:
     write_table(study, rows)
     cost_accuracy_figure()
     cols = ["variant", "eps_n", "target_gap", "n_steps", "cutbacks", "newton_iters_total", "wall_s",
-            "wall_rel", "mean_augmentations", "max_penetration", "steady_drawing_force", "converged"]
+            "cpu_s", "wall_rel", "mean_augmentations", "max_penetration", "steady_drawing_force", "converged"]
     write_section(study, _header(study, cases, "Nine test, `auglag`, mesh 300 x 3, eps_T = mu eps_N; "
                                  "`wall_rel` is relative to the (mu000, eps_N = 1e2) penalty run of "
                                  "study (1).") + "\n\n" + markdown_table(rows, cols) + "\n\n"
@@ -467,7 +468,7 @@ def algorithm_agreement(opts) -> None:
         write_table(study, rows)
     _agreement_figure(panels)
     cols = ["scene", "variant", "algorithm", "converged", "n_steps", "newton_iters_total", "wall_s",
-            "max_penetration", "steady_drawing_force", "rel_diff_steady", "curve_diff_drawing",
+            "cpu_s", "max_penetration", "steady_drawing_force", "rel_diff_steady", "curve_diff_drawing",
             "curve_diff_clamping", "max_status_mismatch"]
     write_section(study, _header(study, [c for _, _, runs in panels for c in runs.values()],
                                  "Every scene variant with every algorithm at default parameters; the "

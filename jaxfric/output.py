@@ -415,6 +415,7 @@ def _summary(scene, result, tag, values, instants, fallback, window, steady, not
         "n_cutbacks": int(sum(values.get("cutbacks", [0]))),
         "wall_s": float(math.fsum(values["wall_s"])),
         "compile_s": max(float(result.compile_s), 0.0),
+        "cpu_s": float(result.cpu_s),
         "converged": bool(converged),
         "message": "; ".join(message_parts),
         "max_penetration": float(max(values["max_penetration"])),

@@ -34,6 +34,8 @@ class RunResult:
         code: the :class:`~jaxfric.results.Result`.
         message: "" when converged, otherwise where and why the run stopped, and what to try.
         compile_s, wall_s: compilation time and solve time (s).
+        cpu_s: process CPU time of the solve (s); with one XLA thread it equals ``wall_s`` on an idle
+            machine and, unlike it, does not grow when other jobs share the cores or the run is paused.
         snapshots: with ``run(..., snapshot=fn)``, ``fn(model, state)`` as NumPy pytrees per history
             row (row 0: the initial state); empty otherwise.
     """
@@ -47,6 +49,7 @@ class RunResult:
     message: str
     compile_s: float
     wall_s: float
+    cpu_s: float
     snapshots: dict = dataclasses.field(default_factory=dict)
 
 
@@ -87,10 +90,10 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     compiled = _compiled(model, newton, control, observe, snapshot, adaptive)
     compile_s = time.perf_counter() - t0
     with ProgressMonitor(total_time=model.n_phases, show=progress, label=label) as monitor:
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
         sim = jax.block_until_ready(compiled(model))
-        wall_s = time.perf_counter() - t1
-    result = _to_host(model, sim, monitor, compile_s, wall_s)
+        wall_s, cpu_s = time.perf_counter() - t1, time.process_time() - c1
+    result = _to_host(model, sim, monitor, compile_s, wall_s, cpu_s)
     if snapshot is not None:
         first = eqx.filter_jit(lambda m: snapshot(m, initial_state(m)))(model)
         snaps = {0: first, **monitor.snapshots}
@@ -101,7 +104,7 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     return result
 
 
-def _to_host(model, sim: Simulation, monitor, compile_s, wall_s) -> RunResult:
+def _to_host(model, sim: Simulation, monitor, compile_s, wall_s, cpu_s) -> RunResult:
     h = sim.history
     n = int(h.n_rows)
     history = {
@@ -134,4 +137,4 @@ def _to_host(model, sim: Simulation, monitor, compile_s, wall_s) -> RunResult:
         message = (f"stopped after step {n - 1} at t = {t:.10g} (phase '{phase}'){attempt}: "
                    f"{describe(code)}. Results up to t = {t:.10g} are kept.")
     return RunResult(model=model, history=history, final=final, simulation=sim, converged=converged,
-                     code=code, message=message, compile_s=compile_s, wall_s=wall_s)
+                     code=code, message=message, compile_s=compile_s, wall_s=wall_s, cpu_s=cpu_s)
