@@ -51,7 +51,7 @@ import numpy as np
 from .assembly import internal_force_and_tangent
 from .contact import Complementarity, ContactStep, pair_mu, pair_nodes, split_pairs
 from .lcp import (ForceDrive, LemkeStatus, contact_status, diagonal_parameters, lemke_contact_callback,
-                  lemke_start, polish, ssn_contact)
+                  lemke_start, polish, ssn_contact, ssn_start)
 from .linalg import BlockTridiag, block_tridiag_solve
 from .newton import NewtonOptions, NewtonSolution
 from .results import Result
@@ -241,7 +241,8 @@ def _solve_contact(law: Complementarity, K, r, gap, slip, mu, drive, hint) -> _L
     # Per-candidate Alart-Curnier constants (the diagonal of K*): candidates with prescribed
     # components (kappa rows) are 1e8 stiffer than the rest, where one mean value misclassifies.
     c_n, c_t = diagonal_parameters(K)
-    s = ssn_contact(K, r, gap, slip, mu, drive=drive, c_n=c_n, c_t=c_t, max_iter=law.ssn_max_iter)
+    s = ssn_contact(K, r, gap, slip, mu, drive=drive, c_n=c_n, c_t=c_t, max_iter=law.ssn_max_iter,
+                    start=ssn_start(hint, gap, mu))
 
     def fallback():
         du_c, p, dq, pivots, ok = _lemke(K, r, gap, slip, mu, drive, hint)
@@ -255,8 +256,8 @@ def _solve_contact(law: Complementarity, K, r, gap, slip, mu, drive, hint) -> _L
 def _contact_newton_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
     """The increment (du, dq) of one iteration, the new pair forces (m, 2), the band, the solver stats.
 
-    ``hint`` (m, 2): forces whose active set starts Lemke (the last iterate's, or at the first
-    iteration the last converged step's)."""
+    ``hint`` (m, 2): forces whose active set starts Lemke or semismooth Newton (the last iterate's,
+    or at the first iteration the last converged step's)."""
     c = args.contact
     n = args.mesh.n_dofs
     band = _band(it, c.tools, law.band)

@@ -70,6 +70,7 @@ __all__ = [
     "contact_solution",
     "lemke_contact",
     "ssn_contact",
+    "ssn_start",
     "diagonal_parameters",
     "contact_status",
     "OPEN_FORCE",
@@ -905,8 +906,26 @@ def diagonal_parameters(K_star) -> tuple[jax.Array, jax.Array]:
     return diagonal[0::2], diagonal[1::2]
 
 
+def ssn_start(p, gap, mu) -> jax.Array:
+    """The first active set of :func:`ssn_contact`, guessed from contact forces ``p`` (2 n_c,), e.g.
+    those of the previous Newton iterate: (n_c,) int32 labels.
+
+    A candidate carrying a normal force (above the open threshold) starts closed: in stick if its
+    tangential force is inside the cone, else slipping in the direction of R_T (frictionless: slip).
+    A candidate without force starts by the closed-at-zero-gap rule (stick if ``gap <= 0``, else open),
+    the cold start's rule for all.
+    """
+    p = jnp.asarray(p).reshape(-1, 2)
+    R_N, R_T = p[:, 0], p[:, 1]
+    mu = jnp.broadcast_to(jnp.asarray(mu, p.dtype), R_N.shape)
+    stick = (mu > 0.0) & (jnp.abs(R_T) < (1.0 - STICK_MARGIN) * mu * R_N)
+    slip = jnp.where((R_T >= 0.0) | (mu == 0.0), _SLIP_POS, _SLIP_NEG)
+    by_gap = jnp.where(jnp.asarray(gap) <= 0.0, _STICK, _OPEN)
+    return jnp.where(R_N > OPEN_FORCE, jnp.where(stick, _STICK, slip), by_gap).astype(jnp.int32)
+
+
 def ssn_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = None, c_n=None, c_t=None,
-                max_iter: int = 50, tol: float = 1e-10) -> SSNResult:
+                max_iter: int = 50, tol: float = 1e-10, start=None) -> SSNResult:
     """Solve the linearised contact problem by semismooth Newton (``lcp_ssn`` of spec 1.7).
 
     Unknowns ``du_c`` (2 n_c,) and ``dq`` (n_q,), with ``p = K* du_c - r*``,
@@ -965,6 +984,10 @@ def ssn_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = Non
         max_iter: linear solves allowed (static). If not converged by then, ``converged`` is
             False and the caller falls back to Lemke (spec 1.7).
         tol: relative residual test, see above.
+        start: optional (n_c,) first active set (:func:`ssn_start`, from the previous Newton
+            iterate's forces); the default classifies by the gaps alone. Inside a global Newton loop
+            the active set changes little between iterates, and a cold start from the gaps walks
+            every closed candidate through open/stick/slip again.
 
     Returns:
         :class:`SSNResult` ``(du_c, p, iterations, converged, dq)``. A failed line search or a
@@ -1042,7 +1065,8 @@ def ssn_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = Non
 
     x0 = jnp.zeros(2 * n_c + n_q, dtype)
     _, theta0, _, _, sig_n0 = evaluate(x0)
-    state0 = next_state(jnp.where(gap <= 0.0, _STICK, _OPEN).astype(jnp.int32), sig_n0)
+    first = jnp.where(gap <= 0.0, _STICK, _OPEN) if start is None else jnp.asarray(start)
+    state0 = next_state(first.astype(jnp.int32), sig_n0)
     thetas0 = jnp.full(_MEMORY, -jnp.inf, dtype).at[-1].set(theta0)
     carry0 = (jnp.array(0, jnp.int32), x0, state0, thetas0, jnp.array(False), jnp.array(False))
     k, x, _, _, _, converged = lax.while_loop(cond, body, carry0)

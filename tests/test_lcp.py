@@ -33,6 +33,7 @@ from jaxfric.lcp import (
     lemke_contact_callback,
     lemke_start,
     ssn_contact,
+    ssn_start,
 )
 
 AGREE = 1e-8        # relative agreement of Lemke and SSN (spec 1.7: "to solver tolerance")
@@ -330,6 +331,31 @@ def test_lemke_and_ssn_agree(mu, conditioning):
         for name, (du, p) in {"lemke": (lem.du_c, lem.p), "ssn": (one.du_c, one.p)}.items():
             worst, checks = law_violation(du, p, gap, slip, m, r)
             assert worst < LAW, f"problem {k}, {name}: {checks}"
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.17, 0.9])
+def test_ssn_warm_start(mu):
+    """Started from the active set of the solution (ssn_start on its forces and gaps), semismooth
+    Newton ends in one solve; from the forces of a neighbouring problem's solution (as a Newton
+    iterate gives), or with every tangential force reversed, it still ends on the cold start's
+    answer."""
+    solve = jax.jit(lambda K, r, g, s, m, start: ssn_contact(K, r, g, s, m, start=start))
+    for seed in range(6):
+        K, r, gap, slip, m = (jnp.asarray(a) for a in random_problem(40 + seed, 15, mu, open_fraction=0.3))
+        cold = ssn_jit(K, r, gap, slip, m)
+        assert bool(cold.converged)
+        length = max(np.linalg.norm(cold.du_c), np.linalg.norm(gap))
+        force = max(np.linalg.norm(cold.p), np.linalg.norm(r))
+        near = ssn_jit(K, r * 1.05, gap + 1e-4, slip, m)
+        starts = {"solution": ssn_start(cold.p, gap + cold.du_c[0::2], m),
+                  "neighbour": ssn_start(near.p, gap, m),
+                  "reversed": ssn_start(cold.p.reshape(-1, 2) * jnp.array([1.0, -1.0]), gap, m)}
+        for label, start in starts.items():
+            warm = solve(K, r, gap, slip, m, start)
+            assert bool(warm.converged), f"seed {seed}, {label}: {int(warm.iterations)} iterations"
+            assert rel(warm.du_c, cold.du_c, length) < AGREE and rel(warm.p, cold.p, force) < AGREE, label
+            if label == "solution":
+                assert int(warm.iterations) == 1, f"seed {seed}: {int(warm.iterations)} iterations"
 
 
 def test_default_ssn_parameters_on_widely_spread_scales_fail_safely():
