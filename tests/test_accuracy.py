@@ -82,7 +82,7 @@ def test_plan_of_each_test(test):
     for field in test.step_fields:
         if isinstance(ref[field], float):
             assert ref[field] == pytest.approx(base[field] / 4) and check[field] == pytest.approx(base[field] / 8)
-    assert ref["target_gap"] == accuracy.REF_GAP
+    assert ref["target_gap"] == test.ref_gap
 
 
 def test_report_rejects_an_unknown_test(capsys, tmp_path):
