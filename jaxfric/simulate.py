@@ -55,7 +55,8 @@ class StripModel(eqx.Module):
         mesh: the strip mesh.
         material: the material law (one quadrature point).
         phases: the load path, one :class:`~jaxfric.loading.Phase` per phase.
-        formulation: "fbar" (default) or "q4" (plain Q4, for elastic checks only); static.
+        formulation: "fbar" (default), "eas" (enhanced strain Q1/E4) or "q4" (plain Q4, for elastic
+            checks only); static. See :mod:`jaxfric.element`.
         tools: rigid tools (:class:`~jaxfric.contact.RigidTool`), one control per phase each.
         contact: the contact formulation, needed with tools: :class:`~jaxfric.contact.Penalty`,
             :class:`~jaxfric.contact.AugmentedLagrangian` or :class:`~jaxfric.contact.Complementarity`.
