@@ -153,18 +153,36 @@ def _enhanced(material, F_c, G, weight, states):
         return jnp.einsum("g,gij,gijm->m", weight, P, G)
 
     def newton(fn, alpha0):
-        def scale(alpha):
+        """Newton with backtracking on |R| (halving, at most 30 times): from alpha = 0 the first
+        full steps can overshoot where the points pass from elastic to plastic."""
+        norm_g = jnp.sqrt(jnp.sum(G**2, axis=(1, 2, 3)))
+
+        def tolerance(alpha):
             P = point(F_c + G @ alpha, states)[0]
-            return jnp.sum(weight * jnp.linalg.norm(P, axis=(1, 2)) * jnp.sqrt(jnp.sum(G**2, axis=(1, 2, 3))))
+            return EAS_RTOL * jnp.sum(weight * jnp.linalg.norm(P, axis=(1, 2)) * norm_g) + 1e-300
+
+        def size(r):
+            return jnp.max(jnp.abs(r))
 
         def body(c):
-            k, alpha, _ = c
-            r = fn(alpha)
-            step = jnp.linalg.solve(jax.jacfwd(fn)(alpha), r)
-            return k + 1, alpha - step, jnp.max(jnp.abs(r)) <= EAS_RTOL * scale(alpha) + 1e-300
+            k, alpha, r, _ = c
+            step = -jnp.linalg.solve(jax.jacfwd(fn)(alpha), r)
 
-        _, alpha, _ = jax.lax.while_loop(lambda c: (c[0] < EAS_MAX_ITER) & ~c[2], body,
-                                         (jnp.array(0), alpha0, jnp.array(False)))
+            def shorter(d):
+                t, _, _ = d
+                a = alpha + 0.5 * t * step
+                return 0.5 * t, a, fn(a)
+
+            def too_long(d):
+                t, a, r_new = d
+                return (t > 1e-9) & ~(size(r_new) < (1.0 - 1e-4 * t) * size(r))
+
+            _, alpha, r_new = jax.lax.while_loop(too_long, shorter, (1.0, alpha + step, fn(alpha + step)))
+            return k + 1, alpha, r_new, size(r_new) <= tolerance(alpha)
+
+        r0 = fn(alpha0)
+        _, alpha, _, _ = jax.lax.while_loop(lambda c: (c[0] < EAS_MAX_ITER) & ~c[3], body,
+                                            (jnp.array(0), alpha0, r0, size(r0) <= tolerance(alpha0)))
         return alpha
 
     alpha = jax.lax.custom_root(residual, jnp.zeros(4, F_c.dtype), newton,

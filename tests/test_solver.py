@@ -41,7 +41,8 @@ def test_patch_test_reproduces_homogeneous_state(formulation, H):
                                atol=1e-10 * float(jnp.max(jnp.abs(tau))))
 
 
-@pytest.mark.parametrize("formulation", ["fbar", "eas"])
+# eas: slow (its element tangent is checked against differences in the fast suite)
+@pytest.mark.parametrize("formulation", ["fbar", pytest.param("eas", marks=pytest.mark.slow)])
 def test_newton_converges_quadratically_on_a_plastic_step(formulation):
     """One large plastic step (strain 1.5 %, 7x the yield strain): the residual sequence is quadratic
     (for ``eas`` with the enhanced parameters condensed in the element)."""

@@ -1,0 +1,61 @@
+"""Elements in bending: ``python experiments/bending_elements.py``.
+
+Pure bending of a 0.5 x 1 mm strip (10 elements along, end faces rotated about their centres) with
+each element formulation, in two regimes:
+
+- elastic (nu = 0.3, rotation 1e-4 rad): moment against plane-strain beam theory,
+  M = E / (1 - nu^2) t^3 / 12 kappa;
+- plastic (the Nine test's steel, rotations 0.005 and 0.02 rad in 10 steps, surface strains of
+  about 1 % and 4 %): moment against F-bar with 12 elements through the thickness.
+
+Writes ``experiments/results/bending_elements.csv`` (formulation, elements through the thickness,
+case, moment ratio) and prints the table.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import jax
+
+import jaxfric as jf
+from benchutil import write_rows
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
+from models import end_moment, pure_bending  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+LENGTH, T, NX = 0.5, 1.0, 10
+STEEL = jf.J2Material(E=200000.0, nu=0.3, sigma_y=171.0, A=121.74485, n=0.23)
+
+
+def moment(material, angle, formulation, ny, n_steps):
+    model = pure_bending(LENGTH, T, nx=NX, ny=ny, angle=angle, material=material, n_steps=n_steps,
+                         formulation=formulation)
+    return end_moment(jf.run(model, progress=False), model.mesh)
+
+
+def main() -> None:
+    rows = []
+    E, nu, angle = 200000.0, 0.3, 1e-4
+    beam = E / (1 - nu**2) * T**3 / 12 * 2 * angle / LENGTH
+    for formulation in ("fbar", "q4", "eas"):
+        for ny in (3, 6):
+            ratio = abs(moment(jf.J2Material.elastic(E, nu), angle, formulation, ny, 1)) / beam
+            rows.append({"case": "elastic, against beam theory", "formulation": formulation, "ny": ny,
+                         "ratio": f"{ratio:.6f}"})
+    for angle in (0.005, 0.02):
+        ref = moment(STEEL, angle, "fbar", 12, 10)
+        for formulation in ("fbar", "q4", "eas"):
+            ratio = moment(STEEL, angle, formulation, 3, 10) / ref
+            rows.append({"case": f"plastic {angle} rad, against F-bar 12 through", "formulation": formulation,
+                         "ny": 3, "ratio": f"{ratio:.6f}"})
+    for r in rows:
+        print(f"{r['case']:<45} {r['formulation']:<5} ny={r['ny']:<3} {r['ratio']}")
+    write_rows(os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "bending_elements.csv"), rows)
+
+
+if __name__ == "__main__":
+    main()
