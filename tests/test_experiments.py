@@ -14,6 +14,18 @@ def test_bench_core_runs_at_a_tiny_size():
     assert row["ms_assembly"] > 0 and row["ms_solve"] > 0 and row["compile_s"] > 0
 
 
+def test_bench_contact_iteration_timing_runs_for_exact_contact():
+    """The exact-contact iteration timed by bench_contact (it broke once, unnoticed, when the contact
+    iteration gained an argument)."""
+    import bench_contact
+
+    import jaxfric as jf
+    from jaxfric.contact import Complementarity
+
+    model = bench_contact.three_cylinders(Complementarity("ssn", 16), nx=40, ny=1)
+    assert bench_contact.linearisation_ms(model, jf.initial_state(model), 1) > 0
+
+
 # ---- experiments/studies.py: the table, section and comparison helpers (no simulation) -------------
 
 import numpy as np  # noqa: E402
