@@ -307,7 +307,9 @@ def _reference_check(rows: list[dict]) -> dict:
     """Per measure: the reference's uncertainty (the largest change under its two checks), the resolution
     (10 x the uncertainty, or round-off), the smallest sweep error at or above it, and whether the
     uncertainty is below a tenth of that error. An error below the resolution cannot be told from the
-    reference's own error: it is reported as unresolved, never as a number."""
+    reference's own error: it is reported as unresolved, never as a number. When no error is resolved,
+    the reference counts as converged only if its uncertainty is at round-off (every run then agrees
+    with it to round-off); otherwise nothing was verified."""
     sweep = [r for r in rows if r["family"] not in ("reference", "ref_check") and r["converged"]]
     ref_checks = [r for r in rows if r["family"] == "ref_check"]
     out = {}
@@ -317,7 +319,7 @@ def _reference_check(rows: list[dict]) -> dict:
         resolution = None if change is None else max(10.0 * change, ROUNDOFF)
         errors = [r[m] for r in sweep if r[m] is not None and resolution is not None and r[m] >= resolution]
         smallest = min(errors) if errors else None
-        ok = change is not None and (smallest is None or change < 0.1 * smallest)
+        ok = change is not None and (change <= ROUNDOFF if smallest is None else change < 0.1 * smallest)
         out[m] = {"change": change, "resolution": resolution, "smallest_error": smallest, "converged": ok,
                   "n_unresolved": sum(1 for r in sweep if r[m] is not None and resolution is not None
                                       and r[m] < resolution),

@@ -63,6 +63,26 @@ def test_a_stopped_run_has_no_curve_error():
     assert accuracy.error_measures(_run(u[:5], 10 + u[:5], converged=False), ref, "final")["err_curve_l2"] is None
 
 
+def _check_rows(check_change, sweep_errors):
+    rows = [{"test": "t", "family": "ref_check", "converged": True, **{m: check_change for m in accuracy.MEASURES}}]
+    rows += [{"test": "t", "family": "penalty", "converged": True, **{m: e for m in accuracy.MEASURES}}
+             for e in sweep_errors]
+    return accuracy.reference_checks(rows)["t"]["err_steady"]
+
+
+def test_reference_check_needs_a_resolved_error_or_round_off():
+    """The reference is converged when its checks move a measure by less than a tenth of the smallest
+    resolved error; with no error resolved, only if the checks agree to round-off (a reference whose
+    own mesh halving moves it 5 % verifies nothing, even if every run is "within" that)."""
+    assert _check_rows(1e-4, [1e-2, 5e-2])["converged"]
+    partly = _check_rows(2e-3, [1e-2, 5e-2])   # 1e-2 is below the resolution 2e-2: unresolved
+    assert partly["converged"] and partly["n_unresolved"] == 1 and partly["smallest_error"] == 5e-2
+    unresolved = _check_rows(0.05, [0.1, 0.2])
+    assert unresolved["smallest_error"] is None and unresolved["n_unresolved"] == 2
+    assert not unresolved["converged"]
+    assert _check_rows(2e-13, [1e-13, 3e-13])["converged"]
+
+
 @pytest.mark.parametrize("test", accuracy.TESTS + accuracy.QUICK_TESTS, ids=lambda t: t.name)
 def test_plan_of_each_test(test):
     plan = accuracy.cases(test)
