@@ -147,19 +147,21 @@ def _enhanced(material, F_c, G, weight, states):
     """Gradients (4, 2, 2) with the enhanced parameters condensed: alpha solves R(alpha) =
     sum_g w_g P_g : G_g = 0 (local Newton; derivatives by implicit differentiation)."""
     point = jax.vmap(_piola(material))
+    norm_g = jnp.sqrt(jnp.sum(G**2, axis=(1, 2, 3)))
+
+    def residual_and_tolerance(alpha):
+        P = point(F_c + G @ alpha, states)[0]
+        tol = EAS_RTOL * jnp.sum(weight * jnp.linalg.norm(P, axis=(1, 2)) * norm_g) + 1e-300
+        return jnp.einsum("g,gij,gijm->m", weight, P, G), tol
 
     def residual(alpha):
-        P = point(F_c + G @ alpha, states)[0]
-        return jnp.einsum("g,gij,gijm->m", weight, P, G)
+        return residual_and_tolerance(alpha)[0]
 
     def newton(fn, alpha0):
         """Newton with backtracking on |R| (halving, at most 30 times): from alpha = 0 the first
-        full steps can overshoot where the points pass from elastic to plastic."""
-        norm_g = jnp.sqrt(jnp.sum(G**2, axis=(1, 2, 3)))
-
-        def tolerance(alpha):
-            P = point(F_c + G @ alpha, states)[0]
-            return EAS_RTOL * jnp.sum(weight * jnp.linalg.norm(P, axis=(1, 2)) * norm_g) + 1e-300
+        full steps can overshoot where the points pass from elastic to plastic. (``fn`` is
+        ``residual``; the iteration uses ``residual_and_tolerance`` to get both from one
+        material evaluation.)"""
 
         def size(r):
             return jnp.max(jnp.abs(r))
@@ -169,20 +171,21 @@ def _enhanced(material, F_c, G, weight, states):
             step = -jnp.linalg.solve(jax.jacfwd(fn)(alpha), r)
 
             def shorter(d):
-                t, _, _ = d
+                t, _, _, _ = d
                 a = alpha + 0.5 * t * step
-                return 0.5 * t, a, fn(a)
+                return (0.5 * t, a, *residual_and_tolerance(a))
 
             def too_long(d):
-                t, a, r_new = d
+                t, _, r_new, _ = d
                 return (t > 1e-9) & ~(size(r_new) < (1.0 - 1e-4 * t) * size(r))
 
-            _, alpha, r_new = jax.lax.while_loop(too_long, shorter, (1.0, alpha + step, fn(alpha + step)))
-            return k + 1, alpha, r_new, size(r_new) <= tolerance(alpha)
+            _, alpha, r_new, tol = jax.lax.while_loop(too_long, shorter,
+                                                      (1.0, alpha + step, *residual_and_tolerance(alpha + step)))
+            return k + 1, alpha, r_new, size(r_new) <= tol
 
-        r0 = fn(alpha0)
+        r0, tol0 = residual_and_tolerance(alpha0)
         _, alpha, _, _ = jax.lax.while_loop(lambda c: (c[0] < EAS_MAX_ITER) & ~c[3], body,
-                                            (jnp.array(0), alpha0, r0, size(r0) <= tolerance(alpha0)))
+                                            (jnp.array(0), alpha0, r0, size(r0) <= tol0))
         return alpha
 
     alpha = jax.lax.custom_root(residual, jnp.zeros(4, F_c.dtype), newton,

@@ -916,12 +916,11 @@ def ssn_start(p, gap, mu) -> jax.Array:
     the cold start's rule for all.
     """
     p = jnp.asarray(p).reshape(-1, 2)
-    R_N, R_T = p[:, 0], p[:, 1]
-    mu = jnp.broadcast_to(jnp.asarray(mu, p.dtype), R_N.shape)
-    stick = (mu > 0.0) & (jnp.abs(R_T) < (1.0 - STICK_MARGIN) * mu * R_N)
-    slip = jnp.where((R_T >= 0.0) | (mu == 0.0), _SLIP_POS, _SLIP_NEG)
+    status = contact_status(p, jnp.broadcast_to(jnp.asarray(mu, p.dtype), p[:, 0].shape))
+    slip = jnp.where((p[:, 1] >= 0.0) | (jnp.asarray(mu) == 0.0), _SLIP_POS, _SLIP_NEG)
     by_gap = jnp.where(jnp.asarray(gap) <= 0.0, _STICK, _OPEN)
-    return jnp.where(R_N > OPEN_FORCE, jnp.where(stick, _STICK, slip), by_gap).astype(jnp.int32)
+    return jnp.select([status == ContactStatus.OPEN, status == ContactStatus.STICK], [by_gap, _STICK],
+                      slip).astype(jnp.int32)
 
 
 def ssn_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = None, c_n=None, c_t=None,

@@ -55,6 +55,16 @@ def end_moment(result, mesh):
     return float(-jnp.sum(y * f[:, 0]))
 
 
+def bending_ratio(ny, formulation, nx=40, length=2.0):
+    """M_FE / M_beam for pure bending of an elastic strip (plane strain, nu = 0.3), with
+    M_beam = E/(1-nu^2) t^3/12 kappa, kappa = 2 angle / length."""
+    E, nu, t, angle = 200000.0, 0.3, 1.0, 1e-4
+    model = pure_bending(length, t, nx=nx, ny=ny, angle=angle, material=jf.J2Material.elastic(E, nu),
+                         formulation=formulation)
+    res = jf.run(model, progress=False)
+    return abs(end_moment(res, model.mesh)) / (E / (1 - nu**2) * t**3 / 12 * 2 * angle / length)
+
+
 def flat_die_strip(law, length=6.0, half_thickness=0.395, nx=30, ny=2, force=50.0, mu=0.15,
                    draw=0.03, material=None, clamp_steps=10, increments=((1 / 12, 100), (1.0, 275))):
     """A small version of the benchmark's flat die: a force-driven die (line above the strip) clamps

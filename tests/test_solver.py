@@ -7,7 +7,7 @@ import pytest
 
 import jaxfric as jf
 from jaxfric.results import Result
-from models import STEEL, clamped_pull, end_moment, pure_bending
+from models import STEEL, bending_ratio, clamped_pull
 
 ELASTIC = jf.J2Material.elastic(E=1000.0, nu=0.3)
 
@@ -111,16 +111,6 @@ def test_no_volumetric_locking_enhanced_strain():
     """The thick cylinder of the test above with the enhanced-strain element: within 2 % (1.0051)."""
     eas = thick_cylinder_ratio("eas")
     assert abs(eas - 1.0) < 0.02, f"enhanced-strain limit pressure ratio {eas:.4f}"
-
-
-def bending_ratio(ny, formulation, nx=40, length=2.0):
-    """M_FE / M_beam for pure bending of an elastic strip (plane strain, nu = 0.3), with
-    M_beam = E/(1-nu^2) t^3/12 kappa, kappa = 2 angle / length."""
-    E, nu, t, angle = 200000.0, 0.3, 1.0, 1e-4
-    model = pure_bending(length, t, nx=nx, ny=ny, angle=angle, material=jf.J2Material.elastic(E, nu),
-                         formulation=formulation)
-    res = jf.run(model, progress=False)
-    return abs(end_moment(res, model.mesh)) / (E / (1 - nu**2) * t**3 / 12 * 2 * angle / length)
 
 
 def test_enhanced_strain_element_derivatives():
