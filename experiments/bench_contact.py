@@ -53,7 +53,8 @@ def linearisation_ms(model: jf.StripModel, state, repeat: int) -> float:
             args, _, _ = _step_args(m, s, jnp.array(1), jnp.array(1.5), _Context.build(m))
             x = _unknowns(m, s.u, s.contact.q)
             p = jnp.stack([s.contact.rn, s.contact.rt], -1)
-            return exact._contact_newton_step(exact._linearize(x, args), args, x, p, m.contact, p)[:2]
+            step = exact._active_set_step if m.contact.solver == "ssn" else exact._contact_newton_step
+            return step(exact._linearize(x, args), args, x, p, m.contact, p)[:2]
         fn = jax.jit(iteration)
     else:
         fn = jax.jit(lambda m, s: jf.linearize_step(m, s, 1, 1.5)[:2])

@@ -183,18 +183,28 @@ class AugmentedLagrangian(Penalty):
         self.max_augmentations = check_int("max_augmentations", max_augmentations, 1, 10_000)
 
 
+SOLVERS = ("ssn", "ssn_condensed", "lemke")
+
+
 class Complementarity(eqx.Module):
     """Exact contact (spec 1.7, algorithms ``lcp_lemke`` and ``lcp_ssn``): at every Newton iterate the
-    contact conditions of the linearised problem are solved exactly on the bulk stiffness condensed on
-    the candidates of a proximity band; no penalty, no penetration beyond the Newton tolerance.
+    contact conditions of the linearised problem are solved exactly; no penalty, no penetration beyond
+    the Newton tolerance (:mod:`jaxfric.exact`).
 
     Attributes:
-        solver: "ssn" (semismooth Newton, jitted; Lemke fallback if it does not converge) or "lemke"
-            (Lemke's pivoting on the host through ``jax.pure_callback``); static.
+        solver (static):
+            "ssn" (``lcp_ssn``): semismooth Newton on the Alart-Curnier equations of every candidate
+            inside the global Newton loop, on the block-tridiagonal system itself; an iterate whose
+            active set cycles is solved as "ssn_condensed" instead.
+            "ssn_condensed": semismooth Newton on the problem condensed on the band (Lemke fallback
+            if it does not converge).
+            "lemke" (``lcp_lemke``): Lemke's pivoting on the condensed problem, on the host through
+            ``jax.pure_callback``.
         band: static number of candidate nodes in the condensed problem (the proximity band: the
             nodes nearest to a tool). None: every candidate node. Too small a band is detected (a node
-            outside it penetrates) and fails the attempt.
-        ssn_max_iter: semismooth Newton iterations before the Lemke fallback (static).
+            outside it penetrates) and fails the attempt. "ssn" uses it only in its fallback.
+        ssn_max_iter: semismooth Newton iterations on one linearised problem before the fallback
+            (static).
     """
 
     solver: str = eqx.field(static=True, default="ssn")
@@ -202,8 +212,8 @@ class Complementarity(eqx.Module):
     ssn_max_iter: int = eqx.field(static=True, default=50)
 
     def __check_init__(self):
-        if self.solver not in ("ssn", "lemke"):
-            raise ValueError(f"field 'solver' must be 'ssn' or 'lemke', got {self.solver!r}")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"field 'solver' must be one of {', '.join(map(repr, SOLVERS))}, got {self.solver!r}")
         check_int("band", self.band, optional=True)
         check_int("ssn_max_iter", self.ssn_max_iter, 1, 10_000)
 

@@ -67,8 +67,9 @@ def test_exact_contact_balance_penetration_and_coulomb(runs, name):
 
 
 def test_a_band_smaller_than_the_contact_zone_is_reported():
-    """21 die candidates all close at the first clamp step: a band of 10 cannot hold them."""
-    model = flat_die_strip(Complementarity("ssn", band=10), **SMALL)
+    """21 die candidates all close at the first clamp step: a band of 10 cannot hold them (the band
+    bounds the condensed problem; the in-loop "ssn" solver works on every candidate)."""
+    model = flat_die_strip(Complementarity("ssn_condensed", band=10), **SMALL)
     sol, _ = jax.jit(lambda m: solve_step(m, initial_state(m), 0, 0.2))(model)
     assert int(sol.code) == Result.CONTACT_BAND
 
