@@ -5,10 +5,10 @@ contact with three cylinders: B is pushed down by ``stroke`` mm, then the strip 
 with mu = 0.17 and eps_n = 1e5, eps_t = mu eps_n. For each contact algorithm available, prints and
 writes to ``experiments/results/bench_contact.csv``: steps, Newton iterations per step, augmentations
 per step (AL), semismooth Newton iterations and Lemke pivots per step (exact contact), wall time per
-Newton iteration of the whole run, and one Newton iteration's linear algebra at the final state (``--band`` nodes in the exact contact problem,
-default 96, 0 for all 602 candidate nodes): for
-penalty and AL one linearisation (residual + tangent, contact included), for exact contact one
-linearisation plus the condensation and the contact solve, against the linearisation without contact.
+Newton iteration of the whole run, and one Newton iteration's linear algebra at the final state
+(``--band`` nodes in the condensed exact contact problem, default 96, 0 for all 602 candidate nodes):
+for penalty and AL one linearisation (residual + tangent, contact included), for exact contact one
+linearisation plus the contact solve, against the linearisation without contact.
 """
 
 from __future__ import annotations
@@ -47,10 +47,13 @@ def three_cylinders(law, stroke=3.0, draw=3.0, nx=300, ny=3, mu=0.17) -> jf.Stri
 
 def linearisation_ms(model: jf.StripModel, state, repeat: int) -> float:
     """One residual + tangent evaluation at ``state`` (a draw step); with exact contact, one whole
-    iteration's algebra: the bulk linearisation, the band's condensation and the contact solve."""
+    iteration's algebra at the converged ``state``: the bulk linearisation and the contact solve (for
+    "ssn" its block-tridiagonal solves; for the condensed solvers the band's condensation and the
+    contact problem)."""
     if isinstance(model.contact, Complementarity):
         def iteration(m, s):
-            args, _, _ = _step_args(m, s, jnp.array(1), jnp.array(1.5), _Context.build(m))
+            # At the converged final state (zero increment): the iteration of a settled active set.
+            args, _, _ = _step_args(m, s, jnp.array(1), s.time, _Context.build(m))
             x = _unknowns(m, s.u, s.contact.q)
             p = jnp.stack([s.contact.rn, s.contact.rt], -1)
             step = exact._active_set_step if m.contact.solver == "ssn" else exact._contact_newton_step
