@@ -194,17 +194,16 @@ class Complementarity(eqx.Module):
     Attributes:
         solver (static):
             "ssn" (``lcp_ssn``): semismooth Newton on the Alart-Curnier equations of every candidate
-            inside the global Newton loop, on the block-tridiagonal system itself; an iterate whose
-            active set cycles is solved as "ssn_condensed" instead.
+            inside the global Newton loop, on the block-tridiagonal system itself.
             "ssn_condensed": semismooth Newton on the problem condensed on the band (Lemke fallback
             if it does not converge).
             "lemke" (``lcp_lemke``): Lemke's pivoting on the condensed problem, on the host through
             ``jax.pure_callback``.
         band: static number of candidate nodes in the condensed problem (the proximity band: the
             nodes nearest to a tool). None: every candidate node. Too small a band is detected (a node
-            outside it penetrates) and fails the attempt. "ssn" uses it only in its fallback.
-        ssn_max_iter: semismooth Newton iterations on one linearised problem before the fallback
-            (static).
+            outside it penetrates) and fails the attempt. Not used by "ssn" (every candidate).
+        ssn_max_iter: semismooth Newton iterations on one linearised problem (static): "ssn" then
+            takes its last active set, "ssn_condensed" falls back to Lemke.
     """
 
     solver: str = eqx.field(static=True, default="ssn")

@@ -180,8 +180,9 @@ class History(eqx.Module):
 
     Attributes:
         time, phase, newton_iters, cutbacks, augmentations: (S,) per row.
-        solver_stats: (S, 3) exact contact: Lemke pivots, semismooth Newton iterations, Lemke
-            fallbacks, summed over the step's attempts (zero for the other laws).
+        solver_stats: (S, 3) exact contact: Lemke pivots, semismooth Newton iterations (active-set
+            passes), fallbacks (condensed solver: Lemke after SSN; "ssn": iterations whose active set
+            did not settle), summed over the step's attempts (zero for the other laws).
         observed: pytree of per-row observations, leading axis S.
         n_rows: () number of filled rows.
     """
@@ -330,7 +331,7 @@ class StepSolution(NamedTuple):
     residual_norm: jax.Array
     residual_history: jax.Array  # of the last Newton solve
     augmentations: jax.Array    # () AL augmentations (0 for the penalty method)
-    stats: jax.Array            # (3,) exact contact: Lemke pivots, SSN iterations, Lemke fallbacks
+    stats: jax.Array            # (3,) exact contact: Lemke pivots, SSN iterations, fallbacks
     hardest: jax.Array | None = None  # () the most iterations one Newton solve took (AL: of all the
     #                                    augmentations; None: ``iterations``)
 
