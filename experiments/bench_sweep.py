@@ -7,6 +7,10 @@ Runs ``members`` friction coefficients evenly spaced in [0.05, 0.3] as one compi
 (:func:`jaxfric.sweep.sweep`) and as single runs (:func:`jaxfric.run.run`, compiled once), checks that
 the histories agree to 1e-10 of each column's scale, and writes
 ``experiments/results/bench_sweep_<scene>.csv`` with compile and solve times and their ratios.
+
+``--iteration``: instead, time one Newton iteration (linearisation and solve) of all members at once
+(vmapped) against one member's, at the converged final state of member 0: what batching costs per
+member without the load loop's lockstep.
 """
 
 from __future__ import annotations
@@ -32,12 +36,15 @@ def main(argv=None) -> None:
     p.add_argument("--members", type=int, default=16)
     p.add_argument("--mesh", default=None)
     p.add_argument("--set", dest="overrides", action="append", default=[])
+    p.add_argument("--iteration", action="store_true", help="time one batched Newton iteration only")
     a = p.parse_args(argv)
     extra = dict(s.split("=", 1) for s in a.overrides)
     if a.mesh:
         extra["mesh"] = a.mesh
     mus = np.linspace(0.05, 0.3, a.members)
     built = [scenes.make(a.scene, a.variant, "penalty", {**extra, "mu": float(m)}) for m in mus]
+    if a.iteration:
+        return iteration_cost(built)
     out = sweep([s.model for s in built], control=built[0].control, observe=built[0].observe)
     singles, compile_single, worst = [], None, 0.0
     for i, s in enumerate(built):
@@ -58,6 +65,32 @@ def main(argv=None) -> None:
     for k, v in row.items():
         print(f"{k:>20}: {v}")
     write_rows(os.path.join(os.path.dirname(__file__), "results", f"bench_sweep_{a.scene}.csv"), [row])
+
+
+def iteration_cost(built) -> None:
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from benchutil import median_time
+    from jaxfric.linalg import linear_solve
+    from jaxfric.sweep import stack_models
+
+    values, axes, (treedef, static) = stack_models([s.model for s in built])
+    r = jf.run(built[0].model, control=built[0].control, observe=built[0].observe, progress=False)
+    state = jax.tree_util.tree_map(jnp.asarray, r.final)
+
+    def iteration(v, s):
+        model = eqx.combine(jax.tree_util.tree_unflatten(treedef, v), static)
+        lin = jf.linearize_step(model, s, s.phase, s.time)
+        return linear_solve(lin.jacobian, -lin.residual)
+
+    v0 = [v if ax is None else v[0] for v, ax in zip(values, axes)]
+    one = median_time(jax.jit(iteration), v0, state, repeat=20)
+    many = median_time(jax.jit(jax.vmap(iteration, in_axes=(axes, None))), values, state, repeat=10)
+    n = len(built)
+    print(f"one Newton iteration: single {1e3 * one:.2f} ms; {n} members vmapped {1e3 * many:.2f} ms "
+          f"= {many / one:.1f}x single ({1e3 * many / n:.2f} ms per member)")
 
 
 if __name__ == "__main__":
