@@ -379,7 +379,8 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
     R_T = mu xi R_N): a row combination of the bulk tangent plus a 2 x 2 block of the node's own
     kinematics, so the matrix keeps its block-tridiagonal structure and the iteration costs one
     block-Thomas solve, like the penalty method. The force-driven tool's row is sum_a e_q . f~_a = P over
-    its candidates. ``hint`` gives f_c^prev (the last converged forces at a step's first iteration).
+    its candidates. ``hint`` gives f_c^prev and the first active set (the last converged forces at a
+    step's first iteration).
     """
     c = args.contact
     n = args.mesh.n_dofs
@@ -478,7 +479,11 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
     # Semismooth Newton on the linearised problem: the active set is read off the forces and gaps the
     # last solve predicts until it repeats (each pass one block-Thomas solve; the bulk is not
     # re-linearised), as the condensed solvers solve the linearised contact problem exactly.
-    state0 = classify(R_N, R_T, gap, slip)
+    # The first active set from the forces of ``hint`` (the last iterate's prediction, or the last
+    # converged step's) with this iterate's gaps: on the three-cylinder bench 18.6 passes per step
+    # against 25.8 when read off this iterate's own (unbalanced) forces.
+    h = jnp.where(valid[:, None], hint[pairs], 0.0)
+    state0 = classify(h[:, 0], h[:, 1], gap, slip)
 
     def more(carry):
         i, state, _, p_l, g_l, s_l = carry
