@@ -116,3 +116,44 @@ def test_penalty_converges_to_the_exact_solution_and_the_augmented_lagrangian_re
     # Measured: 1.4e-11 mm and 3.1e-6 N/mm (4e-7 mu P), 135 augmentations in all.
     np.testing.assert_allclose(q_al, q_ref, atol=1e-10)
     np.testing.assert_allclose(f_al[:, 0], f_ref[:, 0], atol=1e-6 * MU * FORCE)
+
+
+@pytest.mark.slow  # a clamp run and two step compilations, about a minute (make test-all)
+def test_lemke_and_in_loop_semismooth_newton_agree_on_curved_tools():
+    """The in-loop solver's node frames turn with the node on an arc (the derivative of (n, t) enters
+    its rows): one frictional draw step over three cylinders, from the same clamped state, gives
+    Lemke's displacements, forces and statuses."""
+    import equinox as eqx
+
+    from jaxfric.contact import Move, RigidTool
+    from jaxfric.tools import Tool
+
+    R, pitch, t = 5.5, 11.97, 0.97
+    mesh = jf.strip_mesh(-20.0, 40.0, 0.0, t, 60, 2)
+    steel = jf.J2Material(E=200000.0, nu=0.3, sigma_y=171.0, A=121.74485, n=0.23)
+
+    def tools(controls_b):
+        below = dict(drive=(0.0, 1.0), candidates=mesh.bottom, controls=(Move(),) * len(controls_b), mu=0.17)
+        return (RigidTool("A", Tool.circle((0.0, -R), R), **below),
+                RigidTool("B", Tool.circle((pitch, t + R), R, seam=np.pi / 2), drive=(0.0, -1.0),
+                          candidates=mesh.top, controls=controls_b, mu=0.17),
+                RigidTool("C", Tool.circle((2 * pitch, -R), R), **below))
+
+    clamp = jf.Phase("clamp", [jf.DirichletBC(mesh.right)], n_steps=15)
+    draw = jf.Phase("draw", [jf.DirichletBC(mesh.right, motion=jf.Ramp((0.0, 0.0), (0.5, 0.0)))], n_steps=5)
+    clamped = jf.run(jf.StripModel(mesh, steel, (clamp,), tools=tools((Move(0.0, 1.5),)),
+                                   contact=Complementarity("ssn")), progress=False).final
+    out = {}
+    for solver in ("lemke", "ssn"):
+        model = jf.StripModel(mesh, steel, (clamp, draw), tools=tools((Move(0.0, 1.5), Move())),
+                              contact=Complementarity(solver))
+        sol, new = jax.jit(lambda m, s: solve_step(m, s, 1, 1.2))(model, clamped)
+        assert int(sol.code) == Result.SUCCESS
+        out[solver] = new
+    a, b = out["lemke"], out["ssn"]
+    assert np.sum(np.asarray(a.contact.status) == 2) >= 2       # slipping pairs on the arcs
+    np.testing.assert_allclose(a.u, b.u, atol=1e-10)
+    scale = float(np.max(a.contact.rn))
+    np.testing.assert_allclose(a.contact.rn, b.contact.rn, atol=1e-9 * scale)
+    np.testing.assert_allclose(a.contact.rt, b.contact.rt, atol=1e-9 * scale)
+    assert np.array_equal(a.contact.status, b.contact.status)
