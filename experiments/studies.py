@@ -429,6 +429,18 @@ def _status_mismatch(contact, ref):
     return None if worst is None else _r(worst)
 
 
+def _shared_run(name: str, variant: str, algorithm: str):
+    """A case another study already ran with the same inputs, read back from its directory: the
+    blankholder's penalty runs are the ``blankholder_shapes`` cases (default parameters, penalty)."""
+    if name != "blankholder" or algorithm != "penalty":
+        return None
+    directory = os.path.join(ROOT, "blankholder_shapes", "runs", variant)
+    if not os.path.exists(os.path.join(directory, "summary.json")):
+        return None
+    return run_case(directory, name, variant, algorithm, {}, rerun=False, progress=False, figures=False,
+                    tag="blankholder_shapes", log=lambda m: None)
+
+
 def algorithm_agreement(opts) -> None:
     study = "algorithm_agreement"
     rows, panels = [], []
@@ -436,7 +448,10 @@ def algorithm_agreement(opts) -> None:
         runs = {}
         for algorithm in ALGORITHMS:
             label = f"{name}_{variant}_{algorithm}"
-            if _want(opts, study, label):
+            shared = _shared_run(name, variant, algorithm)
+            if shared is not None:
+                runs[algorithm] = shared
+            elif _want(opts, study, label):
                 runs[algorithm] = case(study, label, name, variant, algorithm, {}, opts)
         if not runs:
             continue
@@ -473,7 +488,8 @@ def algorithm_agreement(opts) -> None:
     write_section(study, _header(study, [c for _, _, runs in panels for c in runs.values()],
                                  "Every scene variant with every algorithm at default parameters; the "
                                  "reference is `lcp_lemke`, or `auglag` with target gap 1e-6 where Lemke "
-                                 "did not converge. Curves compared on 200 points over the common "
+                                 "did not converge. The blankholder's penalty rows are the runs of study "
+                                 "`blankholder_shapes` (the same cases). Curves compared on 200 points over the common "
                                  "`draw` range (and `theta_deg` over `wind` for the bead).")
                   + "\n\n" + markdown_table(rows, cols) + "\n\n" + failures(rows, opts.missing)
                   + "\n\n![algorithm agreement](results/studies/algorithm_agreement/figure.png)")
