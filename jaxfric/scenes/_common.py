@@ -34,8 +34,9 @@ def spec_field(default, unit: str, doc: str):
 
 # ---- validation -------------------------------------------------------------------------------------
 
-BAND_DOC = ("exact contact (lcp_*): candidate nodes nearest to a tool that enter the complementarity problem; "
-            "None: all. Too small a band stops the step with CONTACT_BAND")
+BAND_DOC = ("exact contact by lcp_lemke: candidate nodes nearest to a tool that enter the condensed "
+            "complementarity problem; None: all. Too small a band stops the step with CONTACT_BAND "
+            "(lcp_ssn works on every candidate and ignores it)")
 MAX_NOMINAL_STEPS = 1_000_000  # per phase: an increment that needs more is a typo, not a study
 
 

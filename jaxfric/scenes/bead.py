@@ -20,7 +20,7 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
   0.17 in all six);
 - increments: clamp in ``n_clamp`` = 10 steps, ``dtheta`` = 0.5 deg, ``ds`` = 0.05 mm;
 - ``steady_window`` = (4, 8) mm;
-- exact contact (lcp_*): ``band`` = 512 of the 1452 candidate nodes (at 725 x 4) enter the
+- exact contact by lcp_lemke: ``band`` = 512 of the 1452 candidate nodes (at 725 x 4) enter the
   complementarity problem, the nearest to a tool. About 350 pairs are closed at theta = 45 deg (the
   two clamp faces, 181 nodes each over 50 mm, plus the roller), an estimated 45 more on the roller
   at 135 deg. With all candidates the problem has 4356 unknowns and lcp_lemke made no progress past

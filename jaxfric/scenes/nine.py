@@ -27,7 +27,7 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
 - ``U_draw`` = 70 mm; nominal increments ``dq_clamp`` = 0.1 mm and ``dU`` = 0.1 mm;
 - ``steady_window`` = (20, 35) mm;
 - eps_t = mu eps_n [paper] (``eps_t`` None), with mu the largest coefficient of the scene.
-- exact contact (lcp_*): ``band`` = 128 of the 602 candidate nodes (at 300 x 3) enter the complementarity
+- exact contact by lcp_lemke: ``band`` = 128 of the 602 candidate nodes (at 300 x 3) enter the complementarity
   problem, the nearest to a tool; at most about 60 pairs are closed at once (A, B, C wraps and the
   guides), so the band holds them with margin while the problem stays a fifth of the full size.
 Not in the spec: the seam of each circle (where its arc length jumps) is put where the strip never
