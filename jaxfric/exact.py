@@ -377,10 +377,10 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
     of the module docstring, step 1). On the active set read off the iterate, the node's two equilibrium
     rows are replaced by C_a = W_F p_a + W_K (g_N, s) (open: p = 0; stick: g = s = 0; slip: g = 0 and
     R_T = mu xi R_N): a row combination of the bulk tangent plus a 2 x 2 block of the node's own
-    kinematics, so the matrix keeps its block-tridiagonal structure and the iteration costs one
-    block-Thomas solve, like the penalty method. The force-driven tool's row is sum_a e_q . f~_a = P over
-    its candidates. ``hint`` gives f_c^prev and the first active set (the last converged forces at a
-    step's first iteration).
+    kinematics, so the matrix keeps its block-tridiagonal structure and each active-set pass costs one
+    block-Thomas solve, like a penalty iteration. The force-driven tool's row is sum_a e_q . f~_a = P
+    over its candidates. ``hint`` gives f_c^prev and the first active set (the last converged forces at
+    a step's first iteration); ``p_prev`` is not used (the signature is the condensed step's).
     """
     c = args.contact
     n = args.mesh.n_dofs
