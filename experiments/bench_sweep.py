@@ -19,14 +19,18 @@ import argparse
 import os
 import sys
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(__file__))
-from benchutil import write_rows  # noqa: E402
+from benchutil import median_time, write_rows  # noqa: E402
 
 import jaxfric as jf  # noqa: E402
 from jaxfric import scenes  # noqa: E402
-from jaxfric.sweep import sweep  # noqa: E402
+from jaxfric.linalg import linear_solve  # noqa: E402
+from jaxfric.sweep import stack_models, sweep  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -68,14 +72,6 @@ def main(argv=None) -> None:
 
 
 def iteration_cost(built) -> None:
-    import equinox as eqx
-    import jax
-    import jax.numpy as jnp
-
-    from benchutil import median_time
-    from jaxfric.linalg import linear_solve
-    from jaxfric.sweep import stack_models
-
     values, axes, (treedef, static) = stack_models([s.model for s in built])
     r = jf.run(built[0].model, control=built[0].control, observe=built[0].observe, progress=False)
     state = jax.tree_util.tree_map(jnp.asarray, r.final)
