@@ -431,7 +431,8 @@ def _status_mismatch(contact, ref):
 
 def _shared_run(name: str, variant: str, algorithm: str):
     """A case another study already ran with the same inputs, read back from its directory: the
-    blankholder's penalty runs are the ``blankholder_shapes`` cases (default parameters, penalty)."""
+    blankholder's penalty runs are the ``blankholder_shapes`` cases (default parameters, penalty).
+    ``--rerun`` does not reach them here: rerun them with ``studies.py blankholder_shapes --rerun``."""
     if name != "blankholder" or algorithm != "penalty":
         return None
     directory = os.path.join(ROOT, "blankholder_shapes", "runs", variant)
@@ -489,8 +490,8 @@ def algorithm_agreement(opts) -> None:
                                  "Every scene variant with every algorithm at default parameters; the "
                                  "reference is `lcp_lemke`, or `auglag` with target gap 1e-6 where Lemke "
                                  "did not converge. The blankholder's penalty rows are the runs of study "
-                                 "`blankholder_shapes` (the same cases). Curves compared on 200 points over the common "
-                                 "`draw` range (and `theta_deg` over `wind` for the bead).")
+                                 "`blankholder_shapes` (the same cases). Curves compared on 200 points "
+                                 "over the common `draw` range (and `theta_deg` over `wind` for the bead).")
                   + "\n\n" + markdown_table(rows, cols) + "\n\n" + failures(rows, opts.missing)
                   + "\n\n![algorithm agreement](results/studies/algorithm_agreement/figure.png)")
 

@@ -461,7 +461,8 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
         F = f_tilde.reshape(-1, 2).at[nodes].set(C_rows).reshape(-1)
         if driven:
             b_col = jnp.einsum("uij,uj->ui", w_f, d_q[pairs, :2]) + jnp.einsum("uij,uj->ui", w_k, d_q[pairs, 2:])
-            B = jnp.where(force_driven, jnp.zeros(n).at[dofs].set(jnp.where(mine[:, None], b_col, 0.0).reshape(-1)), 0.0)
+            B = jnp.zeros(n).at[dofs].set(jnp.where(mine[:, None], b_col, 0.0).reshape(-1))
+            B = jnp.where(force_driven, B, 0.0)
             M = Bordered(A=J, B=B[:, None], C=C_row[None, :], D=jnp.where(force_driven, 0.0, 1.0).reshape(1, 1))
             dx = bordered_solve(M, -jnp.concatenate([F, r_q[None]]))
             du, dq_pairs = dx[:n], jnp.where(mine, dx[n], 0.0)
