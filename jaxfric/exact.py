@@ -92,6 +92,11 @@ class _Iterate(NamedTuple):
     valid: jax.Array      # (m,) bool
 
 
+def _pair_tools(tools) -> np.ndarray:
+    """Static: the index of each pair's tool (m,)."""
+    return np.concatenate([np.full(len(t.candidates), k) for k, t in enumerate(tools)])
+
+
 def _tool_positions(args, qf) -> jax.Array:
     """All tool positions: prescribed, or the unknown where the tool is force-driven in this phase."""
     c = args.contact
@@ -277,7 +282,7 @@ def _contact_newton_step(it: _Iterate, args, x, p_prev, law: Complementarity, hi
     valid = it.valid[band.pairs]
     normal = jnp.where(valid[:, None], it.normal[band.pairs], jnp.array([0.0, 1.0]))
     gap = jnp.where(valid, it.gap[band.pairs], GAP_FAR)
-    pair_tool = np.concatenate([np.full(len(t.candidates), k) for k, t in enumerate(c.tools)])
+    pair_tool = _pair_tools(c.tools)
     mu = jnp.where(valid, pair_mu(c.tools, c.mu)[band.pairs], 0.0)
     slip = jnp.where(valid & (mu > 0), it.slip[band.pairs], 0.0)
     f_c_prev = jnp.zeros_like(it.f_int).at[pair_nodes(c.tools)].add(_pair_forces(it, p_prev))
@@ -425,7 +430,7 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
     K_aa = K.diag.reshape(nb, ny1, 2, ny1, 2)[col, loc, :, loc, :]        # (n_u, 2, 2)
     K_loc = jnp.einsum("uia,uij,ujb->uab", rotation, K_aa, rotation)
     c_n, c_t = 0.01 * jnp.abs(K_loc[:, 0, 0]), 0.01 * jnp.abs(K_loc[:, 1, 1])
-    pair_tool = np.concatenate([np.full(len(t.candidates), k) for k, t in enumerate(c.tools)])
+    pair_tool = _pair_tools(c.tools)
     if len(args.force_idx) > 1:
         raise NotImplementedError("exact contact supports at most one force-driven tool per scene")
     driven = bool(args.force_idx)
