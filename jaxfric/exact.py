@@ -371,6 +371,87 @@ def _row_transform(K: BlockTridiag, T: jax.Array) -> BlockTridiag:
     return BlockTridiag(lower=apply(K.lower, Tb[1:]), diag=apply(K.diag, Tb), upper=apply(K.upper, Tb[:-1]))
 
 
+class _Frames(NamedTuple):
+    """The candidate nodes of the in-loop solver at one iterate, each with its nearest pair."""
+
+    nodes: jax.Array     # (n_u,) every candidate node
+    pairs: jax.Array     # (n_u,) its pair of smallest gap
+    valid: jax.Array     # (n_u,) the pair projects on its tool
+    normal: jax.Array    # (n_u, 2)
+    rotation: jax.Array  # (n_u, 2, 2) columns n, t
+    mu: jax.Array        # (n_u,)
+    c_n: jax.Array       # (n_u,) Alart-Curnier constants
+    c_t: jax.Array
+    kappa: jax.Array     # (n_dofs,) the rows of prescribed dofs (module docstring, step 1)
+
+
+def _frames(it: _Iterate, args) -> tuple[_Frames, BlockTridiag]:
+    """The frames and constants at the iterate, and the tangent with kappa rows on prescribed dofs."""
+    c = args.contact
+    band = _band(it, c.tools, None)
+    nodes, pairs = band.nodes, band.pairs
+    valid = it.valid[pairs]
+    normal = jnp.where(valid[:, None], it.normal[pairs], jnp.array([0.0, 1.0]))
+    rotation = jnp.stack([normal, _tangents(normal)], axis=-1)
+    kappa = KAPPA * jnp.abs(jax.vmap(jnp.diagonal)(it.K.diag).reshape(-1))
+    # Alart-Curnier constants: a hundredth of the node's own stiffness in its frame, the order of the
+    # condensed stiffness of a thin sheet's node (the sheet around it is far softer than K_aa alone).
+    # Iterations whose active set cycled, three-cylinder bench with 0.6 mm of drawing and no fallback:
+    # K_aa 62 of 280, K_aa / 10 14 of 227, K_aa / 100 6 of 224, K_aa / 1000 11 of 248.
+    K = _constrain_rows(it.K, args.mask, kappa)
+    nb, bs = K.diag.shape[0], K.diag.shape[1]
+    ny1 = bs // 2
+    K_aa = K.diag.reshape(nb, ny1, 2, ny1, 2)[nodes // ny1, nodes % ny1, :, nodes % ny1, :]   # (n_u, 2, 2)
+    K_loc = jnp.einsum("uia,uij,ujb->uab", rotation, K_aa, rotation)
+    mu = jnp.where(valid, pair_mu(c.tools, c.mu)[pairs], 0.0)
+    return _Frames(nodes, pairs, valid, normal, rotation, mu, 0.01 * jnp.abs(K_loc[:, 0, 0]),
+                   0.01 * jnp.abs(K_loc[:, 1, 1]), kappa), K
+
+
+def _equilibrium_force(it: _Iterate, args, x, hint, kappa) -> jax.Array:
+    """f~ (n_dofs,): the internal force on free dofs, ``f_c^prev + kappa (u - u_presc)`` on prescribed
+    ones, with f_c^prev the pair forces ``hint`` (m, 2)."""
+    n = args.mesh.n_dofs
+    f_c_prev = jnp.zeros_like(it.f_int).at[pair_nodes(args.contact.tools)].add(_pair_forces(it, hint))
+    return jnp.where(args.mask, f_c_prev.reshape(-1) + kappa * (x[:n] - args.values), it.f_int.reshape(-1))
+
+
+def _driven_rows(args, fr: _Frames, x, f_tilde, n):
+    """The force-driven tool's pairs among ``fr``, its drive vector on the dofs and its row residual
+    (the force balance, or the prescribed position in a phase where the tool is held)."""
+    c = args.contact
+    k = args.force_idx[0]
+    e = c.tools[k].drive
+    mine = (jnp.asarray(_pair_tools(c.tools))[fr.pairs] == k) & fr.valid
+    dofs = (2 * fr.nodes[:, None] + jnp.arange(2)[None, :]).reshape(-1)
+    v = jnp.zeros(n).at[dofs].set(jnp.where(mine[:, None], e[None, :], 0.0).reshape(-1))
+    r_q = jnp.where(c.force_mask[k], v @ f_tilde - c.force[k], x[n] - c.q_presc[k])
+    return mine, dofs, v, r_q
+
+
+def _merit(x, it: _Iterate, args, hint, fr: _Frames) -> jax.Array:
+    """Squared norm of the semismooth residual the in-loop solver drives to zero: f~ on the sheet's
+    dofs with every candidate node's two rows replaced by its Alart-Curnier residual (C_N, C_T),
+    and the tool's row. The constants and kappa of ``fr`` (the iterate the search started from) are
+    kept, so that trial points are compared on one function."""
+    n = args.mesh.n_dofs
+    f_tilde = _equilibrium_force(it, args, x, hint, fr.kappa)
+    f_nodes = f_tilde.reshape(-1, 2)
+    band = _band(it, args.contact.tools, None)      # the nearest pair may differ from fr's
+    valid = it.valid[band.pairs]
+    normal = jnp.where(valid[:, None], it.normal[band.pairs], jnp.array([0.0, 1.0]))
+    R_N = jnp.einsum("ui,ui->u", normal, f_nodes[band.nodes])
+    R_T = jnp.einsum("ui,ui->u", _tangents(normal), f_nodes[band.nodes])
+    gap = jnp.where(valid, it.gap[band.pairs], GAP_FAR)
+    slip = jnp.where(valid & (fr.mu > 0), it.slip[band.pairs], 0.0)
+    _, C, _ = _alart_curnier(R_N, R_T, gap, slip, fr.mu, fr.c_n, fr.c_t)
+    total = jnp.sum(f_nodes.at[band.nodes].set(C) ** 2)
+    if args.force_idx:
+        now = fr._replace(pairs=band.pairs, valid=valid)
+        total = total + _driven_rows(args, now, x, f_tilde, n)[3] ** 2
+    return total
+
+
 def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
     """One iteration of semismooth Newton on the whole step (solver ``"ssn"``): the increment (du, dq),
     the pair forces it predicts (m, 2), the pairs used, the solver stats; same contract as
@@ -391,18 +472,11 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
     n = args.mesh.n_dofs
     n_nodes = n // 2
     u = x[:n].reshape(-1, 2)
-    band = _band(it, c.tools, None)
-    nodes = band.nodes
     m = it.gap.shape[0]
-    mu_pairs = pair_mu(c.tools, c.mu)
     all_nodes = pair_nodes(c.tools)
-
-    # Bulk operator with kappa rows on prescribed dofs, and the force f~ every row stands for.
-    diag = jnp.abs(jax.vmap(jnp.diagonal)(it.K.diag).reshape(-1))
-    kappa = KAPPA * diag
-    K = _constrain_rows(it.K, args.mask, kappa)
-    f_c_prev = jnp.zeros_like(it.f_int).at[all_nodes].add(_pair_forces(it, hint))
-    f_tilde = jnp.where(args.mask, f_c_prev.reshape(-1) + kappa * (x[:n] - args.values), it.f_int.reshape(-1))
+    fr, K = _frames(it, args)
+    nodes, pairs, valid, normal, rotation = fr.nodes, fr.pairs, fr.valid, fr.normal, fr.rotation
+    f_tilde = _equilibrium_force(it, args, x, hint, fr.kappa)
     f_nodes = f_tilde.reshape(-1, 2)
 
     vals, d_u, d_q = _pair_local(args, u[all_nodes], f_nodes[all_nodes], it.q)
@@ -410,40 +484,21 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
     vals = jnp.where(valid_all, vals, jnp.array([0.0, 0.0, GAP_FAR, 0.0]))
     d_u = jnp.where(valid_all[..., None], d_u, 0.0)
     d_q = jnp.where(valid_all, d_q, 0.0)
-    pairs = band.pairs
-    valid = it.valid[pairs]
-    normal = jnp.where(valid[:, None], it.normal[pairs], jnp.array([0.0, 1.0]))
-    rotation = jnp.stack([normal, _tangents(normal)], axis=-1)           # (n_u, 2, 2), columns n, t
     R_N, R_T = jnp.where(valid, vals[pairs, 0], f_nodes[nodes] @ jnp.array([0.0, 1.0])), \
         jnp.where(valid, vals[pairs, 1], f_nodes[nodes] @ jnp.array([-1.0, 0.0]))
-    gap, slip = vals[pairs, 2], vals[pairs, 3]
-    mu = jnp.where(valid, mu_pairs[pairs], 0.0)
-    slip = jnp.where(mu > 0, slip, 0.0)
-
-    # Alart-Curnier constants: a hundredth of the node's own stiffness in its frame, the order of the
-    # condensed stiffness of a thin sheet's node (the sheet around it is far softer than K_aa alone).
-    # Iterations whose active set cycled, three-cylinder bench with 0.6 mm of drawing and no fallback:
-    # K_aa 62 of 280, K_aa / 10 14 of 227, K_aa / 100 6 of 224, K_aa / 1000 11 of 248.
+    gap, slip, mu = vals[pairs, 2], jnp.where(fr.mu > 0, vals[pairs, 3], 0.0), fr.mu
+    c_n, c_t = fr.c_n, fr.c_t
     nb, bs = K.diag.shape[0], K.diag.shape[1]
     ny1 = bs // 2
     col, loc = nodes // ny1, nodes % ny1
-    K_aa = K.diag.reshape(nb, ny1, 2, ny1, 2)[col, loc, :, loc, :]        # (n_u, 2, 2)
-    K_loc = jnp.einsum("uia,uij,ujb->uab", rotation, K_aa, rotation)
-    c_n, c_t = 0.01 * jnp.abs(K_loc[:, 0, 0]), 0.01 * jnp.abs(K_loc[:, 1, 1])
-    pair_tool = _pair_tools(c.tools)
     if len(args.force_idx) > 1:
         raise NotImplementedError("exact contact supports at most one force-driven tool per scene")
     driven = bool(args.force_idx)
     if driven:
-        j, k = 0, args.force_idx[0]
-        e = c.tools[k].drive
-        force_driven = c.force_mask[k]
-        mine = (jnp.asarray(pair_tool)[pairs] == k) & valid
-        e_dot_n = jnp.where(mine, normal @ e, 0.0)[:, None]
-        dofs = (2 * nodes[:, None] + jnp.arange(2)[None, :]).reshape(-1)
-        v = jnp.zeros(n).at[dofs].set(jnp.where(mine[:, None], e[None, :], 0.0).reshape(-1))
+        force_driven = c.force_mask[args.force_idx[0]]
+        mine, dofs, v, r_q = _driven_rows(args, fr, x, f_tilde, n)
+        e_dot_n = jnp.where(mine, normal @ c.tools[args.force_idx[0]].drive, 0.0)[:, None]
         C_row = jnp.where(force_driven, K.transpose().matvec(v), 0.0)
-        r_q = jnp.where(force_driven, v @ f_tilde - c.force[k], x[n + j] - c.q_presc[k])
 
     def classify(R_N, R_T, g, s):
         state, _, sig_n = _alart_curnier(R_N, R_T, g, s, mu, c_n, c_t)
@@ -491,17 +546,21 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
     h = jnp.where(valid[:, None], hint[pairs], 0.0)
     state0 = classify(h[:, 0], h[:, 1], gap, slip)
 
+    # One solve in the traced program (its first pass takes state0): each copy of the block solve
+    # costs compile time.
     def more(carry):
         i, state, _, p_l, g_l, s_l = carry
-        return (i < law.ssn_max_iter) & jnp.any(classify(p_l[:, 0], p_l[:, 1], g_l, s_l) != state)
+        return (i == 0) | ((i < law.ssn_max_iter) & jnp.any(classify(p_l[:, 0], p_l[:, 1], g_l, s_l) != state))
 
     def again(carry):
         i, _, _, p_l, g_l, s_l = carry
-        state = classify(p_l[:, 0], p_l[:, 1], g_l, s_l)
+        state = jnp.where(i == 0, state0, classify(p_l[:, 0], p_l[:, 1], g_l, s_l))
         return (i + 1, state) + solve(state)
 
-    iters, state, dx, p_new, g_l, s_l = jax.lax.while_loop(more, again, (jnp.array(1, jnp.int32), state0)
-                                                           + solve(state0))
+    n_u = nodes.shape[0]
+    start = (jnp.array(0, jnp.int32), state0, jnp.zeros(n + len(args.force_idx)), jnp.zeros((n_u, 2)),
+             jnp.zeros(n_u), jnp.zeros(n_u))
+    iters, state, dx, p_new, g_l, s_l = jax.lax.while_loop(more, again, start)
     settled = jnp.all(classify(p_new[:, 0], p_new[:, 1], g_l, s_l) == state)
     p_new = jnp.where((state != 0)[:, None], p_new, 0.0)
     p = jnp.zeros((m, 2)).at[pairs].set(p_new)
@@ -520,6 +579,20 @@ def _status(p, mu_pairs):
 def _contact_out(it: _Iterate, p, tool_f, status):
     return dict(q=it.q, force=tool_f, rn=p[:, 0], rt=p[:, 1], zeta=it.zeta, gap=it.gap, normal=it.normal,
                 status=status, slip=it.slip)
+
+
+class _Trial(NamedTuple):
+    """A Newton direction and the step length tried along it (the in-loop solver's line search)."""
+
+    dx: jax.Array
+    alpha: jax.Array     # () step length of the trial; inf: take a new direction
+    p_new: jax.Array     # (m, 2) forces the direction predicts
+    in_band: jax.Array
+    stats: jax.Array     # (3,) of the direction's solve
+    lcp_ok: jax.Array
+    hint: jax.Array      # (m, 2) forces the direction was built with (the merit's f_c^prev)
+    merit: jax.Array     # () the merit at the point the direction starts from
+    frames: object       # _Frames there (constants of the merit), or None without a search
 
 
 def _exact_newton(args, x0, x_ref, options: NewtonOptions, law: Complementarity):
@@ -545,39 +618,75 @@ def _exact_newton(args, x0, x_ref, options: NewtonOptions, law: Complementarity)
              Result.MAX_ITERATIONS], Result.CONTINUE)
         return code.astype(jnp.int32), r_norm
 
-    def body(carry):
-        k, x, it, p, status, _, _, r_hist, stats = carry
-        step = _active_set_step if law.solver == "ssn" else _contact_newton_step
-        dx, p_new, in_band, s, lcp_ok = step(it, args, x, p, law, jnp.where(k == 0, p_step, p))
-        x = x + dx
-        it = _linearize(x, args)
-        R, _ = _residual(x, it, p_new, args)
-        status_new = _status(p_new, mu_pairs)
-        penetrating = it.valid & (it.gap < -pen_tol)
-        band_ok = ~jnp.any(~in_band & penetrating)
-        # An open pair of the band that penetrates at the new iterate closes at the next one.
-        settled = jnp.all(status_new == status) & ~jnp.any(in_band & penetrating & (p_new[:, 0] <= 0.0))
-        if law.solver == "ssn":  # static: no step converges on an active set that did not settle
-            settled = settled & (s[2] == 0)
-        code, r_norm = classify(k + 1, x, it, R, jnp.max(jnp.abs(dx)), settled, band_ok, lcp_ok)
-        return k + 1, x, it, p_new, status_new, jnp.max(jnp.abs(dx)), code, r_hist.at[k + 1].set(r_norm), \
-            stats + s
+    search = law.solver == "ssn" and options.line_search   # static
+    step = _active_set_step if law.solver == "ssn" else _contact_newton_step
+    no_stats = jnp.zeros(3, jnp.int32)
 
-    it0 = _linearize(x0, args)
+    # The loop evaluates one point per pass (the initial guess first, then each trial), then takes the
+    # next trial: a new direction, the same one shortened, or none once the step is decided. So the
+    # traced program holds one linearisation and one direction solve (each copy costs compile time).
+    def body(carry):
+        k, x, it, p, status, x_t, tr, _, r_hist, stats = carry     # k: index of the point x_t
+        it_t = _linearize(x_t, args)
+        R, _ = _residual(x_t, it_t, tr.p_new, args)
+        status_new = _status(tr.p_new, mu_pairs)
+        penetrating = it_t.valid & (it_t.gap < -pen_tol)
+        band_ok = ~jnp.any(~tr.in_band & penetrating) | (k == 0)
+        # An open pair of the band that penetrates at the new iterate closes at the next one.
+        settled = jnp.all(status_new == status) & ~jnp.any(tr.in_band & penetrating & (tr.p_new[:, 0] <= 0.0))
+        if law.solver == "ssn":  # static: no step converges on an active set that did not settle,
+            settled = settled & (tr.stats[2] == 0) & (tr.alpha == 1.0)   # nor on a shortened step
+        step_norm = jnp.max(jnp.abs(tr.alpha * tr.dx))
+        code, r_norm = classify(k, x_t, it_t, R, step_norm, settled, band_ok, tr.lcp_ok)
+        reject = jnp.array(False)
+        if search:
+            # Line search on the semismooth residual (:func:`_merit`): a step that raises it is retried
+            # at a quarter, then a sixteenth of its length, which is then kept. Where the active set
+            # jumps (a node reaching or leaving a tool on a soft, slipping strip) the full step can
+            # overshoot: on the Nine test the residual then grew tenfold per iteration until an element
+            # inverted, and the step was cut three times (about 75 iterations lost per event, one event
+            # per node spacing drawn).
+            worse = ~(_merit(x_t, it_t, args, tr.hint, tr.frames) <= tr.merit)
+            reject = (k > 0) & worse & (tr.alpha > 1.0 / 16.0) & (code != Result.SUCCESS)
+            code = jnp.where(reject & (k < options.max_iterations), Result.CONTINUE, code).astype(jnp.int32)
+        keep = lambda a, b: jnp.where(reject, a, b)  # noqa: E731
+        x, it = keep(x, x_t), jax.tree_util.tree_map(keep, it, it_t)
+        p, status = keep(p, tr.p_new), keep(status, status_new)
+
+        def fresh():
+            hint = jnp.where(k == 0, p_step, p)
+            dx, p_new, in_band, s, lcp_ok = step(it, args, x, p, law, hint)
+            frames = _frames(it, args)[0] if search else tr.frames
+            merit = _merit(x, it, args, hint, frames) if search else tr.merit
+            return _Trial(dx, jnp.array(1.0), p_new, in_band, s, lcp_ok, hint, merit, frames), s
+
+        def shorter():
+            return tr._replace(alpha=0.25 * tr.alpha), no_stats
+
+        def stop():
+            return tr, no_stats
+
+        branch = jnp.where(code != Result.CONTINUE, 2, jnp.where(reject, 1, 0))
+        tr, s = jax.lax.switch(branch, [fresh, shorter, stop])
+        return (k + 1, x, it, p, status, x + tr.alpha * tr.dx, tr, code, r_hist.at[k].set(r_norm),
+                stats + s)
+
+    zeros = lambda tree: jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), tree)  # noqa: E731
+    it_shape = eqx.filter_eval_shape(_linearize, x0, args)
+    frames0 = zeros(eqx.filter_eval_shape(lambda i, a: _frames(i, a)[0], it_shape, args)) if search else None
     p0 = jnp.zeros((m, 2))
-    # The last converged forces (simulate passes them as lam_n, lam_t): Lemke's first starting basis.
+    # The last converged forces (simulate passes them as lam_n, lam_t): the first active set.
     p_step = jnp.stack([jnp.concatenate(c.lam_n), jnp.concatenate(c.lam_t)], -1)
-    R0, _ = _residual(x0, it0, p0, args)
-    code0, r0 = classify(0, x0, it0, R0, jnp.array(jnp.inf), jnp.array(False), jnp.array(True), jnp.array(True))
-    r_hist = jnp.full(options.max_iterations + 1, jnp.nan).at[0].set(r0)
-    status0 = jnp.zeros(m, jnp.int8)
-    carry = (jnp.array(0, jnp.int32), x0, it0, p0, status0, jnp.array(jnp.inf), code0, r_hist,
-             jnp.zeros(3, jnp.int32))
-    k, x, it, p, status, _, code, r_hist, stats = jax.lax.while_loop(lambda c: c[6] == Result.CONTINUE, body,
-                                                                     carry)
+    tr0 = _Trial(jnp.zeros_like(x0), jnp.array(1.0), p0, jnp.zeros(m, bool), no_stats, jnp.array(True), p0,
+                 jnp.array(jnp.inf), frames0)
+    r_hist = jnp.full(options.max_iterations + 1, jnp.nan)
+    carry = (jnp.array(0, jnp.int32), x0, zeros(it_shape), p0, jnp.zeros(m, jnp.int8), x0, tr0,
+             jnp.array(Result.CONTINUE, jnp.int32), r_hist, no_stats)
+    k, x, it, p, status, _, _, code, r_hist, stats = jax.lax.while_loop(lambda c: c[7] == Result.CONTINUE, body,
+                                                                        carry)
     _, tool_f = _residual(x, it, p, args)
     aux = (it.f_int, it.states, _contact_out(it, p, tool_f, status))
-    return NewtonSolution(x, aux, k, code, r_hist[k], r_hist), stats
+    return NewtonSolution(x, aux, k - 1, code, r_hist[k - 1], r_hist), stats
 
 
 @eqx.filter_custom_jvp
