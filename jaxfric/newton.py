@@ -111,18 +111,18 @@ def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions, search
             Result.CONTINUE)
         return code.astype(jnp.int32), r_norm
 
+    # One point evaluated per pass (the initial guess first, then each trial), then the next trial is
+    # set up: so the traced program holds one linearisation and one linear solve (each copy costs
+    # compile time: a linearisation of the Nine scene about 7 s).
     def cond(carry):
-        return carry[5] == Result.CONTINUE
+        return carry[6] == Result.CONTINUE
 
     def body(carry):
-        k, n_acc, x, lin, dx, code, alpha, dx_norm, r_hist = carry
-        # A new Newton direction from the last accepted iterate, unless the last trial was rejected:
-        # then the same direction with a quarter of the last trial step (backtracking).
-        backtrack = alpha < 1.0
-        dx = jax.lax.cond(backtrack, lambda: dx, lambda: linear_solve(lin.jacobian, -lin.residual))
-        alpha = jnp.where(backtrack, alpha, 1.0)
-        x_trial = x + alpha * dx
-        new = linearize(x_trial, args)
+        k, n_acc, x, lin, x_t, dx, code, alpha, dx_norm, r_hist, start_meets = carry   # k: index of x_t
+        new = linearize(x_t, args)
+        first = k == 0
+        start_meets = jnp.where(first, jnp.array(False) if new.prescribed_error is None
+                                else new.prescribed_error <= 1e-12, start_meets)
         # Reject a step that increases ||R||_2: retry with 1/4, then 1/16 of it, which is then kept.
         # (Quartering: on the Nine bead the overshoot is a stretch of open pairs driven into the
         # tool, whose residual is linear in the step, so only the short step helps; halving spent
@@ -131,29 +131,33 @@ def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions, search
         # already meets them (a predictor), the first step is searched like the others.
         worse = ~(jnp.sum(new.residual**2) <= jnp.sum(lin.residual**2))
         # Contact: converged only if no pair changed status (open/stick/slip) in this iteration.
-        same = jnp.array(True) if new.status is None else jnp.all(new.status == lin.status)
-        step_norm = jnp.max(jnp.abs(alpha * dx))
-        code_new, r_norm = classify(k + 1, x_trial, new, step_norm, same)
+        same = jnp.array(True) if new.status is None else first | jnp.all(new.status == lin.status)
+        step_norm = jnp.where(first, jnp.inf, jnp.max(jnp.abs(alpha * dx)))
+        code_new, r_norm = classify(k, x_t, new, step_norm, same)
         # (A trial that passes the convergence test is never rejected: at round-off level the norm
         # may grow by noise.)
-        reject = (options.line_search & search & ((n_acc >= 1) | start_meets) & worse
+        reject = (~first & options.line_search & search & ((n_acc >= 1) | start_meets) & worse
                   & (alpha > 1.0 / 16.0) & (code_new != Result.SUCCESS))
         # A rejected trial still counts as an iteration (it cost a linearisation).
-        code = jnp.where(reject & (k + 1 < options.max_iterations), Result.CONTINUE, code_new).astype(jnp.int32)
+        code = jnp.where(reject & (k < options.max_iterations), Result.CONTINUE, code_new).astype(jnp.int32)
         keep = lambda a, b: jnp.where(reject, a, b)  # noqa: E731
-        return (k + 1, n_acc + jnp.where(reject, 0, 1), keep(x, x_trial), jax.tree_util.tree_map(keep, lin, new),
-                dx, code, jnp.where(reject, 0.25 * alpha, jnp.inf), keep(dx_norm, step_norm),
-                r_hist.at[k + 1].set(r_norm))
+        x, lin = keep(x, x_t), jax.tree_util.tree_map(keep, lin, new)
+        # The next trial: a new Newton direction from the last accepted iterate, or, after a rejected
+        # trial, the same direction with a quarter of the last trial step (backtracking).
+        fresh = (code == Result.CONTINUE) & ~reject
+        dx = jax.lax.cond(fresh, lambda: linear_solve(lin.jacobian, -lin.residual), lambda: dx)
+        alpha = jnp.where(reject, 0.25 * alpha, 1.0)
+        return (k + 1, n_acc + jnp.where(reject | first, 0, 1), x, lin, x + alpha * dx, dx, code, alpha,
+                keep(dx_norm, step_norm), r_hist.at[k].set(r_norm), start_meets)
 
-    lin0 = linearize(x0, args)
-    start_meets = jnp.array(False) if lin0.prescribed_error is None else lin0.prescribed_error <= 1e-12
-    code0, r0 = classify(0, x0, lin0, jnp.array(jnp.inf), jnp.array(True))
-    r_hist = jnp.full(options.max_iterations + 1, jnp.nan).at[0].set(r0)
+    lin_shape = eqx.filter_eval_shape(linearize, x0, args)
+    lin0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), lin_shape)
+    r_hist = jnp.full(options.max_iterations + 1, jnp.nan)
     int0 = jnp.array(0, jnp.int32)
-    k, _, x, lin, _, code, _, _, r_hist = jax.lax.while_loop(
-        cond, body, (int0, int0, x0, lin0, jnp.zeros_like(x0), code0, jnp.array(jnp.inf), jnp.array(jnp.inf),
-                     r_hist))
-    return NewtonSolution(x, lin.aux, k, code, r_hist[k], r_hist), lin.jacobian
+    k, _, x, lin, _, _, code, _, _, r_hist, _ = jax.lax.while_loop(
+        cond, body, (int0, int0, x0, lin0, x0, jnp.zeros_like(x0), jnp.array(Result.CONTINUE, jnp.int32),
+                     jnp.array(1.0), jnp.array(jnp.inf), r_hist, jnp.array(False)))
+    return NewtonSolution(x, lin.aux, k - 1, code, r_hist[k - 1], r_hist), lin.jacobian
 
 
 @eqx.filter_custom_jvp

@@ -342,10 +342,12 @@ def _constraint_error(contact_out: dict) -> jax.Array:
     return jnp.maximum(max_penetration(contact_out["status"], contact_out["gap"]), jnp.max(stick_slip))
 
 
-def _augment(model: StripModel, args: "StepArgs", sol, x_ref, newton: NewtonOptions,
+def _augment(model: StripModel, args: "StepArgs", x0, x_ref, newton: NewtonOptions,
              search=True) -> StepSolution:
-    """Augmented Lagrangian loop (spec 1.6): while the step's largest penetration or stick slip exceeds
-    the target, set lambda <- R and solve again (Uzawa iteration).
+    """Augmented Lagrangian loop (spec 1.6): solve with the step's multipliers, then, while the step's
+    largest penetration or stick slip exceeds the target, set lambda <- R and solve again (Uzawa
+    iteration). The first solve is the loop's first pass, so that the traced program holds one Newton
+    solve (each copy costs compile time).
 
     The slip reference stays at the start of the step. Resetting it at each augmentation, as the spec
     words it, makes the tangential update telescope: R_T^(K) = lambda_T^(0) - eps_T (sum of the slips of
@@ -355,27 +357,33 @@ def _augment(model: StripModel, args: "StepArgs", sol, x_ref, newton: NewtonOpti
     """
     law = model.contact
 
-    def solve(lam_n, lam_t, x0):
-        step = eqx.tree_at(lambda c: (c.lam_n, c.lam_t), args.contact, (lam_n, lam_t))
-        return newton_solve(eqx.tree_at(lambda a: a.contact, args, step), x0, x_ref,
+    def solve(a, lam_n, lam_t, x_start):
+        step = eqx.tree_at(lambda c: (c.lam_n, c.lam_t), a.contact, (lam_n, lam_t))
+        return newton_solve(eqx.tree_at(lambda b: b.contact, a, step), x_start, x_ref,
                             linearize=linearize, residual=residual, options=newton, search=search)
 
     def pending(c):
         sol, n_aug = c[:2]
-        return (sol.code == Result.SUCCESS) & (_constraint_error(sol.aux[2]) > law.target_gap)
+        return (n_aug < 0) | ((sol.code == Result.SUCCESS) & (_constraint_error(sol.aux[2]) > law.target_gap))
 
     def body(c):
         sol, n_aug, iters, hardest = c
         out = sol.aux[2]
-        new = solve(split_pairs(model.tools, out["rn"]), split_pairs(model.tools, out["rt"]), sol.x)
+        first = n_aug < 0     # the step's own multipliers (the last converged forces) and start
+        pick = lambda a, b: jnp.where(first, a, b)  # noqa: E731
+        lam_n = jax.tree_util.tree_map(pick, args.contact.lam_n, split_pairs(model.tools, out["rn"]))
+        lam_t = jax.tree_util.tree_map(pick, args.contact.lam_t, split_pairs(model.tools, out["rt"]))
+        new = solve(args, lam_n, lam_t, pick(x0, sol.x))
         # After the last allowed augmentation the target must be met, or the attempt fails.
         exhausted = (n_aug + 1 >= law.max_augmentations) & (new.code == Result.SUCCESS) & (
             _constraint_error(new.aux[2]) > law.target_gap)
         code = jnp.where(exhausted, Result.AUGMENTATIONS, new.code).astype(jnp.int32)
         return new._replace(code=code), n_aug + 1, iters + new.iterations, jnp.maximum(hardest, new.iterations)
 
-    sol, n_aug, iters, hardest = jax.lax.while_loop(
-        pending, body, (sol, jnp.array(0, jnp.int32), sol.iterations, sol.iterations))
+    shape = eqx.filter_eval_shape(solve, args, args.contact.lam_n, args.contact.lam_t, x0)
+    sol0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shape)
+    int0 = jnp.array(0, jnp.int32)
+    sol, n_aug, iters, hardest = jax.lax.while_loop(pending, body, (sol0, jnp.array(-1, jnp.int32), int0, int0))
     return StepSolution(sol.x, sol.aux, iters, sol.code, sol.residual_norm, sol.residual_history, n_aug,
                         jnp.zeros(3, jnp.int32), hardest)
 
@@ -432,13 +440,12 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
     if isinstance(model.contact, Complementarity):
         sol, stats = exact_solve(args, x0, x_ref, options=newton, law=model.contact)
         sol = StepSolution(*sol, augmentations=no_aug, stats=stats)
+    elif isinstance(model.contact, AugmentedLagrangian):
+        sol = _augment(model, args, x0, x_ref, newton, search)
     else:
         sol = newton_solve(args, x0, x_ref, linearize=linearize, residual=residual, options=newton,
                            search=search)
-        if isinstance(model.contact, AugmentedLagrangian):
-            sol = _augment(model, args, sol, x_ref, newton, search)
-        else:
-            sol = StepSolution(*sol, augmentations=no_aug, stats=jnp.zeros(3, jnp.int32))
+        sol = StepSolution(*sol, augmentations=no_aug, stats=jnp.zeros(3, jnp.int32))
     f_int, states, c_out = sol.aux
     new_contact = None
     if model.tools:
