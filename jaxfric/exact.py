@@ -12,7 +12,9 @@ exactly; the contact status comes out of that solve. Two ways:
   solved exactly). If it cycles for ``ssn_max_iter`` passes, the last pass's increment is taken
   (counted in ``ssn_fallbacks``) and the Newton loop goes on; a step converges only on an iteration
   whose active set settled. (Solving such iterates the condensed way instead was tried: on the
-  three-cylinder bench it cost 7.8 s against 4.6 s, for 84 against 88 steps.)
+  three-cylinder bench it cost 7.8 s against 4.6 s, for 84 against 88 steps.) The Newton step is
+  line-searched on the semismooth residual (:func:`_merit`: the equilibrium rows with each candidate's
+  rows replaced by its Alart-Curnier residual), quartering a step that raises it, at most twice.
 * ``lcp_lemke`` (solver "lemke") and solver "ssn_condensed": the problem condensed on a band of
   candidates. Steps of one iteration:
 
