@@ -92,6 +92,7 @@ class _Iterate(NamedTuple):
     zeta: jax.Array       # (m,)
     slip: jax.Array       # (m,) slip since the start of the step
     valid: jax.Array      # (m,) bool
+    jac: jax.Array        # (m, 4, 3) d(n_x, n_y, gap, slip) / d(u_a, q_k) of each pair (node, tool)
 
 
 def _pair_tools(tools) -> np.ndarray:
@@ -109,18 +110,27 @@ def _tool_positions(args, qf) -> jax.Array:
 
 
 def _geometry(step: ContactStep, nodes_ref, u, q):
-    """Projection of every pair at (u, q): gap, normal, zeta, the slip since the step start, validity."""
-    out = []
+    """Projection of every pair at (u, q): gap, normal, zeta, the slip since the step start, validity,
+    and the derivatives of (normal, gap, slip) with respect to the pair's node displacement and its
+    tool's position, all from one forward-mode pass per pair."""
+    out, jac = [], []
     for k, tool in enumerate(step.tools):  # static: tools differ in structure
         idx = np.asarray(tool.candidates)
 
         def one(X, u_a, u_ref, tool=tool, k=k):
-            increment = (u_a - u_ref) - (q[k] - step.q_ref[k]) * tool.drive
-            return project(tool.geometry, X, step.q_ref[k] * tool.drive, displacement=u_ref, increment=increment)
+            def local(z):   # z = (u_a, q_k)
+                increment = (z[:2] - u_ref) - (z[2] - step.q_ref[k]) * tool.drive
+                pr = project(tool.geometry, X, step.q_ref[k] * tool.drive, displacement=u_ref,
+                             increment=increment)
+                return jnp.concatenate([pr.normal, pr.gap[None], pr.zeta_increment[None]]), pr
 
-        out.append(jax.vmap(one)(nodes_ref[idx], u[idx], step.u_ref[k]))
+            return jax.jacfwd(local, has_aux=True)(jnp.concatenate([u_a, q[k][None]]))
+
+        J, pr = jax.vmap(one)(nodes_ref[idx], u[idx], step.u_ref[k])
+        out.append(pr)
+        jac.append(J)
     cat = lambda name: jnp.concatenate([getattr(p, name) for p in out])  # noqa: E731
-    return cat("gap"), cat("normal"), cat("zeta"), cat("zeta_increment"), cat("valid")
+    return cat("gap"), cat("normal"), cat("zeta"), cat("zeta_increment"), cat("valid"), jnp.concatenate(jac)
 
 
 def _linearize(x, args) -> _Iterate:
@@ -128,8 +138,8 @@ def _linearize(x, args) -> _Iterate:
     u = x[:n].reshape(-1, 2)
     q = _tool_positions(args, x[n:])
     a = internal_force_and_tangent(args.mesh, args.material, args.formulation, args.geo, u, args.states)
-    gap, normal, zeta, slip, valid = _geometry(args.contact, args.mesh.nodes, u, q)
-    return _Iterate(a.f_int, a.tangent, a.states, a.det_min, q, gap, normal, zeta, slip, valid)
+    gap, normal, zeta, slip, valid, jac = _geometry(args.contact, args.mesh.nodes, u, q)
+    return _Iterate(a.f_int, a.tangent, a.states, a.det_min, q, gap, normal, zeta, slip, valid, jac)
 
 
 def _tangents(normal):
@@ -329,36 +339,17 @@ def _contact_newton_step(it: _Iterate, args, x, p_prev, law: Complementarity, hi
 
 # ---- semismooth Newton inside the global Newton loop (solver "ssn") --------------------------------
 
-def _pair_local(args, x_pairs, f_pairs, q):
-    """Per pair, as functions of its node's displacement and its tool's position (for ``jax.jacfwd``):
-    ``(n . f, t . f, gap, slip)`` with the node force ``f`` held fixed. Returns the values (m, 4) and
-    the derivatives d/du (m, 4, 2) and d/dq (m, 4) (zero where a pair projects on no primitive)."""
-    c = args.contact
-    nodes_ref = args.mesh.nodes
-    values, d_u, d_q = [], [], []
-    start = 0
-    for k, tool in enumerate(c.tools):  # static: tools differ in structure
-        idx = np.asarray(tool.candidates)
-        sl = slice(start, start + idx.size)
-        start += idx.size
-
-        def local(u_a, q_k, X, u_ref, f, tool=tool, k=k):
-            increment = (u_a - u_ref) - (q_k - c.q_ref[k]) * tool.drive
-            pr = project(tool.geometry, X, c.q_ref[k] * tool.drive, displacement=u_ref, increment=increment)
-            n = pr.normal
-            return jnp.stack([n @ f, _tangents(n) @ f, pr.gap, pr.zeta_increment])
-
-        def one(u_a, X, u_ref, f, local=local, k=k):
-            val = local(u_a, q[k], X, u_ref, f)
-            du = jax.jacfwd(local, argnums=0)(u_a, q[k], X, u_ref, f)
-            dq = jax.jacfwd(local, argnums=1)(u_a, q[k], X, u_ref, f)
-            return val, du, dq
-
-        val, du, dq = jax.vmap(one)(x_pairs[sl], nodes_ref[idx], c.u_ref[k], f_pairs[sl])
-        values.append(val)
-        d_u.append(du)
-        d_q.append(dq)
-    return jnp.concatenate(values), jnp.concatenate(d_u), jnp.concatenate(d_q)
+def _pair_local(it: _Iterate, f_pairs):
+    """Per pair ``(n . f, t . f, gap, slip)`` with the node force ``f`` (m, 2) held fixed: the values
+    (m, 4) and the derivatives d/du (m, 4, 2) and d/dq (m, 4) with respect to the pair's node
+    displacement and its tool's position (zero where a pair projects on no primitive)."""
+    n, f = it.normal, f_pairs
+    d_n = it.jac[:, :2, :]                                       # (m, 2, 3)
+    d_nf = jnp.einsum("mi,mij->mj", f, d_n)
+    d_tf = -f[:, :1] * d_n[:, 1, :] + f[:, 1:] * d_n[:, 0, :]    # t = (-n_y, n_x)
+    values = jnp.stack([jnp.sum(n * f, -1), jnp.sum(_tangents(n) * f, -1), it.gap, it.slip], -1)
+    d = jnp.stack([d_nf, d_tf, it.jac[:, 2, :], it.jac[:, 3, :]], 1)   # (m, 4, 3)
+    return values, d[:, :, :2], d[:, :, 2]
 
 
 def _row_transform(K: BlockTridiag, T: jax.Array) -> BlockTridiag:
@@ -473,7 +464,6 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
     c = args.contact
     n = args.mesh.n_dofs
     n_nodes = n // 2
-    u = x[:n].reshape(-1, 2)
     m = it.gap.shape[0]
     all_nodes = pair_nodes(c.tools)
     fr, K = _frames(it, args)
@@ -481,7 +471,7 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
     f_tilde = _equilibrium_force(it, args, x, hint, fr.kappa)
     f_nodes = f_tilde.reshape(-1, 2)
 
-    vals, d_u, d_q = _pair_local(args, u[all_nodes], f_nodes[all_nodes], it.q)
+    vals, d_u, d_q = _pair_local(it, f_nodes[all_nodes])
     valid_all = it.valid[:, None]
     vals = jnp.where(valid_all, vals, jnp.array([0.0, 0.0, GAP_FAR, 0.0]))
     d_u = jnp.where(valid_all[..., None], d_u, 0.0)
