@@ -48,15 +48,19 @@ def three_cylinders(law, stroke=3.0, draw=3.0, nx=300, ny=3, mu=0.17) -> jf.Stri
 def iteration_ms(model: jf.StripModel, state, repeat: int) -> float:
     """One Newton iteration at the converged ``state`` (zero increment): residual, tangent and linear
     solve, contact included; with exact contact, its whole iteration (for "ssn" the bulk
-    linearisation and one active-set pass; for the condensed solvers the band's condensation and the
-    contact problem)."""
+    linearisation with the pairs' geometry and its derivatives, one active-set pass and the line
+    search's merit; for the condensed solvers the band's condensation and the contact problem)."""
     if isinstance(model.contact, Complementarity):
         def iteration(m, s):
             args, _, _ = _step_args(m, s, s.phase, s.time, _Context.build(m))
             x = _unknowns(m, s.u, s.contact.q)
             p = jnp.stack([s.contact.rn, s.contact.rt], -1)
-            step = exact._active_set_step if m.contact.solver == "ssn" else exact._contact_newton_step
-            return step(exact._linearize(x, args), args, x, p, m.contact, p)[:2]
+            it = exact._linearize(x, args)
+            if m.contact.solver != "ssn":
+                return exact._contact_newton_step(it, args, x, p, m.contact, p)[:2]
+            # The in-loop solver's iteration also evaluates its line search's merit function.
+            merit = exact._merit(x, it, args, p, exact._frames(it, args)[0])
+            return exact._active_set_step(it, args, x, p, m.contact, p)[:2], merit
     else:
         def iteration(m, s):
             lin = jf.linearize_step(m, s, s.phase, s.time)
