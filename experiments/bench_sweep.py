@@ -50,11 +50,12 @@ def main(argv=None) -> None:
     if a.iteration:
         return iteration_cost(built)
     out = sweep([s.model for s in built], control=built[0].control, observe=built[0].observe)
-    singles, compile_single, worst = [], None, 0.0
+    singles, compile_single, worst, iters = [], None, 0.0, []
     for i, s in enumerate(built):
         r = jf.run(s.model, control=s.control, observe=s.observe, progress=False)
         compile_single = r.compile_s if compile_single is None else compile_single
         singles.append(r.wall_s)
+        iters.append(int(np.sum(r.history["newton_iters"])))
         h = out.history(i)
         for name in ("drawing_force", "clamping_force", "time"):
             scale = max(float(np.max(np.abs(r.history[name]))), 1e-300)
@@ -65,7 +66,10 @@ def main(argv=None) -> None:
            "single_compile_s": round(compile_single, 3), "single_wall_s_mean": round(mean_single, 3),
            "single_wall_s_max": round(max(singles), 3), "looped_wall_s": round(sum(singles), 3),
            "sweep_over_single": round(out.wall_s / mean_single, 2),
-           "sweep_over_looped": round(out.wall_s / sum(singles), 2), "max_rel_diff": f"{worst:.1e}"}
+           "sweep_over_looped": round(out.wall_s / sum(singles), 2), "max_rel_diff": f"{worst:.1e}",
+           # The flat loop's cost law: about the largest member's total of Newton iterations (and its
+           # attempts) in batched passes, against the mean member's in single runs.
+           "member_iters_mean": round(float(np.mean(iters)), 1), "member_iters_max": max(iters)}
     for k, v in row.items():
         print(f"{k:>20}: {v}")
     write_rows(os.path.join(os.path.dirname(__file__), "results", f"bench_sweep_{a.scene}.csv"), [row])

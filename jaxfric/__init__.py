@@ -15,7 +15,7 @@ from .newton import NewtonOptions  # noqa: E402
 from .results import Result, SimulationError  # noqa: E402
 from .run import RunResult, run  # noqa: E402
 from .simulate import (SimState, Simulation, StepControl, StripModel, default_observe,  # noqa: E402
-                       initial_state, linearize_step, reactions, simulate, simulate_fixed,
+                       initial_state, linearize_step, reactions, simulate, simulate_flat, simulate_fixed,
                        solve_step, stresses)
 
 __version__ = "0.1.0"
@@ -27,5 +27,5 @@ __all__ = [
     "StripMesh", "graded_coordinates", "strip_mesh",
     "NewtonOptions", "Result", "SimulationError", "RunResult", "run",
     "SimState", "Simulation", "StepControl", "StripModel", "default_observe", "initial_state",
-    "simulate", "simulate_fixed", "solve_step", "stresses", "linearize_step", "reactions",
+    "simulate", "simulate_flat", "simulate_fixed", "solve_step", "stresses", "linearize_step", "reactions",
 ]

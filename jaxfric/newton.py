@@ -94,11 +94,39 @@ def _all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
 
 
-def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions, search=True):
-    """The Newton loop; returns the solution and the Jacobian at it (for the JVP rule).
+class NewtonCarry(NamedTuple):
+    """State of the Newton loop between two passes (:func:`newton_pass`)."""
 
-    ``search`` (bool, may be traced): False switches the line search of ``options`` off.
-    """
+    k: jax.Array            # index of the point x_t to evaluate next (0: the initial guess)
+    n_acc: jax.Array        # accepted Newton steps
+    x: jax.Array            # last accepted iterate
+    lin: Linearization      # its linearisation
+    x_t: jax.Array          # the point to evaluate
+    dx: jax.Array           # the Newton direction of the trial
+    code: jax.Array         # Result (CONTINUE while iterating)
+    alpha: jax.Array        # step length of the trial
+    dx_norm: jax.Array
+    r_hist: jax.Array       # (max_iterations + 1,) ||R||_inf of each evaluated point
+    start_meets: jax.Array  # the initial guess meets the prescribed values
+
+
+def newton_start(x0, lin_shape, options: NewtonOptions) -> NewtonCarry:
+    """The carry of a Newton loop from the initial guess ``x0``; ``lin_shape``: the shapes of a
+    :class:`Linearization` (``eqx.filter_eval_shape(linearize, x0, args)``)."""
+    int0 = jnp.array(0, jnp.int32)
+    lin0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), lin_shape)
+    return NewtonCarry(int0, int0, x0, lin0, x0, jnp.zeros_like(x0), jnp.array(Result.CONTINUE, jnp.int32),
+                       jnp.array(1.0), jnp.array(jnp.inf), jnp.full(options.max_iterations + 1, jnp.nan),
+                       jnp.array(False))
+
+
+def newton_pass(c: NewtonCarry, args, x_ref, linearize: Callable, options: NewtonOptions,
+                search=True) -> NewtonCarry:
+    """One pass of the Newton loop: evaluate the pending point (the initial guess first, then each
+    trial), decide (accept, reject, converged, failed), and set up the next trial. A loop of passes
+    holds one linearisation and one linear solve in the traced program (each copy costs compile time:
+    a linearisation of the Nine scene about 7 s), and a vmapped load loop can advance each member by
+    one Newton iteration per pass (:func:`jaxfric.simulate.simulate_flat`)."""
 
     def classify(k, x, lin, dx_norm, same_status):
         r_norm = jnp.max(jnp.abs(lin.residual))
@@ -111,53 +139,53 @@ def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions, search
             Result.CONTINUE)
         return code.astype(jnp.int32), r_norm
 
-    # One point evaluated per pass (the initial guess first, then each trial), then the next trial is
-    # set up: so the traced program holds one linearisation and one linear solve (each copy costs
-    # compile time: a linearisation of the Nine scene about 7 s).
-    def cond(carry):
-        return carry[6] == Result.CONTINUE
+    k, n_acc, x, lin, x_t, dx, _, alpha, dx_norm, r_hist, start_meets = c
+    new = linearize(x_t, args)
+    first = k == 0
+    start_meets = jnp.where(first, jnp.array(False) if new.prescribed_error is None
+                            else new.prescribed_error <= 1e-12, start_meets)
+    # Reject a step that increases ||R||_2: retry with 1/4, then 1/16 of it, which is then kept.
+    # (Quartering: on the Nine bead the overshoot is a stretch of open pairs driven into the
+    # tool, whose residual is linear in the step, so only the short step helps; halving spent
+    # two more linearisations per step to reach it.) Not the first step when it applies the
+    # prescribed increments (it changes which rows carry the residual); when the start point
+    # already meets them (a predictor), the first step is searched like the others.
+    worse = ~(jnp.sum(new.residual**2) <= jnp.sum(lin.residual**2))
+    # Contact: converged only if no pair changed status (open/stick/slip) in this iteration.
+    same = jnp.array(True) if new.status is None else first | jnp.all(new.status == lin.status)
+    step_norm = jnp.where(first, jnp.inf, jnp.max(jnp.abs(alpha * dx)))
+    code_new, r_norm = classify(k, x_t, new, step_norm, same)
+    # (A trial that passes the convergence test is never rejected: at round-off level the norm
+    # may grow by noise.)
+    reject = (~first & options.line_search & search & ((n_acc >= 1) | start_meets) & worse
+              & (alpha > 1.0 / 16.0) & (code_new != Result.SUCCESS))
+    # A rejected trial still counts as an iteration (it cost a linearisation).
+    code = jnp.where(reject & (k < options.max_iterations), Result.CONTINUE, code_new).astype(jnp.int32)
+    keep = lambda a, b: jnp.where(reject, a, b)  # noqa: E731
+    x, lin = keep(x, x_t), jax.tree_util.tree_map(keep, lin, new)
+    # The next trial: a new Newton direction from the last accepted iterate, or, after a rejected
+    # trial, the same direction with a quarter of the last trial step (backtracking).
+    fresh = (code == Result.CONTINUE) & ~reject
+    dx = jax.lax.cond(fresh, lambda: linear_solve(lin.jacobian, -lin.residual), lambda: dx)
+    alpha = jnp.where(reject, 0.25 * alpha, 1.0)
+    return NewtonCarry(k + 1, n_acc + jnp.where(reject | first, 0, 1), x, lin, x + alpha * dx, dx, code,
+                       alpha, keep(dx_norm, step_norm), r_hist.at[k].set(r_norm), start_meets)
 
-    def body(carry):
-        k, n_acc, x, lin, x_t, dx, code, alpha, dx_norm, r_hist, start_meets = carry   # k: index of x_t
-        new = linearize(x_t, args)
-        first = k == 0
-        start_meets = jnp.where(first, jnp.array(False) if new.prescribed_error is None
-                                else new.prescribed_error <= 1e-12, start_meets)
-        # Reject a step that increases ||R||_2: retry with 1/4, then 1/16 of it, which is then kept.
-        # (Quartering: on the Nine bead the overshoot is a stretch of open pairs driven into the
-        # tool, whose residual is linear in the step, so only the short step helps; halving spent
-        # two more linearisations per step to reach it.) Not the first step when it applies the
-        # prescribed increments (it changes which rows carry the residual); when the start point
-        # already meets them (a predictor), the first step is searched like the others.
-        worse = ~(jnp.sum(new.residual**2) <= jnp.sum(lin.residual**2))
-        # Contact: converged only if no pair changed status (open/stick/slip) in this iteration.
-        same = jnp.array(True) if new.status is None else first | jnp.all(new.status == lin.status)
-        step_norm = jnp.where(first, jnp.inf, jnp.max(jnp.abs(alpha * dx)))
-        code_new, r_norm = classify(k, x_t, new, step_norm, same)
-        # (A trial that passes the convergence test is never rejected: at round-off level the norm
-        # may grow by noise.)
-        reject = (~first & options.line_search & search & ((n_acc >= 1) | start_meets) & worse
-                  & (alpha > 1.0 / 16.0) & (code_new != Result.SUCCESS))
-        # A rejected trial still counts as an iteration (it cost a linearisation).
-        code = jnp.where(reject & (k < options.max_iterations), Result.CONTINUE, code_new).astype(jnp.int32)
-        keep = lambda a, b: jnp.where(reject, a, b)  # noqa: E731
-        x, lin = keep(x, x_t), jax.tree_util.tree_map(keep, lin, new)
-        # The next trial: a new Newton direction from the last accepted iterate, or, after a rejected
-        # trial, the same direction with a quarter of the last trial step (backtracking).
-        fresh = (code == Result.CONTINUE) & ~reject
-        dx = jax.lax.cond(fresh, lambda: linear_solve(lin.jacobian, -lin.residual), lambda: dx)
-        alpha = jnp.where(reject, 0.25 * alpha, 1.0)
-        return (k + 1, n_acc + jnp.where(reject | first, 0, 1), x, lin, x + alpha * dx, dx, code, alpha,
-                keep(dx_norm, step_norm), r_hist.at[k].set(r_norm), start_meets)
 
-    lin_shape = eqx.filter_eval_shape(linearize, x0, args)
-    lin0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), lin_shape)
-    r_hist = jnp.full(options.max_iterations + 1, jnp.nan)
-    int0 = jnp.array(0, jnp.int32)
-    k, _, x, lin, _, _, code, _, _, r_hist, _ = jax.lax.while_loop(
-        cond, body, (int0, int0, x0, lin0, x0, jnp.zeros_like(x0), jnp.array(Result.CONTINUE, jnp.int32),
-                     jnp.array(1.0), jnp.array(jnp.inf), r_hist, jnp.array(False)))
-    return NewtonSolution(x, lin.aux, k - 1, code, r_hist[k - 1], r_hist), lin.jacobian
+def newton_result(c: NewtonCarry) -> NewtonSolution:
+    """The solution of a finished loop (``c.code != CONTINUE``)."""
+    return NewtonSolution(c.x, c.lin.aux, c.k - 1, c.code, c.r_hist[c.k - 1], c.r_hist)
+
+
+def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions, search=True):
+    """The Newton loop; returns the solution and the Jacobian at it (for the JVP rule).
+
+    ``search`` (bool, may be traced): False switches the line search of ``options`` off.
+    """
+    start = newton_start(x0, eqx.filter_eval_shape(linearize, x0, args), options)
+    c = jax.lax.while_loop(lambda c: c.code == Result.CONTINUE,
+                           lambda c: newton_pass(c, args, x_ref, linearize, options, search), start)
+    return newton_result(c), c.lin.jacobian
 
 
 @eqx.filter_custom_jvp

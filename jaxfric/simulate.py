@@ -35,7 +35,8 @@ from .lcp import contact_status
 from .loading import Phase, constraint_masks, prescribed_values, schedule
 from .material import J2Material
 from .mesh import StripMesh
-from .newton import SOLUTION_NAME, Linearization, NewtonOptions, newton_solve
+from .newton import (SOLUTION_NAME, Linearization, NewtonOptions, newton_pass, newton_result, newton_solve,
+                     newton_start)
 from .progress import report
 from .results import Result
 from .system import StepArgs, linearize, residual
@@ -44,7 +45,7 @@ from ._checks import check_int, check_nonnegative, is_concrete
 
 __all__ = ["StripModel", "SimState", "StepControl", "History", "Simulation", "initial_state",
            "default_observe", "stresses", "solve_step", "linearize_step", "reactions",
-           "contact_force_field", "StepSolution", "simulate", "simulate_fixed"]
+           "contact_force_field", "StepSolution", "simulate", "simulate_flat", "simulate_fixed"]
 
 
 class StripModel(eqx.Module):
@@ -446,6 +447,11 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
         sol = newton_solve(args, x0, x_ref, linearize=linearize, residual=residual, options=newton,
                            search=search)
         sol = StepSolution(*sol, augmentations=no_aug, stats=jnp.zeros(3, jnp.int32))
+    return sol, _step_state(model, args, sol, t_target, phase, q_start, f_start)
+
+
+def _step_state(model: StripModel, args, sol, t_target, phase, q_start, f_start) -> SimState:
+    """The state a step attempt's solution stands for (meaningful only if it converged)."""
     f_int, states, c_out = sol.aux
     new_contact = None
     if model.tools:
@@ -455,9 +461,8 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
         kept["status"] = contact_status(jnp.stack([kept["rn"], kept["rt"]], -1),
                                         pair_mu(model.tools, args.contact.mu)).astype(jnp.int8)
         new_contact = ContactState(q_start=q_start, f_start=f_start, **kept)
-    new_state = SimState(u=sol.x[: model.mesh.n_dofs].reshape(-1, 2), material=states, f_int=f_int,
-                         time=t_target, phase=phase, contact=new_contact)
-    return sol, new_state
+    return SimState(u=sol.x[: model.mesh.n_dofs].reshape(-1, 2), material=states, f_int=f_int,
+                    time=t_target, phase=phase, contact=new_contact)
 
 
 def _select(pred, on_true, on_false):
@@ -549,28 +554,49 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     with ``snapshot(model, state) -> pytree`` (static) that pytree travels with the report, so the host
     can keep full states of chosen steps without a device buffer per step.
     """
+    ctx = _Context.build(model)
+    init, setup, finish = _controller(model, control, observe, progress, snapshot)
+
+    def body(c: _Loop) -> _Loop:
+        t_try, phase, guess = setup(c)
+        sol, new_state = solve_step(model, c.state, phase, t_try, newton, ctx, guess=guess, search=~c.plain)
+        return finish(c, sol, new_state, t_try)
+
+    out = jax.lax.while_loop(lambda c: c.code == Result.CONTINUE, body, init)
+    return Simulation(history=out.history, final=out.state, code=out.code, failed_time=out.failed_t,
+                      residual_norm=out.r_norm, pending_cuts=out.cuts)
+
+
+def _controller(model: StripModel, control: StepControl, observe: Callable, progress: bool,
+                snapshot: Callable | None):
+    """The adaptive step controller of the load loop: its initial carry, ``setup(c) -> (t_try, phase,
+    guess)`` of the next attempt, and ``finish(c, sol, new_state, t_try) -> c`` after it."""
     sched = schedule(model.phases)
     n_seg = len(sched.seg_end)
     seg_end = jnp.asarray(sched.seg_end)
     seg_dt = jnp.asarray(sched.seg_dt)
     seg_phase = jnp.asarray(sched.seg_phase, jnp.int32)
     n_buf = control.max_steps or 10 * sched.n_nominal_steps + 100
-    ctx = _Context.build(model)
     state0 = initial_state(model)
     int0 = jnp.array(0, jnp.int32)
 
-    def body(c: _Loop) -> _Loop:
+    def setup(c: _Loop):
         t_start, dt_nom, end = c.state.time, seg_dt[c.seg], seg_end[c.seg]
         # Snap to the segment end when within round-off of it (steps end exactly on breakpoints).
         t_try = jnp.where(t_start + c.dt >= end - 1e-9 * dt_nom, end, t_start + c.dt)
-        sol, new_state = solve_step(model, c.state, seg_phase[c.seg], t_try, newton, ctx,
-                                    guess=c.predictor.guess(c.state, t_try - t_start, seg_phase[c.seg],
-                                                            retry=c.cuts > 0), search=~c.plain)
+        guess = c.predictor.guess(c.state, t_try - t_start, seg_phase[c.seg], retry=c.cuts > 0)
+        return t_try, seg_phase[c.seg], guess
+
+    def finish(c: _Loop, sol, new_state, t_try, active=True) -> _Loop:
+        """``active`` False: the attempt has not ended (flat loop); only the history is then left as
+        it was, the caller discards the rest (a select over the history buffers on every pass would
+        cost as much as the Newton iteration)."""
+        t_start, dt_nom, end = c.state.time, seg_dt[c.seg], seg_end[c.seg]
         ok = sol.code == Result.SUCCESS
         iters = c.iters + sol.iterations
         stats = c.stats + sol.stats
         row = c.history.n_rows
-        history = _record(c.history, row, ok, new_state, iters, c.cuts, sol.augmentations, stats,
+        history = _record(c.history, row, ok & active, new_state, iters, c.cuts, sol.augmentations, stats,
                           observe(model, new_state))
 
         seg_done = ok & (t_try == end)
@@ -624,7 +650,51 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
                  history=_empty_history(n_buf + 1, observe(model, state0)),
                  code=jnp.array(Result.CONTINUE, jnp.int32), failed_t=jnp.array(jnp.nan),
                  r_norm=jnp.array(0.0), plain=jnp.array(False), last_code=int0)
-    out = jax.lax.while_loop(lambda c: c.code == Result.CONTINUE, body, init)
+    return init, setup, finish
+
+
+def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
+                  control: StepControl = StepControl(), observe: Callable = default_observe) -> Simulation:
+    """:func:`simulate` with one Newton iteration per pass of a single loop (penalty law only).
+
+    The results are those of :func:`simulate` (the same attempts, iterations and step controller);
+    only the loop structure differs: instead of a loop of attempts, each a Newton loop, one loop
+    advances the current attempt by one Newton iteration and, when the attempt ends, runs the step
+    controller and starts the next attempt. Under ``vmap`` (:func:`jaxfric.sweep.sweep`) a pass then
+    costs one batched Newton iteration, and a member waits for no other member's attempt: the sweep
+    costs about the largest member's total of Newton iterations, against the sum over attempts of the
+    slowest member's iterations with the nested loops. Forward only (derivatives: :func:`simulate`,
+    whose steps are differentiated by the implicit function theorem); no progress reports.
+    """
+    if model.tools and (not isinstance(model.contact, Penalty) or isinstance(model.contact, AugmentedLagrangian)):
+        raise ValueError("field 'contact': simulate_flat runs the penalty law only (augmented Lagrangian "
+                         "and exact contact have loops of their own inside a step)")
+    ctx = _Context.build(model)
+    init, setup, finish = _controller(model, control, observe, False, None)
+
+    def attempt(c: _Loop):
+        t_try, phase, guess = setup(c)
+        args, _, _ = _step_args(model, c.state, phase, t_try, ctx)
+        x0 = _unknowns(model, *guess)
+        return newton_start(x0, eqx.filter_eval_shape(linearize, x0, args), newton), t_try
+
+    def body(carry):
+        c, nc, t_try = carry
+        _, phase, _ = setup(c)
+        args, q_start, f_start = _step_args(model, c.state, phase, t_try, ctx)
+        x_ref = _unknowns(model, c.state.u, _tool_q(c.state))
+        nc = newton_pass(nc, args, x_ref, linearize, newton, search=~c.plain)
+        done = nc.code != Result.CONTINUE
+        sol = StepSolution(*newton_result(nc), augmentations=jnp.array(0, jnp.int32),
+                           stats=jnp.zeros(3, jnp.int32))
+        fin = finish(c, sol, _step_state(model, args, sol, t_try, phase, q_start, f_start), t_try, done)
+        at_history = lambda loop: loop.history  # noqa: E731
+        c = eqx.tree_at(at_history, _select(done, eqx.tree_at(at_history, fin, c.history), c), fin.history)
+        nc_next, t_next = attempt(c)
+        return c, _select(done, nc_next, nc), jnp.where(done, t_next, t_try)
+
+    nc0, t0 = attempt(init)
+    out, _, _ = jax.lax.while_loop(lambda carry: carry[0].code == Result.CONTINUE, body, (init, nc0, t0))
     return Simulation(history=out.history, final=out.state, code=out.code, failed_time=out.failed_t,
                       residual_norm=out.r_norm, pending_cuts=out.cuts)
 

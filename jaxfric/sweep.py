@@ -10,11 +10,13 @@ sweep over mu does not batch the mesh. Every member runs the adaptive load loop 
 :func:`jaxfric.simulate.simulate` with its own step sizes and cutbacks; under ``vmap`` the loop runs
 until the last member has finished, and a finished member's state no longer changes.
 
-Cost: every loop iteration computes all members, so the sweep costs about the slowest member's number
-of attempts times the batched cost of one attempt, and both branches of every ``lax.cond`` run. On
-two CPU cores this is slower than looping over single runs (16 friction coefficients on the flat die:
-2x the loop, 31x one run; ``experiments/RESULTS.md``). What it offers is one compiled function of all
-members (to differentiate or transform as a whole) and, on a GPU, the width of the device.
+Cost: every loop pass computes all members, and both branches of every ``lax.cond`` run. With the
+nested loops of :func:`~jaxfric.simulate.simulate` (a loop of attempts, each a Newton loop) a batched
+attempt lasts as long as its slowest member's, and with 16 friction coefficients on the flat die
+nearly every attempt paid some member's iteration limit: 31x one run. The penalty law therefore
+sweeps with :func:`~jaxfric.simulate.simulate_flat` (one Newton iteration per pass, each member's
+step controller advancing on its own), whose cost follows the largest member's total of Newton
+iterations (figures in ``experiments/RESULTS.md``).
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .newton import NewtonOptions
-from .simulate import Simulation, StepControl, StripModel, default_observe, simulate
+from .contact import AugmentedLagrangian, Penalty
+from .simulate import Simulation, StepControl, StripModel, default_observe, simulate, simulate_flat
 
 __all__ = ["SweepResult", "sweep", "stack_models"]
 
@@ -98,17 +101,25 @@ class SweepResult:
 
 
 def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions(),
-          control: StepControl = StepControl(), observe: Callable = default_observe) -> SweepResult:
+          control: StepControl = StepControl(), observe: Callable = default_observe,
+          flat: bool | None = None) -> SweepResult:
     """Run ``models`` (one structure, different values) as one vmapped adaptive simulation.
 
     ``observe`` must be a static (hashable) function, as for :func:`jaxfric.run.run`. No progress bar
-    (the members advance at different paces).
+    (the members advance at different paces). ``flat``: one Newton iteration per loop pass
+    (:func:`jaxfric.simulate.simulate_flat`), so that no member waits for another's attempt; the
+    default where the law allows it (penalty, or no tools). The results are the same either way.
     """
     values, axes, (treedef, static) = stack_models(models)
+    first = models[0]
+    if flat is None:
+        flat = not first.tools or (isinstance(first.contact, Penalty)
+                                   and not isinstance(first.contact, AugmentedLagrangian))
+    loop = simulate_flat if flat else simulate
 
     def one(v):
         model = eqx.combine(jax.tree_util.tree_unflatten(treedef, v), static)
-        return simulate(model, newton=newton, control=control, observe=observe)
+        return loop(model, newton=newton, control=control, observe=observe)
 
     t0 = time.perf_counter()
     compiled = jax.jit(jax.vmap(one, in_axes=(axes,))).lower(values).compile()

@@ -15,7 +15,7 @@ MUS = (0.08, 0.15, 0.3)
 
 def test_vmapped_mu_sweep_equals_single_runs():
     built = [scenes.make("flat_die", "const_force", "penalty", {**OVERRIDES, "mu": m}) for m in MUS]
-    out = sweep([s.model for s in built], control=built[0].control, observe=built[0].observe)
+    out = sweep([s.model for s in built], control=built[0].control, observe=built[0].observe)  # flat loop
     assert out.n_members == len(MUS)
     for i, s in enumerate(built):
         single = jf.run(s.model, control=s.control, observe=s.observe, progress=False)
@@ -47,3 +47,11 @@ def test_structure_mismatch_is_refused():
         stack_models([a, b])
     with pytest.raises(ValueError, match="models"):
         stack_models([])
+
+
+def test_flat_loop_runs_the_penalty_law_only():
+    """The one-iteration-per-pass loop (the penalty sweeps' default) refuses the laws that loop inside
+    a step; the sweep of those keeps the nested loops (``flat=False``)."""
+    model = scenes.make("flat_die", "const_force", "auglag", OVERRIDES).model
+    with pytest.raises(ValueError, match="'contact'"):
+        jf.simulate_flat(model)
