@@ -15,8 +15,9 @@ nested loops of :func:`~jaxfric.simulate.simulate` (a loop of attempts, each a N
 attempt lasts as long as its slowest member's, and with 16 friction coefficients on the flat die
 nearly every attempt paid some member's iteration limit: 31x one run. The penalty law therefore
 sweeps with :func:`~jaxfric.simulate.simulate_flat` (one Newton iteration per pass, each member's
-step controller advancing on its own), whose cost follows the largest member's total of Newton
-iterations (figures in ``experiments/RESULTS.md``).
+step controller advancing on its own), whose number of passes is the largest member's total of
+Newton iterations and attempts. That halved the flat-die sweep, but on the 2-core CPU a batched pass
+still costs nearly one single pass per member (16 members: 15x one run; ``experiments/RESULTS.md``).
 """
 
 from __future__ import annotations
