@@ -197,6 +197,12 @@ def _band(it: _Iterate, tools, size: int | None) -> _Band:
     return _Band(jnp.asarray(unique)[sel], pairs[sel])
 
 
+def _band_normals(it: _Iterate, band: _Band) -> tuple[jax.Array, jax.Array]:
+    """Whether each band node's pair projects on its tool, and its normal ((0, 1) where it does not)."""
+    valid = it.valid[band.pairs]
+    return valid, jnp.where(valid[:, None], it.normal[band.pairs], jnp.array([0.0, 1.0]))
+
+
 # ---- condensation -----------------------------------------------------------------------------------
 
 def _decoupled(J: BlockTridiag, band_mask, scale) -> BlockTridiag:
@@ -291,8 +297,7 @@ def _contact_newton_step(it: _Iterate, args, x, p_prev, law: Complementarity, hi
     c = args.contact
     n = args.mesh.n_dofs
     band = _band(it, c.tools, law.band)
-    valid = it.valid[band.pairs]
-    normal = jnp.where(valid[:, None], it.normal[band.pairs], jnp.array([0.0, 1.0]))
+    valid, normal = _band_normals(it, band)
     gap = jnp.where(valid, it.gap[band.pairs], GAP_FAR)
     pair_tool = _pair_tools(c.tools)
     mu = jnp.where(valid, pair_mu(c.tools, c.mu)[band.pairs], 0.0)
@@ -383,8 +388,7 @@ def _frames(it: _Iterate, args) -> tuple[_Frames, BlockTridiag]:
     c = args.contact
     band = _band(it, c.tools, None)
     nodes, pairs = band.nodes, band.pairs
-    valid = it.valid[pairs]
-    normal = jnp.where(valid[:, None], it.normal[pairs], jnp.array([0.0, 1.0]))
+    valid, normal = _band_normals(it, band)
     rotation = jnp.stack([normal, _tangents(normal)], axis=-1)
     kappa = KAPPA * jnp.abs(jax.vmap(jnp.diagonal)(it.K.diag).reshape(-1))
     # Alart-Curnier constants: a hundredth of the node's own stiffness in its frame, the order of the
@@ -431,8 +435,7 @@ def _merit(x, it: _Iterate, args, hint, fr: _Frames) -> jax.Array:
     f_tilde = _equilibrium_force(it, args, x, hint, fr.kappa)
     f_nodes = f_tilde.reshape(-1, 2)
     band = _band(it, args.contact.tools, None)      # the nearest pair may differ from fr's
-    valid = it.valid[band.pairs]
-    normal = jnp.where(valid[:, None], it.normal[band.pairs], jnp.array([0.0, 1.0]))
+    valid, normal = _band_normals(it, band)
     R_N = jnp.einsum("ui,ui->u", normal, f_nodes[band.nodes])
     R_T = jnp.einsum("ui,ui->u", _tangents(normal), f_nodes[band.nodes])
     gap = jnp.where(valid, it.gap[band.pairs], GAP_FAR)
@@ -445,7 +448,7 @@ def _merit(x, it: _Iterate, args, hint, fr: _Frames) -> jax.Array:
     return total
 
 
-def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
+def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint, frames=None):
     """One iteration of semismooth Newton on the whole step (solver ``"ssn"``): the increment (du, dq),
     the pair forces it predicts (m, 2), the pairs used, the solver stats; same contract as
     :func:`_contact_newton_step`, at the cost of one bulk solve.
@@ -460,13 +463,14 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
     block-Thomas solve, like a penalty iteration. The force-driven tool's row is sum_a e_q . f~_a = P
     over its candidates. ``hint`` gives f_c^prev and the first active set (the last converged forces at
     a step's first iteration); ``p_prev`` is not used (the signature is the condensed step's).
+    ``frames``: the result of :func:`_frames` at ``it`` when the caller has it already.
     """
     c = args.contact
     n = args.mesh.n_dofs
     n_nodes = n // 2
     m = it.gap.shape[0]
     all_nodes = pair_nodes(c.tools)
-    fr, K = _frames(it, args)
+    fr, K = _frames(it, args) if frames is None else frames
     nodes, pairs, valid, normal, rotation = fr.nodes, fr.pairs, fr.valid, fr.normal, fr.rotation
     f_tilde = _equilibrium_force(it, args, x, hint, fr.kappa)
     f_nodes = f_tilde.reshape(-1, 2)
@@ -577,7 +581,7 @@ class _Trial(NamedTuple):
     """A Newton direction and the step length tried along it (the in-loop solver's line search)."""
 
     dx: jax.Array
-    alpha: jax.Array     # () step length of the trial; inf: take a new direction
+    alpha: jax.Array     # () step length of the trial (1, 1/4 or 1/16 of dx)
     p_new: jax.Array     # (m, 2) forces the direction predicts
     in_band: jax.Array
     stats: jax.Array     # (3,) of the direction's solve
@@ -647,10 +651,14 @@ def _exact_newton(args, x0, x_ref, options: NewtonOptions, law: Complementarity)
 
         def fresh():
             hint = jnp.where(k == 0, p_step, p)
-            dx, p_new, in_band, s, lcp_ok = step(it, args, x, p, law, hint)
-            frames = _frames(it, args)[0] if search else tr.frames
-            merit = _merit(x, it, args, hint, frames) if search else tr.merit
-            return _Trial(dx, jnp.array(1.0), p_new, in_band, s, lcp_ok, hint, merit, frames), s
+            if not search:
+                dx, p_new, in_band, s, lcp_ok = step(it, args, x, p, law, hint)
+                return _Trial(dx, jnp.array(1.0), p_new, in_band, s, lcp_ok, hint, tr.merit, tr.frames), s
+            # The frames (nodes, constants, kappa rows) serve the direction and the merit alike.
+            frames = _frames(it, args)
+            dx, p_new, in_band, s, lcp_ok = _active_set_step(it, args, x, p, law, hint, frames=frames)
+            merit = _merit(x, it, args, hint, frames[0])
+            return _Trial(dx, jnp.array(1.0), p_new, in_band, s, lcp_ok, hint, merit, frames[0]), s
 
         def shorter():
             return tr._replace(alpha=0.25 * tr.alpha), no_stats

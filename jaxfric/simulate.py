@@ -587,16 +587,13 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
         guess = c.predictor.guess(c.state, t_try - t_start, seg_phase[c.seg], retry=c.cuts > 0)
         return t_try, seg_phase[c.seg], guess
 
-    def finish(c: _Loop, sol, new_state, t_try, active=True) -> _Loop:
-        """``active`` False: the attempt has not ended (flat loop); only the history is then left as
-        it was, the caller discards the rest (a select over the history buffers on every pass would
-        cost as much as the Newton iteration)."""
+    def finish(c: _Loop, sol, new_state, t_try) -> _Loop:
         t_start, dt_nom, end = c.state.time, seg_dt[c.seg], seg_end[c.seg]
         ok = sol.code == Result.SUCCESS
         iters = c.iters + sol.iterations
         stats = c.stats + sol.stats
         row = c.history.n_rows
-        history = _record(c.history, row, ok & active, new_state, iters, c.cuts, sol.augmentations, stats,
+        history = _record(c.history, row, ok, new_state, iters, c.cuts, sol.augmentations, stats,
                           observe(model, new_state))
 
         seg_done = ok & (t_try == end)
@@ -660,10 +657,11 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     The results are those of :func:`simulate` (the same attempts, iterations and step controller);
     only the loop structure differs: instead of a loop of attempts, each a Newton loop, one loop
     advances the current attempt by one Newton iteration and, when the attempt ends, runs the step
-    controller and starts the next attempt. Under ``vmap`` (:func:`jaxfric.sweep.sweep`) a pass then
-    costs one batched Newton iteration, and a member waits for no other member's attempt: the sweep
-    costs about the largest member's total of Newton iterations, against the sum over attempts of the
-    slowest member's iterations with the nested loops. Forward only (derivatives: :func:`simulate`,
+    controller and starts the next attempt. Under ``vmap`` (:func:`jaxfric.sweep.sweep`) a member then
+    waits for no other member's attempt: the sweep takes as many passes as its largest member's total
+    of Newton iterations and attempts, against the sum over attempts of the slowest member's
+    iterations with the nested loops (a batched pass itself still costs more than a single one:
+    ``experiments/RESULTS.md``, batched sweeps). Forward only (derivatives: :func:`simulate`,
     whose steps are differentiated by the implicit function theorem); no progress reports.
     """
     if model.tools and (not isinstance(model.contact, Penalty) or isinstance(model.contact, AugmentedLagrangian)):
@@ -673,28 +671,27 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     init, setup, finish = _controller(model, control, observe, False, None)
 
     def attempt(c: _Loop):
+        """The next attempt of ``c``: its target time, phase and Newton start."""
         t_try, phase, guess = setup(c)
-        args, _, _ = _step_args(model, c.state, phase, t_try, ctx)
-        x0 = _unknowns(model, *guess)
-        return newton_start(x0, eqx.filter_eval_shape(linearize, x0, args), newton), t_try
+        return t_try, phase, newton_start(_unknowns(model, *guess), lin_shape, newton)
 
     def body(carry):
-        c, nc, t_try = carry
-        _, phase, _ = setup(c)
+        c, t_try, phase, nc = carry
         args, q_start, f_start = _step_args(model, c.state, phase, t_try, ctx)
         x_ref = _unknowns(model, c.state.u, _tool_q(c.state))
         nc = newton_pass(nc, args, x_ref, linearize, newton, search=~c.plain)
         done = nc.code != Result.CONTINUE
         sol = StepSolution(*newton_result(nc), augmentations=jnp.array(0, jnp.int32),
                            stats=jnp.zeros(3, jnp.int32))
-        fin = finish(c, sol, _step_state(model, args, sol, t_try, phase, q_start, f_start), t_try, done)
-        at_history = lambda loop: loop.history  # noqa: E731
-        c = eqx.tree_at(at_history, _select(done, eqx.tree_at(at_history, fin, c.history), c), fin.history)
-        nc_next, t_next = attempt(c)
-        return c, _select(done, nc_next, nc), jnp.where(done, t_next, t_try)
+        c = _select(done, finish(c, sol, _step_state(model, args, sol, t_try, phase, q_start, f_start), t_try), c)
+        return _select(done, (c,) + attempt(c), (c, t_try, phase, nc))
 
-    nc0, t0 = attempt(init)
-    out, _, _ = jax.lax.while_loop(lambda carry: carry[0].code == Result.CONTINUE, body, (init, nc0, t0))
+    t0, phase0, guess0 = setup(init)
+    args0, _, _ = _step_args(model, init.state, phase0, t0, ctx)
+    x0 = _unknowns(model, *guess0)
+    lin_shape = eqx.filter_eval_shape(linearize, x0, args0)     # the same for every attempt
+    carry = (init, t0, phase0, newton_start(x0, lin_shape, newton))
+    out = jax.lax.while_loop(lambda carry: carry[0].code == Result.CONTINUE, body, carry)[0]
     return Simulation(history=out.history, final=out.state, code=out.code, failed_time=out.failed_t,
                       residual_norm=out.r_norm, pending_cuts=out.cuts)
 
