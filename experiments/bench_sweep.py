@@ -10,7 +10,9 @@ the histories agree to 1e-10 of each column's scale, and writes
 
 ``--iteration``: instead, time one Newton iteration (linearisation and solve) of all members at once
 (vmapped) against one member's, at the converged final state of member 0: what batching costs per
-member without the load loop's lockstep.
+member without the load loop's lockstep. Two batched figures: every member at its own copy of the
+state (what a sweep does: the element arithmetic is batched too), and one state shared by all
+members (only what depends on the swept value is batched: friction and the solve).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from benchutil import median_time, write_rows  # noqa: E402
 
 import jaxfric as jf  # noqa: E402
 from jaxfric import scenes  # noqa: E402
+from jaxfric.assembly import ELEMENT_CHUNK, element_chunk  # noqa: E402
 from jaxfric.linalg import linear_solve  # noqa: E402
 from jaxfric.sweep import stack_models, sweep  # noqa: E402
 
@@ -85,12 +88,16 @@ def iteration_cost(built) -> None:
         lin = jf.linearize_step(model, s, s.phase, s.time)
         return linear_solve(lin.jacobian, -lin.residual)
 
-    v0 = [v if ax is None else v[0] for v, ax in zip(values, axes)]
-    one = median_time(jax.jit(iteration), v0, state, repeat=20)
-    many = median_time(jax.jit(jax.vmap(iteration, in_axes=(axes, None))), values, state, repeat=10)
     n = len(built)
-    print(f"one Newton iteration: single {1e3 * one:.2f} ms; {n} members vmapped {1e3 * many:.2f} ms "
-          f"= {many / one:.1f}x single ({1e3 * many / n:.2f} ms per member)")
+    v0 = [v if ax is None else v[0] for v, ax in zip(values, axes)]
+    states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n,) + a.shape) + 0, state)
+    one = median_time(jax.jit(iteration), v0, state, repeat=20)
+    with element_chunk(max(ELEMENT_CHUNK // n, 16)):   # as jaxfric.sweep.sweep traces its members
+        own = median_time(jax.jit(jax.vmap(iteration, in_axes=(axes, 0))), values, states, repeat=10)
+    shared = median_time(jax.jit(jax.vmap(iteration, in_axes=(axes, None))), values, state, repeat=10)
+    print(f"one Newton iteration: single {1e3 * one:.2f} ms; {n} members vmapped, each at its own state "
+          f"{1e3 * own:.2f} ms = {own / one:.1f}x single ({1e3 * own / n:.2f} ms per member); one state "
+          f"shared by all members {1e3 * shared:.2f} ms = {shared / one:.1f}x")
 
 
 if __name__ == "__main__":

@@ -8,6 +8,8 @@ matrix is ever formed.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 from typing import NamedTuple
 
@@ -20,7 +22,7 @@ from .linalg import BlockTridiag
 from .mesh import StripMesh
 
 __all__ = ["Assembled", "mesh_geometry", "internal_force", "internal_force_and_tangent",
-           "tangent_scatter_index"]
+           "tangent_scatter_index", "element_chunk", "ELEMENT_CHUNK"]
 
 
 class Assembled(NamedTuple):
@@ -83,6 +85,21 @@ def _scatter_tangent(K_el: jax.Array, nx: int, ny: int) -> BlockTridiag:
 # elements of a 1200 x 6 strip costs 10.7 us per element, chunks of 128-600 cost 6.0-6.4, the same as a
 # 300 x 3 strip, so the assembly cost grows linearly with the number of elements.
 ELEMENT_CHUNK = 512
+_CHUNK = contextvars.ContextVar("element_chunk", default=ELEMENT_CHUNK)
+
+
+@contextlib.contextmanager
+def element_chunk(size: int):
+    """Trace the element loops with chunks of ``size`` elements (default :data:`ELEMENT_CHUNK`).
+
+    A setting read when a program is traced, not when it runs. Under ``vmap`` over n members a chunk
+    holds chunk x n element evaluations, so a batched sweep traces with chunks n times smaller to
+    keep the working set of one chunk (:func:`jaxfric.sweep.sweep`)."""
+    token = _CHUNK.set(max(int(size), 1))
+    try:
+        yield
+    finally:
+        _CHUNK.reset(token)
 
 
 def _element_map(fn, material, formulation, geo, u_el, states):
@@ -90,7 +107,7 @@ def _element_map(fn, material, formulation, geo, u_el, states):
         return fn(material, formulation, *args)
 
     xs = (geo.dN_dX, geo.dN_dX_center, geo.weight, u_el, states)
-    return jax.lax.map(one, xs, batch_size=min(ELEMENT_CHUNK, u_el.shape[0]))
+    return jax.lax.map(one, xs, batch_size=min(_CHUNK.get(), u_el.shape[0]))
 
 
 def internal_force(mesh: StripMesh, material, formulation: str, geo: ElementGeometry,
