@@ -13,6 +13,14 @@ round-off). With mu = 0.15 (h = 1.5e-5) that is ~1e-4 N/mm against entries of or
 h = 1e-6 |p| does not (2e-4, round-off). h is small enough that no contact pair changes status
 (stick/slip, open/closed) between p - h and p + h on these paths.
 
+Where a pair sits on a switch of the exact law at the start values, the derivative returned is the
+one-sided derivative of the branch the law takes there (``jaxfric.contact_laws``), and a central
+difference averages the two sides: on the Nine test a tool-geometry column (R1) then differs by 2 to 3 %
+for any h down to 1e-6 |p|. The smoothed law (config field ``smoothing``) removes the switch: with
+S = 10 N/mm and h = 1e-6 |p| (the Newton tolerances of the curved tools leave ~1e-9 N/mm, 1e-4 of the
+smallest entry over 2h) every column agrees to 5e-6 (``experiments/smoothing.py``; case
+``nine_smoothed``).
+
 Each scene runs a short path at a coarse mesh; all are ``slow`` (``make test-all``): even the flat
 die compiles four replays (90 s on two cores), more than the 10-minute fast suite can hold.
 """
@@ -37,11 +45,16 @@ CASES = {
     # The blankholder's own Newton limit (60, scene docstring): at 25 the fixed replay stops at step 343.
     "blankholder": ("shape3", {"element_length": 2.0, "U_pull": 1.0}, ["R", "H", "mu", "F_clamp"],
                     NewtonOptions(rtol=1e-11, atol=1e-9, max_iterations=60)),
+    # The smoothed law, five times smaller steps, differences with h = 1e-6 |p| (docstring).
+    "nine_smoothed": ("mu017", {"mesh": "40x2", "U_draw": 1.0, "dU": 0.02, "dq_clamp": 0.05, "smoothing": 10.0},
+                      ["mu", "R1"], NewtonOptions(rtol=1e-11, atol=1e-9, max_iterations=60)),
 }
+REL_H = {"nine_smoothed": 1e-6}
 
 
-def _check(scene):
-    variant, overrides, names, newton = CASES[scene]
+def _check(case):
+    variant, overrides, names, newton = CASES[case]
+    scene = case.split("_smoothed")[0]
     par = parameterize(scene, names, variant=variant, overrides=overrides)
     forward, backward = path_function(par, newton=newton), path_function(par, newton=newton, reverse=True)
 
@@ -70,7 +83,7 @@ def _check(scene):
     primal = jax.jit(lambda p: outputs(p, along))
     fd = np.zeros_like(jac_fwd)
     for i, name in enumerate(names):
-        h = 1e-4 * abs(float(p0[i]))
+        h = REL_H.get(case, 1e-4) * abs(float(p0[i]))
         (up, c1), (down, c2) = primal(p0.at[i].add(h)), primal(p0.at[i].add(-h))
         assert int(c1) == 0 and int(c2) == 0, f"{scene}: replay fails at {name} +/- h"
         fd[:, i] = (np.asarray(up) - np.asarray(down)) / (2 * h)
@@ -85,9 +98,10 @@ def test_flat_die_derivatives_of_every_parameter():
 
 
 KNOWN = {
-    "nine": "forward and reverse mode agree, but central differences do not (up to 40 %): the fixed replay "
-            "fails at R1 +/- h, and along the adaptive replay p +/- h cut other steps, so the differences "
-            "compare two paths; at 40 x 2 the force is also rough in mu (stick/slip switches within h)",
+    "nine": "forward and reverse mode agree, central differences do not: with the exact law a pair sits on a "
+            "switch at the start values and the R1 column differs by 2 to 3 % for h down to 1e-6 |p| (the "
+            "mu column then agrees to 1.4e-6); with h = 1e-4 |p| the differences also cross stick/slip "
+            "switches and the adaptive replay cuts other steps at R1 +/- h. Case nine_smoothed passes",
     "bead": "the adaptive run at the start values cannot reach the tightened tolerances (atol 1e-9: a "
             "wind step stalls at 2.5e-9 N/mm), and at the default ones differences are too noisy for 1e-5",
     "blankholder": "forward = reverse along the fixed replay (measured 1.2e-8 of the row's largest entry "
@@ -99,6 +113,7 @@ KNOWN = {
 
 @pytest.mark.slow
 @pytest.mark.parametrize("scene", [
+    "nine_smoothed",
     pytest.param("nine", marks=pytest.mark.xfail(reason=KNOWN["nine"], strict=True)),
     pytest.param("bead", marks=pytest.mark.xfail(reason=KNOWN["bead"], strict=True)),
     pytest.param("blankholder", marks=pytest.mark.xfail(reason=KNOWN["blankholder"], strict=True)),

@@ -344,6 +344,26 @@ def test_flat_die_short_run():
     assert np.all(result.snapshots[end_clamp]["mu"] == 0.0) and np.all(result.snapshots[len(h["time"]) - 1]["mu"] == 0.15)
 
 
+def test_smoothed_contact_law_through_the_scene_config():
+    """``smoothing`` = S selects the smoothed penalty law (contact_laws): the die still balances
+    F_clamp, and at full sliding the drawing force stays within the law's bound of mu F_clamp,
+    n_pairs (1 + mu) S log 2 (the smooth clip approaches the Coulomb limit from below; the lower end
+    allows the Newton tolerance)."""
+    s = 0.01
+    scene = make("flat_die", "const_force", overrides={
+        "mesh": "24x2", "L": 4.8, "U_draw": 0.006, "U_fine": 0.001, "dU_fine": 1e-4, "dU": 1e-3, "n_clamp": 2,
+        "smoothing": s})
+    assert scene.model.contact.smooth and float(scene.model.contact.smoothing) == s
+    assert not make("flat_die", "const_force", overrides={"mesh": "24x2"}).model.contact.smooth
+    result, h = _run(scene)
+    assert result.converged
+    end_clamp = np.flatnonzero(h["phase_name"] == "clamp")[-1]
+    assert abs(h["clamping_force"][end_clamp] - 50.0) <= 1e-8 * 50.0
+    bound = 25 * (1 + 0.15) * s * math.log(2)
+    # (here every pair slips far beyond the limit, where the smooth clip is exponentially close to it)
+    assert -1e-8 * 7.5 <= 0.15 * 50.0 - h["drawing_force"][-1] <= bound
+
+
 def test_nine_short_run():
     """B pushed 3 mm down between A and C, then the strip pulled 1 mm: B presses on the strip and the
     grip must pull, the cylinders' forces balance the reactions."""

@@ -34,6 +34,8 @@ def spec_field(default, unit: str, doc: str):
 
 # ---- validation -------------------------------------------------------------------------------------
 
+SMOOTHING_DOC = ("force scale of the smoothed contact law (penalty and auglag; for gradients through "
+                 "contact opening and stick/slip switches); 0: the exact law [chosen]")
 BAND_DOC = ("exact contact by lcp_lemke: candidate nodes nearest to a tool that enter the condensed "
             "complementarity problem; None: all. Too small a band stops the step with CONTACT_BAND "
             "(lcp_ssn works on every candidate and ignores it)")
@@ -85,7 +87,7 @@ def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=No
     for name in ("E", "sigma_y", "eps_n", "target_gap", "d_capture"):
         if not _number(name, getattr(config, name)) > 0:
             raise _bad(name, getattr(config, name), "it must be > 0")
-    for name in ("A", "n"):
+    for name in ("A", "n", "smoothing"):
         if not _number(name, getattr(config, name)) >= 0:
             raise _bad(name, getattr(config, name), "it must be >= 0")
     if config.eps_t is not None and not _number("eps_t", config.eps_t) >= 0:

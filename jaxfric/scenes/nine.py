@@ -83,6 +83,7 @@ class NineConfig:
     eps_n: float = cm.spec_field(1e5, "N/mm/mm", "normal penalty [paper]")
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [paper]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
+    smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(128, "-", cm.BAND_DOC)
     stroke: float = cm.spec_field(11.0, "mm", "downward travel of B during clamp (2 R1) [paper]")
@@ -168,7 +169,7 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
 
     mu_max = max(mu.values())
     eps_t = cm.resolve_eps_t(config, mu_max)
-    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band)
+    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=tuple(tools), contact=law)
     observe = NineObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)),
