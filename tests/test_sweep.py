@@ -55,3 +55,32 @@ def test_flat_loop_runs_the_penalty_law_only():
     model = scenes.make("flat_die", "const_force", "auglag", OVERRIDES).model
     with pytest.raises(ValueError, match="'contact'"):
         jf.simulate_flat(model)
+
+
+def test_element_chunks_do_not_change_the_assembly():
+    """The sweep traces its members with smaller element chunks (jaxfric.assembly.element_chunk): the
+    forces, tangent and material states are those of the default chunking, whatever the chunk size
+    (48 elements in chunks of 5: ten chunks, the last one partial)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxfric.assembly import element_chunk, internal_force_and_tangent, mesh_geometry
+    from jaxfric.simulate import initial_state
+
+    model = scenes.make("flat_die", "const_force", "penalty", OVERRIDES).model
+    state = initial_state(model)
+    rng = np.random.default_rng(0)
+    u = jnp.asarray(0.02 * rng.standard_normal(state.u.shape))   # a strain large enough to yield
+    geo = mesh_geometry(model.mesh)
+
+    def assemble(chunk):
+        with element_chunk(chunk):
+            return jax.jit(lambda u: internal_force_and_tangent(model.mesh, model.material, model.formulation,
+                                                                geo, u, state.material))(u)
+
+    ref, small = assemble(512), assemble(5)
+    assert model.mesh.elements.shape[0] == 48
+    for a, b in zip(jax.tree_util.tree_leaves(small), jax.tree_util.tree_leaves(ref)):
+        scale = max(float(jnp.max(jnp.abs(b))), 1e-300)
+        assert float(jnp.max(jnp.abs(a - b))) <= 1e-13 * scale
+    assert float(ref.det_min) > 0.0 and float(jnp.max(ref.states.eqps)) > 0.0   # plastic, not inverted
