@@ -31,7 +31,6 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(__file__))
 from benchutil import write_rows  # noqa: E402
 
-import jaxfric  # noqa: E402,F401  (float64)
 from jaxfric.newton import NewtonOptions  # noqa: E402
 from jaxfric.params import parameterize, path_function  # noqa: E402
 

@@ -123,7 +123,6 @@ def test_lemke_and_in_loop_semismooth_newton_agree_on_curved_tools():
     """The in-loop solver's node frames turn with the node on an arc (the derivative of (n, t) enters
     its rows): one frictional draw step over three cylinders, from the same clamped state, gives
     Lemke's displacements, forces and statuses."""
-    import equinox as eqx
 
     from jaxfric.contact import Move, RigidTool
     from jaxfric.tools import Tool
