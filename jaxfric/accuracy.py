@@ -30,7 +30,8 @@ import numpy as np
 from .batch import phase_curve, run_case, write_csv
 
 __all__ = ["TESTS", "QUICK_TESTS", "Test", "cases", "error_measures", "accuracy_cost", "collect", "reference_checks",
-           "recommendations", "pareto_front", "report_markdown", "write_report", "MEASURES", "LEVELS"]
+           "recommendations", "pareto_front", "report_markdown", "write_report", "MEASURES", "LEVELS",
+           "penalty_tangent"]
 
 REF_GAP = 1e-8          # mm, target gap of the reference's augmented Lagrangian
 LEVELS = (0.1, 0.01, 0.001)
@@ -164,6 +165,52 @@ def cases(test: Test) -> list[tuple]:
             ("ref_check_mesh", "ref_check", "auglag", {"mesh": _mesh(fine), **ref}),
             ("ref_check_step", "ref_check", "auglag", {"mesh": _mesh(test.ref_mesh), **ref, **_steps(test, 0.25)})]
     return [(label, family, algorithm, {**test.base, **ov}) for label, family, algorithm, ov in out]
+
+
+# ---- the penalty's share of a run's error ---------------------------------------------------------------
+
+def penalty_tangent(scene, result) -> np.ndarray:
+    """eps_N dF/d eps_N of the drawing force at every history row of a completed ``penalty`` run.
+
+    Forward mode along the run's own accepted steps (:func:`jaxfric.params.path_function`), with the
+    tangent eps_N itself, i.e. the change of the force per relative change of the penalty. eps_T
+    follows when it is the spec's mu eps_N (config eps_t unset); a set eps_t stays fixed. Why it
+    estimates the penalty's error: the penalty acts as a spring of stiffness eps_N in series with the
+    sheet's own compliance k, F = F_exact eps_N / (eps_N + k), whence (F_exact - F) / F = k / eps_N =
+    eps_N F' / F exactly; where the penalty is stiff (k << eps_N) this is the first-order term of any
+    smooth F(eps_N) with F_exact its limit. Costs about one more run (a replay with one tangent) plus
+    its compilation.
+
+    Raises ValueError (one line) for another algorithm, and when the replay does not reproduce the
+    run (another result code, row count or force).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from .params import parameterize, path_function
+
+    if scene.algorithm != "penalty":
+        raise ValueError(f"field 'error_estimate': the penalty sensitivity applies to algorithm penalty, "
+                         f"not {scene.algorithm}")
+    config = scene.config
+    overrides = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
+    par = parameterize(scene.name, ["eps_n"], variant=scene.variant, algorithm=scene.algorithm, overrides=overrides)
+    path = path_function(par, newton=scene.newton, plan=result.history)
+
+    def force(p):
+        h, code = path(p)
+        return h.observed["drawing_force"], (h.n_rows, code)
+
+    p0 = jnp.asarray(par.p0)
+    f, df, (n_rows, code) = jax.jit(lambda p: jax.jvp(force, (p,), (p,), has_aux=True))(p0)
+    n = len(result.history["time"])
+    f, df = np.asarray(f)[:n], np.asarray(df)[:n]
+    ref = np.asarray(result.history["drawing_force"], dtype=np.float64)
+    scale = max(float(np.max(np.abs(ref))), 1e-300)
+    if int(code) != 0 or int(n_rows) != n or float(np.max(np.abs(f - ref))) > 1e-6 * scale:
+        raise ValueError(f"the replay of the run's steps does not reproduce it (result code {int(code)}, "
+                         f"{int(n_rows)} rows against {n}); no penalty sensitivity")
+    return df
 
 
 # ---- error measures -----------------------------------------------------------------------------------

@@ -55,6 +55,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", metavar="DIR", help="run directory (default runs/SCENE/VARIANT/ALGORITHM)")
     run.add_argument("--tag", help="study tag recorded in summary.json (regex [A-Za-z0-9][A-Za-z0-9._+-]*)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--error-estimate", choices=["basic", "sensitivity"], default="basic",
+                     help="basic: from the run's penetration, force scatter and Newton tolerance; "
+                          "sensitivity (penalty only): also eps_N dF/d eps_N by forward mode along the run "
+                          "(about one more run and its compilation)")
     fit = sub.add_parser("fit", help="identify parameters from a measured drawing-force curve",
                          description="Fit scene config values (e.g. mu, R1) to a measured drawing-force curve "
                                      "(CSV with drawing_displacement and drawing_force; a history.csv of "
@@ -221,13 +225,24 @@ def _run(args) -> int:
     from . import output
     from .run import run
 
+    if args.error_estimate == "sensitivity" and scene.algorithm != "penalty":
+        raise UsageError(f"--error-estimate sensitivity applies to algorithm penalty, not {scene.algorithm}")
+
     out = os.path.join("runs", scene.name, scene.variant, scene.algorithm) if args.out is None else args.out
     _writable_dir(out)
     label = f"{scene.name}/{scene.variant}/{scene.algorithm} "
     result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
                  progress=not args.quiet, raise_on_failure=False, label=label)
+    tangent = None
+    if args.error_estimate == "sensitivity" and result.converged:
+        from .accuracy import penalty_tangent
+
+        try:
+            tangent = penalty_tangent(scene, result)
+        except ValueError as err:
+            print(f"note: {err}")
     try:
-        summary = output.write_run(scene, result, out, tag=args.tag)
+        summary = output.write_run(scene, result, out, tag=args.tag, penalty_tangent=tangent)
     except output.OutputError as err:
         return _error(err, EXIT_FAILED)
     steady = summary["steady_drawing_force"]
