@@ -1,5 +1,5 @@
 """Cost of a forward-mode derivative along a whole load path: ``python experiments/bench_jvp.py
-[--scene nine] [--variant mu017] [--mesh 40x2] [--adaptive] [--h 1e-5] [--set NAME=VALUE ...]``.
+[--scene nine] [--variant mu017] [--mesh 40x2] [--adaptive] [--h 1e-5] [--no-fd] [--tag T] [--set NAME=VALUE ...]``.
 
 Differentiates the final drawing force of the scene with respect to the friction coefficient of its
 frictional tools (``jax.jvp`` through the load loop: each converged step by the implicit function
@@ -9,8 +9,8 @@ same compiled structure. Also checks the derivative against central differences 
 By default the nominal steps run in a fixed-length scan (``simulate_fixed``): central differences are
 then differences along one step sequence. With ``--adaptive`` the step sequence itself changes with mu
 (cutbacks), and differences of the primal jump by the force noise of a changed sequence: at 60 x 2
-they gave 3122, 1134 and -21492 N/mm for h = 1e-3, 1e-4, 1e-5 against a jvp of 3503. Writes
-``experiments/results/bench_jvp_<scene>.csv``.
+they gave 3122, 1134 and -21492 N/mm for h = 1e-3, 1e-4, 1e-5 against a jvp of 3503. ``--no-fd``
+skips the differences (two more primal runs). Writes ``experiments/results/bench_jvp_<scene><tag>.csv``.
 """
 
 from __future__ import annotations
@@ -38,6 +38,8 @@ def main(argv=None) -> None:
     p.add_argument("--mesh", default="40x2")
     p.add_argument("--adaptive", action="store_true", help="adaptive steps instead of the nominal ones")
     p.add_argument("--h", type=float, default=1e-5, help="central-difference step in mu")
+    p.add_argument("--no-fd", action="store_true", help="skip the central differences")
+    p.add_argument("--tag", default="", help="suffix of the CSV name")
     p.add_argument("--set", dest="overrides", action="append", default=[])
     a = p.parse_args(argv)
     extra = dict(s.split("=", 1) for s in a.overrides)
@@ -69,7 +71,7 @@ def main(argv=None) -> None:
     (f, code), _ = rows["primal"][2], None
     _, df = rows["jvp"][2]
     h = a.h
-    fd = (primal(mu + h)[0] - primal(mu - h)[0]) / (2 * h)
+    fd = float("nan") if a.no_fd else (primal(mu + h)[0] - primal(mu - h)[0]) / (2 * h)
     row = {"scene": a.scene, "variant": scene.variant, "mesh": a.mesh, "steps": "adaptive" if a.adaptive else "fixed",
            "mu": mu0, "h": h, "code": int(code),
            "drawing_force": float(f), "dF_dmu_jvp": float(df), "dF_dmu_central_diff": float(fd),
@@ -79,7 +81,7 @@ def main(argv=None) -> None:
            "primal_first_call_s": round(rows["primal"][1], 2), "jvp_first_call_s": round(rows["jvp"][1], 2)}
     for k, v in row.items():
         print(f"{k:>22}: {v}")
-    write_rows(os.path.join(os.path.dirname(__file__), "results", f"bench_jvp_{a.scene}.csv"), [row])
+    write_rows(os.path.join(os.path.dirname(__file__), "results", f"bench_jvp_{a.scene}{a.tag}.csv"), [row])
 
 
 if __name__ == "__main__":

@@ -234,6 +234,22 @@ class _Curve:
         return np.asarray(obs), np.asarray(jac), np.asarray(pointwise), int(code), int(cuts)
 
 
+def _refined(history: dict, substeps: int) -> dict:
+    """The step sequence of ``history`` with every accepted step split into ``substeps`` equal steps
+    (the time, phase and cutback columns that :func:`jaxfric.params.path_function` replays; a step
+    accepted as a retry keeps that mark on its first part)."""
+    if substeps == 1:
+        return history
+    t, phase, cuts = (np.asarray(history[k]) for k in ("time", "phase", "cutbacks"))
+    times, phases, retry = [t[0]], [phase[0]], [cuts[0]]
+    for k in range(1, len(t)):
+        for j in range(1, substeps + 1):
+            times.append(t[k] if j == substeps else t[k - 1] + (t[k] - t[k - 1]) * j / substeps)
+            phases.append(phase[k])
+            retry.append(cuts[k] if j == 1 else 0)
+    return {"time": np.array(times), "phase": np.array(phases), "cutbacks": np.array(retry)}
+
+
 def _bounds(names, p0, bounds) -> tuple[np.ndarray, np.ndarray]:
     lo, hi = np.zeros(len(names)), np.full(len(names), np.inf)
     bounds = dict(bounds or {})
@@ -282,7 +298,7 @@ def _windows(x: np.ndarray, window, n_params: int):
 def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str = "penalty",
         overrides: dict | None = None, bounds: dict | None = None, window: float | None = None,
         newton: NewtonOptions | None = None, max_iter: int = 30, xtol: float = 1e-7,
-        max_replans: int = 4, progress: bool = True) -> FitResult:
+        max_replans: int = 4, substeps: int = 1, progress: bool = True) -> FitResult:
     """Fit the config fields ``params`` of ``scene`` to the measured drawing-force curve ``data``.
 
     Args:
@@ -300,6 +316,10 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
         max_replans: adaptive runs at the optimum, to settle the step sequence. 0: fit on the
             sequence planned at the start values (cheaper; the answer then carries the difference
             between that sequence and the one an adaptive run at the optimum would take).
+        substeps: replay every planned step as this many equal steps (1: as planned). Smaller
+            replayed steps converge at parameter values further from the plan's without being cut,
+            and every cut is a small jump of the fitted curve; the replays cost that many times more,
+            and the fitted model is then the run with the finer steps.
 
     Raises ValueError (one line, naming the field) on bad input, before any simulation, and
     :class:`FitError` when the simulation at the start values fails.
@@ -310,7 +330,7 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
     if meas.displacement.size < len(names):
         raise ValueError(f"measurement {meas.source!r} has {meas.displacement.size} point(s) at displacement > 0, "
                          f"fewer than the {len(names)} parameter(s)")
-    for name, value, least in (("max_iter", max_iter, 1), ("max_replans", max_replans, 0)):
+    for name, value, least in (("max_iter", max_iter, 1), ("max_replans", max_replans, 0), ("substeps", substeps, 1)):
         if isinstance(value, bool) or not isinstance(value, int) or value < least:
             raise ValueError(f"field {name!r} must be an integer >= {least}, got {value!r}")
     edges = _windows(meas.displacement, window, len(names))
@@ -333,11 +353,12 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
             raise ValueError(f"measurement {meas.source!r} reaches drawing_displacement {meas.displacement[-1]:g} "
                              f"mm, beyond the simulated stroke {top:g} mm (raise the scene's stroke field)")
         key = (scene, names, par.scene.variant, algorithm, repr(sorted((overrides or {}).items())), newton,
-               history["time"].tobytes(), meas.displacement.tobytes(), None if edges is None else edges.tobytes())
+               history["time"].tobytes(), meas.displacement.tobytes(), None if edges is None else edges.tobytes(),
+               substeps)
         if key not in _CURVES:
             while len(_CURVES) >= 8:
                 _CURVES.pop(next(iter(_CURVES)))
-            _CURVES[key] = _Curve(par, history, meas.displacement, edges, newton)
+            _CURVES[key] = _Curve(par, _refined(history, substeps), meas.displacement, edges, newton)
         return _CURVES[key], ""
 
     def evaluate(curve, p):
