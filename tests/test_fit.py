@@ -138,3 +138,18 @@ def test_fewer_points_than_parameters_and_a_stroke_too_long(tmp_path):
 def test_missing_data_file(tmp_path, capsys):
     code = main(["fit", *FLAT, "--data", str(tmp_path / "none.csv"), "--param", "mu", "--quiet"])
     assert code == 2 and "is not a file" in capsys.readouterr().err
+
+
+def test_refined_plan_splits_every_step_and_keeps_phase_ends():
+    from jaxfric.fit import _refined
+
+    plan = {"time": np.array([0.0, 0.5, 1.0, 1.25, 2.0]), "phase": np.array([0, 0, 0, 1, 1]),
+            "cutbacks": np.array([0, 0, 2, 0, 1])}
+    assert _refined(plan, 1) is plan
+    r = _refined(plan, 2)
+    np.testing.assert_array_equal(r["time"], [0.0, 0.25, 0.5, 0.75, 1.0, 1.125, 1.25, 1.625, 2.0])
+    np.testing.assert_array_equal(r["phase"], [0, 0, 0, 0, 0, 1, 1, 1, 1])
+    # a retry's mark stays on the first part of its step (it starts from the converged state)
+    np.testing.assert_array_equal(r["cutbacks"], [0, 0, 0, 2, 0, 0, 0, 1, 0])
+    with pytest.raises(ValueError, match="substeps"):
+        fit("flat_die", {"drawing_displacement": [1.0, 2.0], "drawing_force": [1.0, 2.0]}, ["mu"], substeps=0)
