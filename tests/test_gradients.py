@@ -98,8 +98,8 @@ def test_flat_die_derivatives_of_every_parameter():
 
 
 KNOWN = {
-    "nine": "forward and reverse mode agree, central differences do not: with the exact law a pair sits on a "
-            "switch at the start values and the R1 column differs by 2 to 3 % for h down to 1e-6 |p| (the "
+    "nine": "forward and reverse mode agree, central differences do not: with the exact law the R1 column "
+            "differs by 2 to 3 % for h down to 1e-6 |p|, a switch at the start values (the "
             "mu column then agrees to 1.4e-6); with h = 1e-4 |p| the differences also cross stick/slip "
             "switches and the adaptive replay cuts other steps at R1 +/- h. Case nine_smoothed passes",
     "bead": "the adaptive run at the start values cannot reach the tightened tolerances (atol 1e-9: a "
