@@ -175,11 +175,10 @@ def penalty_tangent(scene, result) -> np.ndarray:
     Forward mode along the run's own accepted steps (:func:`jaxfric.params.path_function`), with the
     tangent eps_N itself, i.e. the change of the force per relative change of the penalty. eps_T
     follows when it is the spec's mu eps_N (config eps_t unset); a set eps_t stays fixed. Why it
-    estimates the penalty's error: the penalty acts as a spring of stiffness eps_N in series with the
-    sheet's own compliance k, F = F_exact eps_N / (eps_N + k), whence (F_exact - F) / F = k / eps_N =
-    eps_N F' / F exactly; where the penalty is stiff (k << eps_N) this is the first-order term of any
-    smooth F(eps_N) with F_exact its limit. Costs about one more run (a replay with one tangent) plus
-    its compilation.
+    estimates the penalty's error: where F = F_exact + c / eps_N, eps_N F' = F_exact - F exactly; for
+    a penalty spring in series with a compliance k, F = F_exact eps_N / (eps_N + k), eps_N F' / F =
+    (F_exact - F) / F_exact exactly; for any smooth F(eps_N) with limit F_exact it is the first-order
+    term in 1 / eps_N. Costs about one more run (a replay with one tangent) plus its compilation.
 
     Raises ValueError (one line) for another algorithm, and when the replay does not reproduce the
     run (another result code, row count or force).
