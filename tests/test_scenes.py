@@ -344,6 +344,14 @@ def test_flat_die_short_run():
     assert np.all(result.snapshots[end_clamp]["mu"] == 0.0) and np.all(result.snapshots[len(h["time"]) - 1]["mu"] == 0.15)
 
 
+def test_smoothing_field_selects_the_smoothed_law():
+    assert make("flat_die", "const_force", overrides={"smoothing": 0.5}).model.contact.smooth
+    law = make("nine", "mu017", "auglag", overrides={"mesh": "30x2", "smoothing": 2.0}).model.contact
+    assert law.smooth and float(law.smoothing) == 2.0 and float(law.target_gap) == 1e-5
+    assert not make("bead", None, "penalty", overrides={"mesh": "50x2"}).model.contact.smooth
+
+
+@pytest.mark.slow  # a flat-die run of its own compilation (12 s)
 def test_smoothed_contact_law_through_the_scene_config():
     """``smoothing`` = S selects the smoothed penalty law (contact_laws): the die still balances
     F_clamp, and at full sliding the drawing force stays within the law's bound of mu F_clamp,
