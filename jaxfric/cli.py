@@ -74,6 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="override a config field; for a fitted field this is its start value")
     fit.add_argument("--bounds", action="append", default=[], metavar="NAME=LOW:HIGH",
                      help="bounds of a fitted parameter (default [0, inf))")
+    fit.add_argument("--grid", action="append", default=[], metavar="NAME=LOW:HIGH:N",
+                     help="global stage: adaptive runs at N equally spaced values of NAME (every --grid "
+                          "combined), Levenberg-Marquardt from the best interpolated point")
     fit.add_argument("--window", type=float, metavar="MM",
                      help="fit the mean force over windows of this length instead of every point")
     fit.add_argument("--out", metavar="DIR", help="output directory (default fits/SCENE/VARIANT)")
@@ -283,6 +286,26 @@ def _bounds(pairs, names) -> dict:
     return out
 
 
+def _grid(specs, names) -> dict:
+    out = {}
+    for text in specs:
+        name, sep, rng = text.partition("=")
+        parts = rng.split(":")
+        name = name.strip()
+        if not sep or len(parts) != 3:
+            raise UsageError(f"--grid expects NAME=LOW:HIGH:N, got {text!r}")
+        if name not in names:
+            raise UsageError(f"--grid names {name!r}, which --param does not fit ({', '.join(names)})")
+        try:
+            low, high, n = float(parts[0]), float(parts[1]), int(parts[2])
+        except ValueError:
+            raise UsageError(f"--grid {text!r}: LOW and HIGH must be numbers and N an integer") from None
+        if n < 2:
+            raise UsageError(f"--grid {text!r}: N must be at least 2")
+        out[name] = [low + (high - low) * k / (n - 1) for k in range(n)]
+    return out
+
+
 def _fit(args) -> int:
     _check_scene_args(args)
     from . import scenes
@@ -293,6 +316,7 @@ def _fit(args) -> int:
         raise UsageError(f"--param expects NAME[,NAME...], got {args.param!r}")
     overrides = _scene_overrides(args)
     bounds = _bounds(args.bounds, names)
+    grid = _grid(args.grid, names)
     variant = args.variant or scenes.default_variant(args.scene)
     out = os.path.join("fits", args.scene, variant) if args.out is None else args.out
     if not os.path.isfile(args.data):
@@ -300,7 +324,8 @@ def _fit(args) -> int:
     _writable_dir(out)
     try:
         result = fit(args.scene, args.data, names, variant=variant, algorithm=args.algorithm,
-                     overrides=overrides, bounds=bounds, window=args.window, progress=not args.quiet)
+                     overrides=overrides, bounds=bounds, window=args.window, grid=grid or None,
+                     progress=not args.quiet)
     except ValueError as err:
         raise UsageError(str(err)) from None
     except FitError as err:

@@ -158,6 +158,9 @@ class FitResult:
         iterations: per accepted or rejected trial, a dict (iteration, accepted, cost, damping, params).
         measurement: the :class:`Measurement`; fitted_force, start_force: simulated force at the
             measured displacements (pointwise, whatever ``window``), at the optimum and at the start.
+        grid: the global stage (``grid`` argument): per grid point, a dict of its parameters, its
+            misfit (inf where the run failed) and ``converged``; empty without one. ``start`` is
+            then the point the global stage chose.
     """
 
     scene: str
@@ -184,6 +187,7 @@ class FitResult:
     measurement: Measurement
     fitted_force: np.ndarray
     start_force: np.ndarray
+    grid: list = dataclasses.field(default_factory=list)
 
 
 def bin_means(x, f, edges):
@@ -295,10 +299,84 @@ def _windows(x: np.ndarray, window, n_params: int):
     return np.linspace(x[0], x[-1], n + 1)
 
 
+_GRIDS = {}  # adaptive runs of the global stage by scene, parameters and grid: repeated fits reuse them
+
+
+def _grid_axes(grid, names, lo, hi) -> list:
+    """The grid's values per fitted parameter (validated); a parameter the grid does not name keeps
+    its start value (an axis of one value)."""
+    grid = dict(grid)
+    unknown = [k for k in grid if k not in names]
+    if unknown:
+        raise ValueError(f"field 'grid' names {unknown[0]!r}, which is not a fitted parameter ({', '.join(names)})")
+    axes = []
+    for i, name in enumerate(names):
+        if name not in grid:
+            axes.append(None)
+            continue
+        try:
+            v = np.asarray([float(x) for x in grid[name]])
+        except (TypeError, ValueError):
+            raise ValueError(f"field 'grid' of {name!r} must be a sequence of numbers, got {grid[name]!r}") from None
+        if v.size < 2 or not np.all(np.isfinite(v)) or np.any(np.diff(v) <= 0):
+            raise ValueError(f"field 'grid' of {name!r} must hold at least two finite, increasing values, "
+                             f"got {grid[name]!r}")
+        if v[0] < lo[i] or v[-1] > hi[i]:
+            raise ValueError(f"field 'grid' of {name!r} = [{v[0]:g}, {v[-1]:g}] leaves the bounds "
+                             f"[{lo[i]:g}, {hi[i]:g}]")
+        axes.append(v)
+    return axes
+
+
+def _observations(history: dict, x: np.ndarray, edges):
+    """The fitted observations of a completed run (as :class:`_Curve` computes them along a replay)."""
+    xr, fr = np.asarray(history["drawing_displacement"]), np.asarray(history["drawing_force"])
+    return np.interp(x, xr, fr) if edges is None else bin_means(xr, fr, edges)
+
+
+def _surrogate_minimum(axes: list, obs: np.ndarray, observed: np.ndarray, refine: int = 10):
+    """Minimum of the misfit of the observations interpolated multilinearly between grid points.
+
+    Interpolating the observations, not the misfit, follows a narrow valley of the misfit between
+    grid points (the observations are smooth in the parameters where the misfit is not quadratic on
+    the grid's scale). Cells with a failed run (NaN) are left out. Returns the point and its misfit."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    live = [a for a in axes if a.size > 1]
+    values = obs.reshape([a.size for a in live] + [obs.shape[-1]])
+    n_fine = max(2, int(round((2e5 / max(obs.shape[-1], 1)) ** (1.0 / len(live)))))
+    fine = [np.unique(np.concatenate([np.linspace(a[j], a[j + 1], min(refine, n_fine) + 1)
+                                      for j in range(a.size - 1)])) for a in live]
+    mesh = np.stack(np.meshgrid(*fine, indexing="ij"), axis=-1).reshape(-1, len(live))
+    interp = RegularGridInterpolator(live, values, method="linear")
+    cost = 0.5 * np.sum((interp(mesh) - observed) ** 2, axis=1)
+    cost[~np.isfinite(cost)] = np.inf
+    k = int(np.argmin(cost))
+    if not math.isfinite(cost[k]):
+        return mesh[k], math.inf
+    # Polish inside the grid (Nelder-Mead: the interpolant is only piecewise smooth), so that the
+    # start does not depend on where the evaluation points happen to fall.
+    from scipy.optimize import minimize
+
+    def surrogate(q):
+        v = 0.5 * float(np.sum((interp(q[None, :])[0] - observed) ** 2))
+        return v if math.isfinite(v) else 1e300
+
+    box = [(a[0], a[-1]) for a in live]
+    step = np.array([(a[-1] - a[0]) / (a.size - 1) / refine for a in live])
+    simplex = np.vstack([mesh[k]] + [mesh[k] + np.where(np.arange(len(live)) == i, step[i], 0.0) for i in range(len(live))])
+    simplex = np.clip(simplex, [b[0] for b in box], [b[1] for b in box])
+    res = minimize(surrogate, mesh[k], method="Nelder-Mead", bounds=box,
+                   options={"initial_simplex": simplex, "xatol": 1e-9, "fatol": 1e-12, "maxiter": 2000})
+    if res.fun < cost[k]:
+        return np.asarray(res.x), float(res.fun)
+    return mesh[k], float(cost[k])
+
+
 def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str = "penalty",
         overrides: dict | None = None, bounds: dict | None = None, window: float | None = None,
         newton: NewtonOptions | None = None, max_iter: int = 30, xtol: float = 1e-7,
-        max_replans: int = 4, substeps: int = 1, progress: bool = True) -> FitResult:
+        max_replans: int = 4, substeps: int = 1, grid: dict | None = None, progress: bool = True) -> FitResult:
     """Fit the config fields ``params`` of ``scene`` to the measured drawing-force curve ``data``.
 
     Args:
@@ -320,6 +398,14 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
             replayed steps converge at parameter values further from the plan's without being cut,
             and every cut is a small jump of the fitted curve; the replays cost that many times more,
             and the fitted model is then the run with the finer steps.
+        grid: {name: increasing values}: a global stage before Levenberg-Marquardt. The adaptive run
+            at every point of the grid (the product of the axes; a fitted parameter the grid does not
+            name stays at its start value), the observations interpolated multilinearly between the
+            points, and Levenberg-Marquardt started from the minimum of the interpolated misfit
+            instead of the start values. For misfits with several local minima, as where two
+            parameters compensate each other and the model's discretisation ripples along the valley
+            they leave (mu and R1 on the Nine test). The runs are kept for later fits of the same
+            scene and grid (other measurements, e.g. noise draws, cost no simulation).
 
     Raises ValueError (one line, naming the field) on bad input, before any simulation, and
     :class:`FitError` when the simulation at the start values fails.
@@ -368,11 +454,42 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
         cost = 0.5 * float(r @ r) if code == Result.SUCCESS and np.all(np.isfinite(r)) else math.inf
         return {"p": p, "r": r, "jac": jac, "pointwise": pointwise, "cost": cost, "code": code, "cuts": cuts}
 
-    say(f"fit {scene}: planning the step sequence at " + ", ".join(f"{n} = {v:g}" for n, v in zip(names, par.p0)))
-    curve, failure = planned(par.p0)
+    p_start, grid_rows = par.p0.copy(), []
+    if grid:
+        axes = _grid_axes(grid, names, lo, hi)
+        axes = [np.array([par.p0[i]]) if a is None else a for i, a in enumerate(axes)]
+        points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(names))
+        gkey = (scene, names, par.scene.variant, algorithm, repr(sorted((overrides or {}).items())), newton,
+                tuple(a.tobytes() for a in axes))
+        runs = _GRIDS.setdefault(gkey, {})
+        say(f"fit {scene}: global stage, adaptive runs at {len(points)} grid points")
+        obs = np.full((len(points), observed.size), np.nan)
+        for j, p in enumerate(points):
+            if j not in runs:
+                res = adaptive_run(par, p, newton)
+                counts["simulations"] += 1
+                runs[j] = res.history if res.converged else None
+            if runs[j] is not None:
+                obs[j] = _observations(runs[j], meas.displacement, edges)
+            r = obs[j] - observed
+            grid_rows.append({**dict(zip(names, p.tolist())), "cost": 0.5 * float(r @ r) if runs[j] is not None else math.inf,
+                              "converged": runs[j] is not None})
+            say(f"  grid point {j + 1}/{len(points)}: misfit {grid_rows[-1]['cost']:.6g} at "
+                + ", ".join(f"{n} = {v:.6g}" for n, v in zip(names, p)))
+        if not any(row["converged"] for row in grid_rows):
+            raise FitError("no run of the global stage completes: no start for the fit")
+        best, best_cost = _surrogate_minimum(axes, obs, observed)
+        it = iter(best)
+        p_start = np.array([next(it) if a.size > 1 else a[0] for a in axes])
+        if not math.isfinite(best_cost):  # every cell has a failed corner: the best point run
+            j = int(np.argmin([row["cost"] for row in grid_rows]))
+            p_start, best_cost = points[j].copy(), grid_rows[j]["cost"]
+        say(f"  global stage: interpolated misfit {best_cost:.6g} at " + ", ".join(f"{n} = {v:.6g}" for n, v in zip(names, p_start)))
+    say(f"fit {scene}: planning the step sequence at " + ", ".join(f"{n} = {v:g}" for n, v in zip(names, p_start)))
+    curve, failure = planned(p_start)
     if curve is None:
         raise FitError(f"the simulation at the start values does not complete: {failure}")
-    cur = evaluate(curve, par.p0.copy())
+    cur = evaluate(curve, p_start.copy())
     if not math.isfinite(cur["cost"]):
         raise FitError(f"the replayed step sequence fails at the start values ({describe(cur['code'])})")
     start_force = cur["pointwise"]
@@ -445,12 +562,12 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
         scene=scene, variant=par.scene.variant, algorithm=algorithm, overrides=dict(overrides or {}),
         names=names, params=dict(zip(names, p.tolist())), stderr=dict(zip(names, err.tolist())),
         ci95={nm: (float(v - q * e), float(v + q * e)) for nm, v, e in zip(names, p, err)},
-        start=dict(zip(names, par.p0.tolist())), bounds={nm: (float(a), float(b)) for nm, a, b in zip(names, lo, hi)},
+        start=dict(zip(names, p_start.tolist())), bounds={nm: (float(a), float(b)) for nm, a, b in zip(names, lo, hi)},
         window=None if edges is None else float(edges[1] - edges[0]),
         covariance=cov, residual_rms=float(np.sqrt(np.mean(r**2))), cost=cur["cost"], n_points=m,
         n_simulations=counts["simulations"], n_replans=counts["replans"], wall_s=time.perf_counter() - t_start,
         converged=converged, message=message or "converged", iterations=iterations, measurement=meas,
-        fitted_force=cur["pointwise"], start_force=start_force)
+        fitted_force=cur["pointwise"], start_force=start_force, grid=grid_rows)
 
 
 def _json_number(v):
@@ -458,7 +575,8 @@ def _json_number(v):
 
 
 def write_fit(result: FitResult, out: str) -> dict:
-    """Write ``fit.json``, ``fit_history.csv`` and ``fit.png`` into ``out``; returns the JSON dict."""
+    """Write ``fit.json``, ``fit_history.csv`` and ``fit.png`` into ``out`` (and ``fit_grid.csv``, the
+    global stage's runs, when there was one); returns the JSON dict."""
     os.makedirs(out, exist_ok=True)
     summary = {
         "scene": result.scene, "variant": result.variant, "algorithm": result.algorithm,
@@ -472,6 +590,14 @@ def write_fit(result: FitResult, out: str) -> dict:
         "wall_s": result.wall_s, "converged": result.converged, "message": result.message,
         "measurement": result.measurement.source,
     }
+    if result.grid:
+        summary["global_stage"] = {"points": len(result.grid),
+                                   "failed": sum(not row["converged"] for row in result.grid),
+                                   "file": "fit_grid.csv"}
+        with open(os.path.join(out, "fit_grid.csv"), "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(result.grid[0]))
+            w.writeheader()
+            w.writerows(result.grid)
     with open(os.path.join(out, "fit.json"), "w") as f:
         json.dump(summary, f, indent=2)
     keys = list(result.iterations[0])
@@ -489,7 +615,12 @@ def _plot(result: FitResult, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
+    live = [n for n in result.names if len({row[n] for row in result.grid}) > 1]
+    if live and len(live) <= 2:
+        fig, (ax, bx, gx) = plt.subplots(1, 3, figsize=(16, 4.2))
+        _plot_grid(result, live, gx)
+    else:
+        fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
     x = result.measurement.displacement
     ax.plot(x, result.measurement.force, ".", ms=3, color="0.4", label="measured")
     ax.plot(x, result.start_force, "--", color="tab:blue", lw=1,
@@ -521,3 +652,38 @@ def _plot(result: FitResult, path: str) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def _plot_grid(result: FitResult, live: list, ax) -> None:
+    """The global stage: misfit of every grid run (log colour; x: failed run) and the path of the
+    Levenberg-Marquardt iterates from the chosen start."""
+    import matplotlib.colors as mcolors
+
+    rows = result.grid
+    ok = [r for r in rows if r["converged"]]
+    its = [row for row in result.iterations if row["accepted"]]
+    if len(live) == 1:
+        (a,) = live
+        ax.semilogy([r[a] for r in ok], [max(r["cost"], 1e-300) for r in ok], "o-", color="k", ms=3,
+                    label="grid runs")
+        ax.axvline(result.start[a], color="tab:blue", ls="--", lw=1, label="start of the fit")
+        ax.axvline(result.params[a], color="tab:red", lw=1, label="fitted")
+        ax.set_xlabel(a)
+        ax.set_ylabel("misfit (N/mm)^2")
+    else:
+        a, b = live
+        costs = np.array([max(r["cost"], 1e-300) for r in ok])
+        sc = ax.scatter([r[a] for r in ok], [r[b] for r in ok], c=costs, cmap="viridis", s=28,
+                        norm=mcolors.LogNorm(vmin=costs.min(), vmax=costs.max()))
+        bad = [r for r in rows if not r["converged"]]
+        if bad:
+            ax.plot([r[a] for r in bad], [r[b] for r in bad], "x", color="0.5", label="run failed")
+        ax.plot([r[a] for r in its], [r[b] for r in its], ".-", color="tab:red", ms=4, lw=1,
+                label="Levenberg-Marquardt iterates")
+        ax.plot(result.start[a], result.start[b], "s", mfc="none", color="tab:blue", label="start (interpolated minimum)")
+        ax.figure.colorbar(sc, ax=ax, label="misfit (N/mm)^2")
+        ax.set_xlabel(a)
+        ax.set_ylabel(b)
+    ax.set_title(f"global stage: {len(rows)} adaptive runs", fontsize=10)
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)

@@ -44,6 +44,25 @@ def test_cli_fit_recovers_mu_from_a_run_history(flat_history, tmp_path, capsys):
     assert "mu = 0.15" in capsys.readouterr().out
 
 
+def test_global_stage_starts_the_fit_at_the_interpolated_minimum(flat_history, tmp_path):
+    # Three runs at mu = 0.04, 0.17, 0.3 (the truth, 0.15, is not one of them). The plateau force is
+    # mu F_clamp, linear in mu, so the interpolated misfit has its minimum near the truth; not at it,
+    # since the force before full sliding is not linear in mu (measured start: 0.1525).
+    out = tmp_path / "fit"
+    code = main(["fit", *FLAT, "--data", flat_history, "--param", "mu", "--set", "mu=0.3", "--quiet",
+                 "--grid", "mu=0.04:0.3:3", "--bounds", "mu=0:1", "--out", str(out)])
+    assert code == 0
+    summary = json.loads((out / "fit.json").read_text())
+    assert summary["global_stage"] == {"points": 3, "failed": 0, "file": "fit_grid.csv"}
+    grid = (out / "fit_grid.csv").read_text().splitlines()
+    assert grid[0] == "mu,cost,converged" and len(grid) == 4
+    costs = [float(line.split(",")[1]) for line in grid[1:]]
+    assert summary["start"]["mu"] not in (0.04, 0.17, 0.3) and abs(summary["start"]["mu"] - 0.15) < 0.01
+    assert summary["start"]["mu"] != pytest.approx(0.15, abs=1e-6)  # interpolated, not the truth itself
+    assert all(c > 0 for c in costs)
+    assert abs(summary["params"]["mu"] - 0.15) < 1e-7
+
+
 @pytest.mark.slow
 def test_fit_with_noise_reports_an_interval_that_holds_the_truth(flat_history):
     meas = read_measurement(flat_history)
@@ -101,6 +120,12 @@ def test_parameterized_model_equals_the_built_model(scene, variant, names):
     (["--param", "mu", "--window", "0"], "'window'"),
     (["--param", "mu", "--window", "1"], "fewer than the 1 parameter"),
     (["--param", "mu", "--set", "mu=x"], "must be a number"),
+    (["--param", "mu", "--grid", "mu=0.1:0.2"], "NAME=LOW:HIGH:N"),
+    (["--param", "mu", "--grid", "E=1:2:3"], "does not fit"),
+    (["--param", "mu", "--grid", "mu=0.1:0.2:1"], "N must be at least 2"),
+    (["--param", "mu", "--grid", "mu=0.2:0.1:3"], "increasing"),
+    (["--param", "mu", "--grid", "mu=0.1:nan:3"], "finite"),
+    (["--param", "mu", "--grid", "mu=0:2:3", "--bounds", "mu=0:1"], "leaves the bounds"),
 ])
 def test_cli_fit_rejects_bad_input_in_one_line(flat_history, tmp_path, capsys, args, needle):
     code = main(["fit", *FLAT, "--data", flat_history, "--quiet", "--out", str(tmp_path / "o"), *args])
