@@ -75,8 +75,11 @@ def augmented_pair(gap, slip, lambda_n, lambda_t, mu, eps_n, eps_t, valid=True, 
 
 
 def _smoothed_pair(gap, slip, lambda_n, lambda_t, mu, eps_n, eps_t, valid, s) -> PairForce:
-    rn_trial = jnp.where(valid, lambda_n - eps_n * gap, -jnp.inf)
-    rn = s * jax.nn.softplus(rn_trial / s)
+    # Double where, no -inf: with the force scale s a traced leaf, the tangent of rn_trial / s carries
+    # -rn_trial ds / s^2, which at rn_trial = -inf is inf * 0 = NaN even when ds = 0 (forward mode
+    # then spreads it through the whole step; reverse mode only into s's own, unread, cotangent).
+    rn_trial = jnp.where(valid, lambda_n - eps_n * gap, 0.0)
+    rn = jnp.where(valid, s * jax.nn.softplus(rn_trial / s), 0.0)
     rt_trial = jnp.where(valid, lambda_t - eps_t * slip, 0.0)
     limit = mu * rn
     rt = rt_trial - s * jax.nn.softplus((rt_trial - limit) / s) + s * jax.nn.softplus((-rt_trial - limit) / s)

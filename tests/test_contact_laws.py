@@ -58,6 +58,21 @@ def test_smoothing_tends_to_the_exact_law_and_is_differentiable_at_the_kinks(s):
         np.testing.assert_allclose(J, fd, rtol=1e-5, atol=1e-6 * EPS_N)
 
 
+def test_smoothed_law_has_finite_tangents_on_invalid_pairs_with_a_traced_scale():
+    """A pair that projects on no primitive, with the force scale s traced (a model leaf, as in every
+    scene): zero forces and zero, not NaN, tangents in forward and reverse mode (an -inf trial force
+    once made the forward tangent inf * 0 = NaN, which spread through the bead test's whole step)."""
+    def f(v, valid):
+        return jnp.stack(augmented_pair(v[0], v[1], 0.0, 1.0, MU, EPS_N, EPS_T, valid, smoothing=v[2])[:2])
+
+    v0 = jnp.array([1e-3, 1e-4, 10.0])
+    for valid in (False, True):
+        value, tangent = jax.jvp(lambda v: f(v, valid), (v0,), (jnp.array([1.0, 1.0, 0.0]),))
+        assert bool(jnp.all(jnp.isfinite(tangent))) and bool(jnp.all(jnp.isfinite(jax.jacrev(f)(v0, valid))))
+    np.testing.assert_array_equal(np.asarray(f(v0, False)), 0.0)
+    np.testing.assert_array_equal(np.asarray(jax.jvp(lambda v: f(v, False), (v0,), (jnp.ones(3),))[1]), 0.0)
+
+
 def test_static_flags_follow_the_given_values_inside_jit():
     """Built inside jit from plain numbers, a penalty is not smoothed and a mu = 0 tool is frictionless."""
     from jaxfric.contact import Move, Penalty, RigidTool
