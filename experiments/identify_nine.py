@@ -56,6 +56,8 @@ def main(argv=None) -> None:
     ap.add_argument("--params", default="mu;mu,R1", help="parameter sets to fit, ';'-separated")
     ap.add_argument("--grid", default="mu=0.101:0.251:7,R1=5.07:5.97:9",
                     help="global stage of the fits of more than one parameter (NAME=LOW:HIGH:N,...); '' for none")
+    ap.add_argument("--tag", default="", help="suffix of the CSV and figure names (parallel runs)")
+    ap.add_argument("--no-clean", action="store_true", help="only the noise draws")
     ap.add_argument("--verbose", action="store_true", help="the fits' progress lines (grid points, trials)")
     ap.add_argument("--draw-replans", type=int, default=0, help="re-plans allowed in the noise fits")
     a = ap.parse_args(argv)
@@ -64,7 +66,7 @@ def main(argv=None) -> None:
         name, rng = spec.split("=")
         low, high, n = rng.split(":")
         grid[name] = np.linspace(float(low), float(high), int(n))
-    path = os.path.join(RESULTS, "identify_nine.csv")
+    path = os.path.join(RESULTS, f"identify_nine{a.tag}.csv")
     ran = {"+".join(group.split(",")) for group in a.params.split(";")}
     kept = [r for r in _read(path) if r["params"] not in ran]
     base = {"mesh": a.mesh, "U_draw": a.stroke}
@@ -78,8 +80,7 @@ def main(argv=None) -> None:
     rows = []
     for names in (tuple(group.split(",")) for group in a.params.split(";")):
         start = {**base, **{n: START[n] for n in names}}
-        cases = ([("none", None, 4), ("none, start plan", None, 0)]
-                 + [(f"seed{s}", s, a.draw_replans) for s in range(a.draws)])
+        cases = ([] if a.no_clean else [("none", None, 4), ("none, start plan", None, 0)]) + ([(f"seed{s}", s, a.draw_replans) for s in range(a.draws)])
         stage = {n: v for n, v in grid.items() if n in names} if len(names) > 1 else None
         for label, seed, replans in cases:
             data = dict(clean)
@@ -98,7 +99,7 @@ def main(argv=None) -> None:
                             f"{n}_ci_low": lo, f"{n}_ci_high": hi, f"{n}_inside": bool(lo <= TRUE[n] <= hi)})
             rows.append(row)
             print(" ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
-            save(kept + rows)  # after every fit: a run stopped halfway keeps what it computed
+            save(kept + rows, a.tag)  # after every fit: a run stopped halfway keeps what it computed
 
 
 def _read(path):
@@ -121,10 +122,10 @@ def _read(path):
     return rows
 
 
-def save(rows):
+def save(rows, tag=""):
     keys = list(dict.fromkeys(k for r in rows for k in r))
-    write_rows(os.path.join(RESULTS, "identify_nine.csv"), [{k: r.get(k, "") for k in keys} for r in rows])
-    _plot(rows, os.path.join(RESULTS, "identify_nine.png"))
+    write_rows(os.path.join(RESULTS, f"identify_nine{tag}.csv"), [{k: r.get(k, "") for k in keys} for r in rows])
+    _plot(rows, os.path.join(RESULTS, f"identify_nine{tag}.png"))
 
 
 def _plot(rows, path):

@@ -389,7 +389,8 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
             consecutive windows of about that length, measured and simulated alike. On a coarse mesh
             the simulated force ripples as nodes pass over a curved tool (node spacing = period); a
             window of a few node spacings fits the trend, not the ripple.
-        max_iter: Levenberg-Marquardt trials (accepted or not) per step sequence.
+        max_iter: Levenberg-Marquardt trials (accepted or not) per step sequence; when they run out,
+            the fit re-plans at the best point so far (while ``max_replans`` allows).
         xtol: converged when an accepted step changes every p_i by at most xtol (|p_i| + xtol).
         max_replans: adaptive runs at the optimum, to settle the step sequence. 0: fit on the
             sequence planned at the start values (cheaper; the answer then carries the difference
@@ -520,7 +521,11 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
                     message = "no decrease of the misfit even with very small steps (damping > 1e12)"
                     settled = True
                     break
-        if not settled:
+        # Trials that stall on one sequence (a replay that cuts a step at some trial points moves the
+        # curve by a small jump, which Levenberg-Marquardt cannot step over) still moved the point:
+        # re-plan there while re-plans are left.
+        stalled = not settled
+        if stalled and counts["replans"] >= max_replans:
             message = f"no convergence in {max_iter} trials on this step sequence"
             break
         if message:
@@ -534,7 +539,10 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
             message = f"the adaptive run at the fitted values does not complete: {failure}"
             break
         if again.same_plan(curve):
-            converged = True
+            if stalled:
+                message = (f"no convergence in {max_iter} trials on the step sequence of the adaptive run at "
+                           "the fitted values")
+            converged = not stalled
             break
         if counts["replans"] >= max_replans:
             message = f"the step sequence still changed after {max_replans} re-plans"

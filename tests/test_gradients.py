@@ -48,6 +48,10 @@ CASES = {
     # The smoothed law, five times smaller steps, differences with h = 1e-6 |p| (docstring).
     "nine_smoothed": ("mu017", {"mesh": "40x2", "U_draw": 1.0, "dU": 0.02, "dq_clamp": 0.05, "smoothing": 10.0},
                       ["mu", "R1"], NewtonOptions(rtol=1e-11, atol=1e-9, max_iterations=60)),
+    # The smoothed law lets Newton reach atol 1e-8 on the roller (the exact law stalls at 2.5e-9 with
+    # atol 1e-9, see KNOWN); ~1e-9 N/mm of residual over 2h is below 1e-5 of every row's largest entry.
+    "bead_smoothed": ("th090_mu017", {"mesh": "60x2", "s_draw": 0.5, "smoothing": 10.0},
+                      ["R_r", "mu_roller", "F_clamp", "E"], NewtonOptions(rtol=1e-12, atol=1e-8, max_iterations=60)),
 }
 REL_H = {"nine_smoothed": 1e-6}
 # Differences along the adaptive replay (the fixed one fails at p +/- h there; see _check).
@@ -108,6 +112,9 @@ KNOWN = {
             "switches and the adaptive replay cuts other steps at R1 +/- h. Case nine_smoothed passes",
     "bead": "the adaptive run at the start values cannot reach the tightened tolerances (atol 1e-9: a "
             "wind step stalls at 2.5e-9 N/mm), and at the default ones differences are too noisy for 1e-5",
+    "bead_smoothed": "forward = reverse to 1e-8; central differences (h = 1e-4 |p|) agree to 1e-6 or better in "
+                     "the mu_roller, F_clamp and E columns, but the R_r column differs by 2.2e-5 of the row's "
+                     "largest entry (dF_draw/dR_r -6.3176 against -6.3227; measured 2026-11-25)",
     "blankholder": "forward = reverse along the fixed replay (measured 1.2e-8 of the row's largest entry "
                    "between the adaptive and the fixed replay, F_clamp column 1 in both), but the fixed "
                    "replay fails at H +/- 1e-4 H (an element inverts, result code 3): no differences to compare "
@@ -118,6 +125,7 @@ KNOWN = {
 @pytest.mark.slow
 @pytest.mark.parametrize("scene", [
     "nine_smoothed",
+    pytest.param("bead_smoothed", marks=pytest.mark.xfail(reason=KNOWN["bead_smoothed"], strict=True)),
     pytest.param("nine", marks=pytest.mark.xfail(reason=KNOWN["nine"], strict=True)),
     pytest.param("bead", marks=pytest.mark.xfail(reason=KNOWN["bead"], strict=True)),
     pytest.param("blankholder", marks=pytest.mark.xfail(reason=KNOWN["blankholder"], strict=True)),
