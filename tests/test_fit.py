@@ -63,6 +63,25 @@ def test_global_stage_starts_the_fit_at_the_interpolated_minimum(flat_history, t
     assert abs(summary["params"]["mu"] - 0.15) < 1e-7
 
 
+def test_interpolated_minimum_follows_a_narrow_valley_between_grid_points():
+    # Observations linear in (a, b) and nearly compensating (a valley along a = 0.15 b): multilinear
+    # interpolation is exact for them, so the polished minimum is the truth, which lies on no grid line
+    # and between the evaluation points; a grid-point minimum would miss it by half a cell.
+    from jaxfric.fit import _surrogate_minimum
+
+    axes = [np.linspace(0.10, 0.25, 7), np.linspace(5.07, 5.97, 9)]
+    A = np.array([[900.0, -130.0], [1000.0, -160.0], [800.0, -100.0]])
+    truth = np.array([0.1713, 5.4987])
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
+    best, cost = _surrogate_minimum(axes, pts @ A.T, A @ truth)
+    np.testing.assert_allclose(best, truth, atol=1e-6)
+    assert cost < 1e-6
+    # A failed run (NaN) removes the cells around it, never the whole grid.
+    obs = pts @ A.T
+    obs[0] = np.nan
+    np.testing.assert_allclose(_surrogate_minimum(axes, obs, A @ truth)[0], truth, atol=1e-6)
+
+
 @pytest.mark.slow
 def test_fit_with_noise_reports_an_interval_that_holds_the_truth(flat_history):
     meas = read_measurement(flat_history)
