@@ -52,6 +52,7 @@ def main(argv=None) -> None:
     ap.add_argument("--stroke", type=float, default=10.0, help="U_draw (mm)")
     ap.add_argument("--window", type=float, default=1.0, help="fitted window length (mm)")
     ap.add_argument("--draws", type=int, default=10)
+    ap.add_argument("--seeds", help="comma-separated noise seeds instead of 0 .. draws-1 (parallel runs)")
     ap.add_argument("--noise", type=float, default=0.01, help="noise std / mean force")
     ap.add_argument("--params", default="mu;mu,R1", help="parameter sets to fit, ';'-separated")
     ap.add_argument("--grid", default="mu=0.101:0.251:7,R1=5.07:5.97:9",
@@ -61,6 +62,7 @@ def main(argv=None) -> None:
     ap.add_argument("--verbose", action="store_true", help="the fits' progress lines (grid points, trials)")
     ap.add_argument("--draw-replans", type=int, default=0, help="re-plans allowed in the noise fits")
     a = ap.parse_args(argv)
+    seeds = [int(v) for v in a.seeds.split(",")] if a.seeds else list(range(a.draws))
     grid = {}
     for spec in filter(None, a.grid.split(",")):
         name, rng = spec.split("=")
@@ -80,7 +82,7 @@ def main(argv=None) -> None:
     rows = []
     for names in (tuple(group.split(",")) for group in a.params.split(";")):
         start = {**base, **{n: START[n] for n in names}}
-        cases = ([] if a.no_clean else [("none", None, 4), ("none, start plan", None, 0)]) + ([(f"seed{s}", s, a.draw_replans) for s in range(a.draws)])
+        cases = ([] if a.no_clean else [("none", None, 4), ("none, start plan", None, 0)]) + ([(f"seed{s}", s, a.draw_replans) for s in seeds])
         stage = {n: v for n, v in grid.items() if n in names} if len(names) > 1 else None
         for label, seed, replans in cases:
             data = dict(clean)
