@@ -39,7 +39,7 @@ from benchutil import write_rows  # noqa: E402
 
 import jaxfric  # noqa: E402
 from jaxfric import scenes  # noqa: E402
-from jaxfric.fit import fit  # noqa: E402
+from jaxfric.fit import bin_means, fit  # noqa: E402
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 TRUE = {"mu": 0.17, "R1": 5.5}
@@ -59,9 +59,24 @@ def main(argv=None) -> None:
                     help="global stage of the fits of more than one parameter (NAME=LOW:HIGH:N,...); '' for none")
     ap.add_argument("--tag", default="", help="suffix of the CSV and figure names (parallel runs)")
     ap.add_argument("--no-clean", action="store_true", help="only the noise draws")
+    ap.add_argument("--merge", metavar="TAG[,TAG]", help="only merge the rows of identify_nine<TAG>.csv (runs made "
+                    "with --tag) into identify_nine.csv, replacing rows of the same case, and redraw the figure")
     ap.add_argument("--verbose", action="store_true", help="the fits' progress lines (grid points, trials)")
     ap.add_argument("--draw-replans", type=int, default=0, help="re-plans allowed in the noise fits")
     a = ap.parse_args(argv)
+    if a.merge:
+        rows = _read(os.path.join(RESULTS, "identify_nine.csv"))
+        for tag in a.merge.split(","):
+            more = _read(os.path.join(RESULTS, f"identify_nine{tag}.csv"))
+            done = {(r["params"], r["noise"]) for r in more}
+            rows = [r for r in rows if (r["params"], r["noise"]) not in done] + more
+        clean, sigma = _measurement(a)
+        for r in rows:
+            if str(r["noise"]).startswith("seed"):
+                r["residual_rms_truth"] = _truth_rms(clean, sigma, int(r["noise"][4:]), r["window_mm"])
+        seed = lambda r: int(r["noise"][4:]) if str(r["noise"]).startswith("seed") else -1  # noqa: E731
+        save(sorted(rows, key=lambda r: (r["params"] != "mu", seed(r))))
+        return
     seeds = [int(v) for v in a.seeds.split(",")] if a.seeds else list(range(a.draws))
     grid = {}
     for spec in filter(None, a.grid.split(",")):
@@ -72,28 +87,20 @@ def main(argv=None) -> None:
     ran = {"+".join(group.split(",")) for group in a.params.split(";")}
     kept = [r for r in _read(path) if r["params"] not in ran]
     base = {"mesh": a.mesh, "U_draw": a.stroke}
-    sc = scenes.make("nine", "mu017", "penalty", base)
-    t0 = time.perf_counter()
-    run = jaxfric.run(sc.model, control=sc.control, observe=sc.observe, progress=False)
-    h = run.history
-    clean = {"drawing_displacement": h["drawing_displacement"], "drawing_force": h["drawing_force"]}
-    print(f"measurement: {len(h['time'])} rows, {time.perf_counter() - t0:.1f} s", flush=True)
-    sigma = a.noise * float(np.mean(h["drawing_force"][h["drawing_displacement"] > 0]))
+    clean, sigma = _measurement(a)
     rows = []
     for names in (tuple(group.split(",")) for group in a.params.split(";")):
         start = {**base, **{n: START[n] for n in names}}
         cases = ([] if a.no_clean else [("none", None, 4), ("none, start plan", None, 0)]) + ([(f"seed{s}", s, a.draw_replans) for s in seeds])
         stage = {n: v for n, v in grid.items() if n in names} if len(names) > 1 else None
         for label, seed, replans in cases:
-            data = dict(clean)
-            if seed is not None:
-                rng = np.random.default_rng(seed)
-                data["drawing_force"] = clean["drawing_force"] + sigma * rng.standard_normal(len(clean["drawing_force"]))
+            data = _noisy(clean, sigma, seed)
             res = fit("nine", data, names, variant="mu017", overrides=start, window=a.window,
                       max_replans=replans, grid=stage or None, progress=a.verbose)
             row = {"params": "+".join(names), "noise": label, "mesh": a.mesh, "window_mm": a.window,
                    "converged": res.converged, "n_simulations": res.n_simulations, "n_replans": res.n_replans,
                    "wall_s": round(res.wall_s, 1), "residual_rms": res.residual_rms,
+                   "residual_rms_truth": "" if seed is None else _truth_rms(clean, sigma, seed, a.window),
                    "grid_points": len(res.grid), "start": " ".join(f"{n}={res.start[n]:.6g}" for n in names)}
             for n in names:
                 lo, hi = res.ci95[n]
@@ -102,6 +109,38 @@ def main(argv=None) -> None:
             rows.append(row)
             print(" ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
             save(kept + rows, a.tag)  # after every fit: a run stopped halfway keeps what it computed
+
+
+def _measurement(a):
+    """The synthetic measurement (the run at the truth) and the noise's standard deviation."""
+    sc = scenes.make("nine", "mu017", "penalty", {"mesh": a.mesh, "U_draw": a.stroke})
+    t0 = time.perf_counter()
+    h = jaxfric.run(sc.model, control=sc.control, observe=sc.observe, progress=False).history
+    print(f"measurement: {len(h['time'])} rows, {time.perf_counter() - t0:.1f} s", flush=True)
+    clean = {"drawing_displacement": h["drawing_displacement"], "drawing_force": h["drawing_force"]}
+    return clean, a.noise * float(np.mean(h["drawing_force"][h["drawing_displacement"] > 0]))
+
+
+def _noisy(clean, sigma, seed):
+    data = dict(clean)
+    if seed is not None:
+        rng = np.random.default_rng(seed)
+        data["drawing_force"] = clean["drawing_force"] + sigma * rng.standard_normal(len(clean["drawing_force"]))
+    return data
+
+
+def _truth_rms(clean, sigma, seed, window):
+    """The residual rms of the model at the true values against a noise draw: the model there is the
+    clean measurement itself, so no simulation is needed. A fit that ends above it stopped in a local
+    minimum; one below it found a point that fits the draw better than the truth does."""
+    x, f = (np.asarray(clean[k]) for k in ("drawing_displacement", "drawing_force"))
+    keep = x > 0
+    noisy = np.asarray(_noisy(clean, sigma, seed)["drawing_force"])[keep]
+    x, f = x[keep], f[keep]
+    if window is None or window == "":
+        return float(np.sqrt(np.mean((noisy - f) ** 2)))
+    edges = np.linspace(x[0], x[-1], int((x[-1] - x[0]) // float(window)) + 1)
+    return float(np.sqrt(np.mean((bin_means(x, noisy, edges) - bin_means(x, f, edges)) ** 2)))
 
 
 def _read(path):
