@@ -39,7 +39,8 @@ from benchutil import write_rows  # noqa: E402
 
 import jaxfric  # noqa: E402
 from jaxfric import scenes  # noqa: E402
-from jaxfric.fit import bin_means, fit  # noqa: E402
+from jaxfric.cli import _grid as parse_grid  # noqa: E402
+from jaxfric.fit import _windows, bin_means, fit  # noqa: E402
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 TRUE = {"mu": 0.17, "R1": 5.5}
@@ -78,11 +79,8 @@ def main(argv=None) -> None:
         save(sorted(rows, key=lambda r: (r["params"] != "mu", seed(r))))
         return
     seeds = [int(v) for v in a.seeds.split(",")] if a.seeds else list(range(a.draws))
-    grid = {}
-    for spec in filter(None, a.grid.split(",")):
-        name, rng = spec.split("=")
-        low, high, n = rng.split(":")
-        grid[name] = np.linspace(float(low), float(high), int(n))
+    specs = list(filter(None, a.grid.split(",")))
+    grid = parse_grid(specs, [spec.partition("=")[0].strip() for spec in specs])
     path = os.path.join(RESULTS, f"identify_nine{a.tag}.csv")
     ran = {"+".join(group.split(",")) for group in a.params.split(";")}
     kept = [r for r in _read(path) if r["params"] not in ran]
@@ -139,7 +137,7 @@ def _truth_rms(clean, sigma, seed, window):
     x, f = x[keep], f[keep]
     if window is None or window == "":
         return float(np.sqrt(np.mean((noisy - f) ** 2)))
-    edges = np.linspace(x[0], x[-1], int((x[-1] - x[0]) // float(window)) + 1)
+    edges = _windows(x, float(window), 1)  # the fit's own windows
     return float(np.sqrt(np.mean((bin_means(x, noisy, edges) - bin_means(x, f, edges)) ** 2)))
 
 

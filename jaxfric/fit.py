@@ -344,8 +344,9 @@ def _surrogate_minimum(axes: list, obs: np.ndarray, observed: np.ndarray, refine
 
     live = [a for a in axes if a.size > 1]
     values = obs.reshape([a.size for a in live] + [obs.shape[-1]])
-    n_fine = max(2, int(round((2e5 / max(obs.shape[-1], 1)) ** (1.0 / len(live)))))
-    fine = [np.unique(np.concatenate([np.linspace(a[j], a[j + 1], min(refine, n_fine) + 1)
+    # Points per cell and axis: ``refine``, fewer where the product would exceed ~2e5 observations.
+    per_cell = min(refine, max(2, int(round((2e5 / max(obs.shape[-1], 1)) ** (1.0 / len(live))))))
+    fine = [np.unique(np.concatenate([np.linspace(a[j], a[j + 1], per_cell + 1)
                                       for j in range(a.size - 1)])) for a in live]
     mesh = np.stack(np.meshgrid(*fine, indexing="ij"), axis=-1).reshape(-1, len(live))
     interp = RegularGridInterpolator(live, values, method="linear")
@@ -363,7 +364,7 @@ def _surrogate_minimum(axes: list, obs: np.ndarray, observed: np.ndarray, refine
         return v if math.isfinite(v) else 1e300
 
     box = [(a[0], a[-1]) for a in live]
-    step = np.array([(a[-1] - a[0]) / (a.size - 1) / refine for a in live])
+    step = np.array([(a[-1] - a[0]) / (a.size - 1) / per_cell for a in live])
     simplex = np.vstack([mesh[k]] + [mesh[k] + np.where(np.arange(len(live)) == i, step[i], 0.0) for i in range(len(live))])
     simplex = np.clip(simplex, [b[0] for b in box], [b[1] for b in box])
     res = minimize(surrogate, mesh[k], method="Nelder-Mead", bounds=box,
@@ -427,6 +428,9 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
     project = jax.jit(lambda p: optax.projections.projection_box(p, jnp.asarray(lo), jnp.asarray(hi)))
     say = (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)
     counts = {"simulations": 0, "replans": 0}
+    # What the simulations depend on besides the parameters: the key of the caches of compiled curves
+    # and of the global stage's runs.
+    model_key = (scene, names, par.scene.variant, algorithm, repr(sorted((overrides or {}).items())), newton)
 
     def planned(p):
         """A curve on the step sequence of the adaptive run at p; None and the reason if it fails."""
@@ -439,8 +443,7 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
         if meas.displacement[-1] > top * (1 + 1e-12):
             raise ValueError(f"measurement {meas.source!r} reaches drawing_displacement {meas.displacement[-1]:g} "
                              f"mm, beyond the simulated stroke {top:g} mm (raise the scene's stroke field)")
-        key = (scene, names, par.scene.variant, algorithm, repr(sorted((overrides or {}).items())), newton,
-               history["time"].tobytes(), meas.displacement.tobytes(), None if edges is None else edges.tobytes(),
+        key = (*model_key, history["time"].tobytes(), meas.displacement.tobytes(), None if edges is None else edges.tobytes(),
                substeps)
         if key not in _CURVES:
             while len(_CURVES) >= 8:
@@ -460,9 +463,7 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
         axes = _grid_axes(grid, names, lo, hi)
         axes = [np.array([par.p0[i]]) if a is None else a for i, a in enumerate(axes)]
         points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(names))
-        gkey = (scene, names, par.scene.variant, algorithm, repr(sorted((overrides or {}).items())), newton,
-                tuple(a.tobytes() for a in axes))
-        runs = _GRIDS.setdefault(gkey, {})
+        runs = _GRIDS.setdefault((*model_key, tuple(a.tobytes() for a in axes)), {})
         say(f"fit {scene}: global stage, adaptive runs at {len(points)} grid points")
         obs = np.full((len(points), observed.size), np.nan)
         for j, p in enumerate(points):
