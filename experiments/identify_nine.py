@@ -61,6 +61,8 @@ def main(argv=None) -> None:
                     help="global stage of the fits of more than one parameter (NAME=LOW:HIGH:N,...); '' for none")
     ap.add_argument("--tag", default="", help="suffix of the CSV and figure names (parallel runs)")
     ap.add_argument("--no-clean", action="store_true", help="only the noise draws")
+    ap.add_argument("--clean", choices=("both", "start-plan"), default="both",
+                    help="noise-free cases: both (re-planned and start plan) or only the start-plan one")
     ap.add_argument("--merge", metavar="TAG[,TAG]", help="only merge the rows of identify_nine<TAG>.csv (runs made "
                     "with --tag) into identify_nine.csv, replacing rows of the same case, and redraw the figure")
     ap.add_argument("--verbose", action="store_true", help="the fits' progress lines (grid points, trials)")
@@ -94,7 +96,8 @@ def main(argv=None) -> None:
     rows = []
     for names in (tuple(group.split(",")) for group in a.params.split(";")):
         start = {**base, **{n: START[n] for n in names}}
-        cases = ([] if a.no_clean else [("none", None, 4), ("none, start plan", None, 0)]) + ([(f"seed{s}", s, a.draw_replans) for s in seeds])
+        clean_cases = [("none", None, 4)] * (a.clean == "both") + [("none, start plan", None, 0)]
+        cases = ([] if a.no_clean else clean_cases) + [(f"seed{s}", s, a.draw_replans) for s in seeds]
         stage = {n: v for n, v in grid.items() if n in names} if len(names) > 1 else None
         for label, seed, replans in cases:
             data = _noisy(clean, sigma, seed)
