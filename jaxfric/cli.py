@@ -77,6 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--grid", action="append", default=[], metavar="NAME=LOW:HIGH:N",
                      help="global stage: adaptive runs at N equally spaced values of NAME (every --grid "
                           "combined), Levenberg-Marquardt from the best interpolated point")
+    fit.add_argument("--starts", type=int, default=1, metavar="K",
+                     help="with --grid: Levenberg-Marquardt from the K lowest local minima of the "
+                          "interpolated misfit, the best fit kept (default 1)")
     fit.add_argument("--window", type=float, metavar="MM",
                      help="fit the mean force over windows of this length instead of every point")
     fit.add_argument("--out", metavar="DIR", help="output directory (default fits/SCENE/VARIANT)")
@@ -325,7 +328,7 @@ def _fit(args) -> int:
     try:
         result = fit(args.scene, args.data, names, variant=variant, algorithm=args.algorithm,
                      overrides=overrides, bounds=bounds, window=args.window, grid=grid or None,
-                     progress=not args.quiet)
+                     starts=args.starts, progress=not args.quiet)
     except ValueError as err:
         raise UsageError(str(err)) from None
     except FitError as err:

@@ -161,6 +161,8 @@ class FitResult:
         grid: the global stage (``grid`` argument): per grid point, a dict of its parameters, its
             misfit (inf where the run failed) and ``converged``; empty without one. ``start`` is
             then the point the global stage chose.
+        local_fits: per start of the local stage (``starts``), a dict of its start, its end
+            (parameters), misfit, converged and message; the result is the lowest misfit's.
     """
 
     scene: str
@@ -188,6 +190,7 @@ class FitResult:
     fitted_force: np.ndarray
     start_force: np.ndarray
     grid: list = dataclasses.field(default_factory=list)
+    local_fits: list = dataclasses.field(default_factory=list)
 
 
 def bin_means(x, f, edges):
@@ -335,29 +338,53 @@ def _observations(history: dict, x: np.ndarray, edges):
 
 
 def _surrogate_minimum(axes: list, obs: np.ndarray, observed: np.ndarray, refine: int = 10):
-    """Minimum of the misfit of the observations interpolated multilinearly between grid points.
+    """The lowest of :func:`_surrogate_minima`: the point and its misfit."""
+    return _surrogate_minima(axes, obs, observed, 1, refine)[0]
+
+
+def _surrogate_minima(axes: list, obs: np.ndarray, observed: np.ndarray, count: int, refine: int = 10) -> list:
+    """Up to ``count`` local minima of the misfit of the observations interpolated multilinearly
+    between grid points, lowest first: [(point, misfit), ...].
 
     Interpolating the observations, not the misfit, follows a narrow valley of the misfit between
     grid points (the observations are smooth in the parameters where the misfit is not quadratic on
-    the grid's scale). Cells with a failed run (NaN) are left out. Returns the point and its misfit."""
+    the grid's scale). The misfit is evaluated on a lattice ``refine`` points per cell and axis (fewer
+    where that would exceed ~2e5 observations); its local minima (no lower neighbour along any axis),
+    at least a cell apart, are polished by Nelder-Mead (the interpolant is only piecewise smooth), so
+    that a start does not depend on where the lattice points happen to fall. Cells with a failed run
+    (NaN) are left out. Where every cell has one, a single (point, inf)."""
     from scipy.interpolate import RegularGridInterpolator
+    from scipy.optimize import minimize
 
     live = [a for a in axes if a.size > 1]
     values = obs.reshape([a.size for a in live] + [obs.shape[-1]])
-    # Points per cell and axis: ``refine``, fewer where the product would exceed ~2e5 observations.
     per_cell = min(refine, max(2, int(round((2e5 / max(obs.shape[-1], 1)) ** (1.0 / len(live))))))
     fine = [np.unique(np.concatenate([np.linspace(a[j], a[j + 1], per_cell + 1)
                                       for j in range(a.size - 1)])) for a in live]
+    shape = [f.size for f in fine]
     mesh = np.stack(np.meshgrid(*fine, indexing="ij"), axis=-1).reshape(-1, len(live))
     interp = RegularGridInterpolator(live, values, method="linear")
     cost = 0.5 * np.sum((interp(mesh) - observed) ** 2, axis=1)
     cost[~np.isfinite(cost)] = np.inf
-    k = int(np.argmin(cost))
-    if not math.isfinite(cost[k]):
-        return mesh[k], math.inf
-    # Polish inside the grid (Nelder-Mead: the interpolant is only piecewise smooth), so that the
-    # start does not depend on where the evaluation points happen to fall.
-    from scipy.optimize import minimize
+    if not np.isfinite(cost).any():
+        return [(mesh[int(np.argmin(cost))], math.inf)]
+    # Lattice points with no lower neighbour along any axis (a plateau keeps all its points).
+    field = cost.reshape(shape)
+    padded = np.pad(field, 1, constant_values=np.inf)
+    centre = tuple(slice(1, -1) for _ in shape)
+    lowest = np.isfinite(field)
+    for ax in range(len(shape)):
+        for shift in (-1, 1):
+            neighbour = tuple(slice(1 + shift, n + 1 + shift) if i == ax else centre[i] for i, n in enumerate(shape))
+            lowest &= field <= padded[neighbour]
+    index = np.stack(np.unravel_index(np.flatnonzero(lowest.reshape(-1)), shape), axis=-1)
+    order = np.argsort(field[tuple(index.T)], kind="stable")
+    chosen = []
+    for k in index[order]:
+        if all(np.max(np.abs(k - c)) >= per_cell for c in chosen):
+            chosen.append(k)
+        if len(chosen) == count:
+            break
 
     def surrogate(q):
         v = 0.5 * float(np.sum((interp(q[None, :])[0] - observed) ** 2))
@@ -365,19 +392,26 @@ def _surrogate_minimum(axes: list, obs: np.ndarray, observed: np.ndarray, refine
 
     box = [(a[0], a[-1]) for a in live]
     step = np.array([(a[-1] - a[0]) / (a.size - 1) / per_cell for a in live])
-    simplex = np.vstack([mesh[k]] + [mesh[k] + np.where(np.arange(len(live)) == i, step[i], 0.0) for i in range(len(live))])
-    simplex = np.clip(simplex, [b[0] for b in box], [b[1] for b in box])
-    res = minimize(surrogate, mesh[k], method="Nelder-Mead", bounds=box,
-                   options={"initial_simplex": simplex, "xatol": 1e-9, "fatol": 1e-12, "maxiter": 2000})
-    if res.fun < cost[k]:
-        return np.asarray(res.x), float(res.fun)
-    return mesh[k], float(cost[k])
+    minima = []
+    for k in chosen:
+        q0 = np.array([fine[i][j] for i, j in enumerate(k)])
+        simplex = np.vstack([q0] + [q0 + np.where(np.arange(len(live)) == i, step[i], 0.0) for i in range(len(live))])
+        simplex = np.clip(simplex, [b[0] for b in box], [b[1] for b in box])
+        res = minimize(surrogate, q0, method="Nelder-Mead", bounds=box,
+                       options={"initial_simplex": simplex, "xatol": 1e-9, "fatol": 1e-12, "maxiter": 2000})
+        c0 = float(field[tuple(k)])
+        point, value = (np.asarray(res.x), float(res.fun)) if res.fun < c0 else (q0, c0)
+        # Two lattice minima of one basin polish to the same point: keep it once.
+        if all(np.max(np.abs(point - other) / step) > 0.5 for other, _ in minima):
+            minima.append((point, value))
+    return sorted(minima, key=lambda m: m[1])
 
 
 def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str = "penalty",
         overrides: dict | None = None, bounds: dict | None = None, window: float | None = None,
         newton: NewtonOptions | None = None, max_iter: int = 30, xtol: float = 1e-7,
-        max_replans: int = 4, substeps: int = 1, grid: dict | None = None, progress: bool = True) -> FitResult:
+        max_replans: int = 4, substeps: int = 1, grid: dict | None = None, starts: int = 1,
+        progress: bool = True) -> FitResult:
     """Fit the config fields ``params`` of ``scene`` to the measured drawing-force curve ``data``.
 
     Args:
@@ -408,6 +442,11 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
             parameters compensate each other and the model's discretisation ripples along the valley
             they leave (mu and R1 on the Nine test). The runs are kept for later fits of the same
             scene and grid (other measurements, e.g. noise draws, cost no simulation).
+        starts: with a grid, Levenberg-Marquardt from up to this many local minima of the
+            interpolated misfit (lowest first, at least a grid cell apart); the fit with the lowest
+            misfit is the result (its ``start``), the others are kept in ``local_fits``. Where the
+            interpolation error of the grid is larger than the misfit differences between basins,
+            the lowest interpolated minimum need not be in the lowest basin.
 
     Raises ValueError (one line, naming the field) on bad input, before any simulation, and
     :class:`FitError` when the simulation at the start values fails.
@@ -418,9 +457,12 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
     if meas.displacement.size < len(names):
         raise ValueError(f"measurement {meas.source!r} has {meas.displacement.size} point(s) at displacement > 0, "
                          f"fewer than the {len(names)} parameter(s)")
-    for name, value, least in (("max_iter", max_iter, 1), ("max_replans", max_replans, 0), ("substeps", substeps, 1)):
+    for name, value, least in (("max_iter", max_iter, 1), ("max_replans", max_replans, 0), ("substeps", substeps, 1),
+                               ("starts", starts, 1)):
         if isinstance(value, bool) or not isinstance(value, int) or value < least:
             raise ValueError(f"field {name!r} must be an integer >= {least}, got {value!r}")
+    if starts > 1 and not grid:
+        raise ValueError(f"field 'starts' = {starts} needs a grid (the starts are minima of the global stage)")
     edges = _windows(meas.displacement, window, len(names))
     observed = meas.force if edges is None else bin_means(meas.displacement, meas.force, edges)
     par = parameterize(scene, names, variant=variant, algorithm=algorithm, overrides=overrides)
@@ -458,6 +500,83 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
         cost = 0.5 * float(r @ r) if code == Result.SUCCESS and np.all(np.isfinite(r)) else math.inf
         return {"p": p, "r": r, "jac": jac, "pointwise": pointwise, "cost": cost, "code": code, "cuts": cuts}
 
+    def _local(p_start, number, count):
+        """Levenberg-Marquardt from p_start, re-planning at the optimum (module docstring)."""
+        say(f"fit {scene}: planning the step sequence at " + ", ".join(f"{n} = {v:g}" for n, v in zip(names, p_start)))
+        curve, failure = planned(p_start)
+        if curve is None:
+            raise FitError(f"the simulation at the start values does not complete: {failure}")
+        cur = evaluate(curve, p_start.copy())
+        if not math.isfinite(cur["cost"]):
+            raise FitError(f"the replayed step sequence fails at the start values ({describe(cur['code'])})")
+        start_force = cur["pointwise"]
+        damping, k, converged, message, replans = 1e-3, 0, False, "", 0
+        iterations = [{"iteration": 0, "accepted": True, "cost": cur["cost"], "damping": damping,
+                       **dict(zip(names, cur["p"].tolist()))}]
+        while True:
+            settled = False
+            for _ in range(max_iter):
+                k += 1
+                dp = _lm_step(cur["jac"], cur["r"], damping)
+                trial = np.asarray(project(optax.apply_updates(jnp.asarray(cur["p"]), jnp.asarray(dp))))
+                new = evaluate(curve, trial)
+                accepted = new["cost"] <= cur["cost"]
+                iterations.append({"iteration": k, "accepted": bool(accepted), "cost": new["cost"], "damping": damping,
+                                   **dict(zip(names, trial.tolist()))})
+                say(f"  trial {k}: misfit {new['cost']:.6g} ({'accepted' if accepted else 'rejected'}, "
+                    f"{new['cuts']} cutbacks) at " + ", ".join(f"{n} = {v:.10g}" for n, v in zip(names, trial)))
+                if accepted:
+                    moved = np.abs(trial - cur["p"])
+                    cur, damping = new, max(damping / 3.0, 1e-9)
+                    if np.all(moved <= xtol * (np.abs(trial) + xtol)) or cur["cost"] == 0.0:
+                        settled = True
+                        break
+                else:
+                    damping *= 10.0
+                    if damping > 1e12:
+                        message = "no decrease of the misfit even with very small steps (damping > 1e12)"
+                        settled = True
+                        break
+            # Trials that stall on one sequence (a replay that cuts a step at some trial points moves the
+            # curve by a small jump, which Levenberg-Marquardt cannot step over) still moved the point:
+            # re-plan there while re-plans are left.
+            stalled = not settled
+            if stalled and replans >= max_replans:
+                message = f"no convergence in {max_iter} trials on this step sequence"
+                break
+            if message:
+                break
+            if max_replans == 0:
+                converged = True
+                break
+            # Re-plan at the optimum: the answer must hold for the adaptive run at these values.
+            again, failure = planned(cur["p"])
+            if again is None:
+                message = f"the adaptive run at the fitted values does not complete: {failure}"
+                break
+            if again.same_plan(curve):
+                if stalled:
+                    message = (f"no convergence in {max_iter} trials on the step sequence of the adaptive run at "
+                               "the fitted values")
+                converged = not stalled
+                break
+            if replans >= max_replans:
+                message = f"the step sequence still changed after {max_replans} re-plans"
+                break
+            replans += 1
+            counts["replans"] += 1
+            say(f"  re-planned the step sequence at the optimum ({len(again.times)} steps, was {len(curve.times)})")
+            curve, damping = again, 1e-3
+            cur = evaluate(curve, cur["p"])
+            if not math.isfinite(cur["cost"]):
+                message = f"the re-planned step sequence fails at the fitted values ({describe(cur['code'])})"
+                break
+        if count > 1:
+            for row in iterations:
+                row["start"] = number + 1
+        return {"cur": cur, "converged": converged, "message": message, "p_start": p_start,
+                "start_force": start_force, "iterations": iterations, "number": number}
+
     p_start, grid_rows = par.p0.copy(), []
     if grid:
         axes = _grid_axes(grid, names, lo, hi)
@@ -480,81 +599,31 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
                 + ", ".join(f"{n} = {v:.6g}" for n, v in zip(names, p)))
         if not any(row["converged"] for row in grid_rows):
             raise FitError("no run of the global stage completes: no start for the fit")
-        best, best_cost = _surrogate_minimum(axes, obs, observed)
-        it = iter(best)
-        p_start = np.array([next(it) if a.size > 1 else a[0] for a in axes])
-        if not math.isfinite(best_cost):  # every cell has a failed corner: the best point run
-            j = int(np.argmin([row["cost"] for row in grid_rows]))
-            p_start, best_cost = points[j].copy(), grid_rows[j]["cost"]
-        say(f"  global stage: interpolated misfit {best_cost:.6g} at " + ", ".join(f"{n} = {v:.6g}" for n, v in zip(names, p_start)))
-    say(f"fit {scene}: planning the step sequence at " + ", ".join(f"{n} = {v:g}" for n, v in zip(names, p_start)))
-    curve, failure = planned(p_start)
-    if curve is None:
-        raise FitError(f"the simulation at the start values does not complete: {failure}")
-    cur = evaluate(curve, p_start.copy())
-    if not math.isfinite(cur["cost"]):
-        raise FitError(f"the replayed step sequence fails at the start values ({describe(cur['code'])})")
-    start_force = cur["pointwise"]
-    damping, k, converged, message = 1e-3, 0, False, ""
-    iterations = [{"iteration": 0, "accepted": True, "cost": cur["cost"], "damping": damping,
-                   **dict(zip(names, cur["p"].tolist()))}]
-    while True:
-        settled = False
-        for _ in range(max_iter):
-            k += 1
-            dp = _lm_step(cur["jac"], cur["r"], damping)
-            trial = np.asarray(project(optax.apply_updates(jnp.asarray(cur["p"]), jnp.asarray(dp))))
-            new = evaluate(curve, trial)
-            accepted = new["cost"] <= cur["cost"]
-            iterations.append({"iteration": k, "accepted": bool(accepted), "cost": new["cost"], "damping": damping,
-                               **dict(zip(names, trial.tolist()))})
-            say(f"  trial {k}: misfit {new['cost']:.6g} ({'accepted' if accepted else 'rejected'}, "
-                f"{new['cuts']} cutbacks) at " + ", ".join(f"{n} = {v:.10g}" for n, v in zip(names, trial)))
-            if accepted:
-                moved = np.abs(trial - cur["p"])
-                cur, damping = new, max(damping / 3.0, 1e-9)
-                if np.all(moved <= xtol * (np.abs(trial) + xtol)) or cur["cost"] == 0.0:
-                    settled = True
-                    break
-            else:
-                damping *= 10.0
-                if damping > 1e12:
-                    message = "no decrease of the misfit even with very small steps (damping > 1e12)"
-                    settled = True
-                    break
-        # Trials that stall on one sequence (a replay that cuts a step at some trial points moves the
-        # curve by a small jump, which Levenberg-Marquardt cannot step over) still moved the point:
-        # re-plan there while re-plans are left.
-        stalled = not settled
-        if stalled and counts["replans"] >= max_replans:
-            message = f"no convergence in {max_iter} trials on this step sequence"
-            break
-        if message:
-            break
-        if max_replans == 0:
-            converged = True
-            break
-        # Re-plan at the optimum: the answer must hold for the adaptive run at these values.
-        again, failure = planned(cur["p"])
-        if again is None:
-            message = f"the adaptive run at the fitted values does not complete: {failure}"
-            break
-        if again.same_plan(curve):
-            if stalled:
-                message = (f"no convergence in {max_iter} trials on the step sequence of the adaptive run at "
-                           "the fitted values")
-            converged = not stalled
-            break
-        if counts["replans"] >= max_replans:
-            message = f"the step sequence still changed after {max_replans} re-plans"
-            break
-        counts["replans"] += 1
-        say(f"  re-planned the step sequence at the optimum ({len(again.times)} steps, was {len(curve.times)})")
-        curve, damping = again, 1e-3
-        cur = evaluate(curve, cur["p"])
-        if not math.isfinite(cur["cost"]):
-            message = f"the re-planned step sequence fails at the fitted values ({describe(cur['code'])})"
-            break
+        minima = _surrogate_minima(axes, obs, observed, starts)
+        starts_at = []
+        for best, best_cost in minima:
+            it = iter(best)
+            starts_at.append(np.array([next(it) if a.size > 1 else a[0] for a in axes]))
+            if not math.isfinite(best_cost):  # every cell has a failed corner: the best point run
+                j = int(np.argmin([row["cost"] for row in grid_rows]))
+                starts_at[-1] = points[j].copy()
+            say(f"  global stage: interpolated misfit {best_cost:.6g} at "
+                + ", ".join(f"{n} = {v:.6g}" for n, v in zip(names, starts_at[-1])))
+    else:
+        starts_at = [p_start]
+    outcomes = []
+    for number, p_start in enumerate(starts_at):
+        try:
+            outcomes.append(_local(p_start, number, len(starts_at)))
+        except FitError as failure:  # a later start may still fit; the first one's failure is the fit's
+            if number == 0:
+                raise
+            say(f"  start {number + 1} abandoned: {failure}")
+    best = min(outcomes, key=lambda o: o["cur"]["cost"])
+    cur, converged, message, p_start, start_force = (best[k] for k in ("cur", "converged", "message", "p_start", "start_force"))
+    iterations = [row for o in outcomes for row in o["iterations"]]
+    if len(starts_at) > 1:
+        say(f"  best of {len(outcomes)} starts: start {best['number'] + 1}, misfit {cur['cost']:.6g}")
 
     p, r, jac = cur["p"], cur["r"], cur["jac"]
     m, n = len(r), len(names)
@@ -576,7 +645,10 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
         covariance=cov, residual_rms=float(np.sqrt(np.mean(r**2))), cost=cur["cost"], n_points=m,
         n_simulations=counts["simulations"], n_replans=counts["replans"], wall_s=time.perf_counter() - t_start,
         converged=converged, message=message or "converged", iterations=iterations, measurement=meas,
-        fitted_force=cur["pointwise"], start_force=start_force, grid=grid_rows)
+        fitted_force=cur["pointwise"], start_force=start_force, grid=grid_rows,
+        local_fits=[{"start": dict(zip(names, o["p_start"].tolist())), "end": dict(zip(names, o["cur"]["p"].tolist())),
+                     "cost": o["cur"]["cost"], "converged": o["converged"], "message": o["message"] or "converged"}
+                    for o in outcomes])
 
 
 def _json_number(v):
@@ -602,7 +674,8 @@ def write_fit(result: FitResult, out: str) -> dict:
     if result.grid:
         summary["global_stage"] = {"points": len(result.grid),
                                    "failed": sum(not row["converged"] for row in result.grid),
-                                   "file": "fit_grid.csv"}
+                                   "file": "fit_grid.csv",
+                                   "local_fits": [{**lf, "cost": _json_number(lf["cost"])} for lf in result.local_fits]}
         with open(os.path.join(out, "fit_grid.csv"), "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=list(result.grid[0]))
             w.writeheader()

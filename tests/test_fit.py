@@ -36,7 +36,7 @@ def test_cli_fit_recovers_mu_from_a_run_history(flat_history, tmp_path, capsys):
     # full sliding is not linear in mu (measured start: 0.1525).
     out = tmp_path / "fit"
     code = main(["fit", *FLAT, "--data", flat_history, "--param", "mu", "--set", "mu=0.1", "--quiet",
-                 "--bounds", "mu=0:1", "--grid", "mu=0.04:0.3:3", "--out", str(out)])
+                 "--bounds", "mu=0:1", "--grid", "mu=0.04:0.3:3", "--starts", "2", "--out", str(out)])
     assert code == 0, capsys.readouterr().err
     summary = json.loads((out / "fit.json").read_text())
     assert summary["converged"]
@@ -46,7 +46,10 @@ def test_cli_fit_recovers_mu_from_a_run_history(flat_history, tmp_path, capsys):
     assert summary["n_simulations"] >= 3 + 3 and summary["wall_s"] > 0
     assert (out / "fit.png").stat().st_size > 10_000
     assert "mu = 0.15" in capsys.readouterr().out
-    assert summary["global_stage"] == {"points": 3, "failed": 0, "file": "fit_grid.csv"}
+    stage = summary["global_stage"]
+    assert {k: stage[k] for k in ("points", "failed", "file")} == {"points": 3, "failed": 0, "file": "fit_grid.csv"}
+    # One basin: --starts 2 finds one minimum of the interpolated misfit, so one local fit.
+    assert len(stage["local_fits"]) == 1 and stage["local_fits"][0]["end"]["mu"] == summary["params"]["mu"]
     grid = (out / "fit_grid.csv").read_text().splitlines()
     assert grid[0] == "mu,cost,converged" and len(grid) == 4
     assert all(float(line.split(",")[1]) > 0 for line in grid[1:])
@@ -71,6 +74,24 @@ def test_interpolated_minimum_follows_a_narrow_valley_between_grid_points():
     obs = pts @ A.T
     obs[0] = np.nan
     np.testing.assert_allclose(_surrogate_minimum(axes, obs, A @ truth)[0], truth, atol=1e-6)
+
+
+def test_interpolated_minima_of_two_basins_lowest_first():
+    # Observations with two basins of the misfit in a, at 0.3 (misfit 0) and near 0.74 (the second
+    # observation lifts it), both at b = 0.5: lowest first, each polished to its own minimum.
+    from jaxfric.fit import _surrogate_minima
+
+    axes = [np.linspace(0.0, 1.0, 21), np.linspace(0.0, 1.0, 11)]
+    a, b = np.meshgrid(*axes, indexing="ij")
+    obs = np.stack([(a - 0.3) * (a - 0.75), 0.1 * (a - 0.3) ** 2, b - 0.5], -1).reshape(-1, 3)
+    minima = _surrogate_minima(axes, obs, np.zeros(3), 3)
+    assert len(minima) == 2
+    (p1, c1), (p2, c2) = minima
+    assert c1 <= c2 and c1 < 1e-8
+    np.testing.assert_allclose(p1, [0.3, 0.5], atol=2e-3)
+    assert abs(p2[0] - 0.74) < 0.01 and abs(p2[1] - 0.5) < 2e-3 and c2 > 1e-4
+    # One start asked for: the lowest only.
+    np.testing.assert_allclose(_surrogate_minima(axes, obs, np.zeros(3), 1)[0][0], p1)
 
 
 @pytest.mark.slow
@@ -136,6 +157,8 @@ def test_parameterized_model_equals_the_built_model(scene, variant, names):
     (["--param", "mu", "--grid", "mu=0.2:0.1:3"], "increasing"),
     (["--param", "mu", "--grid", "mu=0.1:nan:3"], "finite"),
     (["--param", "mu", "--grid", "mu=0:2:3", "--bounds", "mu=0:1"], "leaves the bounds"),
+    (["--param", "mu", "--starts", "2"], "needs a grid"),
+    (["--param", "mu", "--grid", "mu=0.1:0.2:3", "--starts", "0"], "'starts' must be an integer >= 1"),
 ])
 def test_cli_fit_rejects_bad_input_in_one_line(flat_history, tmp_path, capsys, args, needle):
     code = main(["fit", *FLAT, "--data", flat_history, "--quiet", "--out", str(tmp_path / "o"), *args])
