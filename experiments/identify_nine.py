@@ -67,6 +67,7 @@ def main(argv=None) -> None:
                     "with --tag) into identify_nine.csv, replacing rows of the same case, and redraw the figure")
     ap.add_argument("--verbose", action="store_true", help="the fits' progress lines (grid points, trials)")
     ap.add_argument("--draw-replans", type=int, default=0, help="re-plans allowed in the noise fits")
+    ap.add_argument("--starts", type=int, default=1, help="local fits from the lowest minima of the global stage")
     a = ap.parse_args(argv)
     if a.merge:
         rows = _read(os.path.join(RESULTS, "identify_nine.csv"))
@@ -102,12 +103,13 @@ def main(argv=None) -> None:
         for label, seed, replans in cases:
             data = _noisy(clean, sigma, seed)
             res = fit("nine", data, names, variant="mu017", overrides=start, window=a.window,
-                      max_replans=replans, grid=stage or None, progress=a.verbose)
+                      max_replans=replans, grid=stage or None, starts=a.starts if stage else 1, progress=a.verbose)
             row = {"params": "+".join(names), "noise": label, "mesh": a.mesh, "window_mm": a.window,
                    "converged": res.converged, "n_simulations": res.n_simulations, "n_replans": res.n_replans,
                    "wall_s": round(res.wall_s, 1), "residual_rms": res.residual_rms,
                    "residual_rms_truth": "" if seed is None else _truth_rms(clean, sigma, seed, a.window),
-                   "grid_points": len(res.grid), "start": " ".join(f"{n}={res.start[n]:.6g}" for n in names)}
+                   "grid_points": len(res.grid), "start": " ".join(f"{n}={res.start[n]:.6g}" for n in names),
+                   "local_fits": len(res.local_fits)}
             for n in names:
                 lo, hi = res.ci95[n]
                 row.update({f"{n}": res.params[n], f"{n}_err": res.params[n] - TRUE[n], f"{n}_stderr": res.stderr[n],
