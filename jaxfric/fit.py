@@ -161,7 +161,8 @@ class FitResult:
         grid: the global stage (``grid`` argument): per grid point, a dict of its parameters, its
             misfit (inf where the run failed) and ``converged``; empty without one. ``start`` is
             then the point the global stage chose.
-        local_fits: per start of the local stage (``starts``), a dict of its start, its end
+        local_fits: per start of the local stage (``starts``), a dict of its number (the
+            ``start`` column of ``iterations`` when there are several), its start and end
             (parameters), misfit, converged and message; the result is the lowest misfit's.
     """
 
@@ -650,7 +651,8 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
         n_simulations=counts["simulations"], n_replans=counts["replans"], wall_s=time.perf_counter() - t_start,
         converged=converged, message=message or "converged", iterations=iterations, measurement=meas,
         fitted_force=cur["pointwise"], start_force=start_force, grid=grid_rows,
-        local_fits=[{"start": dict(zip(names, o["p_start"].tolist())), "end": dict(zip(names, o["cur"]["p"].tolist())),
+        local_fits=[{"number": o["number"] + 1, "start": dict(zip(names, o["p_start"].tolist())),
+                     "end": dict(zip(names, o["cur"]["p"].tolist())),
                      "cost": o["cur"]["cost"], "converged": o["converged"], "message": o["message"] or "converged"}
                     for o in outcomes])
 
@@ -718,7 +720,9 @@ def _plot(result: FitResult, path: str) -> None:
     ax.set_title(f"{result.scene} {result.variant}: measured and fitted drawing force")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    its = [row for row in result.iterations if row["accepted"]]
+    # With several starts, the history of the one kept.
+    kept = min(result.local_fits, key=lambda lf: lf["cost"])["number"] if len(result.local_fits) > 1 else None
+    its = [row for row in result.iterations if row["accepted"] and row.get("start", kept) == kept]
     bx.semilogy([row["iteration"] for row in its], [max(row["cost"], 1e-300) for row in its], "o-", color="k",
                 label="misfit |r|^2/2 (accepted)")
     bx.set_xlabel("Levenberg-Marquardt trial")

@@ -94,6 +94,31 @@ def test_interpolated_minima_of_two_basins_lowest_first():
     np.testing.assert_allclose(_surrogate_minima(axes, obs, np.zeros(3), 1)[0][0], p1)
 
 
+def test_several_starts_are_written_and_the_kept_one_is_plotted(tmp_path):
+    # write_fit on a result of two local fits (built by hand: a real one costs two planned fits).
+    from jaxfric.fit import FitResult, Measurement, write_fit
+
+    x = np.linspace(0.1, 1.0, 10)
+    rows = [{"iteration": i, "accepted": True, "cost": c, "damping": 1e-3, "mu": m, "start": n}
+            for n, track in ((1, [(2.0, 0.2), (1.0, 0.18)]), (2, [(0.5, 0.16), (1e-3, 0.15)]))
+            for i, (c, m) in enumerate(track)]
+    local = [{"number": 1, "start": {"mu": 0.2}, "end": {"mu": 0.18}, "cost": 1.0, "converged": True, "message": "converged"},
+             {"number": 2, "start": {"mu": 0.16}, "end": {"mu": 0.15}, "cost": 1e-3, "converged": True, "message": "converged"}]
+    grid = [{"mu": v, "cost": c, "converged": True} for v, c in ((0.1, 3.0), (0.2, 2.0), (0.3, 5.0))]
+    res = FitResult(scene="flat_die", variant="const_force", algorithm="penalty", overrides={}, names=("mu",),
+                    params={"mu": 0.15}, stderr={"mu": 1e-3}, ci95={"mu": (0.148, 0.152)}, start={"mu": 0.16},
+                    bounds={"mu": (0.0, 1.0)}, window=None, covariance=np.array([[1e-6]]), residual_rms=0.01,
+                    cost=1e-3, n_points=10, n_simulations=9, n_replans=0, wall_s=1.0, converged=True,
+                    message="converged", iterations=rows, measurement=Measurement(x, 7.5 * x), fitted_force=7.5 * x,
+                    start_force=7.0 * x, grid=grid, local_fits=local)
+    summary = write_fit(res, str(tmp_path))
+    assert [lf["number"] for lf in summary["global_stage"]["local_fits"]] == [1, 2]
+    assert json.loads((tmp_path / "fit.json").read_text())["global_stage"]["local_fits"][1]["cost"] == 1e-3
+    history = (tmp_path / "fit_history.csv").read_text().splitlines()
+    assert history[0].split(",")[-1] == "start" and len(history) == 5
+    assert (tmp_path / "fit.png").stat().st_size > 10_000
+
+
 @pytest.mark.slow
 def test_fit_with_noise_reports_an_interval_that_holds_the_truth(flat_history):
     meas = read_measurement(flat_history)
