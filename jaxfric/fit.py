@@ -448,7 +448,7 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
             they leave (mu and R1 on the Nine test). The runs are kept for later fits of the same
             scene and grid (other measurements, e.g. noise draws, cost no simulation).
         starts: with a grid, Levenberg-Marquardt from up to this many local minima of the
-            interpolated misfit (lowest first, at least a grid cell apart); the fit with the lowest
+            interpolated misfit (lowest first, distinct basins: :func:`_surrogate_minima`); the fit with the lowest
             misfit is the result (its ``start``), the others are kept in ``local_fits``. Where the
             interpolation error of the grid is larger than the misfit differences between basins,
             the lowest interpolated minimum need not be in the lowest basin.
