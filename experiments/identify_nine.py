@@ -19,6 +19,10 @@ adaptive runs on a grid (``jaxfric.fit.fit(..., grid=...)``; the truth is not a 
 runs do not depend on the data: the noise draws reuse them. ``--params mu,R1`` runs one parameter set and
 keeps the CSV rows of the others.
 
+**The draws seen by the linearised model** (``_Linear``): for every draw, the estimate and interval
+of the model linearised at the truth (columns ``*_linear_*``), and the coverage of those intervals
+over 4000 draws (``identify_nine_linear.csv``): which misses belong to the draw, which to the fit.
+
 Writes ``experiments/results/identify_nine.csv`` and ``identify_nine.png``. At 100 x 2 the mean force
 over 1 mm windows is a smooth, monotone function of mu (0.10 ... 0.20); at 40 x 2 it is not (the
 force ripples by +/- 20 % as the 2.5 mm elements pass over the cylinders, and the misfit has local
