@@ -179,8 +179,7 @@ class _Linear:
         return dp, se, np.abs(dp) <= self.t_crit(dof) * se
 
     def row(self, names, seed):
-        noise = self.sigma * np.random.default_rng(seed).standard_normal(self.n_rows)  # the draw of _noisy
-        dp, se, inside = self.estimate(names, noise)
+        dp, se, inside = self.estimate(names, _noise(self.sigma, seed, self.n_rows))
         out = {}
         for n, d, s, i in zip(names, dp, se, inside):
             out.update({f"{n}_linear_err": float(d), f"{n}_linear_stderr": float(s), f"{n}_linear_inside": bool(i)})
@@ -204,11 +203,15 @@ def _write_coverage(oracle, groups):
         k for r in rows for k in r)} for r in rows])
 
 
+def _noise(sigma, seed, n):
+    """The draw of seed ``seed``: n independent Gaussian values of standard deviation sigma."""
+    return sigma * np.random.default_rng(seed).standard_normal(n)
+
+
 def _noisy(clean, sigma, seed):
     data = dict(clean)
     if seed is not None:
-        rng = np.random.default_rng(seed)
-        data["drawing_force"] = clean["drawing_force"] + sigma * rng.standard_normal(len(clean["drawing_force"]))
+        data["drawing_force"] = clean["drawing_force"] + _noise(sigma, seed, len(clean["drawing_force"]))
     return data
 
 

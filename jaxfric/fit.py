@@ -338,11 +338,6 @@ def _observations(history: dict, x: np.ndarray, edges):
     return np.interp(x, xr, fr) if edges is None else bin_means(xr, fr, edges)
 
 
-def _surrogate_minimum(axes: list, obs: np.ndarray, observed: np.ndarray, refine: int = 10):
-    """The lowest of :func:`_surrogate_minima`: the point and its misfit."""
-    return _surrogate_minima(axes, obs, observed, 1, refine)[0]
-
-
 def _surrogate_minima(axes: list, obs: np.ndarray, observed: np.ndarray, count: int, refine: int = 10) -> list:
     """Up to ``count`` local minima of the misfit of the observations interpolated multilinearly
     between grid points, lowest first: [(point, misfit), ...].

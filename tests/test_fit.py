@@ -61,19 +61,19 @@ def test_interpolated_minimum_follows_a_narrow_valley_between_grid_points():
     # Observations linear in (a, b) and nearly compensating (a valley along a = 0.15 b): multilinear
     # interpolation is exact for them, so the polished minimum is the truth, which lies on no grid line
     # and between the evaluation points; a grid-point minimum would miss it by half a cell.
-    from jaxfric.fit import _surrogate_minimum
+    from jaxfric.fit import _surrogate_minima
 
     axes = [np.linspace(0.10, 0.25, 7), np.linspace(5.07, 5.97, 9)]
     A = np.array([[900.0, -130.0], [1000.0, -160.0], [800.0, -100.0]])
     truth = np.array([0.1713, 5.4987])
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
-    best, cost = _surrogate_minimum(axes, pts @ A.T, A @ truth)
+    (best, cost), = _surrogate_minima(axes, pts @ A.T, A @ truth, 1)
     np.testing.assert_allclose(best, truth, atol=1e-6)
     assert cost < 1e-6
     # A failed run (NaN) removes the cells around it, never the whole grid.
     obs = pts @ A.T
     obs[0] = np.nan
-    np.testing.assert_allclose(_surrogate_minimum(axes, obs, A @ truth)[0], truth, atol=1e-6)
+    np.testing.assert_allclose(_surrogate_minima(axes, obs, A @ truth, 1)[0][0], truth, atol=1e-6)
 
 
 def test_interpolated_minima_of_two_basins_lowest_first():
