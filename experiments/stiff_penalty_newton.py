@@ -1,0 +1,70 @@
+"""Newton iterates of the attempt where a stiff-penalty Nine run stops (issue 5, extreme cases).
+
+    python experiments/stiff_penalty_newton.py [--eps-n 1e9] [--variant mu017] [--iterations 14]
+
+Runs the Nine test of ``tests/test_extreme.py`` (30 x 2, B pushed 3 mm in 6 steps, drawn 1 mm in 4) with
+the penalty law at ``--eps-n`` until it stops, then repeats the failed attempt by hand from the last
+converged state: Newton steps on ``jaxfric.system.linearize`` with the solver's line search (the full
+step, a quarter, a sixteenth, which is kept). Prints, per iteration, the step length taken, the residual
+before and after (max norm, N/mm), and every pair whose status (open 0 / stick 1 / slip 2) changed,
+with its gap and forces before and after.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from jaxfric.linalg import linear_solve  # noqa: E402
+from jaxfric.run import run  # noqa: E402
+from jaxfric.scenes import make  # noqa: E402
+from jaxfric.simulate import _Context, _step_args, _tool_q, _unknowns  # noqa: E402
+from jaxfric.system import linearize  # noqa: E402
+
+NINE = {"mesh": "30x2", "stroke": 3.0, "dq_clamp": 0.5, "U_draw": 1.0, "dU": 0.25}
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--eps-n", type=float, default=1e9)
+    ap.add_argument("--variant", default="mu017")
+    ap.add_argument("--iterations", type=int, default=14)
+    a = ap.parse_args(argv)
+
+    scene = make("nine", a.variant, "penalty", {**NINE, "eps_n": a.eps_n})
+    res = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, progress=False,
+              raise_on_failure=False)
+    print(res.message)
+    if res.converged:
+        return
+    state, t = res.simulation.final, float(res.simulation.failed_time)
+    model = scene.model
+    args, _, _ = _step_args(model, state, int(state.phase), t, _Context.build(model))
+    lin_at = jax.jit(lambda x: linearize(x, args))
+    solve = jax.jit(linear_solve)
+    x = _unknowns(model, state.u, _tool_q(state))
+    lin = lin_at(x)
+    for k in range(a.iterations):
+        dx = solve(lin.jacobian, -lin.residual)
+        for alpha in (1.0, 0.25, 1.0 / 16.0):
+            new = lin_at(x + alpha * dx)
+            if jnp.sum(new.residual**2) <= jnp.sum(lin.residual**2):
+                break
+        before, after = lin.aux[2], new.aux[2]
+        changed = np.nonzero(np.asarray(before["status"] != after["status"]))[0]
+        pairs = [f"pair {i}: {int(before['status'][i])}->{int(after['status'][i])}, gap {float(before['gap'][i]):.2e}"
+                 f"->{float(after['gap'][i]):.2e} mm, R_N {float(before['rn'][i]):.3g}->{float(after['rn'][i]):.3g}"
+                 for i in changed]
+        print(f"{k:2d} step {alpha:.4g}: |R| {float(jnp.max(jnp.abs(lin.residual))):.3e} -> "
+              f"{float(jnp.max(jnp.abs(new.residual))):.3e} N/mm" + ("; " + "; ".join(pairs) if pairs else ""))
+        x, lin = x + alpha * dx, new
+
+
+if __name__ == "__main__":
+    main()
