@@ -399,7 +399,8 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12, star
     z0 enters at ``-min B^-1 q`` on the guessed basis, as the cold start does on the identity (all
     False is the cold start exactly). The processability argument above is made for d = e, and the
     rows of ``[x, B^-1]`` need not start lexicographically positive: a warm run that ends on a ray
-    is restarted from the basis it reached (a few times, see ``_lemke_warm``), and one that does not
+    is restarted from the basis it reached (a few times, see ``_lemke_warm``; the slip directions of
+    open candidates are first corrected from the guess's own solution), and one that does not
     end on a solution verified on the original data within ``n`` pivots per run is dropped for the
     cold start.
 
@@ -461,19 +462,29 @@ def _lemke_warm(M, q, start, max_pivots, pivot_tol, restarts: int = 3) -> LemkeR
     bead's clamp, where a guess from the last iterate has 40 to 60 slip directions wrong, the first
     run ends on a ray after about a hundred pivots and the restart solves in two (cold start: 1200
     pivots).
+
+    Before pivoting, the slip direction of every open candidate is read off the guessed basis's own
+    solution (:func:`_flip_opposite`): a guessed lambda that comes out negative there is exchanged for
+    its opposite, which leaves the point unchanged.
     """
     n = q.size
     pivots = 0
+    opposite = _opposite_columns(M)
     for _ in range(restarts + 1):
+        factors = _factor_basis(M, q, start)
+        if factors is None:
+            return None
+        lu, piv, x = factors
+        flipped = _flip_opposite(M, q, start, x, opposite)
+        if flipped is not None:
+            # Same point, other sign of a free slip: the basis changed, so factor it again.
+            start = flipped
+            factors = _factor_basis(M, q, start)
+            if factors is None:
+                return None
+            lu, piv, x = factors
         basis = np.where(start, n + np.arange(n), np.arange(n))
         B = _basis_columns(M, basis, np.ones(n))
-        lu, piv, info = lapack.dgetrf(B)
-        # A guess can be singular (lambda+ and lambda- of one pair basic: opposite columns); its
-        # "solution" is then round-off of any size, which the check below scales with and accepts.
-        rcond = lapack.dgecon(lu, np.max(np.sum(np.abs(B), axis=0)), norm="1")[0] if info == 0 else 0.0
-        if not rcond > 1e-14:
-            return None
-        x = lapack.dgetrs(lu, piv, q)[0]
         z = np.zeros(n)
         z[basis[start] - n] = np.maximum(x[start], 0.0)
         if _is_solution(M, q, z):  # the guessed basis is feasible (to round-off): no pivot
@@ -695,6 +706,53 @@ def _lemke_unshifted(M, q, n_q: int, shift: float, max_pivots=None, pivot_tol: f
     if status == LemkeStatus.SOLVED and np.any(dq + shift <= 0.0):
         status = int(LemkeStatus.SHIFT_TOO_SMALL)
     return z_c, dq, res.pivots, status, res.z
+
+
+def _factor_basis(M, q, start):
+    """LU of the complementary basis ``start`` (True: z basic) and its basic values ``B^-1 q``; None
+    if it is numerically singular."""
+    n = start.size
+    B = _basis_columns(M, np.where(start, n + np.arange(n), np.arange(n)), np.ones(n))
+    lu, piv, info = lapack.dgetrf(B)
+    # A guess can be singular (lambda+ and lambda- of one pair basic: opposite columns); its
+    # "solution" is then round-off of any size.
+    rcond = lapack.dgecon(lu, np.max(np.sum(np.abs(B), axis=0)), norm="1")[0] if info == 0 else 0.0
+    if not rcond > 1e-14:
+        return None
+    return lu, piv, lapack.dgetrs(lu, piv, q)[0]
+
+
+def _opposite_columns(M) -> np.ndarray:
+    """(n,) bools: column j of M is exactly the negative of column j + 1 (lambda+ and lambda- of a
+    contact candidate: ``s = lambda- - lambda+`` enters M through B's columns (0, -1) and (0, 1))."""
+    n = M.shape[0]
+    out = np.zeros(n, bool)
+    if n > 1:
+        out[:-1] = np.all(M[:, :-1] == -M[:, 1:], axis=0)
+    return out
+
+
+def _flip_opposite(M, q, start, x, opposite):
+    """The basis ``start`` with the sign of each free slip corrected, or None if none needs it.
+
+    Where z_j and z_j+1 have opposite columns and only one of them is basic, the basic one with a
+    negative value v can be exchanged for the other at -v when the other's complement w is zero
+    there: M z + q is unchanged, so every other basic value stays. That is an open candidate (R_N =
+    R_T = 0, so phi+ = phi- = 0) whose guessed slip direction was wrong; the warm start cannot know
+    it, since the forces of the last iterate say nothing about a pair that is open."""
+    n = q.size
+    value = np.where(start, x, 0.0)                   # z of the basic point
+    w = np.where(start, 0.0, x)                       # w of the basic point
+    tol = 1e3 * _NOISE * (np.abs(M) @ np.abs(value) + np.abs(q))
+    j = np.flatnonzero(opposite)
+    lo = start[j] & ~start[j + 1] & (x[j] < -tol[j]) & (np.abs(w[j + 1]) <= tol[j + 1])
+    hi = start[j + 1] & ~start[j] & (x[j + 1] < -tol[j + 1]) & (np.abs(w[j]) <= tol[j])
+    if not (np.any(lo) or np.any(hi)):
+        return None
+    out = start.copy()
+    for a, b in ((j[lo], j[lo] + 1), (j[hi] + 1, j[hi])):
+        out[a], out[b] = False, True
+    return out
 
 
 def lemke_start(p, slip, mu) -> jax.Array:

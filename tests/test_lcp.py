@@ -235,6 +235,27 @@ def test_lemke_start_from_the_solution_forces(mu):
     np.testing.assert_allclose(du, cold.du_c, rtol=0, atol=1e-9 * np.abs(cold.du_c).max())
 
 
+@pytest.mark.parametrize("mu", [0.0, 0.3])
+def test_lemke_warm_start_corrects_the_slip_direction_of_open_candidates(mu):
+    """A guess that is the solution's basis except for the slip direction of every open candidate
+    (which the forces of an open pair cannot tell): the warm start reads the directions off the
+    guess's own solution and ends on the cold start's solution without a pivot."""
+    K, r, gap, slip, mu_c = random_problem(5, 12, mu)
+    cold = lemke_contact(K, r, gap, slip, mu_c)
+    assert cold.status == LemkeStatus.SOLVED
+    start = np.asarray(lemke_start(cold.p, slip + cold.du_c[1::2], mu_c)).reshape(-1, 3)
+    is_open = start[:, 0]
+    assert is_open.sum() >= 2 and np.any(np.abs(cold.du_c[1::2][is_open] + slip[is_open]) > 1e-6)
+    wrong = start.copy()
+    wrong[is_open, 1:] = start[is_open, 1:][:, ::-1]
+    M, q = contact_lcp(K, r, gap, slip, mu_c)
+    res = lemke(np.asarray(M), np.asarray(q), start=wrong.reshape(-1))
+    assert res.status == LemkeStatus.SOLVED and res.pivots == 0
+    assert_lcp_solution(np.asarray(M), np.asarray(q), res.z, res.w)
+    p = contact_solution(K, r, gap, slip, res.z)[1]
+    np.testing.assert_allclose(p, cold.p, rtol=0, atol=1e-9 * np.abs(cold.p).max())
+
+
 @pytest.mark.parametrize("mu", [0.0, 0.3, 0.9])
 def test_lemke_warm_start_on_contact_lcps(mu):
     """Contact LCPs (M = A K* B, not positive definite: warm runs may end on rays and restart, or fall
