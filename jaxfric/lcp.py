@@ -740,7 +740,6 @@ def _flip_opposite(M, q, start, x, opposite):
     there: M z + q is unchanged, so every other basic value stays. That is an open candidate (R_N =
     R_T = 0, so phi+ = phi- = 0) whose guessed slip direction was wrong; the warm start cannot know
     it, since the forces of the last iterate say nothing about a pair that is open."""
-    n = q.size
     value = np.where(start, x, 0.0)                   # z of the basic point
     w = np.where(start, 0.0, x)                       # w of the basic point
     tol = 1e3 * _NOISE * (np.abs(M) @ np.abs(value) + np.abs(q))
