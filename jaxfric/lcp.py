@@ -742,10 +742,11 @@ def _flip_opposite(M, q, start, x, opposite):
     it, since the forces of the last iterate say nothing about a pair that is open."""
     value = np.where(start, x, 0.0)                   # z of the basic point
     w = np.where(start, 0.0, x)                       # w of the basic point
+    # Round-off of w (forces); a z of either sign at round-off may flip, which changes nothing.
     tol = 1e3 * _NOISE * (np.abs(M) @ np.abs(value) + np.abs(q))
     j = np.flatnonzero(opposite)
-    lo = start[j] & ~start[j + 1] & (x[j] < -tol[j]) & (np.abs(w[j + 1]) <= tol[j + 1])
-    hi = start[j + 1] & ~start[j] & (x[j + 1] < -tol[j + 1]) & (np.abs(w[j]) <= tol[j])
+    lo = start[j] & ~start[j + 1] & (x[j] < 0.0) & (np.abs(w[j + 1]) <= tol[j + 1])
+    hi = start[j + 1] & ~start[j] & (x[j + 1] < 0.0) & (np.abs(w[j]) <= tol[j])
     if not (np.any(lo) or np.any(hi)):
         return None
     out = start.copy()
