@@ -474,17 +474,14 @@ def _lemke_warm(M, q, start, max_pivots, pivot_tol, restarts: int = 3) -> LemkeR
         factors = _factor_basis(M, q, start)
         if factors is None:
             return None
-        lu, piv, x = factors
-        flipped = _flip_opposite(M, q, start, x, opposite)
+        flipped = _flip_opposite(M, q, start, factors[-1], opposite)
         if flipped is not None:
             # Same point, other sign of a free slip: the basis changed, so factor it again.
             start = flipped
             factors = _factor_basis(M, q, start)
             if factors is None:
                 return None
-            lu, piv, x = factors
-        basis = np.where(start, n + np.arange(n), np.arange(n))
-        B = _basis_columns(M, basis, np.ones(n))
+        basis, B, lu, piv, x = factors
         z = np.zeros(n)
         z[basis[start] - n] = np.maximum(x[start], 0.0)
         if _is_solution(M, q, z):  # the guessed basis is feasible (to round-off): no pivot
@@ -709,17 +706,18 @@ def _lemke_unshifted(M, q, n_q: int, shift: float, max_pivots=None, pivot_tol: f
 
 
 def _factor_basis(M, q, start):
-    """LU of the complementary basis ``start`` (True: z basic) and its basic values ``B^-1 q``; None
-    if it is numerically singular."""
+    """The complementary basis ``start`` (True: z basic): its variables, matrix, LU (lu, piv) and basic
+    values ``B^-1 q``; None if it is numerically singular."""
     n = start.size
-    B = _basis_columns(M, np.where(start, n + np.arange(n), np.arange(n)), np.ones(n))
+    basis = np.where(start, n + np.arange(n), np.arange(n))
+    B = _basis_columns(M, basis, np.ones(n))
     lu, piv, info = lapack.dgetrf(B)
     # A guess can be singular (lambda+ and lambda- of one pair basic: opposite columns); its
     # "solution" is then round-off of any size.
     rcond = lapack.dgecon(lu, np.max(np.sum(np.abs(B), axis=0)), norm="1")[0] if info == 0 else 0.0
     if not rcond > 1e-14:
         return None
-    return lu, piv, lapack.dgetrs(lu, piv, q)[0]
+    return basis, B, lu, piv, lapack.dgetrs(lu, piv, q)[0]
 
 
 def _opposite_columns(M) -> np.ndarray:
