@@ -441,14 +441,12 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12, star
 def _basis_columns(M, basis, d) -> np.ndarray:
     """The basis matrix: the original columns ``(I, -M, -d)`` of the basic variables."""
     n = M.shape[0]
+    basis = np.asarray(basis)
     cols = np.zeros((n, n))
-    for k, var in enumerate(basis):
-        if var < n:
-            cols[var, k] = 1.0
-        elif var < 2 * n:
-            cols[:, k] = -M[:, var - n]
-        else:
-            cols[:, k] = -d
+    w, z = np.flatnonzero(basis < n), np.flatnonzero((basis >= n) & (basis < 2 * n))
+    cols[basis[w], w] = 1.0
+    cols[:, z] = -M[:, basis[z] - n]
+    cols[:, basis == 2 * n] = -np.asarray(d)[:, None]
     return cols
 
 
@@ -474,22 +472,20 @@ def _lemke_warm(M, q, start, max_pivots, pivot_tol, restarts: int = 3) -> LemkeR
         factors = _factor_basis(M, q, start)
         if factors is None:
             return None
-        flipped = _flip_opposite(M, q, start, factors[-1], opposite)
+        flipped = _flip_opposite(M, q, start, factors.x, opposite)
         if flipped is not None:
             # Same point, other sign of a free slip: the basis changed, so factor it again.
             start = flipped
             factors = _factor_basis(M, q, start)
             if factors is None:
                 return None
-        basis, B, lu, piv, x = factors
+        basis, x = factors.basis, factors.x
         z = np.zeros(n)
         z[basis[start] - n] = np.maximum(x[start], 0.0)
         if _is_solution(M, q, z):  # the guessed basis is feasible (to round-off): no pivot
             return LemkeResult(z, M @ z + q, pivots, int(LemkeStatus.SOLVED), basis)
-        B_inv = lapack.dgetrs(lu, piv, np.eye(n))[0]
-        # B^-1 [I, -M, -d, q] with d = B 1: the z0 column is -1 and the right-hand side is x.
-        T = np.hstack([B_inv, -B_inv @ M, -np.ones((n, 1)), x[:, None]])
-        res = _pivot(T, basis, M, q, B @ np.ones(n), max_pivots, pivot_tol)
+        T, d = _tableau(M, factors)
+        res = _pivot(T, basis, M, q, d, max_pivots, pivot_tol)
         pivots += res.pivots
         if res.status == LemkeStatus.SOLVED and _is_solution(M, q, res.z):
             return res._replace(pivots=pivots)
@@ -705,19 +701,67 @@ def _lemke_unshifted(M, q, n_q: int, shift: float, max_pivots=None, pivot_tol: f
     return z_c, dq, res.pivots, status, res.z
 
 
+class _Basis(NamedTuple):
+    """A complementary basis factored through its principal submatrix (see :func:`_factor_basis`)."""
+    basis: np.ndarray   # (n,) basic variable of each row
+    x: np.ndarray       # (n,) basic values B^-1 q
+    Z: np.ndarray       # rows whose z is basic
+    W: np.ndarray       # rows whose w is basic
+    lu: np.ndarray      # LU of M_ZZ (dgetrf)
+    piv: np.ndarray
+
+
 def _factor_basis(M, q, start):
-    """The complementary basis ``start`` (True: z basic): its variables, matrix, LU (lu, piv) and basic
-    values ``B^-1 q``; None if it is numerically singular."""
+    """The complementary basis ``start`` (True: z basic) and its basic values ``x = B^-1 q``, as a
+    :class:`_Basis`; None if it is numerically singular.
+
+    B holds e_i for each basic w_i and -M[:, j] for each basic z_j. With Z the rows whose z is basic
+    and W the others, ``B x = q`` splits into ``M_ZZ x_Z = -q_Z`` and ``x_W = q_W + M_WZ x_Z``: one LU
+    of the principal submatrix M_ZZ (det B = +-det M_ZZ), a third of B's size or less on the Nine's
+    band. Its condition is judged on M_ZZ alone, which the identity columns of B, of another scale
+    than M, would otherwise blur."""
     n = start.size
     basis = np.where(start, n + np.arange(n), np.arange(n))
-    B = _basis_columns(M, basis, np.ones(n))
-    lu, piv, info = lapack.dgetrf(B)
-    # A guess can be singular (lambda+ and lambda- of one pair basic: opposite columns); its
-    # "solution" is then round-off of any size.
-    rcond = lapack.dgecon(lu, np.max(np.sum(np.abs(B), axis=0)), norm="1")[0] if info == 0 else 0.0
-    if not rcond > 1e-14:
-        return None
-    return basis, B, lu, piv, lapack.dgetrs(lu, piv, q)[0]
+    Z, W = np.flatnonzero(start), np.flatnonzero(~start)
+    x = np.array(q, dtype=float)
+    lu, piv = np.zeros((0, 0)), np.zeros(0, np.int32)
+    if Z.size:
+        A = M[np.ix_(Z, Z)]
+        lu, piv, info = lapack.dgetrf(A)
+        # A guess can be singular (lambda+ and lambda- of one pair basic: opposite columns); its
+        # "solution" is then round-off of any size.
+        rcond = lapack.dgecon(lu, np.max(np.sum(np.abs(A), axis=0)), norm="1")[0] if info == 0 else 0.0
+        if not rcond > 1e-14:
+            return None
+        x[Z] = lapack.dgetrs(lu, piv, -q[Z])[0]
+        x[W] = q[W] + M[np.ix_(W, Z)] @ x[Z]
+    return _Basis(basis, x, Z, W, lu, piv)
+
+
+def _tableau(M, f: _Basis) -> tuple[np.ndarray, np.ndarray]:
+    """The tableau ``B^-1 [I, -M, -d, q]`` of the factored basis with covering vector ``d = B 1`` (so
+    its z0 column is -1 and its last column x), and d.
+
+    From the split of :func:`_factor_basis`: ``B^-1 b`` has rows ``Z: -M_ZZ^-1 b_Z`` and
+    ``W: b_W - M_WZ M_ZZ^-1 b_Z``, so B^-1 and B^-1 M need solves with M_ZZ only."""
+    n = M.shape[0]
+    Z, W = f.Z, f.W
+    B_inv = np.zeros((n, n))
+    B_inv[W, W] = 1.0
+    BM = np.empty((n, n))
+    BM[W] = M[W]
+    if Z.size:
+        # Y = M_ZZ^-1 [I_Z | M_Z:]: the Z rows of -B^-1 and of -B^-1 M at once.
+        Y = lapack.dgetrs(f.lu, f.piv, np.hstack([np.eye(Z.size), M[Z]]))[0]
+        coupling = M[np.ix_(W, Z)]
+        B_inv[np.ix_(Z, Z)] = -Y[:, :Z.size]
+        B_inv[np.ix_(W, Z)] = -coupling @ Y[:, :Z.size]
+        BM[Z] = -Y[:, Z.size:]
+        BM[W] -= coupling @ Y[:, Z.size:]
+    d = np.zeros(n)
+    d[W] = 1.0
+    d -= M[:, Z].sum(axis=1)
+    return np.hstack([B_inv, -BM, -np.ones((n, 1)), f.x[:, None]]), d
 
 
 def _opposite_columns(M) -> np.ndarray:
