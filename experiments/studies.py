@@ -16,8 +16,10 @@ Nothing is lost when a run fails or the script is interrupted:
   (``--rerun`` forces a new run), so an interrupted study resumes where it stopped;
 - a run that stops early keeps its partial run directory and enters the table with
   ``converged = False`` and the reason in ``message``;
-- the two Nine sensitivity studies also keep the rows of their committed ``table.csv`` whose run
-  directories are absent (a fresh checkout), so a study continues across sessions.
+- the Nine sensitivity and mesh studies and the algorithm agreement also keep the rows of their
+  committed ``table.csv`` whose run directories are absent (a fresh checkout), so a study continues
+  across sessions; the agreement keeps each case's curves and contact states beside it
+  (``curves/<case>.npz``, committed), so new cases are compared with old ones without rerunning them.
 
 Wall times are solve times (compilation apart, in ``compile_s``) and are comparable only within one
 study taken on one machine; the device is recorded in every run's ``summary.json``.
@@ -147,9 +149,10 @@ def _selected(opts, name: str) -> bool:
 def _committed_rows(study: str, opts) -> dict:
     """The rows of the study's committed ``table.csv`` by case name, with their types restored, for the
     cases that have no run directory (run directories are not committed): a study resumed on a fresh
-    checkout keeps the cases an earlier session finished instead of running them again. Only for the
-    studies whose tables hold everything their sections and figures use (the Nine sensitivity
-    studies). ``--rerun`` runs the selected cases again instead."""
+    checkout keeps the cases an earlier session finished instead of running them again: the Nine
+    sensitivity and mesh studies (their tables hold everything their sections and figures use) and the
+    algorithm agreement (which keeps each case's curves beside its row). ``--rerun`` runs the selected cases
+    again instead."""
 
     def value(text):
         if text in ("", "None"):
@@ -338,8 +341,12 @@ def cost_accuracy_figure() -> None:
 def mesh_convergence(opts) -> None:
     study = "mesh_convergence"
     rows, cases = [], []
+    kept = _committed_rows(study, opts)
     for nx, ny in MESHES:
         name = f"{nx}x{ny}"
+        if name in kept:
+            rows.append(kept[name])
+            continue
         if not _want(opts, study, name):
             continue
         c = case(study, name, "nine", "mu000", "penalty", {"mesh": name, "eps_n": 1e5}, opts)
@@ -491,32 +498,96 @@ def _shared_run(name: str, variant: str, algorithm: str):
                     tag="blankholder_shapes", log=lambda m: None)
 
 
+CURVE_COLUMNS = ("phase", "drawing_displacement", "drawing_force", "clamping_force", "theta_deg")
+
+
+def _curves_path(study: str, name: str) -> str:
+    return os.path.join(ROOT, study, "curves", f"{name}.npz")
+
+
+def _save_curves(study: str, name: str, c: dict) -> None:
+    """Keep (committed) what the agreement table and figure read from a run: the history columns of
+    ``CURVE_COLUMNS`` and the contact status at the named instants. A later session then compares a new
+    case with this one without running it again (run directories are not committed)."""
+    h, contact = c["history"], c["contact"]
+    path, summary = _curves_path(study, name), os.path.join(c["dir"], "summary.json")
+    if not h or (os.path.exists(path) and os.path.getmtime(path) >= os.path.getmtime(summary)):
+        return  # rewritten only after a new run (a zip archive differs at every write)
+    arrays = {k: np.asarray(h[k]) for k in CURVE_COLUMNS if k in h}
+    names = [str(n) for n in contact.get("instant_names", [])]
+    arrays["instant_names"] = np.array(names, dtype=str)
+    arrays.update({f"{n}__status": contact[f"{n}__status"] for n in names if f"{n}__status" in contact})
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    np.savez_compressed(path, **arrays)
+
+
+def _case_from_curves(study: str, name: str, row: dict) -> dict:
+    """A case of an earlier session from its committed table row and curves (the shape :func:`case`
+    returns)."""
+    with np.load(_curves_path(study, name), allow_pickle=False) as data:
+        arrays = {k: data[k] for k in data.files}
+    summary = {k: row.get(k) for k in ("converged", "message", "n_steps", "newton_iters_total", "wall_s",
+                                        "cpu_s", "compile_s", "max_penetration", "steady_drawing_force",
+                                        "device")}
+    summary["n_cutbacks"] = row.get("cutbacks")
+    history = {k: arrays[k] for k in CURVE_COLUMNS if k in arrays}
+    contact = {k: v for k, v in arrays.items() if k not in CURVE_COLUMNS}
+    return {"summary": summary, "history": history, "contact": contact, "dir": None}
+
+
 def algorithm_agreement(opts) -> None:
+    """Each case comes from its run directory, else from its committed row and curves (a case of an
+    earlier session), else it is run if selected. Rows of earlier sessions that have no curves (before
+    curves were kept) stay as they were committed, with the reference they were compared with (column
+    ``reference``), which may differ from the one the group's newer rows are compared with."""
     study = "algorithm_agreement"
-    rows, panels = [], []
+    kept = _committed_rows(study, opts)
+    rows, panels, cases = [], [], []
     for name, variant in _variants():
-        runs = {}
-        for algorithm in ALGORITHMS:
-            label = f"{name}_{variant}_{algorithm}"
+        runs, legacy = {}, {}
+
+        def take(algorithm, label, run_algorithm, overrides, run=True):
+            """Put case ``label`` into ``runs`` or ``legacy``; with ``run`` False, never run it."""
+            on_disk = os.path.exists(os.path.join(ROOT, study, "runs", label, "summary.json"))
             shared = _shared_run(name, variant, algorithm)
             if shared is not None:
                 runs[algorithm] = shared
-            elif _want(opts, study, label):
-                runs[algorithm] = case(study, label, name, variant, algorithm, {}, opts)
-        if not runs:
-            continue
+            elif label in kept and os.path.exists(_curves_path(study, label)):
+                runs[algorithm] = _case_from_curves(study, label, kept[label])
+            elif label in kept and not (run and _selected(opts, label)):
+                legacy[algorithm] = kept[label]
+            elif on_disk and not run:
+                runs[algorithm] = run_case(os.path.join(ROOT, study, "runs", label), name, variant,
+                                           run_algorithm, overrides, log=lambda m: None)
+            elif run and _want(opts, study, label):
+                runs[algorithm] = case(study, label, name, variant, run_algorithm, overrides, opts)
+            if runs.get(algorithm, {}).get("dir"):
+                _save_curves(study, label, runs[algorithm])
+
+        for algorithm in ALGORITHMS:
+            take(algorithm, f"{name}_{variant}_{algorithm}", algorithm, {})
         ref_alg = "lcp_lemke" if runs.get("lcp_lemke", {}).get("summary", {}).get("converged") else None
-        if ref_alg is None:
-            label = f"{name}_{variant}_auglag_gap1e-06"
-            if _want(opts, study, label):
-                runs["auglag_gap1e-06"] = case(study, label, name, variant, "auglag", {"target_gap": 1e-6}, opts)
-                if runs["auglag_gap1e-06"]["summary"].get("converged"):
-                    ref_alg = "auglag_gap1e-06"
+        # The AL reference runs only where Lemke has not converged (in this session or an earlier one,
+        # whose row without curves still shows the group has its exact reference); one that ran before
+        # stays a row.
+        lemke_done = ref_alg is not None or bool(legacy.get("lcp_lemke", {}).get("converged"))
+        take("auglag_gap1e-06", f"{name}_{variant}_auglag_gap1e-06", "auglag", {"target_gap": 1e-6},
+             run=not lemke_done)
+        if ref_alg is None and runs.get("auglag_gap1e-06", {}).get("summary", {}).get("converged"):
+            ref_alg = "auglag_gap1e-06"
+        if not runs and not legacy:
+            continue
         ref = runs.get(ref_alg)
-        for algorithm, c in runs.items():
+        for algorithm in [*ALGORITHMS, "auglag_gap1e-06"]:
+            if algorithm in legacy:
+                rows.append(dict(legacy[algorithm]))  # its differences are from its own `reference`
+                continue
+            if algorithm not in runs:
+                continue
+            c = runs[algorithm]
             s, h = c["summary"], c["history"]
             row = {"case": f"{name}_{variant}_{algorithm}", "scene": name, "variant": variant,
-                   "algorithm": algorithm, "reference": ref_alg, **common(s)}
+                   "algorithm": algorithm, "reference": ref_alg if ref is not None else None, **common(s)}
             if ref is not None and h:
                 fs, fr = s.get("steady_drawing_force"), ref["summary"].get("steady_drawing_force")
                 row["rel_diff_steady"] = _r(abs(fs - fr) / abs(fr)) if fs is not None and fr else None
@@ -527,21 +598,31 @@ def algorithm_agreement(opts) -> None:
                 if name == "bead":
                     row["curve_diff_wind"] = _curve_diff(h, ref["history"], "theta_deg", "drawing_force", "wind")
                 row["max_status_mismatch"] = _status_mismatch(c["contact"], ref["contact"])
+            row["device"] = s.get("device")
             row["message"] = s.get("message", "")
             rows.append(row)
-        panels.append((name, variant, runs))
+            cases.append(c)
+        if runs:
+            panels.append((name, variant, runs))
         write_table(study, rows)
     _agreement_figure(panels)
-    cols = ["scene", "variant", "algorithm", "converged", "n_steps", "newton_iters_total", "wall_s",
-            "cpu_s", "max_penetration", "steady_drawing_force", "rel_diff_steady", "curve_diff_drawing",
-            "curve_diff_clamping", "max_status_mismatch"]
-    write_section(study, _header(study, [c for _, _, runs in panels for c in runs.values()],
+    cols = ["scene", "variant", "algorithm", "reference", "converged", "n_steps", "newton_iters_total",
+            "wall_s", "cpu_s", "max_penetration", "steady_drawing_force", "rel_diff_steady",
+            "curve_diff_drawing", "curve_diff_clamping", "max_status_mismatch"]
+    drawn = ", ".join(f"{n} / {v}" for n, v, _ in panels) or "none"
+    write_section(study, _header(study, cases,
                                  "Every scene variant with every algorithm at default parameters; the "
-                                 "reference is `lcp_lemke`, or `auglag` with target gap 1e-6 where Lemke "
-                                 "did not converge. The blankholder's penalty rows are the runs of study "
-                                 "`blankholder_shapes` (the same cases). Curves compared on 200 points "
-                                 "over the common `draw` range (and `theta_deg` over `wind` for the bead).")
+                                 "reference (column `reference`) is `lcp_lemke`, or `auglag` with target "
+                                 "gap 1e-6 where Lemke did not converge or has not run. The blankholder's "
+                                 "penalty rows are the runs of study `blankholder_shapes` where their run "
+                                 "directories are on disk (the same cases). Curves compared on 200 points "
+                                 "over the common `draw` range (and `theta_deg` over `wind` for the bead). "
+                                 "Each case keeps its curves in `curves/<case>.npz` (committed), so a later "
+                                 "session adds cases without rerunning the others; rows finished before "
+                                 "curves were kept have none, are not in the figure and keep the "
+                                 "reference they were compared with.")
                   + "\n\n" + markdown_table(rows, cols) + "\n\n" + failures(rows, opts.missing)
+                  + f"\n\nFigure panels (groups with curves): {drawn}."
                   + "\n\n![algorithm agreement](results/studies/algorithm_agreement/figure.png)")
 
 
