@@ -587,7 +587,7 @@ def algorithm_agreement(opts) -> None:
             c = runs[algorithm]
             s, h = c["summary"], c["history"]
             row = {"case": f"{name}_{variant}_{algorithm}", "scene": name, "variant": variant,
-                   "algorithm": algorithm, "reference": ref_alg if ref is not None else None, **common(s)}
+                   "algorithm": algorithm, "reference": ref_alg, **common(s)}
             if ref is not None and h:
                 fs, fr = s.get("steady_drawing_force"), ref["summary"].get("steady_drawing_force")
                 row["rel_diff_steady"] = _r(abs(fs - fr) / abs(fr)) if fs is not None and fr else None
