@@ -177,6 +177,13 @@ def _committed_rows(study: str, opts) -> dict:
     return out
 
 
+def _write_partial(study: str, rows: list[dict], kept: dict) -> None:
+    """The table between two cases: the rows so far and the committed rows still to come, so that a
+    study stopped between cases (or resumed by another process) loses no committed row."""
+    seen = {r["case"] for r in rows}
+    write_table(study, rows + [r for name, r in kept.items() if name not in seen])
+
+
 def _want(opts, study: str, name: str) -> bool:
     """Whether case ``name`` enters the table: selected, or not selected but already on disk (read back).
     Cases left out are listed in the section (``opts.missing``)."""
@@ -218,7 +225,7 @@ def penalty_sensitivity(opts) -> None:
                          "message": s.get("message", "")})
             cases.append(c)
             _wall_rel(rows)
-            write_table(study, rows)
+            _write_partial(study, rows, kept)
     _wall_rel(rows)
     write_table(study, rows)
     cost_accuracy_figure()
@@ -268,7 +275,7 @@ def auglag_sensitivity(opts) -> None:
                              "message": s.get("message", "")})
                 cases.append(c)
                 _wall_rel(rows)
-                write_table(study, rows)
+                _write_partial(study, rows, kept)
     _wall_rel(rows)
     write_table(study, rows)
     cost_accuracy_figure()
@@ -354,7 +361,7 @@ def mesh_convergence(opts) -> None:
         rows.append({"case": name, "nx": nx, "ny": ny, "n_elements": nx * ny, **common(s),
                      "message": s.get("message", "")})
         cases.append(c)
-        write_table(study, _with_rel_diff(rows))
+        _write_partial(study, _with_rel_diff(rows), kept)
     rows = _with_rel_diff(rows)
     write_table(study, rows)
     plt = _plt()
@@ -604,7 +611,7 @@ def algorithm_agreement(opts) -> None:
             cases.append(c)
         if runs:
             panels.append((name, variant, runs))
-        write_table(study, rows)
+        _write_partial(study, rows, kept)
     _agreement_figure(panels)
     cols = ["scene", "variant", "algorithm", "reference", "converged", "n_steps", "newton_iters_total",
             "wall_s", "cpu_s", "max_penetration", "steady_drawing_force", "rel_diff_steady",
