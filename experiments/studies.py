@@ -177,11 +177,12 @@ def _committed_rows(study: str, opts) -> dict:
     return out
 
 
-def _write_partial(study: str, rows: list[dict], kept: dict) -> None:
-    """The table between two cases: the rows so far and the committed rows still to come, so that a
-    study stopped between cases (or resumed by another process) loses no committed row."""
+def _write_partial(study: str, rows: list[dict]) -> None:
+    """The table between two cases: the rows so far, then the rows of the table on disk that the loop
+    has not reached yet (committed, or read back from their run directories by an earlier process), so
+    that a study stopped between cases loses no row."""
     seen = {r["case"] for r in rows}
-    write_table(study, rows + [r for name, r in kept.items() if name not in seen])
+    write_table(study, rows + [r for r in _read_table(study) if r["case"] not in seen])
 
 
 def _want(opts, study: str, name: str) -> bool:
@@ -225,7 +226,7 @@ def penalty_sensitivity(opts) -> None:
                          "message": s.get("message", "")})
             cases.append(c)
             _wall_rel(rows)
-            _write_partial(study, rows, kept)
+            _write_partial(study, rows)
     _wall_rel(rows)
     write_table(study, rows)
     cost_accuracy_figure()
@@ -275,7 +276,7 @@ def auglag_sensitivity(opts) -> None:
                              "message": s.get("message", "")})
                 cases.append(c)
                 _wall_rel(rows)
-                _write_partial(study, rows, kept)
+                _write_partial(study, rows)
     _wall_rel(rows)
     write_table(study, rows)
     cost_accuracy_figure()
@@ -361,7 +362,7 @@ def mesh_convergence(opts) -> None:
         rows.append({"case": name, "nx": nx, "ny": ny, "n_elements": nx * ny, **common(s),
                      "message": s.get("message", "")})
         cases.append(c)
-        _write_partial(study, _with_rel_diff(rows), kept)
+        _write_partial(study, _with_rel_diff(rows))
     rows = _with_rel_diff(rows)
     write_table(study, rows)
     plt = _plt()
@@ -611,7 +612,7 @@ def algorithm_agreement(opts) -> None:
             cases.append(c)
         if runs:
             panels.append((name, variant, runs))
-        _write_partial(study, rows, kept)
+        _write_partial(study, rows)
     _agreement_figure(panels)
     cols = ["scene", "variant", "algorithm", "reference", "converged", "n_steps", "newton_iters_total",
             "wall_s", "cpu_s", "max_penetration", "steady_drawing_force", "rel_diff_steady",
