@@ -41,7 +41,9 @@ exactly; the contact status comes out of that solve. Two ways:
    ``s = s^i + du_T - (e_q . t) dq`` and Signorini-Coulomb, plus the force balance of the force-driven
    tool (:mod:`jaxfric.lcp`): semismooth Newton (``ssn``, jitted; if it does not converge, Lemke for
    that iterate, counted as a fallback) or Lemke's pivoting (``lemke``, NumPy on the host through
-   ``jax.pure_callback``).
+   ``jax.pure_callback``), whose answer is solved again on its own piece and, where it lies on a piece
+   boundary within its round-off, settled by a few semismooth Newton iterations on the same problem
+   (:func:`jaxfric.lcp.polish`).
 5. Back-substitution ``du_f = K_ff^-1 (b_f - K_fc du_c)``; x <- x + (du, dq).
 
 Convergence (spec 1.7 step 7): the bulk residual with the contact forces of the last solve,
@@ -76,6 +78,7 @@ from .tools import project
 __all__ = ["exact_solve"]
 
 KAPPA = 1e2       # prescribed rows: kappa = KAPPA K_ii (see the module docstring)
+REFINE_ITER = 10  # semismooth Newton iterations refining a Lemke answer on a piece boundary (lcp.polish)
 GAP_FAR = 10.0    # mm: gap given to a band node that projects on no tool (it stays open)
 
 
@@ -264,18 +267,21 @@ class _LCPSolution(NamedTuple):
 
 def _lemke(K, r, gap, slip, mu, drive, hint):
     """Lemke on the host, warm-started from the basis of the forces ``hint`` (the last iterate's),
-    its active set then solved exactly (:func:`jaxfric.lcp.polish`)."""
+    its active set then solved exactly (:func:`jaxfric.lcp.polish`; an answer on a piece boundary, or
+    the last basis of a pivoting that ended on a ray, is settled by at most ``REFINE_ITER`` semismooth
+    Newton iterations on the same problem, counted with the ``ssn_iters``). Solved: Lemke's answer
+    passed its check, or the refined one is a solution on its own piece."""
     du_c, p, dq, pivots, status = lemke_contact_callback(K, r, gap, slip, mu, drive,
                                                          start=lemke_start(hint, slip, mu))
-    du_c, p, dq = polish(K, r, gap, slip, mu, du_c, dq, drive)
-    return du_c, p, dq, pivots, status == LemkeStatus.SOLVED
+    du_c, p, dq, refined, solved = polish(K, r, gap, slip, mu, du_c, dq, drive, refine_iter=REFINE_ITER)
+    return du_c, p, dq, pivots, refined, (status == LemkeStatus.SOLVED) | solved
 
 
 def _solve_contact(law: Complementarity, K, r, gap, slip, mu, drive, hint) -> _LCPSolution:
     zero = jnp.array(0, jnp.int32)
     if law.solver == "lemke":
-        du_c, p, dq, pivots, ok = _lemke(K, r, gap, slip, mu, drive, hint)
-        return _LCPSolution(du_c, p, dq, pivots, zero, zero, ok)
+        du_c, p, dq, pivots, refined, ok = _lemke(K, r, gap, slip, mu, drive, hint)
+        return _LCPSolution(du_c, p, dq, pivots, refined, zero, ok)
     # Per-candidate Alart-Curnier constants (the diagonal of K*): candidates with prescribed
     # components (kappa rows) are 1e8 stiffer than the rest, where one mean value misclassifies.
     c_n, c_t = diagonal_parameters(K)
@@ -283,8 +289,8 @@ def _solve_contact(law: Complementarity, K, r, gap, slip, mu, drive, hint) -> _L
                     start=ssn_start(hint, gap, mu))
 
     def fallback():
-        du_c, p, dq, pivots, ok = _lemke(K, r, gap, slip, mu, drive, hint)
-        return _LCPSolution(du_c, p, dq, pivots, s.iterations, jnp.array(1, jnp.int32), ok)
+        du_c, p, dq, pivots, refined, ok = _lemke(K, r, gap, slip, mu, drive, hint)
+        return _LCPSolution(du_c, p, dq, pivots, s.iterations + refined, jnp.array(1, jnp.int32), ok)
 
     return jax.lax.cond(s.converged,
                         lambda: _LCPSolution(s.du_c, s.p, s.dq, zero, s.iterations, zero, jnp.array(True)),
@@ -696,8 +702,8 @@ def exact_solve(args, x0, x_ref, *, options: NewtonOptions, law: Complementarity
     """Solve one load step with exact contact from the initial guess ``x0`` (``x_ref``: the last
     converged state, reference of the increment test).
 
-    Returns ``(NewtonSolution, stats)`` with ``stats`` = (Lemke pivots, semismooth Newton iterations,
-    Lemke fallbacks) summed over the step's iterations; the solution's ``aux`` has the layout of the
+    Returns ``(NewtonSolution, stats)`` with ``stats`` = (Lemke pivots, semismooth Newton iterations
+    (with ``lcp_lemke``: those refining its answers), Lemke fallbacks) summed over the step's iterations; the solution's ``aux`` has the layout of the
     penalty path: (f_int, material states, contact outputs).
     """
     return _exact_newton(args, x0, x_ref, options, law)

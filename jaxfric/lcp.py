@@ -286,6 +286,7 @@ class LemkeStatus(enum.IntEnum):
     RAY = 1               # ray termination: no blocking variable (infeasible, or not processable)
     MAX_PIVOTS = 2        # pivot budget exhausted
     SHIFT_TOO_SMALL = 3   # lemke_contact only: z_q = 0, the tool shift alpha is smaller than |dq|
+    INACCURATE = 4        # pivoting ended (z0 left), but the point fails the check on the original data
 
 
 class LemkeResult(NamedTuple):
@@ -416,6 +417,17 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12, star
     end on a solution verified on the original data within ``n`` pivots per run is dropped for the
     cold start.
 
+    Scaling. Every answer is checked on the original data (:func:`_is_solution`). One that fails it
+    (a ray, the pivot budget, or an end on a basis that is not feasible) is computed again on the
+    symmetrically scaled problem ``M' = D M D, q' = D q`` with ``D = |diag M|^(-1/2)`` (z = D z',
+    w = D^-1 w': the same complementarity), warm then cold as before; if that fails too, the first
+    run's status is returned (``INACCURATE`` where it had ended as a solution). The tableau's
+    round-off follows the spread of M's scales: on the blankholder's lock (band of 256 nodes, the
+    force-driven tool eliminated, diagonal of K* from 1e4 to 4e6 N/mm) an unscaled run ended after
+    658 pivots on a basis whose R_N came out at -3.6e-3 N/mm and whose frictional rows were violated
+    by as much, and the Newton loop cycled on it; the scaled warm start solved it in 19 pivots.
+    Problems that the unscaled pivoting solves are not touched.
+
     Pure function of arrays (NumPy, float64), suitable for ``jax.pure_callback``
     (see :func:`lemke_callback`).
 
@@ -429,7 +441,8 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12, star
 
     Returns:
         :class:`LemkeResult` ``(z, w, pivots, status, basis)``. On failure z is the last basic
-        point with z0 dropped (not a solution).
+        point with z0 dropped (not a solution); ``INACCURATE`` where that point ended the pivoting
+        as a solution but fails the check.
     """
     M = np.asarray(M, dtype=np.float64)
     q = np.asarray(q, dtype=np.float64).reshape(-1)
@@ -440,6 +453,24 @@ def lemke(M, q, *, max_pivots: int | None = None, pivot_tol: float = 1e-12, star
         max_pivots = 50 * n
     if np.all(q >= 0.0):
         return LemkeResult(np.zeros(n), q.copy(), 0, int(LemkeStatus.SOLVED), np.arange(n))
+    res = _lemke_path(M, q, max_pivots, pivot_tol, start)
+    if res.status == LemkeStatus.SOLVED and _is_solution(M, q, res.z):
+        return res
+    # Not a verified solution: pivot again on the diagonally scaled problem (see "Scaling").
+    scale = np.abs(np.diagonal(M))
+    scale = 1.0 / np.sqrt(np.where(scale > 0.0, scale, 1.0))
+    scaled = _lemke_path(scale[:, None] * M * scale[None, :], scale * q, max_pivots, pivot_tol, start)
+    z = scale * scaled.z
+    pivots = res.pivots + scaled.pivots
+    if scaled.status == LemkeStatus.SOLVED and _is_solution(M, q, z):
+        return LemkeResult(z, M @ z + q, pivots, int(LemkeStatus.SOLVED), scaled.basis)
+    status = res.status if res.status != LemkeStatus.SOLVED else LemkeStatus.INACCURATE
+    return res._replace(pivots=pivots, status=int(status))
+
+
+def _lemke_path(M, q, max_pivots, pivot_tol, start) -> LemkeResult:
+    """One run of :func:`lemke` on (M, q) as given: warm start if ``start`` guesses a basis, then cold."""
+    n = q.size
     if start is not None and np.any(start):
         warm = _lemke_warm(M, q, np.asarray(start, bool).reshape(n), min(max_pivots, n), pivot_tol)
         if warm is not None:
@@ -950,11 +981,24 @@ def _piece_solution(K_star, r_star, d0, C, P, state, mu, c_n, c_t):
     return jnp.linalg.solve(J, jnp.concatenate([rhs_top, P + C.T @ r_star]))
 
 
-def polish(K_star, r_star, gap, slip, mu, du_c, dq, drive: ForceDrive | None = None):
+def polish(K_star, r_star, gap, slip, mu, du_c, dq, drive: ForceDrive | None = None, refine_iter: int = 0):
     """Refine a solution found by pivoting: classify each candidate (open / stick / slip with its
     direction) from ``(du_c, dq)`` and solve the contact equations on that piece exactly (one dense
-    LU of the original data). Returns the refined ``(du_c, p, dq)``, or the given solution if the
-    refined one falls on another piece (then the pivoting's own answer is kept).
+    LU of the original data). If the refined point falls on another piece, the pivoting's values lie
+    on a piece boundary within their round-off; then, with ``refine_iter`` > 0, semismooth Newton
+    (:func:`ssn_contact`, at most ``refine_iter`` iterations) starts on the pivoting's piece, and its
+    answer is taken if it converges; otherwise the pivoting's own answer is kept. Open candidates are
+    given zero forces. Returns ``(du_c, p, dq, iterations, solved)``: the semismooth Newton iterations
+    (0 when the piece held), and whether the answer is a solution by its own piece (the piece held, or
+    semismooth Newton converged), whatever the pivoting's status. The pivoting need not have ended on a
+    solution: its last basis (a ray, or an end that failed :func:`lemke`'s check) starts the same
+    refinement.
+
+    On the blankholder's lock (Lemke on a band of 256 nodes) the pivoting's values had an error of
+    3e-8 mm (a stick-slip pair with |R_T| = mu R_N, land nodes at zero gap and zero force); without
+    the semismooth Newton step the global Newton iteration's increment never fell below that, against
+    its tolerance of 1e-9 mm, and the step was cut to its floor; with it, the step converges in 5
+    iterations, as semismooth Newton on the same condensed problems does.
 
     Lemke's answer is exact in its active set but not in its values: the tableau and the basis
     solve carry the conditioning of the condensed problem (with a force-driven tool eliminated, the
@@ -978,9 +1022,28 @@ def polish(K_star, r_star, gap, slip, mu, du_c, dq, drive: ForceDrive | None = N
     x = _piece_solution(K_star, r_star, d0, C, P, state, mu, c_n, c_t)
     du_new, dq_new = x[: 2 * n_c], x[2 * n_c:]
     keep = jnp.all(classify(du_new, dq_new) == state) & jnp.all(jnp.isfinite(x))
-    du = jnp.where(keep, du_new, du_c)
-    dq = jnp.where(keep, dq_new, dq)
-    return du, K_star @ du - r_star, dq
+
+    def refine():
+        # The exact solve on the pivoting's piece falls on another piece: the pivoting's values sit on
+        # a boundary within their round-off (a pair with |R_T| = mu R_N, a node at zero gap and zero
+        # force). Semismooth Newton on the same problem, started on that piece, settles it.
+        s = ssn_contact(K_star, r_star, gap, slip, mu, drive=drive, c_n=c_n, c_t=c_t, max_iter=refine_iter,
+                        start=state)
+        ok = s.converged & jnp.all(jnp.isfinite(s.du_c))
+        return jnp.where(ok, s.du_c, du_c), jnp.where(ok, s.dq, dq), s.iterations, ok
+
+    if refine_iter:
+        du, dq, iters, solved = jax.lax.cond(keep, lambda: (du_new, dq_new, jnp.array(0, jnp.int32), keep),
+                                             refine)
+    else:
+        du, dq, iters, solved = (jnp.where(keep, du_new, du_c), jnp.where(keep, dq_new, dq),
+                                 jnp.array(0, jnp.int32), keep)
+    # The forces of the piece: an open candidate carries none. K* du - r* leaves it the round-off of
+    # the forces around it (1e-8 N/mm next to 300 N/mm on the blankholder's lands), above the open
+    # threshold of :func:`contact_status`, so that its status flipped between iterations.
+    p = (K_star @ du - r_star).reshape(n_c, 2)
+    p = jnp.where((classify(du, dq) == _OPEN)[:, None], 0.0, p)
+    return du, p.reshape(-1), dq, iters, solved
 
 
 def _keep_tools_touching(state, sig_n, e_dot_n):

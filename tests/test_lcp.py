@@ -32,6 +32,7 @@ from jaxfric.lcp import (
     lemke_contact,
     lemke_contact_callback,
     lemke_start,
+    polish,
     ssn_contact,
     ssn_start,
 )
@@ -193,6 +194,62 @@ def test_lemke_random_monotone_lcps(kind, n):
         assert_lcp_solution(M, q, res.z, res.w)
         if kind == "positive_definite":  # unique solution
             np.testing.assert_allclose(res.z, z_star, atol=1e-9 * (1 + np.abs(z_star).max()))
+
+
+def test_lemke_checks_its_answer_and_pivots_again_on_the_scaled_problem(monkeypatch):
+    """An end of the pivoting that fails the check on the original data is not reported as solved: the
+    problem is pivoted again with D M D, D q (D = |diag M|^-1/2), and if that fails too the status is
+    INACCURATE. The inaccurate first run is simulated (a real one needs the blankholder's 768-unknown
+    LCP)."""
+    import jaxfric.lcp as lcp
+
+    M = np.array([[2.0, 1.0], [1.0, 2.0]]) * np.array([1.0, 1e4])[None, :]
+    q = np.array([-5.0, -6.0])
+    exact = lemke(M, q)
+    assert exact.status == LemkeStatus.SOLVED
+    calls = []
+    real = lcp._lemke_path
+
+    def first_run_wrong(M_, q_, *args):
+        calls.append(np.array(M_))
+        res = real(M_, q_, *args)
+        if len(calls) == 1:   # the unscaled run "ends" on a point that is not a solution
+            return res._replace(z=res.z + 1.0)
+        return res
+
+    monkeypatch.setattr(lcp, "_lemke_path", first_run_wrong)
+    res = lemke(M, q)
+    assert len(calls) == 2 and res.status == LemkeStatus.SOLVED
+    d = 1.0 / np.sqrt(np.abs(np.diag(M)))
+    np.testing.assert_allclose(calls[1], d[:, None] * M * d[None, :], rtol=1e-15)
+    np.testing.assert_allclose(res.z, exact.z, rtol=1e-12)
+    assert_lcp_solution(M, q, res.z, res.w)
+    assert res.pivots == 2 * exact.pivots
+
+    monkeypatch.setattr(lcp, "_lemke_path", lambda *a: real(*a)._replace(z=real(*a).z + 1.0))
+    assert lemke(M, q).status == LemkeStatus.INACCURATE
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.3])
+def test_polish_settles_a_point_off_the_solution_piece(mu):
+    """polish from a point on the wrong piece (here -2 du_c of the solution, as far off as the last
+    basis of a pivoting that ended on a ray may be): its exact solve on that piece is no solution, and
+    without refinement it says so; with semismooth Newton started on that piece it returns the
+    solution and says so."""
+    K, r, gap, slip, m = random_problem(4, 12, mu)
+    ref = ssn_contact(K, r, gap, slip, m, max_iter=100)
+    assert bool(ref.converged)
+    off = -2.0 * ref.du_c
+    du, p, dq, iters, solved = polish(K, r, gap, slip, m, off, jnp.zeros(0))
+    assert not bool(solved) and int(iters) == 0
+    du, p, dq, iters, solved = polish(K, r, gap, slip, m, off, jnp.zeros(0), refine_iter=50)
+    assert bool(solved) and 0 < int(iters) <= 50
+    worst, checks = law_violation(du, p, gap, slip, m, r)
+    assert worst < LAW, checks
+    np.testing.assert_allclose(du, ref.du_c, atol=1e-10 * np.abs(ref.du_c).max())
+    # Open candidates carry exactly zero force.
+    g = gap + np.asarray(du)[0::2]
+    assert np.all(np.asarray(p)[0::2][g > 1e-12] == 0.0)
 
 
 def test_lemke_warm_start_gives_the_cold_solution():
