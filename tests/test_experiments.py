@@ -60,3 +60,13 @@ def test_study_curve_difference_and_mesh_reference():
     assert out[2]["rel_diff_to_finest"] == 0 and out[0]["finest"] == "600x6"  # the finest that converged
     assert out[0]["rel_diff_to_finest"] == pytest.approx(1.5 / 100.5, rel=1e-5)
     assert out[3]["rel_diff_to_finest"] is None
+
+
+def test_study_table_between_cases_keeps_the_rows_still_to_come(tmp_path, monkeypatch):
+    """A table written after one case keeps the rows of the table on disk that the loop has not
+    reached yet (committed, or read back by another process), so a study stopped there loses none."""
+    monkeypatch.setattr(studies, "ROOT", str(tmp_path))
+    studies.write_table("demo", [{"case": c, "value": v} for c, v in (("a", 1), ("b", 2), ("c", 3))])
+    studies._write_partial("demo", [{"case": "a", "value": 10}, {"case": "d", "value": 4}])
+    rows = studies._read_table("demo")
+    assert [(r["case"], r["value"]) for r in rows] == [("a", "10"), ("d", "4"), ("b", "2"), ("c", "3")]
