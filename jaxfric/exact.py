@@ -703,8 +703,9 @@ def exact_solve(args, x0, x_ref, *, options: NewtonOptions, law: Complementarity
     converged state, reference of the increment test).
 
     Returns ``(NewtonSolution, stats)`` with ``stats`` = (Lemke pivots, semismooth Newton iterations
-    (with ``lcp_lemke``: those refining its answers), Lemke fallbacks) summed over the step's iterations; the solution's ``aux`` has the layout of the
-    penalty path: (f_int, material states, contact outputs).
+    (with ``lcp_lemke``: those refining its answers), Lemke fallbacks) summed over the step's
+    iterations; the solution's ``aux`` has the layout of the penalty path: (f_int, material states,
+    contact outputs).
     """
     return _exact_newton(args, x0, x_ref, options, law)
 
