@@ -4,11 +4,16 @@
 test (flat die ``const_force`` / ``const_position``, Nine ``mu000`` / ``mu017``):
 
 - a **reference**: ``auglag`` with the test's target gap ``ref_gap`` (default ``REF_GAP``), on the
-  reference mesh (each sweep mesh at most as fine) with half the nominal increments; and two
-  **checks** of it, the mesh refined once more (element size halved in both directions) and the
-  increments halved once more. The reference counts as
-  converged for a measure when both checks change it by less than a tenth of the smallest error of that
+  reference mesh (each sweep mesh at most as fine) with half the nominal increments; and its
+  **checks** (``ref_checks``), the mesh refined once more (element size halved in both directions) and
+  the increments halved once more. The reference counts as
+  converged for a measure when its checks change it by less than a tenth of the smallest error of that
   measure in the sweep (the table says, per measure, whether it did);
+- a test may also be a **same-mesh** test (``tag``, e.g. ``nine_mu017_at_100x2``): its reference is on
+  the sweep's own mesh and has only the step check, so its errors are those of the contact algorithm
+  and the step size on that mesh, with the discretisation error left out (the Nine's steady force still
+  moves by 5.6 % from a 200 x 4 to a 400 x 8 mesh, so no affordable reference bounds its total error).
+  It shares its sweep runs with the parent test (``runs``) and has no mesh family;
 - the **sweep**: ``penalty`` over five decades of eps_N, ``auglag`` over eps_N x target gap, ``lcp_ssn``,
   and, with the scene's default algorithm and penalty, coarser/finer meshes and larger/smaller steps;
 - for every run: solve wall time and compile time apart, Newton iterations, and the **error measures**
@@ -16,11 +21,15 @@ test (flat die ``const_force`` / ``const_position``, Nine ``mu000`` / ``mu017``)
 
 It writes ``accuracy_cost.csv`` (one row per run), ``pareto_<test>.png`` (error against wall time, one
 curve per family, the Pareto front marked) and ``accuracy_cost.md`` (the recommendations: for 10 %, 1 %
-and 0.1 % the cheapest run that reaches it, per test). Runs are resumable (:mod:`jaxfric.batch`).
+and 0.1 % the cheapest run that reaches it, per test). Runs are resumable (:mod:`jaxfric.batch`). Run
+directories are not kept with the results: a test whose reference is not on disk keeps its rows from
+the ``accuracy_cost.csv`` already in the output directory, so a report written after running one test
+still holds the others.
 """
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import math
 import os
@@ -70,6 +79,9 @@ class Test:
         ref_gap: target gap of the reference's augmented Lagrangian (mm).
         main: the measure the recommendations use (the flat die at constant force draws mu F_clamp
             exactly once it slides, so its steady and peak forces carry no error; its curve does).
+        ref_checks: the reference's checks, ``"mesh"`` and/or ``"step"``.
+        tag: suffix of the test's name and of its reference's labels (a second test of one variant).
+        runs: directory of the runs under ``runs/`` when shared with another test (default: the name).
     """
 
     scene: str
@@ -86,10 +98,22 @@ class Test:
     ssn: bool = True
     ref_gap: float = REF_GAP
     main: str = "err_steady"
+    ref_checks: tuple = ("mesh", "step")
+    tag: str = ""
+    runs: str | None = None
 
     @property
     def name(self) -> str:
-        return f"{self.scene}_{self.variant}"
+        return f"{self.scene}_{self.variant}{self.tag}"
+
+    @property
+    def run_dir(self) -> str:
+        return self.runs or self.name
+
+    @property
+    def reference(self) -> str:
+        """Label of the reference run."""
+        return f"reference{self.tag}"
 
 
 _FLAT_STEPS = ("dU_fine", "dU", "n_clamp")
@@ -105,18 +129,29 @@ _NINE_BASE = {"U_draw": 36.0}
 # force, by about d / R = 2e-7; 1e-8 mm would only multiply the augmentations of a 2000-step run.
 _NINE_REF_GAP = 1e-6
 
+_NINE_PENALTIES = (1e2, 1e3, 1e4, 1e5, 1e6)
+_NINE_AUGLAG = ((1e4, 1e-3), (1e4, 1e-4), (1e5, 1e-4), (1e5, 1e-5))
+
+
+def _nine_tests(variant: str) -> tuple:
+    """The Nine variant's two tests: total error against a finer reference (200 x 4, checked at 400 x 8),
+    and the contact algorithm's and step size's error on the sweep's own mesh (100 x 2), which shares the
+    first test's runs."""
+    full = Test("nine", variant, _NINE_BASE, (100, 2), (200, 4), ((50, 2), (100, 2), (200, 4)), _NINE_STEPS,
+                (2.0, 0.5), _NINE_PENALTIES, _NINE_AUGLAG, "steady", ref_gap=_NINE_REF_GAP)
+    same = dataclasses.replace(full, ref_mesh=full.mesh, meshes=(), ref_checks=("step",), tag="_at_100x2",
+                               runs=full.name)
+    return full, same
+
+
 TESTS = (
     Test("flat_die", "const_force", {}, (120, 1), (240, 2), ((60, 1), (120, 1), (240, 2)), _FLAT_STEPS,
          (2.0, 0.5), (1e5, 1e6, 1e7, 1e8, 1e9), _FLAT_AUGLAG, "final",
          main="err_curve_l2"),
     Test("flat_die", "const_position", {}, (120, 1), (240, 2), ((60, 1), (120, 1), (240, 2)), _FLAT_STEPS,
          (2.0, 0.5), (1e5, 1e6, 1e7, 1e8, 1e9), _FLAT_AUGLAG, "final"),
-    Test("nine", "mu000", _NINE_BASE, (100, 2), (200, 4), ((50, 2), (100, 2), (200, 4)), _NINE_STEPS,
-         (2.0, 0.5), (1e2, 1e3, 1e4, 1e5, 1e6), ((1e4, 1e-3), (1e4, 1e-4), (1e5, 1e-4), (1e5, 1e-5)), "steady",
-         ref_gap=_NINE_REF_GAP),
-    Test("nine", "mu017", _NINE_BASE, (100, 2), (200, 4), ((50, 2), (100, 2), (200, 4)), _NINE_STEPS,
-         (2.0, 0.5), (1e2, 1e3, 1e4, 1e5, 1e6), ((1e4, 1e-3), (1e4, 1e-4), (1e5, 1e-4), (1e5, 1e-5)), "steady",
-         ref_gap=_NINE_REF_GAP),
+    *_nine_tests("mu000"),
+    *_nine_tests("mu017"),
 )
 
 # --quick: the flat die at force control on small meshes, a short sweep (a few minutes on 2 cores).
@@ -146,7 +181,7 @@ def _mesh(m) -> str:
 
 def cases(test: Test) -> list[tuple]:
     """(label, family, algorithm, overrides) of the sweep, the reference (family ``reference``) and its
-    two checks (``ref_check``)."""
+    checks (``ref_check``)."""
     from . import scenes
 
     default_eps = next(f.default for f in dataclasses.fields(scenes.config_class(test.scene)) if f.name == "eps_n")
@@ -161,9 +196,12 @@ def cases(test: Test) -> list[tuple]:
             for f in test.step_factors]
     ref = {"eps_n": default_eps, "target_gap": test.ref_gap, **_steps(test, 0.5)}
     fine = (2 * test.ref_mesh[0], 2 * test.ref_mesh[1])
-    out += [("reference", "reference", "auglag", {"mesh": _mesh(test.ref_mesh), **ref}),
-            ("ref_check_mesh", "ref_check", "auglag", {"mesh": _mesh(fine), **ref}),
-            ("ref_check_step", "ref_check", "auglag", {"mesh": _mesh(test.ref_mesh), **ref, **_steps(test, 0.25)})]
+    out.append((test.reference, "reference", "auglag", {"mesh": _mesh(test.ref_mesh), **ref}))
+    if "mesh" in test.ref_checks:
+        out.append((f"ref_check_mesh{test.tag}", "ref_check", "auglag", {"mesh": _mesh(fine), **ref}))
+    if "step" in test.ref_checks:
+        out.append((f"ref_check_step{test.tag}", "ref_check", "auglag",
+                    {"mesh": _mesh(test.ref_mesh), **ref, **_steps(test, 0.25)}))
     return [(label, family, algorithm, {**test.base, **ov}) for label, family, algorithm, ov in out]
 
 
@@ -294,25 +332,59 @@ def _row(test: Test, label, family, algorithm, overrides, c, ref) -> dict:
 
 
 def _test_rows(out: str, test: Test, run_missing: bool, rerun: bool = False, progress: bool = False,
-               log=print, csv_rows: list | None = None) -> list[dict]:
-    """Rows of one test: its runs run (``run_missing``) or only read back from ``out``."""
+               log=print, kept: list | None = None, csv_rows: list | None = None) -> list[dict]:
+    """Rows of one test: its runs run (``run_missing``) or only read back from ``out``. Without
+    ``run_missing``, a test whose reference is not on disk takes its rows from ``kept`` (the rows of
+    the CSV already in ``out``): run directories are not kept with the results."""
     plan = sorted(cases(test), key=lambda p: p[1] != "reference")  # the reference first
+    if not run_missing and not os.path.exists(_run_path(out, test, test.reference, "summary.json")):
+        return [r for r in kept or [] if r["test"] == test.name]
     rows, done = [], {}
     for label, family, algorithm, ov in plan:
-        path = os.path.join(out, "runs", test.name, label)
+        path = _run_path(out, test, label)
         if not run_missing and not os.path.exists(os.path.join(path, "summary.json")):
             continue
         done[label] = run_case(path, test.scene, test.variant, algorithm, ov, rerun=rerun, progress=progress,
                                log=log)
-        rows.append(_row(test, label, family, algorithm, ov, done[label], done.get("reference")))
+        rows.append(_row(test, label, family, algorithm, ov, done[label], done.get(test.reference)))
         if csv_rows is not None:
             write_csv(os.path.join(out, "accuracy_cost.csv"), csv_rows + rows)
     return rows
 
 
+def _run_path(out: str, test: Test, label: str, *rest) -> str:
+    return os.path.join(out, "runs", test.run_dir, label, *rest)
+
+
+_INT_COLUMNS = ("n_steps", "newton_iters_total", "cutbacks")
+_TEXT_COLUMNS = ("test", "scene", "variant", "run", "family", "algorithm", "mesh", "message")
+
+
+def _read_rows(out: str) -> list[dict]:
+    """The rows of ``out``'s ``accuracy_cost.csv`` (none if there is no such file), typed as
+    :func:`_row` writes them."""
+    path = os.path.join(out, "accuracy_cost.csv")
+    if not os.path.exists(path):
+        return []
+
+    def typed(key, v):
+        if key in _TEXT_COLUMNS:
+            return v
+        if v == "":
+            return None
+        if v in ("True", "False"):
+            return v == "True"
+        return int(float(v)) if key in _INT_COLUMNS else float(v)
+
+    with open(path, newline="") as fh:
+        return [{k: typed(k, v) for k, v in r.items()} for r in csv.DictReader(fh)]
+
+
 def collect(out: str, quick: bool = False) -> list[dict]:
-    """The rows of every test whose runs are in ``out`` (nothing is run)."""
-    return [r for t in (QUICK_TESTS if quick else TESTS) for r in _test_rows(out, t, run_missing=False)]
+    """The rows of every test whose runs are in ``out``, or, for a test whose reference is not on disk,
+    whose rows are in ``out``'s CSV (nothing is run)."""
+    kept = _read_rows(out)
+    return [r for t in (QUICK_TESTS if quick else TESTS) for r in _test_rows(out, t, run_missing=False, kept=kept)]
 
 
 def accuracy_cost(out: str, quick: bool = False, tests=None, rerun: bool = False, progress: bool = False,
@@ -324,9 +396,13 @@ def accuracy_cost(out: str, quick: bool = False, tests=None, rerun: bool = False
     chosen = [t for t in pool if tests is None or t.name in tests]
     if not chosen:
         raise ValueError(f"no test selected; choose from {', '.join(t.name for t in pool)}")
+    # The CSV written between runs keeps the other tests' rows (their run directories may be gone).
+    names = {t.name for t in chosen}
+    others = [r for r in collect(out, quick) if r["test"] not in names]
     done = []
     for test in chosen:
-        done += _test_rows(out, test, run_missing=True, rerun=rerun, progress=progress, log=log, csv_rows=done)
+        done += _test_rows(out, test, run_missing=True, rerun=rerun, progress=progress, log=log,
+                           csv_rows=others + done)
     return write_report(out, quick)
 
 
@@ -470,12 +546,32 @@ def _error_cell(value, resolution) -> str:
     return _fmt(value)
 
 
+def _reference_lines(rows: list[dict], quick: bool) -> list[str]:
+    """A table of what each test's errors are measured against."""
+    known = {t.name: t for t in (QUICK_TESTS if quick else TESTS)}
+    lines = ["**What each test measures** (the reference is `auglag` at the named target gap with half the "
+             "nominal increments; a same-mesh test leaves the discretisation error out):", "",
+             "| test | reference mesh | reference target gap (mm) | reference checks | errors measured |",
+             "|---|---|---|---|---|"]
+    for name in dict.fromkeys(r["test"] for r in rows):
+        t = known.get(name)
+        if t is None:
+            continue
+        what = ("contact algorithm and step size on the sweep's mesh" if t.ref_mesh == t.mesh and not t.meshes
+                else "total: contact algorithm, step size and mesh")
+        checks = ", ".join({"mesh": f"mesh {_mesh((2 * t.ref_mesh[0], 2 * t.ref_mesh[1]))}",
+                            "step": "quarter increments"}[c] for c in t.ref_checks)
+        lines.append(f"| {name} | {_mesh(t.ref_mesh)} | {t.ref_gap:g} | {checks} | {what} |")
+    return lines + [""]
+
+
 def report_markdown(rows: list[dict], checks: dict, quick: bool) -> str:
     lines = ["Error measures (each relative, against the test's reference): " +
              "; ".join(f"`{m}` {doc}" for m, doc in MEASURE_DOC.items()) + ". Wall time is the solve time "
              "(compilation apart, in the CSV). An error below the reference's resolution (10 x its own "
              "uncertainty, table below) is shown as `< resolution`: it cannot be told apart from the "
              "reference's error.", ""]
+    lines += _reference_lines(rows, quick)
     lines += ["**What to pick** (the cheapest run of the sweep that reaches the level on the test's main "
               "measure; `–`: none of the sweep does; `unverifiable`: the level is below the reference's "
               "resolution):", "", "| test | measure | 10 % | 1 % | 0.1 % |", "|---|---|---|---|---|"]
@@ -489,8 +585,8 @@ def report_markdown(rows: list[dict], checks: dict, quick: bool) -> str:
                          f"{r['wall_s']:.3g} s")
         measure = next(x for x in recs if x["test"] == test)["measure"]
         lines.append(f"| {test} | `{measure}` | " + " | ".join(cells) + " |")
-    lines += ["", "**Is the reference converged?** Its uncertainty is the largest change of a measure when its "
-              "mesh or its steps are halved once more; it must be below a tenth of the smallest error reported "
+    lines += ["", "**Is the reference converged?** Its uncertainty is the largest change of a measure under its "
+              "checks (its mesh or its steps halved once more, as the test has them); it must be below a tenth of the smallest error reported "
               "(errors below 10 x the uncertainty are reported as unresolved):", "",
               "| test | measure | uncertainty | resolution | smallest resolved error | unresolved runs | converged |",
               "|---|---|---|---|---|---|---|"]

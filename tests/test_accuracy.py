@@ -89,7 +89,9 @@ def test_plan_of_each_test(test):
     labels = [p[0] for p in plan]
     assert len(labels) == len(set(labels))
     families = {p[1] for p in plan}
-    assert {"penalty", "auglag", "mesh", "step", "reference", "ref_check"} <= families
+    assert {"penalty", "auglag", "step", "reference", "ref_check"} <= families
+    assert ("mesh" in families) == bool(test.meshes)
+    assert [p[0] for p in plan if p[1] == "reference"] == [test.reference]
     ref = next(p[3] for p in plan if p[1] == "reference")
     nx_ref, ny_ref = map(int, ref["mesh"].split("x"))
     for label, family, _, ov in plan:
@@ -97,12 +99,68 @@ def test_plan_of_each_test(test):
         if family != "ref_check":
             assert nx <= nx_ref and ny <= ny_ref, label  # no sweep run finer than the reference
     # The reference takes half the nominal increments; its step check a quarter.
-    check = next(p[3] for p in plan if p[0] == "ref_check_step")
+    check = next(p[3] for p in plan if p[0] == f"ref_check_step{test.tag}")
     base = next(p[3] for p in plan if p[0] == "step_x2")
     for field in test.step_fields:
         if isinstance(ref[field], float):
             assert ref[field] == pytest.approx(base[field] / 4) and check[field] == pytest.approx(base[field] / 8)
     assert ref["target_gap"] == test.ref_gap
+
+
+def test_the_same_mesh_test_shares_its_parents_sweep_runs():
+    """``nine_mu017_at_100x2`` measures the contact algorithm and the step size on the sweep's own mesh:
+    its sweep runs are the parent's (same overrides, same directories), its reference and check are its
+    own (on the sweep's mesh, only the step check), and it has no mesh family."""
+    by = {t.name: t for t in accuracy.TESTS}
+    parent, same = by["nine_mu017"], by["nine_mu017_at_100x2"]
+    assert same.run_dir == parent.run_dir == "nine_mu017"
+    mine = {p[0]: p for p in accuracy.cases(same)}
+    theirs = {p[0]: p for p in accuracy.cases(parent)}
+    sweep = [label for label, p in mine.items() if p[1] not in ("reference", "ref_check")]
+    assert sweep and all(mine[label] == theirs[label] for label in sweep)
+    own = [label for label in mine if label not in sweep]
+    assert own == ["reference_at_100x2", "ref_check_step_at_100x2"] and not set(own) & set(theirs)
+    assert mine["reference_at_100x2"][3]["mesh"] == "100x2" == mine["penalty_eps1e+05"][3]["mesh"]
+
+
+def _fake_run_case(path, scene, variant, algorithm, ov, **_):
+    """A stand-in for :func:`jaxfric.batch.run_case`: writes a summary so the run is "on disk" and
+    returns a run whose steady force depends on the penalty."""
+    import json
+
+    os.makedirs(path, exist_ok=True)
+    force = 10.0 * (1.0 + 1.0 / ov.get("eps_n", 1e12))
+    s = {"converged": True, "steady_drawing_force": force, "peak_drawing_force": force,
+         "final_clamping_force": 50.0, "wall_s": 1.0, "n_steps": 3, "newton_iters_total": 7}
+    with open(os.path.join(path, "summary.json"), "w") as fh:
+        json.dump(s, fh)
+    return {"summary": s, "history": None, "contact": None}
+
+
+def test_a_report_keeps_the_rows_of_tests_whose_runs_are_gone(tmp_path, monkeypatch):
+    """Run directories are not kept with the results: running one test, then another after the first's
+    directories are gone, still reports both (the first from the CSV, with its types), and the CSV
+    written between runs holds the first test's rows too."""
+    import shutil
+
+    base = accuracy.QUICK_TESTS[0]
+    other = accuracy.Test(**{**{f: getattr(base, f) for f in base.__dataclass_fields__}, "tag": "_b"})
+    monkeypatch.setattr(accuracy, "QUICK_TESTS", (base, other))
+    monkeypatch.setattr(accuracy, "run_case", _fake_run_case)
+    monkeypatch.setattr(accuracy, "_pareto_figure", lambda *a, **k: None)
+    out = str(tmp_path)
+    first = accuracy.accuracy_cost(out, quick=True, tests=[base.name])
+    shutil.rmtree(os.path.join(out, "runs", base.name))
+    seen = []
+    real_write = accuracy.write_csv
+    monkeypatch.setattr(accuracy, "write_csv",
+                        lambda path, rows: seen.append({r["test"] for r in rows}) or real_write(path, rows))
+    rows = accuracy.accuracy_cost(out, quick=True, tests=[other.name])
+    assert [r for r in rows if r["test"] == base.name] == first
+    assert {r["test"] for r in rows} == {base.name, other.name}
+    assert seen and all(base.name in names for names in seen)
+    assert isinstance(first[0]["n_steps"], int) and isinstance(first[0]["converged"], bool)
+    assert "| flat_die_const_force_b |" in (tmp_path / "accuracy_cost.md").read_text()
 
 
 def test_report_rejects_an_unknown_test(capsys, tmp_path):
