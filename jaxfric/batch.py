@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import time
 
@@ -50,7 +51,10 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
     from .run import run
 
     path = os.path.join(out, "summary.json")
-    if rerun or not os.path.exists(path):
+    stale = None if rerun or not os.path.exists(path) else _stale(path, overrides)
+    if stale:
+        log(f"{out}: the run on disk has {stale}: rerun")
+    if rerun or stale or not os.path.exists(path):
         t0 = time.perf_counter()
         log(f"{out}: {scene_name}/{variant}/{algorithm} {overrides}")
         try:
@@ -75,6 +79,29 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
     npz = os.path.join(out, "contact.npz")
     return {"summary": summary, "history": read_history(hist) if os.path.exists(hist) else {},
             "contact": dict(np.load(npz, allow_pickle=False)) if os.path.exists(npz) else {}, "dir": out}
+
+
+def _stale(path: str, overrides: dict) -> str | None:
+    """How the run recorded in ``path`` (a summary.json) differs from ``overrides`` (``"mesh"`` as
+    ``NXxNY``, other keys config fields), or None when it does not (or records no parameters)."""
+    with open(path) as fh:
+        config = (json.load(fh).get("parameters") or {}).get("config")
+    if not config:
+        return None
+    wanted = dict(overrides)
+    if "mesh" in wanted:
+        nx, ny = (int(v) for v in str(wanted.pop("mesh")).lower().split("x"))
+        wanted.update(nx=nx, ny=ny)
+    for key, value in wanted.items():
+        if key not in config:
+            continue
+        have = config[key]
+        same = (math.isclose(float(have), float(value), rel_tol=1e-12, abs_tol=0.0)
+                if isinstance(have, (int, float)) and isinstance(value, (int, float))
+                and not isinstance(have, bool) else have == value)
+        if not same:
+            return f"{key} = {have!r}, not {value!r}"
+    return None
 
 
 def write_csv(path: str, rows: list[dict]) -> str:

@@ -98,12 +98,13 @@ def test_plan_of_each_test(test):
         nx, ny = map(int, ov["mesh"].split("x"))
         if family != "ref_check":
             assert nx <= nx_ref and ny <= ny_ref, label  # no sweep run finer than the reference
-    # The reference takes half the nominal increments; its step check a quarter.
+    # The reference takes ref_step times the nominal increments (half by default); its step check half that.
     check = next(p[3] for p in plan if p[0] == f"ref_check_step{test.tag}")
     base = next(p[3] for p in plan if p[0] == "step_x2")
     for field in test.step_fields:
         if isinstance(ref[field], float):
-            assert ref[field] == pytest.approx(base[field] / 4) and check[field] == pytest.approx(base[field] / 8)
+            assert ref[field] == pytest.approx(base[field] / 2 * test.ref_step)
+            assert check[field] == pytest.approx(base[field] / 4 * test.ref_step)
     assert ref["target_gap"] == test.ref_gap
 
 
@@ -220,3 +221,40 @@ def test_penalty_sensitivity_is_refused_for_other_algorithms(capsys):
                  "--mesh", "24x1"]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--error-estimate" in err[0] and "penalty" in err[0]
+
+
+def test_a_run_on_disk_made_with_other_parameters_is_not_read_back(tmp_path, monkeypatch):
+    """``run_case`` reads a run back only if its recorded config matches the requested overrides (a
+    changed reference step, for example, must not silently reuse the old run)."""
+    import json
+
+    from jaxfric import batch
+
+    path = tmp_path / "summary.json"
+    config = {"nx": 100, "ny": 2, "dU": 0.05, "eps_n": 1e5, "eps_t": None}
+    path.write_text(json.dumps({"converged": True, "message": "", "parameters": {"config": config}}))
+    assert batch._stale(str(path), {"mesh": "100x2", "dU": 0.1 * 0.5, "eps_n": 100000}) is None
+    assert batch._stale(str(path), {"dU": 0.05 / 16}) == "dU = 0.05, not 0.003125"
+    assert batch._stale(str(path), {"mesh": "200x4"}) == "nx = 100, not 200"
+    assert batch._stale(str(path), {"unknown_field": 1}) is None  # not a config field: not compared
+    import importlib
+
+    run_module = importlib.import_module("jaxfric.run")
+
+    class Reached(BaseException):  # not caught by run_case's handler of failed cases
+        pass
+
+    def refuse(*a, **k):
+        raise AssertionError("a matching run was rerun")
+
+    monkeypatch.setattr(run_module, "run", refuse)
+    assert batch.run_case(str(tmp_path), "nine", "mu017", "auglag", {"mesh": "100x2", "dU": 0.05},
+                          log=lambda m: None)["summary"]["converged"]
+
+    def reached(*a, **k):
+        raise Reached
+
+    monkeypatch.setattr(run_module, "run", reached)
+    with pytest.raises(Reached):
+        batch.run_case(str(tmp_path), "nine", "mu017", "auglag", {"mesh": "100x2", "dU": 0.025},
+                       log=lambda m: None)
