@@ -38,7 +38,7 @@ import os
 
 import numpy as np
 
-from .batch import phase_curve, run_case, write_csv
+from .batch import phase_curve, run_case, stale, write_csv
 
 __all__ = ["TESTS", "QUICK_TESTS", "Test", "cases", "error_measures", "accuracy_cost", "collect", "reference_checks",
            "recommendations", "pareto_front", "report_markdown", "write_report", "MEASURES", "LEVELS",
@@ -346,12 +346,17 @@ def _test_rows(out: str, test: Test, run_missing: bool, rerun: bool = False, pro
     ``run_missing``, a test whose reference is not on disk takes its rows from ``kept`` (the rows of
     the CSV already in ``out``): run directories are not kept with the results."""
     plan = sorted(cases(test), key=lambda p: p[1] != "reference")  # the reference first
-    if not run_missing and not os.path.exists(_run_path(out, test, test.reference, "summary.json")):
+
+    def on_disk(label, ov):  # made with these overrides (a run made with others is as good as missing)
+        path = _run_path(out, test, label, "summary.json")
+        return os.path.exists(path) and stale(path, ov) is None
+
+    if not run_missing and not on_disk(test.reference, plan[0][3]):
         return [r for r in kept or [] if r["test"] == test.name]
     rows, done = [], {}
     for label, family, algorithm, ov in plan:
         path = _run_path(out, test, label)
-        if not run_missing and not os.path.exists(os.path.join(path, "summary.json")):
+        if not run_missing and not on_disk(label, ov):
             continue
         done[label] = run_case(path, test.scene, test.variant, algorithm, ov, rerun=rerun, progress=progress,
                                log=log)
@@ -478,6 +483,7 @@ def _pareto_figure(path: str, test: Test, rows: list[dict]) -> None:
     panels = list(dict.fromkeys([test.main, "err_curve_l2", "err_pressure"]))
     fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.8))
     markers = {"penalty": "o-", "auglag": "s-", "lcp_ssn": "D", "mesh": "^-", "step": "v-"}
+    check = _reference_check(rows)
     for ax, measure in zip(axes, panels):
         pts = []
         for family, style in markers.items():
@@ -498,6 +504,12 @@ def _pareto_figure(path: str, test: Test, rows: list[dict]) -> None:
                 ax.annotate(label, (x, y), textcoords="offset points", xytext=(5, 3), fontsize=6)
         for level in LEVELS:
             ax.axhline(level, color="gray", ls=":", lw=0.8)
+        resolution = check[measure]["resolution"]
+        if resolution is not None and resolution > FLOOR:
+            # Errors in the band cannot be told apart from the reference's own error.
+            low, high = ax.get_ylim()
+            ax.axhspan(low, resolution, color="0.8", alpha=0.5, lw=0, label="below the reference's resolution")
+            ax.set_ylim(low, max(high, 2 * resolution))
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-__all__ = ["read_history", "phase_curve", "run_case", "write_csv"]
+__all__ = ["read_history", "phase_curve", "run_case", "stale", "write_csv"]
 
 
 def read_history(path: str) -> dict:
@@ -51,10 +51,10 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
     from .run import run
 
     path = os.path.join(out, "summary.json")
-    stale = None if rerun or not os.path.exists(path) else _stale(path, overrides)
-    if stale:
-        log(f"{out}: the run on disk has {stale}: rerun")
-    if rerun or stale or not os.path.exists(path):
+    changed = None if rerun or not os.path.exists(path) else stale(path, overrides)
+    if changed:
+        log(f"{out}: the run on disk has {changed}: rerun")
+    if rerun or changed or not os.path.exists(path):
         t0 = time.perf_counter()
         log(f"{out}: {scene_name}/{variant}/{algorithm} {overrides}")
         try:
@@ -81,7 +81,7 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
             "contact": dict(np.load(npz, allow_pickle=False)) if os.path.exists(npz) else {}, "dir": out}
 
 
-def _stale(path: str, overrides: dict) -> str | None:
+def stale(path: str, overrides: dict) -> str | None:
     """How the run recorded in ``path`` (a summary.json) differs from ``overrides`` (``"mesh"`` as
     ``NXxNY``, other keys config fields), or None when it does not (or records no parameters)."""
     with open(path) as fh:

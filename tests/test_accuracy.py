@@ -233,10 +233,10 @@ def test_a_run_on_disk_made_with_other_parameters_is_not_read_back(tmp_path, mon
     path = tmp_path / "summary.json"
     config = {"nx": 100, "ny": 2, "dU": 0.05, "eps_n": 1e5, "eps_t": None}
     path.write_text(json.dumps({"converged": True, "message": "", "parameters": {"config": config}}))
-    assert batch._stale(str(path), {"mesh": "100x2", "dU": 0.1 * 0.5, "eps_n": 100000}) is None
-    assert batch._stale(str(path), {"dU": 0.05 / 16}) == "dU = 0.05, not 0.003125"
-    assert batch._stale(str(path), {"mesh": "200x4"}) == "nx = 100, not 200"
-    assert batch._stale(str(path), {"unknown_field": 1}) is None  # not a config field: not compared
+    assert batch.stale(str(path), {"mesh": "100x2", "dU": 0.1 * 0.5, "eps_n": 100000}) is None
+    assert batch.stale(str(path), {"dU": 0.05 / 16}) == "dU = 0.05, not 0.003125"
+    assert batch.stale(str(path), {"mesh": "200x4"}) == "nx = 100, not 200"
+    assert batch.stale(str(path), {"unknown_field": 1}) is None  # not a config field: not compared
     import importlib
 
     run_module = importlib.import_module("jaxfric.run")
@@ -258,3 +258,25 @@ def test_a_run_on_disk_made_with_other_parameters_is_not_read_back(tmp_path, mon
     with pytest.raises(Reached):
         batch.run_case(str(tmp_path), "nine", "mu017", "auglag", {"mesh": "100x2", "dU": 0.025},
                        log=lambda m: None)
+
+
+def test_collect_runs_nothing_and_skips_runs_made_with_other_parameters(tmp_path, monkeypatch):
+    """Collecting a report never runs: a run on disk made with other parameters than the plan's counts as
+    missing (for the reference, the test's rows then come from the CSV)."""
+    import importlib
+    import json
+
+    monkeypatch.setattr(importlib.import_module("jaxfric.run"), "run",
+                        lambda *a, **k: pytest.fail("collect ran a simulation"))
+    test = accuracy.QUICK_TESTS[0]
+    plan = {p[0]: p[3] for p in accuracy.cases(test)}
+    for label in (test.reference, "penalty_eps1e+06"):
+        path = tmp_path / "runs" / test.run_dir / label
+        path.mkdir(parents=True)
+        nx, ny = (int(v) for v in plan[label]["mesh"].split("x"))
+        config = {**{k: v for k, v in plan[label].items() if k != "mesh"}, "nx": nx, "ny": ny}
+        if label == "penalty_eps1e+06":
+            config["eps_n"] = 1.0  # made with another penalty
+        (path / "summary.json").write_text(json.dumps({"converged": True, "message": "",
+                                                       "parameters": {"config": config}}))
+    assert [r["run"] for r in accuracy.collect(str(tmp_path), quick=True)] == [test.reference]
