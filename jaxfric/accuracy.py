@@ -504,15 +504,15 @@ def _pareto_figure(path: str, test: Test, rows: list[dict]) -> None:
                 ax.annotate(label, (x, y), textcoords="offset points", xytext=(5, 3), fontsize=6)
         for level in LEVELS:
             ax.axhline(level, color="gray", ls=":", lw=0.8)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         resolution = check[measure]["resolution"]
         if resolution is not None and resolution > FLOOR:
             # Errors in the band cannot be told apart from the reference's own error.
             low, high = ax.get_ylim()
             ax.axhspan(low, resolution, color="0.8", alpha=0.5, lw=0, label="below the reference's resolution")
             ax.set_ylim(low, max(high, 2 * resolution))
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel("solve wall time (s, compilation apart)")
         ax.set_ylabel({"err_steady": "relative error, steady drawing force", "err_peak": "relative error, peak force",
                        "err_curve_l2": "relative L2 error, drawing-force curve",
