@@ -566,7 +566,7 @@ def algorithm_agreement(opts) -> None:
                 legacy[algorithm] = kept[label]
             elif on_disk and not run:
                 runs[algorithm] = run_case(os.path.join(ROOT, study, "runs", label), name, variant,
-                                           run_algorithm, overrides, log=lambda m: None)
+                                           run_algorithm, overrides, log=lambda m: None, rerun_stale=False)
             elif run and _want(opts, study, label):
                 runs[algorithm] = case(study, label, name, variant, run_algorithm, overrides, opts)
             if runs.get(algorithm, {}).get("dir"):

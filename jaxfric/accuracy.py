@@ -333,7 +333,8 @@ def _row(test: Test, label, family, algorithm, overrides, c, ref) -> dict:
            "steady_drawing_force": s.get("steady_drawing_force"),
            "peak_drawing_force": s.get("peak_drawing_force"),
            "final_clamping_force": s.get("final_clamping_force"),
-           "error_estimate": (s.get("error_estimate") or {}).get("relative")}
+           "error_estimate": (s.get("error_estimate") or {}).get("relative"),
+           "ref_mesh": _mesh(test.ref_mesh), "ref_step": test.ref_step}
     usable = ref is not None and bool(ref["summary"].get("converged")) and bool(s.get("converged"))
     row.update(error_measures(c, ref, test.instant) if usable else dict.fromkeys(MEASURES))
     row["message"] = s.get("message", "")
@@ -341,10 +342,12 @@ def _row(test: Test, label, family, algorithm, overrides, c, ref) -> dict:
 
 
 def _test_rows(out: str, test: Test, run_missing: bool, rerun: bool = False, progress: bool = False,
-               log=print, kept: list | None = None, csv_rows: list | None = None) -> list[dict]:
-    """Rows of one test: its runs run (``run_missing``) or only read back from ``out``. Without
-    ``run_missing``, a test whose reference is not on disk takes its rows from ``kept`` (the rows of
-    the CSV already in ``out``): run directories are not kept with the results."""
+               log=print, kept: list | None = None, on_row=None) -> list[dict]:
+    """Rows of one test: its runs run (``run_missing``; ``on_row`` is called with the rows so far after
+    each) or only read back from ``out``. Without ``run_missing`` nothing runs, and a test whose
+    reference is not on disk takes its rows from ``kept`` (the rows of the CSV already in ``out``,
+    those measured against the test's present reference): run directories are not kept with the
+    results."""
     plan = sorted(cases(test), key=lambda p: p[1] != "reference")  # the reference first
 
     def on_disk(label, ov):  # made with these overrides (a run made with others is as good as missing)
@@ -352,18 +355,25 @@ def _test_rows(out: str, test: Test, run_missing: bool, rerun: bool = False, pro
         return os.path.exists(path) and stale(path, ov) is None
 
     if not run_missing and not on_disk(test.reference, plan[0][3]):
-        return [r for r in kept or [] if r["test"] == test.name]
+        return [r for r in kept or [] if r["test"] == test.name and _same_reference(r, test)]
     rows, done = [], {}
     for label, family, algorithm, ov in plan:
         path = _run_path(out, test, label)
         if not run_missing and not on_disk(label, ov):
             continue
         done[label] = run_case(path, test.scene, test.variant, algorithm, ov, rerun=rerun, progress=progress,
-                               log=log)
+                               log=log, rerun_stale=run_missing)
         rows.append(_row(test, label, family, algorithm, ov, done[label], done.get(test.reference)))
-        if csv_rows is not None:
-            write_csv(os.path.join(out, "accuracy_cost.csv"), csv_rows + rows)
+        if on_row is not None:
+            on_row(rows)
     return rows
+
+
+def _same_reference(row: dict, test: Test) -> bool:
+    """Whether a row read from the CSV was measured against ``test``'s present reference (rows written
+    before the reference was recorded in them are taken as they are)."""
+    mesh, step = row.get("ref_mesh"), row.get("ref_step")
+    return (mesh is None or mesh == _mesh(test.ref_mesh)) and (step is None or math.isclose(step, test.ref_step))
 
 
 def _run_path(out: str, test: Test, label: str, *rest) -> str:
@@ -371,7 +381,7 @@ def _run_path(out: str, test: Test, label: str, *rest) -> str:
 
 
 _INT_COLUMNS = ("n_steps", "newton_iters_total", "cutbacks")
-_TEXT_COLUMNS = ("test", "scene", "variant", "run", "family", "algorithm", "mesh", "message")
+_TEXT_COLUMNS = ("test", "scene", "variant", "run", "family", "algorithm", "mesh", "message", "ref_mesh")
 
 
 def _read_rows(out: str) -> list[dict]:
@@ -410,13 +420,22 @@ def accuracy_cost(out: str, quick: bool = False, tests=None, rerun: bool = False
     chosen = [t for t in pool if tests is None or t.name in tests]
     if not chosen:
         raise ValueError(f"no test selected; choose from {', '.join(t.name for t in pool)}")
-    # The CSV written between runs keeps the other tests' rows (their run directories may be gone).
+    # The CSV written between runs holds every row known: the rows of the tests not run here as the CSV
+    # on disk has them at that moment (another process may be running them), and the earlier rows of
+    # each chosen test until it has started (run directories are not kept with the results).
     names = {t.name for t in chosen}
-    others = [r for r in collect(out, quick) if r["test"] not in names]
-    done = []
+    before = {t.name: [r for r in collect(out, quick) if r["test"] == t.name] for t in chosen}
+    done, started = [], set()
+
+    def write_partial(current: list[dict]) -> None:
+        others = [r for r in _read_rows(out) if r["test"] not in names]
+        later = [r for t in chosen if t.name not in started for r in before[t.name]]
+        write_csv(os.path.join(out, "accuracy_cost.csv"), others + done + current + later)
+
     for test in chosen:
+        started.add(test.name)
         done += _test_rows(out, test, run_missing=True, rerun=rerun, progress=progress, log=log,
-                           csv_rows=others + done)
+                           on_row=write_partial)
     return write_report(out, quick)
 
 
@@ -440,7 +459,7 @@ def reference_checks(rows: list[dict]) -> dict:
 
 
 def _reference_check(rows: list[dict]) -> dict:
-    """Per measure: the reference's uncertainty (the largest change under its two checks), the resolution
+    """Per measure: the reference's uncertainty (the largest change under its checks), the resolution
     (10 x the uncertainty, or round-off), the smallest sweep error at or above it, and whether the
     uncertainty is below a tenth of that error. An error below the resolution cannot be told from the
     reference's own error: it is reported as unresolved, never as a number. When no error is resolved,
@@ -508,9 +527,9 @@ def _pareto_figure(path: str, test: Test, rows: list[dict]) -> None:
         ax.set_yscale("log")
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         resolution = check[measure]["resolution"]
-        if resolution is not None and resolution > FLOOR:
+        low, high = ax.get_ylim()
+        if resolution is not None and resolution > max(FLOOR, low):
             # Errors in the band cannot be told apart from the reference's own error.
-            low, high = ax.get_ylim()
             ax.axhspan(low, resolution, color="0.8", alpha=0.5, lw=0, label="below the reference's resolution")
             ax.set_ylim(low, max(high, 2 * resolution))
         ax.set_xlabel("solve wall time (s, compilation apart)")
@@ -520,7 +539,7 @@ def _pareto_figure(path: str, test: Test, rows: list[dict]) -> None:
         ax.grid(True, which="both", alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
-    fig.suptitle(f"{test.scene} / {test.variant}: error against run time (reference: auglag, target gap "
+    fig.suptitle(f"{test.name}: error against run time (reference: auglag, target gap "
                  f"{test.ref_gap:g} mm, mesh {_mesh(test.ref_mesh)}, increments nominal / {1 / test.ref_step:g})",
                  fontsize=10)
     fig.tight_layout()

@@ -41,20 +41,22 @@ def phase_curve(history: dict, x_name: str, y_name: str, phase: str):
 
 def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, overrides: dict, *,
              rerun: bool = False, progress: bool = False, figures: bool = False, tag: str | None = None,
-             log=print) -> dict:
+             log=print, rerun_stale: bool = True) -> dict:
     """Run one case into ``out`` (or read it back) and return ``{"summary", "history", "contact", "dir"}``.
 
     ``summary`` always has ``converged`` and ``message``: a case that could not even be built or run
-    enters with ``converged`` False and the reason (one failed case never stops a batch).
+    enters with ``converged`` False and the reason (one failed case never stops a batch). A run on
+    disk made with another variant, algorithm or overrides (:func:`stale`) is run again, unless
+    ``rerun_stale`` is False (read-only callers), which reads it back as it is.
     """
     from . import output, scenes
     from .run import run
 
     path = os.path.join(out, "summary.json")
-    changed = None if rerun or not os.path.exists(path) else stale(path, overrides)
+    changed = None if rerun or not os.path.exists(path) else stale(path, overrides, variant, algorithm)
     if changed:
-        log(f"{out}: the run on disk has {changed}: rerun")
-    if rerun or changed or not os.path.exists(path):
+        log(f"{out}: the run on disk has {changed}" + (": rerun" if rerun_stale else " (read back as it is)"))
+    if rerun or (changed and rerun_stale) or not os.path.exists(path):
         t0 = time.perf_counter()
         log(f"{out}: {scene_name}/{variant}/{algorithm} {overrides}")
         try:
@@ -70,7 +72,8 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
             message = f"{type(err).__name__}: {err}"
             with open(path, "w") as fh:
                 json.dump({"converged": False, "message": message, "scene": scene_name, "variant": variant,
-                           "algorithm": algorithm}, fh, indent=2)
+                           "algorithm": algorithm, "overrides": {k: _plain(v) for k, v in overrides.items()}},
+                          fh, indent=2)
             log(f"{out}: failed: {message}")
         log(f"{out}: done in {time.perf_counter() - t0:.1f} s")
     with open(path) as fh:
@@ -81,26 +84,63 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
             "contact": dict(np.load(npz, allow_pickle=False)) if os.path.exists(npz) else {}, "dir": out}
 
 
-def stale(path: str, overrides: dict) -> str | None:
-    """How the run recorded in ``path`` (a summary.json) differs from ``overrides`` (``"mesh"`` as
-    ``NXxNY``, other keys config fields), or None when it does not (or records no parameters)."""
+def _plain(value):
+    """A JSON value for a recorded override (tuples as lists, anything else unknown as its text)."""
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    if value is None or isinstance(value, (bool, int, str)):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    return str(value)
+
+
+def _same(have, want) -> bool:
+    """Whether a recorded value ``have`` (as summary.json stores it) is the requested ``want``."""
+    if isinstance(want, (tuple, list)):
+        return isinstance(have, list) and len(have) == len(want) and all(map(_same, have, want))
+    if isinstance(have, bool) or isinstance(want, bool):
+        return str(have).lower() == str(want).lower()
+    if isinstance(have, (int, float)) and isinstance(want, str):
+        try:
+            want = float(want)
+        except ValueError:
+            return False
+    if isinstance(want, float) and not math.isfinite(want):
+        return have is None or have == want  # summary.json stores non-finite numbers as null
+    if isinstance(have, (int, float)) and isinstance(want, (int, float)):
+        return math.isclose(float(have), float(want), rel_tol=1e-12, abs_tol=0.0)
+    return have == want
+
+
+def stale(path: str, overrides: dict, variant: str | None = None, algorithm: str | None = None) -> str | None:
+    """How the run recorded in ``path`` (a summary.json) differs from the requested ``variant``,
+    ``algorithm`` (None: not compared) and ``overrides`` (``"mesh"`` as ``NXxNY`` or a pair, other keys
+    config fields; a key the config does not have is not compared), or None when it does not. A failed
+    case's summary records its overrides, which must then be the same keys and values."""
+    from .scenes import parse_mesh
+
     with open(path) as fh:
-        config = (json.load(fh).get("parameters") or {}).get("config")
-    if not config:
-        return None
+        summary = json.load(fh)
+    for key, want in (("variant", variant), ("algorithm", algorithm)):
+        if want is not None and summary.get(key) is not None and summary[key] != want:
+            return f"{key} {summary[key]!r}, not {want!r}"
     wanted = dict(overrides)
-    if "mesh" in wanted:
-        nx, ny = (int(v) for v in str(wanted.pop("mesh")).lower().split("x"))
+    config = (summary.get("parameters") or {}).get("config")
+    if config is None and "overrides" in summary:  # a failed case
+        recorded = summary["overrides"]
+        if set(recorded) != set(wanted):
+            return f"overrides {sorted(recorded)}, not {sorted(wanted)}"
+        config = recorded
+    elif "mesh" in wanted:
+        try:
+            nx, ny = parse_mesh(wanted.pop("mesh"))
+        except ValueError:
+            return "another mesh"  # the request cannot be the run's
         wanted.update(nx=nx, ny=ny)
     for key, value in wanted.items():
-        if key not in config:
-            continue
-        have = config[key]
-        same = (math.isclose(float(have), float(value), rel_tol=1e-12, abs_tol=0.0)
-                if isinstance(have, (int, float)) and isinstance(value, (int, float))
-                and not isinstance(have, bool) else have == value)
-        if not same:
-            return f"{key} = {have!r}, not {value!r}"
+        if config is not None and key in config and not _same(config[key], value):
+            return f"{key} = {config[key]!r}, not {value!r}"
     return None
 
 
@@ -108,8 +148,11 @@ def write_csv(path: str, rows: list[dict]) -> str:
     """Rows (dicts, union of their keys as header, None as an empty field) to ``path``."""
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     fields = list(dict.fromkeys(k for r in rows for k in r))
-    with open(path, "w", newline="") as fh:
+    # Written aside and moved into place: a reader (another process's report) never sees half a file.
+    tmp = f"{path}.{os.getpid()}.tmp"
+    with open(tmp, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=fields, restval="")
         writer.writeheader()
         writer.writerows([{k: ("" if v is None else v) for k, v in r.items()} for r in rows])
+    os.replace(tmp, path)
     return path

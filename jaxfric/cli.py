@@ -92,7 +92,8 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("--quick", action="store_true", help="the small sweep (a few minutes)")
     report.add_argument("--test", action="append", default=None, metavar="NAME",
                         help="run only this test (repeatable), e.g. flat_die_const_force")
-    report.add_argument("--out", metavar="DIR", help="output directory (default runs/report/accuracy_cost)")
+    report.add_argument("--out", metavar="DIR", help="output directory (default runs/report/accuracy_cost, "
+                                                     "with --quick runs/report/accuracy_cost_quick)")
     report.add_argument("--rerun", action="store_true", help="recompute runs already in DIR")
     report.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
@@ -354,7 +355,9 @@ if __name__ == "__main__":
 def _report(args) -> int:
     from . import accuracy
 
-    out = os.path.join("runs", "report", "accuracy_cost") if args.out is None else args.out
+    # The quick report has its own default folder: its test shares a name with the full report's.
+    default = os.path.join("runs", "report", "accuracy_cost_quick" if args.quick else "accuracy_cost")
+    out = default if args.out is None else args.out
     _writable_dir(out)
     known = [t.name for t in (accuracy.QUICK_TESTS if args.quick else accuracy.TESTS)]
     for name in args.test or []:

@@ -162,6 +162,12 @@ def test_a_report_keeps_the_rows_of_tests_whose_runs_are_gone(tmp_path, monkeypa
     assert seen and all(base.name in names for names in seen)
     assert isinstance(first[0]["n_steps"], int) and isinstance(first[0]["converged"], bool)
     assert "| flat_die_const_force_b |" in (tmp_path / "accuracy_cost.md").read_text()
+    # Both tests again, their directories gone: while the first runs, the CSV still holds the second's
+    # earlier rows.
+    shutil.rmtree(os.path.join(out, "runs"))
+    seen.clear()
+    accuracy.accuracy_cost(out, quick=True)
+    assert seen and all(names == {base.name, other.name} for names in seen)
 
 
 def test_report_rejects_an_unknown_test(capsys, tmp_path):
@@ -280,3 +286,50 @@ def test_collect_runs_nothing_and_skips_runs_made_with_other_parameters(tmp_path
         (path / "summary.json").write_text(json.dumps({"converged": True, "message": "",
                                                        "parameters": {"config": config}}))
     assert [r["run"] for r in accuracy.collect(str(tmp_path), quick=True)] == [test.reference]
+
+
+@pytest.mark.parametrize("recorded, requested, same", [
+    ({"eps_t": None}, {"eps_t": None}, True),
+    ({"eps_t": None}, {"eps_t": 1e4}, False),
+    ({"eps_t": None}, {"eps_t": float("inf")}, True),      # summary.json stores inf as null
+    ({"steady_window": [20.0, 35.0]}, {"steady_window": (20.0, 35.0)}, True),
+    ({"steady_window": [20.0, 35.0]}, {"steady_window": (20.0, 30.0)}, False),
+    ({"eps_n": 100000.0}, {"eps_n": "1e5"}, True),         # a --set value, as text
+    ({"eps_n": 100000.0}, {"eps_n": "abc"}, False),
+    ({"entry_guide": True}, {"entry_guide": "true"}, True),
+    ({"entry_guide": True}, {"entry_guide": False}, False),
+    ({"nx": 100, "ny": 2}, {"mesh": (100, 2)}, True),
+    ({"nx": 100, "ny": 2}, {"mesh": "100X2"}, True),
+    ({"nx": 100, "ny": 2}, {"mesh": "oops"}, False),
+])
+def test_stale_compares_values_as_summary_json_records_them(tmp_path, recorded, requested, same):
+    import json
+
+    from jaxfric import batch
+
+    path = tmp_path / "summary.json"
+    path.write_text(json.dumps({"variant": "mu017", "algorithm": "auglag", "parameters": {"config": recorded}}))
+    assert (batch.stale(str(path), requested) is None) == same
+    assert batch.stale(str(path), requested, variant="mu000") is not None  # another variant
+    assert batch.stale(str(path), requested, algorithm="penalty") is not None
+
+
+def test_a_failed_case_records_its_overrides(tmp_path):
+    """A case that could not be built records its overrides, so a request with others runs it again."""
+    from jaxfric import batch
+
+    out = tmp_path / "case"
+    run = batch.run_case(str(out), "nine", "mu017", "penalty", {"mesh": "10x1", "eps_n": -1.0}, log=lambda m: None)
+    assert not run["summary"]["converged"] and "eps_n" in run["summary"]["message"]
+    path = str(out / "summary.json")
+    assert batch.stale(path, {"mesh": "10x1", "eps_n": -1.0}) is None
+    assert batch.stale(path, {"mesh": "10x1", "eps_n": -2.0}) is not None
+    assert batch.stale(path, {"mesh": "10x1"}) is not None
+
+
+def test_rows_kept_from_the_csv_must_share_the_tests_reference():
+    test = next(t for t in accuracy.TESTS if t.name == "nine_mu017_at_100x2")
+    assert accuracy._same_reference({"ref_mesh": "100x2", "ref_step": 1 / 32}, test)
+    assert accuracy._same_reference({}, test)  # written before the reference was recorded
+    assert not accuracy._same_reference({"ref_mesh": "100x2", "ref_step": 0.5}, test)
+    assert not accuracy._same_reference({"ref_mesh": "200x4", "ref_step": 1 / 32}, test)
