@@ -316,8 +316,10 @@ def error_measures(run: dict, ref: dict, instant: str) -> dict:
            "err_clamp": _rel(s.get("final_clamping_force"), r.get("final_clamping_force")),
            "err_curve_l2": None, "err_pressure": None}
     draw = ("drawing_displacement", "drawing_force", "draw")
-    a = phase_curve(run["history"], *draw) if run["history"] else None
-    b = phase_curve(ref["history"], *draw) if ref["history"] else None
+    # From the state the draw starts from: the runs' first increments differ, and a curve starting later
+    # than the reference's would otherwise be extrapolated flat over the steep start of the draw.
+    a = phase_curve(run["history"], *draw, start=True) if run["history"] else None
+    b = phase_curve(ref["history"], *draw, start=True) if ref["history"] else None
     if a is not None and b is not None and s.get("converged"):
         grid = np.linspace(b[0][0], b[0][-1], GRID)
         fa, fb = np.interp(grid, *a), np.interp(grid, *b)

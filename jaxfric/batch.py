@@ -29,11 +29,17 @@ def read_history(path: str) -> dict:
             for k in rows[0]}
 
 
-def phase_curve(history: dict, x_name: str, y_name: str, phase: str):
-    """(x, y) of the rows of ``phase``, sorted by x, or None if the phase has fewer than two rows."""
-    sel = history["phase"] == phase
+def phase_curve(history: dict, x_name: str, y_name: str, phase: str, start: bool = False):
+    """(x, y) of the rows of ``phase``, sorted by x, or None if the phase has fewer than two rows. With
+    ``start``, the row before the phase (the state it starts from) comes first: two runs with different
+    first increments then share the phase's starting point instead of one curve being extrapolated."""
+    sel = np.asarray(history["phase"] == phase)
     if sel.sum() < 2:
         return None
+    first = int(np.argmax(sel))
+    if start and first > 0:
+        sel = sel.copy()
+        sel[first - 1] = True
     x, y = history[x_name][sel], history[y_name][sel]
     order = np.argsort(x, kind="stable")
     return x[order], y[order]

@@ -333,3 +333,20 @@ def test_rows_kept_from_the_csv_must_share_the_tests_reference():
     assert accuracy._same_reference({}, test)  # written before the reference was recorded
     assert not accuracy._same_reference({"ref_mesh": "100x2", "ref_step": 0.5}, test)
     assert not accuracy._same_reference({"ref_mesh": "200x4", "ref_step": 1 / 32}, test)
+
+
+def test_the_curve_error_starts_from_the_state_the_draw_starts_from():
+    """A run whose first drawing increment is larger than the reference's is not extrapolated over the
+    steep start of the draw: both curves start from the last clamping row (U = 0)."""
+    def ramp(u):
+        return 100.0 * np.minimum(u / 0.05, 1.0)
+
+    fine = np.concatenate([[0.0], np.arange(1, 201) * 0.005])     # first draw row at U = 0.005
+    coarse = np.concatenate([[0.0], np.arange(1, 21) * 0.05])     # first draw row at U = 0.05
+    ref, run = _run(fine, ramp(fine)), _run(coarse, ramp(coarse))
+    assert accuracy.error_measures(run, ref, "final")["err_curve_l2"] < 1e-3
+    # Without the starting state the coarse curve would be held at 100 N/mm from U = 0.005 to 0.05.
+    from jaxfric.batch import phase_curve
+
+    assert phase_curve(run["history"], "drawing_displacement", "drawing_force", "draw")[0][0] == 0.05
+    assert phase_curve(run["history"], "drawing_displacement", "drawing_force", "draw", start=True)[0][0] == 0.0
