@@ -383,8 +383,8 @@ def _test_rows(out: str, test: Test, run_missing: bool, rerun: bool = False, pro
 def _same_reference(row: dict, test: Test) -> bool:
     """Whether a row read from the CSV was measured against ``test``'s present reference (rows written
     before the reference was recorded in them are taken as they are)."""
-    mesh, step = row.get("ref_mesh"), row.get("ref_step")
-    return (mesh is None or mesh == _mesh(test.ref_mesh)) and (step is None or math.isclose(step, test.ref_step))
+    mesh, step = row.get("ref_mesh"), row.get("ref_step")  # "" / None in such rows
+    return (not mesh or mesh == _mesh(test.ref_mesh)) and (step is None or math.isclose(step, test.ref_step))
 
 
 def _run_path(out: str, test: Test, label: str, *rest) -> str:

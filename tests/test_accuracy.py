@@ -331,6 +331,7 @@ def test_rows_kept_from_the_csv_must_share_the_tests_reference():
     test = next(t for t in accuracy.TESTS if t.name == "nine_mu017_at_100x2")
     assert accuracy._same_reference({"ref_mesh": "100x2", "ref_step": 1 / 32}, test)
     assert accuracy._same_reference({}, test)  # written before the reference was recorded
+    assert accuracy._same_reference({"ref_mesh": "", "ref_step": None}, test)  # such a row read from the CSV
     assert not accuracy._same_reference({"ref_mesh": "100x2", "ref_step": 0.5}, test)
     assert not accuracy._same_reference({"ref_mesh": "200x4", "ref_step": 1 / 32}, test)
 
