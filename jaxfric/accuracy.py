@@ -119,6 +119,11 @@ class Test:
         return self.runs or self.name
 
     @property
+    def check_mesh(self) -> tuple:
+        """(nx, ny) of the reference's mesh check: its element size halved in both directions."""
+        return (2 * self.ref_mesh[0], 2 * self.ref_mesh[1])
+
+    @property
     def reference(self) -> str:
         """Label of the reference run."""
         return f"reference{self.tag}"
@@ -212,14 +217,13 @@ def cases(test: Test) -> list[tuple]:
     out += [(f"step_x{f:g}", "step", "penalty", {"mesh": mesh, "eps_n": default_eps, **_steps(test, f)})
             for f in test.step_factors]
     ref = {"eps_n": default_eps, "target_gap": test.ref_gap, **_steps(test, test.ref_step)}
-    fine = (2 * test.ref_mesh[0], 2 * test.ref_mesh[1])
     out.append((test.reference, "reference", "auglag", {"mesh": _mesh(test.ref_mesh), **ref}))
     # The step check first: the mesh check is the longest run of a test.
     if "step" in test.ref_checks:
         out.append((f"ref_check_step{test.tag}", "ref_check", "auglag",
                     {"mesh": _mesh(test.ref_mesh), **ref, **_steps(test, test.ref_step / 2)}))
     if "mesh" in test.ref_checks:
-        out.append((f"ref_check_mesh{test.tag}", "ref_check", "auglag", {"mesh": _mesh(fine), **ref}))
+        out.append((f"ref_check_mesh{test.tag}", "ref_check", "auglag", {"mesh": _mesh(test.check_mesh), **ref}))
     return [(label, family, algorithm, {**test.base, **ov}) for label, family, algorithm, ov in out]
 
 
@@ -435,7 +439,8 @@ def accuracy_cost(out: str, quick: bool = False, tests=None, rerun: bool = False
     # on disk has them at that moment (another process may be running them), and the earlier rows of
     # each chosen test until it has started (run directories are not kept with the results).
     names = {t.name for t in chosen}
-    before = {t.name: [r for r in collect(out, quick) if r["test"] == t.name] for t in chosen}
+    kept = _read_rows(out)
+    before = {t.name: _test_rows(out, t, run_missing=False, kept=kept) for t in chosen}
     done, started = [], set()
 
     def write_partial(current: list[dict]) -> None:
@@ -611,7 +616,7 @@ def _reference_lines(rows: list[dict], quick: bool) -> list[str]:
             continue
         what = ("contact algorithm and step size on the sweep's mesh" if t.ref_mesh == t.mesh and not t.meshes
                 else "total: contact algorithm, step size and mesh")
-        checks = ", ".join({"mesh": f"mesh {_mesh((2 * t.ref_mesh[0], 2 * t.ref_mesh[1]))}",
+        checks = ", ".join({"mesh": f"mesh {_mesh(t.check_mesh)}",
                             "step": f"increments nominal / {2 / t.ref_step:g}"}[c] for c in t.ref_checks)
         lines.append(f"| {name} | {_mesh(t.ref_mesh)} | nominal / {1 / t.ref_step:g} | {t.ref_gap:g} | {checks} "
                      f"| {what} |")

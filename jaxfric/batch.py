@@ -78,7 +78,7 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
             message = f"{type(err).__name__}: {err}"
             with open(path, "w") as fh:
                 json.dump({"converged": False, "message": message, "scene": scene_name, "variant": variant,
-                           "algorithm": algorithm, "overrides": {k: _plain(v) for k, v in overrides.items()}},
+                           "algorithm": algorithm, "overrides": output._json_ready(overrides)},
                           fh, indent=2)
             log(f"{out}: failed: {message}")
         log(f"{out}: done in {time.perf_counter() - t0:.1f} s")
@@ -88,17 +88,6 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
     npz = os.path.join(out, "contact.npz")
     return {"summary": summary, "history": read_history(hist) if os.path.exists(hist) else {},
             "contact": dict(np.load(npz, allow_pickle=False)) if os.path.exists(npz) else {}, "dir": out}
-
-
-def _plain(value):
-    """A JSON value for a recorded override (tuples as lists, anything else unknown as its text)."""
-    if isinstance(value, (tuple, list)):
-        return [_plain(v) for v in value]
-    if value is None or isinstance(value, (bool, int, str)):
-        return value
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    return str(value)
 
 
 def _same(have, want) -> bool:
