@@ -351,6 +351,14 @@ def test_smoothing_field_selects_the_smoothed_law():
     assert not make("bead", None, "penalty", overrides={"mesh": "50x2"}).model.contact.smooth
 
 
+@pytest.mark.parametrize("scene", ["flat_die", "bead", "nine", "blankholder"])
+def test_max_augmentations_field_reaches_the_law(scene):
+    """Every scene's ``max_augmentations`` (default: the spec's 20) is the AL law's limit per step."""
+    assert make(scene, None, "auglag").model.contact.max_augmentations == 20
+    law = make(scene, None, "auglag", overrides={"max_augmentations": 60}).model.contact
+    assert law.max_augmentations == 60
+
+
 @pytest.mark.slow  # a flat-die run of its own compilation (12 s)
 def test_smoothed_contact_law_through_the_scene_config():
     """``smoothing`` = S selects the smoothed penalty law (contact_laws): the die still balances

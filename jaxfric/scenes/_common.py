@@ -39,6 +39,8 @@ SMOOTHING_DOC = ("force scale of the smoothed contact law (penalty and auglag; f
 BAND_DOC = ("exact contact by lcp_lemke: candidate nodes nearest to a tool that enter the condensed "
             "complementarity problem; None: all. Too small a band stops the step with CONTACT_BAND "
             "(lcp_ssn works on every candidate and ignores it)")
+MAX_AUGMENTATIONS_DOC = ("auglag: augmentations allowed per step attempt before it fails (spec 1.6: 20) "
+                         "[chosen]")
 MAX_NOMINAL_STEPS = 1_000_000  # per phase: an increment that needs more is a typo, not a study
 
 
@@ -87,6 +89,9 @@ def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=No
     for name in ("E", "sigma_y", "eps_n", "target_gap", "d_capture"):
         if not _number(name, getattr(config, name)) > 0:
             raise _bad(name, getattr(config, name), "it must be > 0")
+    m = config.max_augmentations
+    if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or not 1 <= m <= 10_000:
+        raise _bad("max_augmentations", m, "it must be an integer from 1 to 10000")
     for name in ("A", "n", "smoothing"):
         if not _number(name, getattr(config, name)) >= 0:
             raise _bad(name, getattr(config, name), "it must be >= 0")

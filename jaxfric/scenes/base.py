@@ -22,16 +22,18 @@ __all__ = ["ALGORITHMS", "Scene", "contact_law"]
 ALGORITHMS = ("penalty", "auglag", "lcp_lemke", "lcp_ssn")
 
 
-def contact_law(algorithm: str, eps_n, eps_t, target_gap, band: int | None = None, smoothing=0.0):
+def contact_law(algorithm: str, eps_n, eps_t, target_gap, band: int | None = None, smoothing=0.0,
+                max_augmentations: int = 20):
     """The contact formulation of an algorithm identifier (outputs spec section 1); ``smoothing`` > 0
-    (N/mm) smooths the penalty and AL laws (:mod:`jaxfric.contact_laws`); exact contact has none."""
+    (N/mm) smooths the penalty and AL laws (:mod:`jaxfric.contact_laws`); exact contact has none.
+    ``max_augmentations`` is the AL's limit per step attempt (spec 1.6: 20)."""
     if algorithm in ("lcp_lemke", "lcp_ssn") and smoothing != 0:
         raise ValueError(f"field 'smoothing' = {smoothing!r} applies to algorithms penalty and auglag only; "
                          f"exact contact ({algorithm}) has no smoothed law")
     if algorithm == "penalty":
         return Penalty(eps_n, eps_t, smoothing)
     if algorithm == "auglag":
-        return AugmentedLagrangian(eps_n, eps_t, target_gap, smoothing=smoothing)
+        return AugmentedLagrangian(eps_n, eps_t, target_gap, max_augmentations, smoothing=smoothing)
     if algorithm == "lcp_lemke":
         return Complementarity("lemke", band)
     if algorithm == "lcp_ssn":

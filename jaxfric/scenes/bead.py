@@ -84,6 +84,7 @@ class BeadConfig:
     eps_n: float = cm.spec_field(1e5, "N/mm/mm", "normal penalty [chosen]")
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [chosen]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
+    max_augmentations: int = cm.spec_field(20, "-", cm.MAX_AUGMENTATIONS_DOC)
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(512, "-", cm.BAND_DOC)
@@ -202,7 +203,8 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
              RigidTool("roller", roller, (0.0, 1.0), mesh.bottom, fixed, mu_r))
 
     eps_t = cm.resolve_eps_t(config, max(config.mu_clamp, config.mu_roller))
-    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing)
+    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
+                      config.max_augmentations)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=tools, contact=law)
     observe = BeadObserve(jaw=tuple(int(a) for a in jaw), tail=int(mesh.node_index(0, 0)), theta=theta,
@@ -221,6 +223,7 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
         "friction": cm.friction_table(TOOLS, PHASES, mu_table),
         "contact": {"algorithm": algorithm, "eps_n": config.eps_n, "eps_t": eps_t,
                     "target_gap": config.target_gap if algorithm == "auglag" else None,
+                    "max_augmentations": config.max_augmentations if algorithm == "auglag" else None,
                     "d_capture": config.d_capture},
         "mesh": {"nx": config.nx, "ny": config.ny},
         "schedule": [cm.schedule_entry(phases[0], "force on die_up", "P", "N/mm", 0.0, P),

@@ -118,6 +118,7 @@ class BlankholderConfig:
     eps_n: float = cm.spec_field(1e5, "N/mm/mm", "normal penalty [chosen]")
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [chosen]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
+    max_augmentations: int = cm.spec_field(20, "-", cm.MAX_AUGMENTATIONS_DOC)
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     clearance: float = cm.spec_field(0.05, "mm", "the upper die is set this far above the sheet [chosen]")
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
@@ -262,7 +263,8 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
                        (Move(0.0, config.H), Force(config.F_clamp), draw), mu))
 
     eps_t = cm.resolve_eps_t(config, config.mu)
-    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing)
+    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
+                      config.max_augmentations)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=tools, contact=law)
     observe = BlankholderObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)),
@@ -280,6 +282,7 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
         "friction": cm.friction_table(TOOLS, PHASES, [(config.mu,) * 3, (config.mu,) * 3]),
         "contact": {"algorithm": algorithm, "eps_n": config.eps_n, "eps_t": eps_t,
                     "target_gap": config.target_gap if algorithm == "auglag" else None,
+                    "max_augmentations": config.max_augmentations if algorithm == "auglag" else None,
                     "d_capture": config.d_capture},
         "mesh": {"nx": nx, "ny": config.ny},
         "schedule": [

@@ -62,6 +62,7 @@ class FlatDieConfig:
     eps_n: float = cm.spec_field(1e9, "N/mm/mm", "normal penalty [paper]")
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n = 1.5e8 [paper]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
+    max_augmentations: int = cm.spec_field(20, "-", cm.MAX_AUGMENTATIONS_DOC)
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(None, "-", cm.BAND_DOC)
@@ -141,7 +142,8 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
     tool = RigidTool("die", die, (0.0, -1.0), mesh.top, (Force(config.F_clamp, start=0.0), draw), mu)
 
     eps_t = cm.resolve_eps_t(config, config.mu)
-    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing)
+    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
+                      config.max_augmentations)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=(tool,), contact=law)
     observe = FlatDieObserve(right=tuple(int(a) for a in mesh.right), U_draw=float(config.U_draw))
@@ -155,6 +157,7 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
         "friction": cm.friction_table(TOOLS, PHASES, [(0.0, config.mu)]),
         "contact": {"algorithm": algorithm, "eps_n": config.eps_n, "eps_t": eps_t,
                     "target_gap": config.target_gap if algorithm == "auglag" else None,
+                    "max_augmentations": config.max_augmentations if algorithm == "auglag" else None,
                     "d_capture": config.d_capture},
         "mesh": {"nx": config.nx, "ny": config.ny},
         "schedule": [

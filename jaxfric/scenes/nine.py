@@ -83,6 +83,7 @@ class NineConfig:
     eps_n: float = cm.spec_field(1e5, "N/mm/mm", "normal penalty [paper]")
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [paper]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
+    max_augmentations: int = cm.spec_field(20, "-", cm.MAX_AUGMENTATIONS_DOC)
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(128, "-", cm.BAND_DOC)
@@ -169,7 +170,8 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
 
     mu_max = max(mu.values())
     eps_t = cm.resolve_eps_t(config, mu_max)
-    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing)
+    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
+                      config.max_augmentations)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=tuple(tools), contact=law)
     observe = NineObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)),
@@ -186,6 +188,7 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
         "friction": cm.friction_table(TOOLS, PHASES, [(mu[k], mu[k]) for k in TOOLS]),
         "contact": {"algorithm": algorithm, "eps_n": config.eps_n, "eps_t": eps_t,
                     "target_gap": config.target_gap if algorithm == "auglag" else None,
+                    "max_augmentations": config.max_augmentations if algorithm == "auglag" else None,
                     "d_capture": config.d_capture},
         "mesh": {"nx": config.nx, "ny": config.ny},
         "schedule": [cm.schedule_entry(phases[0], "displacement of B", "q_B", "mm", 0.0, config.stroke),
