@@ -28,7 +28,7 @@ _ADVICE = {
     Result.INVERTED_ELEMENT: "an element inverted (det F <= 0); reduce the nominal step or refine the mesh "
                              "where the deformation concentrates",
     Result.MAX_STEPS: "the history buffer is full before the end of the load path; raise "
-                      "StepControl.max_steps",
+                      "StepControl.max_steps (a scene's config field max_steps: --set max_steps=N)",
     Result.AUGMENTATIONS: "the augmented Lagrangian needed more augmentations than allowed to reach its "
                           "target gap; raise eps_n, the target_gap or max_augmentations, or reduce the step",
     Result.LCP_FAILED: "the linearised contact problem had no solution (Lemke ray termination); reduce the "

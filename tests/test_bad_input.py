@@ -105,6 +105,7 @@ CLI_CASES = [
     (["run", "flat_die", "--set", "target_gap=-1e-5"], "'target_gap'"),
     (["run", "nine", "--algorithm", "auglag", "--set", "max_augmentations=0"], "'max_augmentations'"),
     (["run", "bead", "--set", "max_augmentations=2.5"], "'max_augmentations'"),
+    (["run", "nine", "--set", "max_steps=0"], "'max_steps'"),
     (["run", "bead", "--set", "E=-200000"], "'E'"),
     (["run", "flat_die", "--set", "E=inf"], "'E'"),
     (["run", "nine", "--set", "t=0"], "'t'"),

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from jaxfric.contact import pair_nodes
+from jaxfric.loading import schedule
 from jaxfric.results import Result
 from jaxfric.run import run
 from jaxfric.scenes import (ALGORITHMS, config_fields, make, parse_mesh, parse_override, scene_names,
@@ -357,6 +358,14 @@ def test_max_augmentations_field_reaches_the_law(scene):
     assert make(scene, None, "auglag").model.contact.max_augmentations == 20
     law = make(scene, None, "auglag", overrides={"max_augmentations": 60}).model.contact
     assert law.max_augmentations == 60
+
+
+@pytest.mark.parametrize("scene", ["flat_die", "nine"])
+def test_max_steps_field_sizes_the_history_buffer(scene):
+    """``max_steps`` None: 10x the nominal steps + 200 rows; a number: that many."""
+    built = make(scene, None)
+    assert built.control.max_steps == 10 * schedule(built.model.phases).n_nominal_steps + 200
+    assert make(scene, None, overrides={"max_steps": 30_000}).control.max_steps == 30_000
 
 
 @pytest.mark.slow  # a flat-die run of its own compilation (12 s)

@@ -41,6 +41,8 @@ BAND_DOC = ("exact contact by lcp_lemke: candidate nodes nearest to a tool that 
             "(lcp_ssn works on every candidate and ignores it)")
 MAX_AUGMENTATIONS_DOC = ("auglag: augmentations allowed per step attempt before it fails (spec 1.6: 20) "
                          "[chosen]")
+MAX_STEPS_DOC = ("size of the history buffer in accepted steps; a run that fills it stops (MAX_STEPS). "
+                 "None: 10x the nominal step count + 200 [chosen]")
 MAX_NOMINAL_STEPS = 1_000_000  # per phase: an increment that needs more is a typo, not a study
 
 
@@ -92,6 +94,9 @@ def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=No
     m = config.max_augmentations
     if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or not 1 <= m <= 10_000:
         raise _bad("max_augmentations", m, "it must be an integer from 1 to 10000")
+    m = config.max_steps
+    if m is not None and (isinstance(m, bool) or not isinstance(m, (int, np.integer)) or not 1 <= m <= 10_000_000):
+        raise _bad("max_steps", m, "it must be an integer from 1 to 10000000, or None (10x the nominal steps)")
     for name in ("A", "n", "smoothing"):
         if not _number(name, getattr(config, name)) >= 0:
             raise _bad(name, getattr(config, name), "it must be >= 0")
@@ -193,17 +198,19 @@ class ContactSnapshot(eqx.Module):
 
 # ---- JSON description ----------------------------------------------------------------------------
 
-def step_control(phases) -> StepControl:
+def step_control(phases, max_steps: int | None = None) -> StepControl:
     """The spec's step controller (section 1.9: StepControl defaults) with a history buffer of
-    10x the nominal step count + 200 rows.
+    ``max_steps`` rows, by default 10x the nominal step count + 200.
 
     Why 10x: the controller halves the increment on a failure and grows it back (x1.5) only after two
     consecutive steps of at most 6 Newton iterations, so a phase whose steps regularly need 7 or more
     iterations stays at the cut increment. The Nine clamp (300 x 3, penalty) takes about 9x its nominal
     110 steps this way. The buffer holds a few dozen scalars per row (~2 MB for the longest scene), so
-    10x costs little, while a full buffer stops the run (Result.MAX_STEPS).
+    10x costs little, while a full buffer stops the run (Result.MAX_STEPS). The spec's controller has no
+    such limit (it stops only below nominal / 2**10): a run that needs more rows (the Nine with a
+    penalty of 1e6, about 20x its nominal steps) sets ``max_steps``.
     """
-    return StepControl(max_steps=10 * schedule(phases).n_nominal_steps + 200)
+    return StepControl(max_steps=max_steps or 10 * schedule(phases).n_nominal_steps + 200)
 
 
 def schedule_entry(phase: Phase, control: str, variable: str, unit: str, start: float | None,

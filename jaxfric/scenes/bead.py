@@ -85,6 +85,7 @@ class BeadConfig:
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [chosen]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
     max_augmentations: int = cm.spec_field(20, "-", cm.MAX_AUGMENTATIONS_DOC)
+    max_steps: int | None = cm.spec_field(None, "-", cm.MAX_STEPS_DOC)
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(512, "-", cm.BAND_DOC)
@@ -233,7 +234,7 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
     return Scene(
         name=NAME, variant=variant, algorithm=algorithm, config=config, model=model, observe=observe,
         snapshot=cm.ContactSnapshot(),
-        control=cm.step_control(phases),
+        control=cm.step_control(phases, config.max_steps),
         phase_names=PHASES, tool_names=TOOLS, clamping_tool=0, instants=INSTANTS,
         steady_window=tuple(float(v) for v in config.steady_window),
         roi=(-95.0, 30.0, -45.0, 15.0), y_scale=1.0, parameters=parameters)
