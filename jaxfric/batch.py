@@ -111,9 +111,11 @@ def _same(have, want) -> bool:
 def stale(path: str, overrides: dict, variant: str | None = None, algorithm: str | None = None) -> str | None:
     """How the run recorded in ``path`` (a summary.json) differs from the requested ``variant``,
     ``algorithm`` (None: not compared) and ``overrides`` (``"mesh"`` as ``NXxNY`` or a pair, other keys
-    config fields; a key the config does not have is not compared), or None when it does not. A failed
-    case's summary records its overrides, which must then be the same keys and values."""
-    from .scenes import parse_mesh
+    config fields; a key that is no field of the scene's config is not compared, and a field the
+    recorded config lacks, added since the run, is compared with its default, with which the run was
+    made), or None when it does not. A failed case's summary records its overrides, which must then be
+    the same keys and values."""
+    from .scenes import config_fields, parse_mesh, scene_names
 
     with open(path) as fh:
         summary = json.load(fh)
@@ -133,9 +135,14 @@ def stale(path: str, overrides: dict, variant: str | None = None, algorithm: str
         except ValueError:
             return "another mesh"  # the request cannot be the run's
         wanted.update(nx=nx, ny=ny)
+    scene = summary.get("scene")
+    defaults = {f[0]: f[1] for f in config_fields(scene)} if scene in scene_names() else {}
     for key, value in wanted.items():
-        if config is not None and key in config and not _same(config[key], value):
-            return f"{key} = {config[key]!r}, not {value!r}"
+        if config is None or (key not in config and key not in defaults):
+            continue
+        have = config[key] if key in config else defaults[key]
+        if not _same(have, value):
+            return f"{key} = {have!r}, not {value!r}"
     return None
 
 

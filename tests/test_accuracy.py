@@ -243,6 +243,12 @@ def test_a_run_on_disk_made_with_other_parameters_is_not_read_back(tmp_path, mon
     assert batch.stale(str(path), {"dU": 0.05 / 16}) == "dU = 0.05, not 0.003125"
     assert batch.stale(str(path), {"mesh": "200x4"}) == "nx = 100, not 200"
     assert batch.stale(str(path), {"unknown_field": 1}) is None  # not a config field: not compared
+    # A field added after the run was made: the run had its default.
+    path.write_text(json.dumps({"scene": "nine", "converged": True, "message": "", "parameters": {"config": config}}))
+    assert batch.stale(str(path), {"max_steps": None}) is None
+    assert batch.stale(str(path), {"max_steps": 30000}) == "max_steps = None, not 30000"
+    assert batch.stale(str(path), {"max_augmentations": 60}) == "max_augmentations = 20, not 60"
+    assert batch.stale(str(path), {"unknown_field": 1}) is None
     import importlib
 
     run_module = importlib.import_module("jaxfric.run")
