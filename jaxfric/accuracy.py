@@ -88,6 +88,8 @@ class Test:
             them once more).
         ssn_steps: factors on the nominal increments of further ``lcp_ssn`` runs (exact contact, so
             that their errors are the step size's).
+        penalty_rows: (eps_N, rows) pairs: the history buffer (config field ``max_steps``) of the penalty
+            runs that need more than the scene's default.
     """
 
     scene: str
@@ -109,6 +111,7 @@ class Test:
     runs: str | None = None
     ref_step: float = 0.5
     ssn_steps: tuple = ()
+    penalty_rows: tuple = ()
 
     @property
     def name(self) -> str:
@@ -143,6 +146,9 @@ _NINE_BASE = {"U_draw": 36.0}
 _NINE_REF_GAP = 1e-6
 
 _NINE_PENALTIES = (1e2, 1e3, 1e4, 1e5, 1e6)
+# [chosen] Penalty 1e6 filled the default buffer (10x the nominal steps + 200: 4900 rows) at U = 27.7
+# (mu017) and 33.7 mm (mu000) of 36: its stiff penalty cuts the increments far below the nominal ones.
+_NINE_PENALTY_ROWS = ((1e6, 15_000),)
 _NINE_AUGLAG = ((1e4, 1e-3), (1e4, 1e-4), (1e5, 1e-4), (1e5, 1e-5))
 
 
@@ -155,7 +161,7 @@ def _nine_tests(variant: str) -> tuple:
     # increments (x2 and x0.5 give the same steps within 3 %).
     full = Test("nine", variant, _NINE_BASE, (100, 2), (200, 4), ((50, 2), (100, 2), (200, 4)), _NINE_STEPS,
                 (2.0, 0.5), _NINE_PENALTIES, _NINE_AUGLAG, "steady", ref_gap=_NINE_REF_GAP,
-                ssn_steps=(0.5, 0.25, 0.125))
+                ssn_steps=(0.5, 0.25, 0.125), penalty_rows=_NINE_PENALTY_ROWS)
     # [chosen] The same-mesh reference takes a thirty-second of the nominal increments: at half of them
     # (2026-11-26), halving once more moved its steady force by 5.8e-4 (mu017) and 4.4e-4 (mu000), so no
     # error under 0.6 % could be resolved; the step error falls about in proportion to the increment.
@@ -206,7 +212,9 @@ def cases(test: Test) -> list[tuple]:
 
     default_eps = next(f.default for f in dataclasses.fields(scenes.config_class(test.scene)) if f.name == "eps_n")
     mesh = _mesh(test.mesh)
-    out = [(f"penalty_eps{e:.0e}", "penalty", "penalty", {"mesh": mesh, "eps_n": e}) for e in test.penalties]
+    rows = dict(test.penalty_rows)
+    out = [(f"penalty_eps{e:.0e}", "penalty", "penalty",
+            {"mesh": mesh, "eps_n": e, **({"max_steps": rows[e]} if e in rows else {})}) for e in test.penalties]
     out += [(f"auglag_eps{e:.0e}_gap{g:.0e}", "auglag", "auglag", {"mesh": mesh, "eps_n": e, "target_gap": g})
             for e, g in test.auglag]
     if test.ssn:
