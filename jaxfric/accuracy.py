@@ -42,7 +42,7 @@ from .batch import phase_curve, run_case, stale, write_csv
 
 __all__ = ["TESTS", "QUICK_TESTS", "Test", "cases", "error_measures", "accuracy_cost", "collect", "reference_checks",
            "recommendations", "pareto_front", "report_markdown", "write_report", "MEASURES", "LEVELS",
-           "penalty_tangent"]
+           "penalty_tangent", "step_check"]
 
 REF_GAP = 1e-8          # mm, target gap of the reference's augmented Lagrangian
 LEVELS = (0.1, 0.01, 0.001)
@@ -278,6 +278,31 @@ def penalty_tangent(scene, result) -> np.ndarray:
         raise ValueError(f"the replay of the run's steps does not reproduce it (result code {int(code)}, "
                          f"{int(n_rows)} rows against {n}); no penalty sensitivity")
     return df
+
+
+# ---- the step size's share of a run's error -------------------------------------------------------------
+
+def step_check(scene, progress: bool = False) -> dict:
+    """The run of ``scene`` again with every nominal increment halved (:func:`jaxfric.scenes.scaled_steps`),
+    reduced to what :func:`jaxfric.output.error_estimate` needs for its ``step`` component:
+    ``{"steady": steady drawing force or None, "peak": peak drawing force, "n_steps", "converged"}``.
+    Costs about twice the run (and a compilation). Raises ValueError (one line) when it does not reach
+    the end of the load path.
+    """
+    from . import output, scenes
+    from .run import run
+
+    config = dataclasses.replace(scene.config, **scenes.scaled_steps(scene.name, scene.config, 0.5))
+    half = scenes.SCENES[scene.name].build(config, scene.algorithm, scene.variant)
+    result = run(half.model, newton=half.newton, control=half.control, observe=half.observe,
+                 progress=progress, raise_on_failure=False, label="step check (half increments) ")
+    if not result.converged:
+        raise ValueError(f"the step check (half the nominal increments) did not complete: {result.message}")
+    _, _, values = output.history_table(half, result)
+    window, _ = output.steady_window(half.name, values, half.steady_window)
+    return {"steady": output.steady_drawing_force({**values, "phase_name": values["phase"]}, window),
+            "peak": float(np.max(values["drawing_force"])), "n_steps": len(values["step"]) - 1,
+            "converged": True}
 
 
 # ---- error measures -----------------------------------------------------------------------------------

@@ -55,10 +55,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", metavar="DIR", help="run directory (default runs/SCENE/VARIANT/ALGORITHM)")
     run.add_argument("--tag", help="study tag recorded in summary.json (regex [A-Za-z0-9][A-Za-z0-9._+-]*)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
-    run.add_argument("--error-estimate", choices=["basic", "sensitivity"], default="basic",
+    run.add_argument("--error-estimate", choices=["basic", "sensitivity", "step"], default="basic",
                      help="basic: from the run's penetration, force scatter and Newton tolerance; "
                           "sensitivity (penalty only): also eps_N dF/d eps_N by forward mode along the run "
-                          "(about one more run and its compilation)")
+                          "(about one more run and its compilation); step: also the change when the "
+                          "nominal increments are halved (a second run of about twice the cost)")
     fit = sub.add_parser("fit", help="identify parameters from a measured drawing-force curve",
                          description="Fit scene config values (e.g. mu, R1) to a measured drawing-force curve "
                                      "(CSV with drawing_displacement and drawing_force; a history.csv of "
@@ -248,8 +249,16 @@ def _run(args) -> int:
             tangent = penalty_tangent(scene, result)
         except ValueError as err:
             print(f"note: {err}")
+    check = None
+    if args.error_estimate == "step" and result.converged:
+        from .accuracy import step_check
+
+        try:
+            check = step_check(scene, progress=not args.quiet)
+        except ValueError as err:
+            print(f"note: {err}")
     try:
-        summary = output.write_run(scene, result, out, tag=args.tag, penalty_tangent=tangent)
+        summary = output.write_run(scene, result, out, tag=args.tag, penalty_tangent=tangent, step_check=check)
     except output.OutputError as err:
         return _error(err, EXIT_FAILED)
     steady = summary["steady_drawing_force"]

@@ -357,3 +357,43 @@ def test_the_curve_error_starts_from_the_state_the_draw_starts_from():
 
     assert phase_curve(run["history"], "drawing_displacement", "drawing_force", "draw")[0][0] == 0.05
     assert phase_curve(run["history"], "drawing_displacement", "drawing_force", "draw", start=True)[0][0] == 0.0
+
+
+def test_step_component_is_twice_the_change_with_half_the_increments():
+    """``error_estimate`` with a step check: 2 |F - F_half| / F on the main output (the steady force,
+    else the peak), recorded with the check's value and steps."""
+    from jaxfric import output
+    from jaxfric.scenes import make
+
+    scene = make("flat_die", "const_force", overrides={"mesh": "24x1"})
+    values = {"drawing_force": [0.0, 10.0, 10.0, 10.0], "max_penetration": [0.0] * 4,
+              "phase": ["clamp", "draw", "draw", "draw"], "drawing_displacement": [0.0, 0.02, 0.025, 0.03]}
+    check = {"steady": 9.9, "peak": 12.0, "n_steps": 6, "converged": True}
+    est = output.error_estimate(scene, values, (0.02, 0.03), 10.0, step_check=check)
+    assert est["components"]["step"] == pytest.approx(0.02, rel=1e-12)
+    assert est["step_check"] == {"value": 9.9, "n_steps": 6, "increments": 0.5}
+    assert est["relative"] >= est["components"]["step"]
+    peak = output.error_estimate(scene, values, (0.02, 0.03), None, step_check=check)
+    assert peak["quantity"] == "peak_drawing_force" and peak["components"]["step"] == pytest.approx(0.4)
+    assert "step" not in output.error_estimate(scene, values, (0.02, 0.03), 10.0)["components"]
+
+
+@pytest.mark.parametrize("scene", ["flat_die", "bead", "nine", "blankholder"])
+def test_scaled_steps_halves_increments_and_doubles_step_counts(scene):
+    from jaxfric import scenes
+
+    config = scenes.config_class(scene)()
+    half = scenes.scaled_steps(scene, config, 0.5)
+    assert set(half) == set(scenes.SCENES[scene].STEP_FIELDS)
+    for field, value in half.items():
+        old = getattr(config, field)
+        assert value == (2 * old if isinstance(old, int) else 0.5 * old)
+    # The halved run has twice the nominal steps in every phase.
+    built = scenes.make(scene, None, overrides=half)
+    base = scenes.make(scene, None)
+    def counts(s):
+        return [sum(n for _, n in p.increments) for p in s.model.phases]
+
+    assert counts(built) == [2 * n for n in counts(base)]
+    with pytest.raises(ValueError, match="'factor'"):
+        scenes.scaled_steps(scene, config, 0.0)

@@ -23,7 +23,7 @@ from . import bead, blankholder, flat_die, nine
 from .base import ALGORITHMS, Scene, contact_law
 
 __all__ = ["SCENES", "ALGORITHMS", "Scene", "contact_law", "scene_names", "variants", "default_variant",
-           "config_class", "config_fields", "make", "parse_override", "parse_mesh"]
+           "config_class", "config_fields", "make", "parse_override", "parse_mesh", "scaled_steps"]
 
 SCENES = {"flat_die": flat_die, "bead": bead, "nine": nine, "blankholder": blankholder}
 
@@ -60,6 +60,18 @@ def config_fields(name: str) -> list:
     """[(field, default, unit, doc), ...] of a scene's config, in declaration order."""
     return [(f.name, f.default, f.metadata.get("unit", ""), f.metadata.get("doc", ""))
             for f in dataclasses.fields(config_class(name))]
+
+
+def scaled_steps(name: str, config, factor: float) -> dict:
+    """Config overrides that scale the nominal increments of ``config`` (a scene's config dataclass) by
+    ``factor``: increments are multiplied by it, step counts divided by it (rounded up, at least 1)."""
+    if not (isinstance(factor, (int, float)) and math.isfinite(factor) and factor > 0):
+        raise ValueError(f"field 'factor' must be a finite number > 0, got {factor!r}")
+    out = {}
+    for field in _module(name).STEP_FIELDS:
+        value = getattr(config, field)
+        out[field] = max(1, math.ceil(value / factor)) if isinstance(value, int) else value * factor
+    return out
 
 
 def parse_mesh(text) -> tuple[int, int]:

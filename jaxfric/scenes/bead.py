@@ -51,6 +51,8 @@ __all__ = ["NAME", "BeadConfig", "VARIANTS", "DEFAULT_VARIANT", "BeadObserve", "
 
 NAME = "bead"
 DEFAULT_VARIANT = "th090_mu017"
+# Config fields of the nominal increments (a float: an increment; an int: a phase's step count).
+STEP_FIELDS = ("n_clamp", "dtheta", "ds")
 PHASES = ("clamp", "wind", "draw")
 TOOLS = ("die_up", "die_lo", "roller")
 INSTANTS = ("clamped", "folded", "drawing", "final")

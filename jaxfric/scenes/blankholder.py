@@ -79,6 +79,8 @@ __all__ = ["NAME", "BlankholderConfig", "VARIANTS", "DEFAULT_VARIANT", "Blankhol
 
 NAME = "blankholder"
 DEFAULT_VARIANT = "shape1"
+# Config fields of the nominal increments (a float: an increment; an int: a phase's step count).
+STEP_FIELDS = ("ds_close", "n_lock", "dU")
 PHASES = ("close", "lock", "draw")
 TOOLS = ("upper", "lower")
 INSTANTS = ("closed", "locked", "drawing", "final")

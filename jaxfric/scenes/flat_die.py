@@ -39,6 +39,8 @@ __all__ = ["NAME", "FlatDieConfig", "VARIANTS", "DEFAULT_VARIANT", "FlatDieObser
 
 NAME = "flat_die"
 DEFAULT_VARIANT = "const_force"
+# Config fields of the nominal increments (a float: an increment; an int: a phase's step count).
+STEP_FIELDS = ("dU_fine", "dU", "n_clamp")
 PHASES = ("clamp", "draw")
 TOOLS = ("die",)
 INSTANTS = ("clamped", "intermediate", "sliding", "final")

@@ -54,6 +54,8 @@ __all__ = ["NAME", "NineConfig", "VARIANTS", "DEFAULT_VARIANT", "NineObserve", "
 
 NAME = "nine"
 DEFAULT_VARIANT = "mu017"
+# Config fields of the nominal increments (a float: an increment; an int: a phase's step count).
+STEP_FIELDS = ("dq_clamp", "dU")
 PHASES = ("clamp", "draw")
 TOOLS = ("A", "B", "C", "D", "E")
 INSTANTS = ("clamped", "steady", "final")
