@@ -183,3 +183,20 @@ def test_lemke_runs_the_blankholder_lock_and_agrees_with_semismooth_newton():
                                rtol=1e-3)
     np.testing.assert_allclose(a.history["tool_position"][-1], b.history["tool_position"][-1], atol=1e-4)
     assert a.history["lcp_pivots"].sum() > 0
+
+
+def test_a_penetrating_node_whose_stick_piece_pulls_slips_instead_of_cycling():
+    """Nine 60 x 2 at half the nominal clamp increment: at B's first touch a node penetrates by 3e-5
+    mm; closed and sticking it would need a tensile force (-1.5e-4 N/mm), opened it keeps penetrating.
+    The active set read off the prediction then cycled stick <-> open at every outer iteration and
+    every cut step, and the run stopped in its fifth step. It now releases the node tangentially
+    first (slip), and the run completes with every step settled."""
+    from jaxfric import scenes
+
+    sc = scenes.make("nine", "mu017", "lcp_ssn", {"mesh": "60x2", "stroke": 0.5, "dq_clamp": 0.05,
+                                                  "U_draw": 0.2, "dU": 0.05})
+    res = jf.run(sc.model, newton=sc.newton, control=sc.control, observe=sc.observe, progress=False,
+                 raise_on_failure=False)
+    assert res.converged, res.message
+    assert res.history["max_penetration"].max() < 1e-10
+    assert res.history["n_active"][-1] > 0          # B presses on the strip at the end of the clamp
