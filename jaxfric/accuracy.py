@@ -71,8 +71,6 @@ class Test:
         mesh: (nx, ny) of the sweep's algorithm runs.
         ref_mesh: (nx, ny) of the reference (its check refines it once more).
         meshes: the mesh family (default algorithm).
-        step_fields: config fields of the nominal increments (scaled by the step factor; an integer
-            field is a step count and is divided by it).
         step_factors: the step family (default algorithm), factors on the nominal increments.
         penalties: eps_N of the penalty family.
         auglag: (eps_N, target gap) pairs of the auglag family.
@@ -98,7 +96,6 @@ class Test:
     mesh: tuple
     ref_mesh: tuple
     meshes: tuple
-    step_fields: tuple
     step_factors: tuple
     penalties: tuple
     auglag: tuple
@@ -132,12 +129,10 @@ class Test:
         return f"reference{self.tag}"
 
 
-_FLAT_STEPS = ("dU_fine", "dU", "n_clamp")
 # [chosen] The flat die's penetrations are 1e-10 to 1e-6 mm (the clamp load spread over the die), and
 # with the die held in place (const_position) 4e-8 mm already moves the clamping force by 0.8 %: target
 # gaps of 1e-5 or 1e-6 mm would never trigger an augmentation there.
 _FLAT_AUGLAG = ((1e6, 1e-8), (1e6, 1e-9), (1e7, 1e-9), (1e7, 1e-10))
-_NINE_STEPS = ("dq_clamp", "dU")
 # [chosen] Nine: the strip is drawn 36 mm (the steady window [20, 35] mm and one more), not 70.
 _NINE_BASE = {"U_draw": 36.0}
 # [chosen] Nine reference gap: 1e-6 mm, a tenth of the smallest target of the sweep (penalties leave
@@ -159,7 +154,7 @@ def _nine_tests(variant: str) -> tuple:
     # [chosen] lcp_ssn at a half, a quarter and an eighth of the nominal increments: the step family
     # (penalty) cannot show the step size's error on the Nine, where the controller's cutbacks set the
     # increments (x2 and x0.5 give the same steps within 3 %).
-    full = Test("nine", variant, _NINE_BASE, (100, 2), (200, 4), ((50, 2), (100, 2), (200, 4)), _NINE_STEPS,
+    full = Test("nine", variant, _NINE_BASE, (100, 2), (200, 4), ((50, 2), (100, 2), (200, 4)),
                 (2.0, 0.5), _NINE_PENALTIES, _NINE_AUGLAG, "steady", ref_gap=_NINE_REF_GAP,
                 ssn_steps=(0.5, 0.25, 0.125), penalty_rows=_NINE_PENALTY_ROWS)
     # [chosen] The same-mesh reference takes a thirty-second of the nominal increments: at half of them
@@ -171,10 +166,10 @@ def _nine_tests(variant: str) -> tuple:
 
 
 TESTS = (
-    Test("flat_die", "const_force", {}, (120, 1), (240, 2), ((60, 1), (120, 1), (240, 2)), _FLAT_STEPS,
+    Test("flat_die", "const_force", {}, (120, 1), (240, 2), ((60, 1), (120, 1), (240, 2)),
          (2.0, 0.5), (1e5, 1e6, 1e7, 1e8, 1e9), _FLAT_AUGLAG, "final",
          main="err_curve_l2"),
-    Test("flat_die", "const_position", {}, (120, 1), (240, 2), ((60, 1), (120, 1), (240, 2)), _FLAT_STEPS,
+    Test("flat_die", "const_position", {}, (120, 1), (240, 2), ((60, 1), (120, 1), (240, 2)),
          (2.0, 0.5), (1e5, 1e6, 1e7, 1e8, 1e9), _FLAT_AUGLAG, "final"),
     *_nine_tests("mu000"),
     *_nine_tests("mu017"),
@@ -182,7 +177,7 @@ TESTS = (
 
 # --quick: the flat die at force control on small meshes, a short sweep (a few minutes on 2 cores).
 QUICK_TESTS = (
-    Test("flat_die", "const_force", {}, (30, 1), (60, 1), ((15, 1), (30, 1)), _FLAT_STEPS,
+    Test("flat_die", "const_force", {}, (30, 1), (60, 1), ((15, 1), (30, 1)),
          (2.0,), (1e6, 1e8), ((1e6, 1e-6),), "final", main="err_curve_l2"),
 )
 
@@ -190,15 +185,13 @@ QUICK_TESTS = (
 # ---- cases --------------------------------------------------------------------------------------------
 
 def _steps(test: Test, factor: float) -> dict:
-    """Overrides for nominal increments scaled by ``factor`` (step counts divided by it)."""
+    """Overrides for the test's nominal increments (its ``base`` over the scene's defaults) scaled by
+    ``factor`` (:func:`jaxfric.scenes.scaled_steps`)."""
     from . import scenes
 
-    defaults = {f.name: f.default for f in dataclasses.fields(scenes.config_class(test.scene))}
-    out = {}
-    for name in test.step_fields:
-        value = test.base.get(name, defaults[name])
-        out[name] = max(1, math.ceil(value / factor)) if isinstance(value, int) else value * factor
-    return out
+    fields = {f.name for f in dataclasses.fields(scenes.config_class(test.scene))}
+    config = scenes.config_class(test.scene)(**{k: v for k, v in test.base.items() if k in fields})
+    return scenes.scaled_steps(test.scene, config, factor)
 
 
 def _mesh(m) -> str:

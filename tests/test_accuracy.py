@@ -9,7 +9,7 @@ import os
 import numpy as np
 import pytest
 
-from jaxfric import accuracy
+from jaxfric import accuracy, scenes
 from jaxfric.cli import main
 
 
@@ -101,7 +101,7 @@ def test_plan_of_each_test(test):
     # The reference takes ref_step times the nominal increments (half by default); its step check half that.
     check = next(p[3] for p in plan if p[0] == f"ref_check_step{test.tag}")
     base = next(p[3] for p in plan if p[0] == "step_x2")
-    for field in test.step_fields:
+    for field in scenes.SCENES[test.scene].STEP_FIELDS:
         if isinstance(ref[field], float):
             assert ref[field] == pytest.approx(base[field] / 2 * test.ref_step)
             assert check[field] == pytest.approx(base[field] / 4 * test.ref_step)
