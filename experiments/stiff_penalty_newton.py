@@ -1,13 +1,15 @@
 """Newton iterates of the attempt where a stiff-penalty Nine run stops (issue 5, extreme cases).
 
     python experiments/stiff_penalty_newton.py [--eps-n 1e9] [--variant mu017] [--iterations 14]
+    python experiments/stiff_penalty_newton.py --spec --mesh 300x3 --eps-n 1e6 --set max_steps=30000
 
-Runs the Nine test of ``tests/test_extreme.py`` (30 x 2, B pushed 3 mm in 6 steps, drawn 1 mm in 4) with
-the penalty law at ``--eps-n`` until it stops, then repeats the failed attempt by hand from the last
+Runs the Nine test of ``tests/test_extreme.py`` (30 x 2, B pushed 3 mm in 6 steps, drawn 1 mm in 4), or
+with ``--spec`` the spec's load path (the penalty study's case with the second command), with the
+penalty law at ``--eps-n`` until it stops, then repeats the failed attempt by hand from the last
 converged state: Newton steps on ``jaxfric.system.linearize`` with the solver's line search (the full
 step, a quarter, a sixteenth, which is kept). Prints, per iteration, the step length taken, the residual
 before and after (max norm, N/mm), and every pair whose status (open 0 / stick 1 / slip 2) changed,
-with its gap and forces before and after.
+with its gap and forces before and after, and the residual tolerance of the convergence test.
 """
 
 from __future__ import annotations
@@ -35,9 +37,19 @@ def main(argv=None) -> None:
     ap.add_argument("--eps-n", type=float, default=1e9)
     ap.add_argument("--variant", default="mu017")
     ap.add_argument("--iterations", type=int, default=14)
+    ap.add_argument("--spec", action="store_true", help="the spec's load path instead of the short one")
+    ap.add_argument("--mesh", default=None, help="NXxNY (default: 30x2, or the spec mesh with --spec)")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="another config field")
     a = ap.parse_args(argv)
 
-    scene = make("nine", a.variant, "penalty", {**NINE, "eps_n": a.eps_n})
+    config = {} if a.spec else dict(NINE)
+    config["eps_n"] = a.eps_n
+    if a.mesh:
+        config["mesh"] = a.mesh
+    for item in a.set:
+        name, value = item.split("=", 1)
+        config[name] = float(value) if any(ch in value for ch in ".e") else int(value)
+    scene = make("nine", a.variant, "penalty", config)
     res = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, progress=False,
               raise_on_failure=False)
     print(res.message)
@@ -50,6 +62,9 @@ def main(argv=None) -> None:
     solve = jax.jit(linear_solve)
     x = _unknowns(model, state.u, _tool_q(state))
     lin = lin_at(x)
+    opts = scene.newton
+    print(f"step t {t:.9g}; residual tolerance {opts.atol + opts.rtol * max(float(lin.scale), 1e-6):.3e} N/mm "
+          f"(scale |f_int| {float(lin.scale):.4g} N/mm)")
     for k in range(a.iterations):
         dx = solve(lin.jacobian, -lin.residual)
         for alpha in (1.0, 0.25, 1.0 / 16.0):
@@ -61,8 +76,11 @@ def main(argv=None) -> None:
         pairs = [f"pair {i}: {int(before['status'][i])}->{int(after['status'][i])}, gap {float(before['gap'][i]):.2e}"
                  f"->{float(after['gap'][i]):.2e} mm, R_N {float(before['rn'][i]):.3g}->{float(after['rn'][i]):.3g}"
                  for i in changed]
+        worst = int(jnp.argmax(jnp.abs(new.residual)))
         print(f"{k:2d} step {alpha:.4g}: |R| {float(jnp.max(jnp.abs(lin.residual))):.3e} -> "
-              f"{float(jnp.max(jnp.abs(new.residual))):.3e} N/mm" + ("; " + "; ".join(pairs) if pairs else ""))
+              f"{float(jnp.max(jnp.abs(new.residual))):.3e} N/mm (row {worst}), |dx| "
+              f"{float(jnp.max(jnp.abs(alpha * dx))):.2e} mm, {len(changed)} status changes"
+              + ("; " + "; ".join(pairs[:6]) if pairs else ""))
         x, lin = x + alpha * dx, new
 
 

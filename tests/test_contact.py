@@ -287,3 +287,31 @@ def test_tool_placement_is_checked_before_any_computation():
         model(far_away)
     touching = RigidTool("die", Tool.line((-1.0, 1.0), (5.0, 1.0)), (0.0, -1.0), mesh.top, (Force(5.0),), 0.0)
     model(touching)  # exactly touching is the spec's starting position
+
+
+def test_pairs_on_the_coulomb_cone_count_as_slipping_for_newton():
+    """Newton's "no status change" test sees a closed pair on the Coulomb cone as slipping whichever
+    branch the law took: the law is continuous there, so a stick <-> slip flip at round-off moves the
+    force by nothing (such flips stopped the Nine at eps_N = 1e6 with friction at U = 53.6 mm: residual
+    2.4e-8 N/mm against a tolerance of 1.7e-6, some 20 pairs flipping at every iteration). Here: the
+    flat die's converged, sliding end state re-linearised with mu 1e-12 (relative) larger, so that
+    its slipping pairs take the law's stick branch at an unchanged force."""
+    from jaxfric.contact_laws import SLIP, STICK
+    from jaxfric.run import run
+    from jaxfric.scenes import make
+    from jaxfric.simulate import linearize_step
+
+    config = {"mesh": "12x1", "L": 4.8, "U_draw": 0.006}
+    scene = make("flat_die", "const_force", "penalty", config)
+    res = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, progress=False)
+    state = res.simulation.final
+    lin = linearize_step(scene.model, state, state.phase, state.time)
+    slipping = np.asarray(lin.aux[2]["status"]) == SLIP
+    assert slipping.sum() >= 3 and np.array_equal(np.asarray(lin.status)[slipping], np.full(slipping.sum(), SLIP))
+
+    nudged = make("flat_die", "const_force", "penalty", {**config, "mu": scene.config.mu * (1.0 + 1e-12)})
+    lin2 = linearize_step(nudged.model, state, state.phase, state.time)
+    law = np.asarray(lin2.aux[2]["status"])
+    assert np.all(law[slipping] == STICK)                      # the law's branch flipped ...
+    assert np.all(np.asarray(lin2.status)[slipping] == SLIP)   # ... the convergence test sees no change
+    np.testing.assert_allclose(np.asarray(lin2.residual), np.asarray(lin.residual), rtol=0, atol=1e-9)
