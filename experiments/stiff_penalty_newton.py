@@ -82,6 +82,18 @@ def main(argv=None) -> None:
               f"{float(jnp.max(jnp.abs(alpha * dx))):.2e} mm, {len(changed)} status changes"
               + ("; " + "; ".join(pairs[:6]) if pairs else ""))
         x, lin = x + alpha * dx, new
+    n_dofs = model.mesh.n_dofs
+    if worst < n_dofs:  # where the last residual sits: a sheet node (i along, j through) or a tool row
+        node = worst // 2
+        i, j = divmod(node, model.mesh.ny + 1)
+        X = np.asarray(model.mesh.nodes)[node]
+        u = np.asarray(x[:n_dofs]).reshape(-1, 2)[node]
+        candidate = any(node in np.asarray(tool.candidates) for tool in model.tools)
+        print(f"last largest residual: node {node} (i = {i} of {model.mesh.nx}, j = {j} of {model.mesh.ny}), "
+              f"{'xy'[worst % 2]} row, X = ({X[0]:.4f}, {X[1]:.4f}) mm, u = ({u[0]:.4f}, {u[1]:.4f}) mm, "
+              f"{'a' if candidate else 'not a'} contact candidate")
+    else:
+        print(f"last largest residual: tool row {worst - n_dofs}")
 
 
 if __name__ == "__main__":

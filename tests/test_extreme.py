@@ -394,18 +394,22 @@ def test_nonfinite_mid_run():
 
 @pytest.mark.slow  # 100 s, 55 of them compiling the bead scene
 def test_last_attempt_without_line_search():
-    """Bead th045_mu000 with the augmented Lagrangian, wound to 12 deg and drawn 0.1 mm. At theta = 9.98
-    deg a front of clamp pairs switches between stick and slip; every full Newton step raises the
-    residual a little, so the line search backtracks and Newton does not converge in 25 iterations at
-    any length down to nominal / 2**max_cuts. The controller's last attempt, without the line search,
-    converges: the run completes, that step recording max_cuts + 1 cuts. (Before that attempt existed
-    the run stopped there.)"""
+    """Bead th045_mu000 with the augmented Lagrangian, wound to 12 deg and drawn 0.1 mm. At some winding
+    steps every full Newton step raises the residual a little, so the line search backtracks and Newton
+    does not converge in 25 iterations at any length down to nominal / 2**max_cuts. The controller's
+    last attempt, without the line search, converges: the run completes, those steps recording
+    max_cuts + 1 cuts. (Before that attempt existed the run stopped at the first of them.) Where they
+    fall depends on the step sequence: theta = 9.98 deg when this test was written (a front of clamp
+    pairs switching between stick and slip), 8.22 and 11.11 deg since (2026-11-26, with and without
+    the Coulomb-cone rule of Newton's status test: the same 156 steps and 1741 iterations)."""
     scene = make("bead", "th045_mu000", "auglag", {"theta": 12.0, "s_draw": 0.1})
     res = _run("bead auglag to 12 deg (plain Newton at the floor)", scene)
     assert res.converged, res.message
     h = res.history
     assert h["cutbacks"].max() == scene.control.max_cuts + 1
-    assert 9.5 < h["theta_deg"][np.argmax(h["cutbacks"])] < 10.5
+    last_attempt = h["cutbacks"] == scene.control.max_cuts + 1
+    assert np.all(h["phase_name"][last_attempt] == "wind")
+    assert np.all((h["theta_deg"][last_attempt] > 0.0) & (h["theta_deg"][last_attempt] < scene.config.theta))
 
 
 # ---- slow: load steps, meshes, rotations ----------------------------------------------------------
