@@ -8,7 +8,7 @@ with ``--spec`` the spec's load path (the penalty study's case with the second c
 penalty law at ``--eps-n`` until it stops, then repeats the failed attempt by hand from the last
 converged state: Newton steps on ``jaxfric.system.linearize`` with the solver's line search (the full
 step, a quarter, a sixteenth, which is kept). Prints, per iteration, the step length taken, the residual
-before and after (max norm, N/mm), and every pair whose status (open 0 / stick 1 / slip 2) changed,
+before and after (max norm, N/mm), the linear solve's own residual |J dx + R|, every pair whose status (open 0 / stick 1 / slip 2) changed,
 with its gap and forces before and after, and the residual tolerance of the convergence test.
 """
 
@@ -67,6 +67,7 @@ def main(argv=None) -> None:
           f"(scale |f_int| {float(lin.scale):.4g} N/mm)")
     for k in range(a.iterations):
         dx = solve(lin.jacobian, -lin.residual)
+        lin_res = float(jnp.max(jnp.abs(lin.jacobian.matvec(dx) + lin.residual)))  # linear solve's own residual
         for alpha in (1.0, 0.25, 1.0 / 16.0):
             new = lin_at(x + alpha * dx)
             if jnp.sum(new.residual**2) <= jnp.sum(lin.residual**2):
@@ -79,7 +80,7 @@ def main(argv=None) -> None:
         worst = int(jnp.argmax(jnp.abs(new.residual)))
         print(f"{k:2d} step {alpha:.4g}: |R| {float(jnp.max(jnp.abs(lin.residual))):.3e} -> "
               f"{float(jnp.max(jnp.abs(new.residual))):.3e} N/mm (row {worst}), |dx| "
-              f"{float(jnp.max(jnp.abs(alpha * dx))):.2e} mm, {len(changed)} status changes"
+              f"{float(jnp.max(jnp.abs(alpha * dx))):.2e} mm, |J dx + R| {lin_res:.1e}, {len(changed)} status changes"
               + ("; " + "; ".join(pairs[:6]) if pairs else ""))
         x, lin = x + alpha * dx, new
     n_dofs = model.mesh.n_dofs
