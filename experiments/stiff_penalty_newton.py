@@ -23,6 +23,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from jaxfric.contact import pair_nodes  # noqa: E402
 from jaxfric.linalg import linear_solve  # noqa: E402
 from jaxfric.run import run  # noqa: E402
 from jaxfric.scenes import make  # noqa: E402
@@ -46,9 +47,7 @@ def main(argv=None) -> None:
     config["eps_n"] = a.eps_n
     if a.mesh:
         config["mesh"] = a.mesh
-    for item in a.set:
-        name, value = item.split("=", 1)
-        config[name] = float(value) if any(ch in value for ch in ".e") else int(value)
+    config.update(item.split("=", 1) for item in a.set)  # text values: make() converts them by field type
     scene = make("nine", a.variant, "penalty", config)
     res = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, progress=False,
               raise_on_failure=False)
@@ -63,7 +62,7 @@ def main(argv=None) -> None:
     x = _unknowns(model, state.u, _tool_q(state))
     lin = lin_at(x)
     opts = scene.newton
-    print(f"step t {t:.9g}; residual tolerance {opts.atol + opts.rtol * max(float(lin.scale), 1e-6):.3e} N/mm "
+    print(f"step t {t:.9g}; residual tolerance at the start point {opts.atol + opts.rtol * max(float(lin.scale), 1e-6):.3e} N/mm "
           f"(scale |f_int| {float(lin.scale):.4g} N/mm)")
     for k in range(a.iterations):
         dx = solve(lin.jacobian, -lin.residual)
@@ -89,7 +88,7 @@ def main(argv=None) -> None:
         i, j = divmod(node, model.mesh.ny + 1)
         X = np.asarray(model.mesh.nodes)[node]
         u = np.asarray(x[:n_dofs]).reshape(-1, 2)[node]
-        candidate = any(node in np.asarray(tool.candidates) for tool in model.tools)
+        candidate = node in pair_nodes(model.tools)
         print(f"last largest residual: node {node} (i = {i} of {model.mesh.nx}, j = {j} of {model.mesh.ny}), "
               f"{'xy'[worst % 2]} row, X = ({X[0]:.4f}, {X[1]:.4f}) mm, u = ({u[0]:.4f}, {u[1]:.4f}) mm, "
               f"{'a' if candidate else 'not a'} contact candidate")
