@@ -1,12 +1,16 @@
 """Cost of a vmapped friction sweep against single runs (issue: batched sweeps).
 
     python experiments/bench_sweep.py [--scene flat_die] [--variant const_force] [--members 16]
-                                      [--mesh NXxNY] [--set NAME=VALUE ...]
+                                      [--mesh NXxNY] [--set NAME=VALUE ...] [--chunk N]
+                                      [--singles K] [--csv PATH]
 
 Runs ``members`` friction coefficients evenly spaced in [0.05, 0.3] as one compiled vmapped simulation
 (:func:`jaxfric.sweep.sweep`) and as single runs (:func:`jaxfric.run.run`, compiled once), checks that
 the histories agree to 1e-10 of each column's scale, and writes
-``experiments/results/bench_sweep_<scene>.csv`` with compile and solve times and their ratios.
+``experiments/results/bench_sweep_<scene>.csv`` (or ``--csv PATH``) with compile and solve times, their
+ratios and the device. ``--chunk N``: the sweep's element chunk per member (default: the sweep's, sized
+for a CPU cache). ``--singles K``: time only K evenly spaced members as single runs (the mean and the
+agreement check over those; for a device where single runs are slow).
 
 ``--iteration``: instead, time one Newton iteration (linearisation and solve) of all members at once
 (vmapped) against one member's, at the converged final state of member 0: what batching costs per
@@ -44,17 +48,26 @@ def main(argv=None) -> None:
     p.add_argument("--mesh", default=None)
     p.add_argument("--set", dest="overrides", action="append", default=[])
     p.add_argument("--iteration", action="store_true", help="time one batched Newton iteration only")
+    p.add_argument("--chunk", type=int, default=None, help="the sweep's element chunk per member")
+    p.add_argument("--singles", type=int, default=None, help="number of members also run singly")
+    p.add_argument("--csv", default=None, help="where to write the row")
     a = p.parse_args(argv)
+    if a.members < 1 or (a.singles is not None and not 1 <= a.singles <= a.members):
+        p.error("--members must be >= 1 and --singles in 1..members")
     extra = dict(s.split("=", 1) for s in a.overrides)
     if a.mesh:
         extra["mesh"] = a.mesh
     mus = np.linspace(0.05, 0.3, a.members)
     built = [scenes.make(a.scene, a.variant, "penalty", {**extra, "mu": float(m)}) for m in mus]
     if a.iteration:
-        return iteration_cost(built)
-    out = sweep([s.model for s in built], control=built[0].control, observe=built[0].observe)
+        return iteration_cost(built, a.chunk)
+    out = sweep([s.model for s in built], control=built[0].control, observe=built[0].observe, chunk=a.chunk)
+    print(f"sweep of {a.members}: compile {out.compile_s:.2f} s, solve {out.wall_s:.2f} s", flush=True)
+    k = a.members if a.singles is None else a.singles
+    chosen = sorted(set(np.linspace(0, a.members - 1, k).round().astype(int).tolist()))
     singles, compile_single, worst, iters = [], None, 0.0, []
-    for i, s in enumerate(built):
+    for i in chosen:
+        s = built[i]
         r = jf.run(s.model, control=s.control, observe=s.observe, progress=False)
         compile_single = r.compile_s if compile_single is None else compile_single
         singles.append(r.wall_s)
@@ -67,18 +80,22 @@ def main(argv=None) -> None:
     row = {"scene": a.scene, "variant": built[0].variant, "mesh": f"{built[0].model.mesh.nx}x{built[0].model.mesh.ny}",
            "members": a.members, "sweep_compile_s": round(out.compile_s, 3), "sweep_wall_s": round(out.wall_s, 3),
            "single_compile_s": round(compile_single, 3), "single_wall_s_mean": round(mean_single, 3),
-           "single_wall_s_max": round(max(singles), 3), "looped_wall_s": round(sum(singles), 3),
+           "single_wall_s_max": round(max(singles), 3), "singles_run": len(chosen),
+           # The loop of all members' single runs, measured or (with --singles) estimated from the mean.
+           "looped_wall_s": round(mean_single * a.members, 3),
            "sweep_over_single": round(out.wall_s / mean_single, 2),
-           "sweep_over_looped": round(out.wall_s / sum(singles), 2), "max_rel_diff": f"{worst:.1e}",
+           "sweep_over_looped": round(out.wall_s / (mean_single * a.members), 2), "max_rel_diff": f"{worst:.1e}",
            # The flat loop's cost law: about the largest member's total of Newton iterations (and its
            # attempts) in batched passes, against the mean member's in single runs.
-           "member_iters_mean": round(float(np.mean(iters)), 1), "member_iters_max": max(iters)}
-    for k, v in row.items():
-        print(f"{k:>20}: {v}")
-    write_rows(os.path.join(os.path.dirname(__file__), "results", f"bench_sweep_{a.scene}.csv"), [row])
+           "member_iters_mean": round(float(np.mean(iters)), 1), "member_iters_max": max(iters),
+           "chunk": a.chunk if a.chunk is not None else "default",
+           "device": jax.devices()[0].device_kind, "jax": jax.__version__}
+    for key, v in row.items():
+        print(f"{key:>20}: {v}")
+    write_rows(a.csv or os.path.join(os.path.dirname(__file__), "results", f"bench_sweep_{a.scene}.csv"), [row])
 
 
-def iteration_cost(built) -> None:
+def iteration_cost(built, chunk=None) -> None:
     values, axes, (treedef, static) = stack_models([s.model for s in built])
     r = jf.run(built[0].model, control=built[0].control, observe=built[0].observe, progress=False)
     state = jax.tree_util.tree_map(jnp.asarray, r.final)
@@ -92,12 +109,31 @@ def iteration_cost(built) -> None:
     v0 = [v if ax is None else v[0] for v, ax in zip(values, axes)]
     states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n,) + a.shape) + 0, state)
     one = median_time(jax.jit(iteration), v0, state, repeat=20)
-    with element_chunk(max(ELEMENT_CHUNK // n, 16)):   # as jaxfric.sweep.sweep traces its members
+    # As jaxfric.sweep.sweep traces its members (or the chunk asked for).
+    with element_chunk(chunk if chunk is not None else max(ELEMENT_CHUNK // n, 16)):
         own = median_time(jax.jit(jax.vmap(iteration, in_axes=(axes, 0))), values, states, repeat=10)
     shared = median_time(jax.jit(jax.vmap(iteration, in_axes=(axes, None))), values, state, repeat=10)
     print(f"one Newton iteration: single {1e3 * one:.2f} ms; {n} members vmapped, each at its own state "
           f"{1e3 * own:.2f} ms = {own / one:.1f}x single ({1e3 * own / n:.2f} ms per member); one state "
           f"shared by all members {1e3 * shared:.2f} ms = {shared / one:.1f}x")
+
+    # Its two halves apart: the linearisation (element arithmetic, contact, assembly) and the
+    # block-tridiagonal solve of the assembled system.
+    def linearise(v, s):
+        model = eqx.combine(jax.tree_util.tree_unflatten(treedef, v), static)
+        return jf.linearize_step(model, s, s.phase, s.time)
+
+    lin1 = jax.jit(linearise)(v0, state)
+    with element_chunk(chunk if chunk is not None else max(ELEMENT_CHUNK // n, 16)):
+        lin_one = median_time(jax.jit(linearise), v0, state, repeat=20)
+        lin_own = median_time(jax.jit(jax.vmap(linearise, in_axes=(axes, 0))), values, states, repeat=10)
+        lins = jax.jit(jax.vmap(linearise, in_axes=(axes, 0)))(values, states)
+    solve = jax.jit(lambda lin: linear_solve(lin.jacobian, -lin.residual))
+    solve_one = median_time(solve, lin1, repeat=20)
+    solve_own = median_time(jax.jit(jax.vmap(lambda lin: linear_solve(lin.jacobian, -lin.residual))),
+                            lins, repeat=10)
+    print(f"  linearisation: single {1e3 * lin_one:.2f} ms, {n} vmapped {1e3 * lin_own:.2f} ms; "
+          f"solve: single {1e3 * solve_one:.2f} ms, {n} vmapped {1e3 * solve_own:.2f} ms")
 
 
 if __name__ == "__main__":

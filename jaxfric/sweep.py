@@ -108,14 +108,19 @@ class SweepResult:
 
 def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions(),
           control: StepControl = StepControl(), observe: Callable = default_observe,
-          flat: bool | None = None) -> SweepResult:
+          flat: bool | None = None, chunk: int | None = None) -> SweepResult:
     """Run ``models`` (one structure, different values) as one vmapped adaptive simulation.
 
     ``observe`` must be a static (hashable) function, as for :func:`jaxfric.run.run`. No progress bar
     (the members advance at different paces). ``flat``: one Newton iteration per loop pass
     (:func:`jaxfric.simulate.simulate_flat`), so that no member waits for another's attempt; the
     default where the law allows it (penalty, or no tools). The results are the same either way.
+    ``chunk``: elements per chunk of the element loop, per member. Default ``ELEMENT_CHUNK // n`` (at
+    least 16), which keeps one batched chunk's working set in a CPU's cache; on a GPU one chunk of a
+    member's whole mesh (``ELEMENT_CHUNK`` or more) gives the lanes more work per launch.
     """
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
+        raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
     values, axes, (treedef, static) = stack_models(models)
     first = models[0]
     if flat is None:
@@ -130,7 +135,7 @@ def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions
     t0 = time.perf_counter()
     # Chunks of the element loop n times smaller under vmap over n members: the same working set per
     # chunk as a single run's (16 flat-die members: one batched iteration 2x cheaper, RESULTS.md).
-    with element_chunk(max(ELEMENT_CHUNK // len(models), 16)):
+    with element_chunk(chunk if chunk is not None else max(ELEMENT_CHUNK // len(models), 16)):
         compiled = jax.jit(jax.vmap(one, in_axes=(axes,))).lower(values).compile()
     compile_s = time.perf_counter() - t0
     t1 = time.perf_counter()
