@@ -2,7 +2,7 @@
 
     python experiments/bench_sweep.py [--scene flat_die] [--variant const_force] [--members 16]
                                       [--mesh NXxNY] [--set NAME=VALUE ...] [--chunk N]
-                                      [--singles K] [--csv PATH]
+                                      [--singles K] [--csv PATH] [--solver thomas|cyclic]
 
 Runs ``members`` friction coefficients evenly spaced in [0.05, 0.3] as one compiled vmapped simulation
 (:func:`jaxfric.sweep.sweep`) and as single runs (:func:`jaxfric.run.run`, compiled once), checks that
@@ -10,7 +10,9 @@ the histories agree to 1e-10 of each column's scale, and writes
 ``experiments/results/bench_sweep_<scene>.csv`` (or ``--csv PATH``) with compile and solve times, their
 ratios and the device. ``--chunk N``: the sweep's element chunk per member (default: the sweep's, sized
 for a CPU cache). ``--singles K``: time only K evenly spaced members as single runs (the mean and the
-agreement check over those; for a device where single runs are slow).
+agreement check over those; for a device where single runs are slow). ``--solver``: the
+block-tridiagonal solve every program here traces (:func:`jaxfric.linalg.block_solver`; ``cyclic``
+for a GPU).
 
 ``--iteration``: instead, time one Newton iteration (linearisation and solve) of all members at once
 (vmapped) against one member's, at the converged final state of member 0: what batching costs per
@@ -36,7 +38,7 @@ from benchutil import median_time, write_rows  # noqa: E402
 import jaxfric as jf  # noqa: E402
 from jaxfric import scenes  # noqa: E402
 from jaxfric.assembly import ELEMENT_CHUNK, element_chunk  # noqa: E402
-from jaxfric.linalg import linear_solve  # noqa: E402
+from jaxfric.linalg import BLOCK_SOLVERS, block_solver, linear_solve  # noqa: E402
 from jaxfric.sweep import stack_models, sweep  # noqa: E402
 
 
@@ -51,6 +53,7 @@ def main(argv=None) -> None:
     p.add_argument("--chunk", type=int, default=None, help="the sweep's element chunk per member")
     p.add_argument("--singles", type=int, default=None, help="number of members also run singly")
     p.add_argument("--csv", default=None, help="where to write the row")
+    p.add_argument("--solver", choices=BLOCK_SOLVERS, default="thomas", help="block-tridiagonal solve")
     a = p.parse_args(argv)
     if a.members < 1 or (a.singles is not None and not 1 <= a.singles <= a.members):
         p.error("--members must be >= 1 and --singles in 1..members")
@@ -59,6 +62,11 @@ def main(argv=None) -> None:
         extra["mesh"] = a.mesh
     mus = np.linspace(0.05, 0.3, a.members)
     built = [scenes.make(a.scene, a.variant, "penalty", {**extra, "mu": float(m)}) for m in mus]
+    with block_solver(a.solver):
+        bench(a, built)
+
+
+def bench(a, built) -> None:
     if a.iteration:
         return iteration_cost(built, a.chunk)
     out = sweep([s.model for s in built], control=built[0].control, observe=built[0].observe, chunk=a.chunk)
@@ -88,7 +96,7 @@ def main(argv=None) -> None:
            # The flat loop's cost law: about the largest member's total of Newton iterations (and its
            # attempts) in batched passes, against the mean member's in single runs.
            "member_iters_mean": round(float(np.mean(iters)), 1), "member_iters_max": max(iters),
-           "chunk": a.chunk if a.chunk is not None else "default",
+           "chunk": a.chunk if a.chunk is not None else "default", "solver": a.solver,
            "device": jax.devices()[0].device_kind, "jax": jax.__version__}
     for key, v in row.items():
         print(f"{key:>20}: {v}")

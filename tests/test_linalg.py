@@ -12,6 +12,8 @@ import pytest
 from jaxfric.linalg import (
     BlockTridiag,
     Bordered,
+    block_cyclic_solve,
+    block_solver,
     block_tridiag_solve,
     bordered_solve,
     dense_solve,
@@ -145,6 +147,67 @@ def test_block_tridiag_solve_pivots_inside_blocks():
     b_flipped = b.reshape(nb, m)[:, ::-1].reshape(-1)
     x = jax.jit(block_tridiag_solve)(flipped, b_flipped)
     assert rel_err(x, np.linalg.solve(numpy_dense(A), b)) < RTOL
+
+
+@pytest.mark.parametrize("nb", [1, 2, 3, 8, 9, 50])
+def test_block_cyclic_solve_matches_dense_and_thomas(nb):
+    """Odd-even reduction (padded to a power of two of blocks) against the dense solve and the
+    Thomas sweep: block counts at, below and above a power of two, one and several right-hand sides."""
+    m = 6
+    A = random_block_tridiag(nb * 10 + 1, nb, m)
+    rng = np.random.default_rng(2)
+    b = rng.standard_normal(nb * m)
+    B = rng.standard_normal((nb * m, 3))
+    x, X, X_thomas = jax.jit(lambda A, b, B: (block_cyclic_solve(A, b), block_cyclic_solve(A, B),
+                                             block_tridiag_solve(A, B)))(A, b, B)
+    assert x.shape == b.shape and X.shape == B.shape
+    dense = numpy_dense(A)
+    assert rel_err(x, np.linalg.solve(dense, b)) < RTOL
+    assert rel_err(X, np.linalg.solve(dense, B)) < RTOL
+    assert rel_err(X, X_thomas) < RTOL
+
+
+def test_block_cyclic_solve_pivots_inside_blocks():
+    # As for the Thomas sweep: an exact zero on the (0, 0) entry of a diagonal block (here of an
+    # odd block, the first one the reduction inverts, and of the first) needs a row swap.
+    nb, m = 6, 4
+    A = random_block_tridiag(5, nb, m)
+    diag = A.diag.at[:, 0, 0].set(0.0)
+    A = BlockTridiag(lower=A.lower, diag=diag, upper=A.upper)
+    b = np.random.default_rng(6).standard_normal(nb * m)
+    x = jax.jit(block_cyclic_solve)(A, b)
+    assert rel_err(x, np.linalg.solve(numpy_dense(A), b)) < RTOL
+
+
+def test_block_solver_switches_what_linear_solve_traces():
+    """``block_solver("cyclic")`` makes the solves traced under it (bordered, vmapped, through
+    ``linear_solve`` and its derivatives) use the cyclic reduction; the answers agree."""
+    M = random_bordered(3, 9, 4, 2, batch=(2,), coupling=10.0)
+    bs = np.random.default_rng(9).standard_normal((2, M.shape[-1]))
+
+    def f(M, b):
+        return jnp.sum(linear_solve(M, b) ** 2)
+
+    def program():
+        # A new function each time: jit's trace cache is keyed on the function, not on the setting.
+        return jax.jit(lambda M, b: jax.vmap(lambda M, b: (linear_solve(M, b),
+                                                           jax.grad(f, argnums=1)(M, b)))(M, b))
+
+    thomas = program()
+    ref = thomas(M, bs)
+    with block_solver("cyclic"):
+        cyclic = program()
+        lowered = cyclic.lower(M, bs).as_text()
+        cyc = cyclic(M, bs)
+    for a, r in zip(cyc, ref):
+        assert rel_err(a, r) < RTOL
+    # The cyclic program has no sequential sweep over the 9 blocks (its loops left are the pivoting
+    # of the border's 2 x 2 LU); the Thomas one sweeps forward and back, for the solve and its transpose.
+    assert "dense<9>" not in lowered
+    assert "dense<9>" in thomas.lower(M, bs).as_text()
+    with pytest.raises(ValueError, match="block solver"):
+        with block_solver("lu"):
+            pass
 
 
 @pytest.mark.parametrize(
