@@ -11,8 +11,8 @@ the histories agree to 1e-10 of each column's scale, and writes
 ratios and the device. ``--chunk N``: the sweep's element chunk per member (default: the sweep's, sized
 for a CPU cache). ``--singles K``: time only K evenly spaced members as single runs (the mean and the
 agreement check over those; for a device where single runs are slow). ``--solver``: the
-block-tridiagonal solve every program here traces (:func:`jaxfric.linalg.block_solver`; ``cyclic``
-for a GPU).
+block-tridiagonal solve every program here traces (:func:`jaxfric.linalg.block_solver`; default
+``auto``: ``cyclic`` on a GPU, ``thomas`` on a CPU).
 
 ``--iteration``: instead, time one Newton iteration (linearisation and solve) of all members at once
 (vmapped) against one member's, at the converged final state of member 0: what batching costs per
@@ -38,7 +38,7 @@ from benchutil import median_time, write_rows  # noqa: E402
 import jaxfric as jf  # noqa: E402
 from jaxfric import scenes  # noqa: E402
 from jaxfric.assembly import ELEMENT_CHUNK, element_chunk  # noqa: E402
-from jaxfric.linalg import BLOCK_SOLVERS, block_solver, linear_solve  # noqa: E402
+from jaxfric.linalg import BLOCK_SOLVERS, block_solver, linear_solve, resolved_block_solver  # noqa: E402
 from jaxfric.sweep import stack_models, sweep  # noqa: E402
 
 
@@ -53,7 +53,7 @@ def main(argv=None) -> None:
     p.add_argument("--chunk", type=int, default=None, help="the sweep's element chunk per member")
     p.add_argument("--singles", type=int, default=None, help="number of members also run singly")
     p.add_argument("--csv", default=None, help="where to write the row")
-    p.add_argument("--solver", choices=BLOCK_SOLVERS, default="thomas", help="block-tridiagonal solve")
+    p.add_argument("--solver", choices=BLOCK_SOLVERS, default="auto", help="block-tridiagonal solve")
     a = p.parse_args(argv)
     if a.members < 1 or (a.singles is not None and not 1 <= a.singles <= a.members):
         p.error("--members must be >= 1 and --singles in 1..members")
@@ -96,7 +96,7 @@ def bench(a, built) -> None:
            # The flat loop's cost law: about the largest member's total of Newton iterations (and its
            # attempts) in batched passes, against the mean member's in single runs.
            "member_iters_mean": round(float(np.mean(iters)), 1), "member_iters_max": max(iters),
-           "chunk": a.chunk if a.chunk is not None else "default", "solver": a.solver,
+           "chunk": a.chunk if a.chunk is not None else "default", "solver": resolved_block_solver(),
            "device": jax.devices()[0].device_kind, "jax": jax.__version__}
     for key, v in row.items():
         print(f"{key:>20}: {v}")

@@ -115,9 +115,9 @@ def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions
     (the members advance at different paces). ``flat``: one Newton iteration per loop pass
     (:func:`jaxfric.simulate.simulate_flat`), so that no member waits for another's attempt; the
     default where the law allows it (penalty, or no tools). The results are the same either way.
-    ``chunk``: elements per chunk of the element loop, per member. Default ``ELEMENT_CHUNK // n`` (at
-    least 16), which keeps one batched chunk's working set in a CPU's cache; on a GPU one chunk of a
-    member's whole mesh (``ELEMENT_CHUNK`` or more) gives the lanes more work per launch.
+    ``chunk``: elements per chunk of the element loop, per member. Default on a CPU
+    ``ELEMENT_CHUNK // n`` (at least 16), which keeps one batched chunk's working set in cache; on a
+    GPU ``ELEMENT_CHUNK``, more work per launch (measured there with 512, RESULTS.md).
     """
     if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
         raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
@@ -135,7 +135,10 @@ def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions
     t0 = time.perf_counter()
     # Chunks of the element loop n times smaller under vmap over n members: the same working set per
     # chunk as a single run's (16 flat-die members: one batched iteration 2x cheaper, RESULTS.md).
-    with element_chunk(chunk if chunk is not None else max(ELEMENT_CHUNK // len(models), 16)):
+    if chunk is None:
+        gpu = jax.default_backend() in ("gpu", "cuda", "rocm")
+        chunk = ELEMENT_CHUNK if gpu else max(ELEMENT_CHUNK // len(models), 16)
+    with element_chunk(chunk):
         compiled = jax.jit(jax.vmap(one, in_axes=(axes,))).lower(values).compile()
     compile_s = time.perf_counter() - t0
     t1 = time.perf_counter()

@@ -15,6 +15,7 @@ from jaxfric.linalg import (
     block_cyclic_solve,
     block_solver,
     block_tridiag_solve,
+    resolved_block_solver,
     bordered_solve,
     dense_solve,
     linear_solve,
@@ -208,6 +209,11 @@ def test_block_solver_switches_what_linear_solve_traces():
     with pytest.raises(ValueError, match="block solver"):
         with block_solver("lu"):
             pass
+    # "auto" (the default) is the Thomas sweep on a CPU, as every other test here runs.
+    if jax.default_backend() == "cpu":
+        assert resolved_block_solver() == "thomas"
+        with block_solver("cyclic"):
+            assert resolved_block_solver() == "cyclic"
 
 
 @pytest.mark.parametrize(

@@ -84,3 +84,25 @@ def test_element_chunks_do_not_change_the_assembly():
         scale = max(float(jnp.max(jnp.abs(b))), 1e-300)
         assert float(jnp.max(jnp.abs(a - b))) <= 1e-13 * scale
     assert float(ref.det_min) > 0.0 and float(jnp.max(ref.states.eqps)) > 0.0   # plastic, not inverted
+
+
+def test_sweep_with_the_cyclic_solve_equals_the_thomas_runs():
+    """The GPU's path on the CPU: a sweep traced with the cyclic-reduction solve (and a GPU's chunk)
+    follows the single runs' Thomas path: same steps and iterations, forces to 1e-10 of their scale
+    as in the test above (measured 3.5e-12: two solvers round differently)."""
+    from jaxfric.assembly import ELEMENT_CHUNK
+    from jaxfric.linalg import block_solver
+
+    built = [scenes.make("flat_die", "const_force", "penalty", {**OVERRIDES, "mu": m}) for m in MUS[1:]]
+    with block_solver("cyclic"):
+        out = sweep([s.model for s in built], control=built[0].control, observe=built[0].observe,
+                    chunk=ELEMENT_CHUNK)
+    for i, s in enumerate(built):
+        single = jf.run(s.model, control=s.control, observe=s.observe, progress=False)
+        batched = out.history(i)
+        assert out.converged(i)
+        assert np.array_equal(batched["newton_iters"], single.history["newton_iters"])
+        for name in ("time", "drawing_force", "clamping_force", "tool_position"):
+            a, b = batched[name], single.history[name]
+            scale = max(float(np.max(np.abs(b))), 1e-300)
+            assert float(np.max(np.abs(a - b))) <= 1e-10 * scale, (name, i)
