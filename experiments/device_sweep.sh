@@ -24,12 +24,11 @@ step() {  # step TITLE ARGS...: run bench_sweep.py with ARGS if at least 60 s ar
 {
   nvidia-smi -L
   $py -c "import jax; print('jax', jax.__version__, jax.devices())"
-  step "sweep of 16, chunk 512 (a member's whole mesh); 4 single runs" \
-    --members 16 --singles 4 --chunk 512 --csv "$out/sweep16_chunk512.csv"
+  step "sweep of 16 (on a GPU by default: cyclic-reduction solve, chunk 512); 4 single runs" \
+    --members 16 --singles 4 --csv "$out/sweep16.csv"
   step "one Newton iteration, 16 members, chunk 512" --members 16 --iteration --chunk 512
-  step "sweep of 64, chunk 512; 1 single run" \
-    --members 64 --singles 1 --chunk 512 --csv "$out/sweep64_chunk512.csv"
-  step "sweep of 16, the CPU's default chunk (32); 1 single run" \
-    --members 16 --singles 1 --csv "$out/sweep16_chunk32.csv"
+  step "sweep of 64; 16 single runs" --members 64 --singles 16 --csv "$out/sweep64.csv"
+  step "sweep of 16 with the Thomas solve (the CPU's); 1 single run" \
+    --members 16 --singles 1 --solver thomas --chunk 512 --csv "$out/sweep16_thomas.csv"
   echo "== done after $(( $(date +%s) - start )) s"
 } 2>&1 | tee "$out/log"
