@@ -11,8 +11,14 @@ The problem is given as two pure functions of the unknowns x and of a pytree ``a
     ||R||_inf <= atol + rtol * max(scale, 1e-6)       (scale: ||f_int||_inf, N/mm)
     ||dx_last||_inf <= du_atol + du_rtol * ||x - x_ref||_inf   (x_ref: the last converged state)
 
-after at least one iteration (so prescribed increments are always applied). It never raises: it
-returns a :class:`~jaxfric.results.Result` code.
+after at least one iteration (so prescribed increments are always applied); or, where the residual
+test cannot be met in float64, with the round-off floor ``roundoff * eps * max_i (|J| |x|)_i`` added
+to the residual tolerance once an iteration fails to reduce ||R|| tenfold. The unknowns are
+represented to eps |x| only (and the residual is evaluated from them with an error of that order),
+so Newton's iterates stagnate within about eps |J| |x| of zero: late in a long draw on a fine mesh
+(displacements of 65 mm, stiffness entries of 1e6 N/mm^2) that is 1e-6 N/mm while the relative
+tolerance has fallen to 2e-7 (RESULTS.md, mesh convergence). A quadratically converging iteration
+never takes this exit. It never raises: it returns a :class:`~jaxfric.results.Result` code.
 
 Derivatives. At a converged solution R(x*, args) = 0, so dx*/dargs = -J^-1 dR/dargs. The JVP rule
 computes exactly that: one JVP of the residual with respect to ``args`` and one linear solve with the
@@ -36,7 +42,7 @@ from ._checks import check_int, check_nonnegative
 from .linalg import linear_solve
 from .results import Result
 
-__all__ = ["NewtonOptions", "Linearization", "NewtonSolution", "newton_solve", "SOLUTION_NAME"]
+__all__ = ["NewtonOptions", "Linearization", "NewtonSolution", "newton_solve", "roundoff_floor", "SOLUTION_NAME"]
 
 # ``jax.ad_checkpoint.checkpoint_name`` of a converged step solution, for a rematerialisation policy
 # that saves it (``jax.checkpoint_policies.save_only_these_names(SOLUTION_NAME)``).
@@ -51,6 +57,8 @@ class NewtonOptions(eqx.Module):
         du_rtol, du_atol: increment test on the last correction, relative to the step's total
             increment ||x - x0||_inf, and absolute (mm).
         max_iterations: linearisations allowed per attempt (Newton steps and rejected trials).
+        roundoff: multiple of the round-off floor eps max(|J| |x|) that a stagnating iteration may
+            stop at (module doc); 0 switches the floor off.
         line_search: backtrack (quarter the step, at most twice) when a Newton step increases the
             residual norm. It breaks the 2-cycles of penalty friction, where pairs at the Coulomb
             limit reverse their slip direction every iteration (a slipping pair has no tangential
@@ -63,9 +71,10 @@ class NewtonOptions(eqx.Module):
     du_atol: float = eqx.field(static=True, default=1e-9)
     max_iterations: int = eqx.field(static=True, default=25)
     line_search: bool = eqx.field(static=True, default=True)
+    roundoff: float = eqx.field(static=True, default=1.0)
 
     def __check_init__(self):
-        for name in ("rtol", "atol", "du_rtol", "du_atol"):
+        for name in ("rtol", "atol", "du_rtol", "du_atol", "roundoff"):
             check_nonnegative(name, getattr(self, name))
         check_int("max_iterations", self.max_iterations, 1, 10_000)
 
@@ -87,6 +96,14 @@ class NewtonSolution(NamedTuple):
     code: jax.Array            # () int: Result
     residual_norm: jax.Array   # () ||R||_inf at x
     residual_history: jax.Array  # (max_iterations+1,) ||R||_inf after each iteration (nan beyond)
+
+
+def roundoff_floor(jacobian, x: jax.Array) -> jax.Array:
+    """``eps * max_i (|J| |x|)_i``: the residual's size at the float64 neighbours of a root (module doc).
+
+    ``jacobian``: a BlockTridiag or Bordered (anything with ``matvec`` whose leaves are its entries)."""
+    absolute = jtu.tree_map(jnp.abs, jacobian)
+    return jnp.finfo(x.dtype).eps * jnp.max(absolute.matvec(jnp.abs(x)))
 
 
 def _all_finite(tree) -> jax.Array:
@@ -128,10 +145,14 @@ def newton_pass(c: NewtonCarry, args, x_ref, linearize: Callable, options: Newto
     a linearisation of the Nine scene about 7 s), and a vmapped load loop can advance each member by
     one Newton iteration per pass (:func:`jaxfric.simulate.simulate_flat`)."""
 
-    def classify(k, x, lin, dx_norm, same_status):
+    def classify(k, x, lin, dx_norm, same_status, r_prev):
         r_norm = jnp.max(jnp.abs(lin.residual))
         finite = _all_finite((lin.residual, lin.jacobian))
-        res_ok = r_norm <= options.atol + options.rtol * jnp.maximum(lin.scale, 1e-6)
+        tol = options.atol + options.rtol * jnp.maximum(lin.scale, 1e-6)
+        res_ok = r_norm <= tol
+        if options.roundoff > 0.0:   # static
+            stagnant = r_norm > 0.1 * r_prev
+            res_ok = res_ok | (stagnant & (r_norm <= tol + options.roundoff * roundoff_floor(lin.jacobian, x)))
         dx_ok = dx_norm <= options.du_atol + options.du_rtol * jnp.max(jnp.abs(x - x_ref))
         code = jnp.select(
             [~finite, ~lin.valid, (k >= 1) & res_ok & dx_ok & same_status, k >= options.max_iterations],
@@ -154,7 +175,7 @@ def newton_pass(c: NewtonCarry, args, x_ref, linearize: Callable, options: Newto
     # Contact: converged only if no pair changed status (open/stick/slip) in this iteration.
     same = jnp.array(True) if new.status is None else first | jnp.all(new.status == lin.status)
     step_norm = jnp.where(first, jnp.inf, jnp.max(jnp.abs(alpha * dx)))
-    code_new, r_norm = classify(k, x_t, new, step_norm, same)
+    code_new, r_norm = classify(k, x_t, new, step_norm, same, jnp.max(jnp.abs(lin.residual)))
     # (A trial that passes the convergence test is never rejected: at round-off level the norm
     # may grow by noise.)
     reject = (~first & options.line_search & search & ((n_acc >= 1) | start_meets) & worse

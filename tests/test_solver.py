@@ -240,3 +240,57 @@ def test_adaptive_steps_cut_and_grow_back():
     assert np.all(h["newton_iters"][1:] >= 1)
     dt = np.diff(h["time"])
     assert np.any(dt[1:] > dt[:-1] * 1.4), f"the increment never grew back: {dt}"
+
+
+# --- the round-off floor of Newton's residual test ------------------------------------------------
+
+
+def _stiff_linearize(x, args):
+    K, b = args
+    from jaxfric.newton import Linearization
+
+    return Linearization(residual=K.matvec(x) - b, jacobian=K, scale=jnp.array(1.0),
+                            valid=jnp.array(True), aux=())
+
+
+def _stiff_residual(x, args):
+    K, b = args
+    return K.matvec(x) - b, ()
+
+
+def test_newton_stops_at_the_round_off_floor_and_only_there():
+    """R(x) = K x - K a with entries of K about 1e9 and |a| about 1e3: at a's float64 neighbours R is
+    about eps |K| |a| ~ 1e-3 (evaluated from products of 1e12), far above the tolerance of 1e-8. Without
+    the floor Newton stagnates there until its iteration limit; with it, it stops once an iteration no
+    longer reduces R tenfold, at a's neighbours. A well-scaled problem converges as before."""
+    from jaxfric.linalg import BlockTridiag
+    from jaxfric.newton import newton_solve, roundoff_floor
+
+    rng = np.random.default_rng(3)
+    nb, m = 12, 4
+    diag = 1e9 * (rng.standard_normal((nb, m, m)) + 4.0 * m * np.eye(m))
+    K = BlockTridiag(lower=jnp.asarray(1e9 * rng.standard_normal((nb - 1, m, m))), diag=jnp.asarray(diag),
+                     upper=jnp.asarray(1e9 * rng.standard_normal((nb - 1, m, m))))
+    a = jnp.asarray(1e3 * (1.0 + rng.random(nb * m)))
+    args = (K, K.matvec(a))
+    x0 = jnp.zeros_like(a)
+
+    def solve(options, args):
+        return jax.jit(lambda args: newton_solve(args, x0, x0, linearize=_stiff_linearize,
+                                                    residual=_stiff_residual, options=options))(args)
+
+    stuck = solve(jf.NewtonOptions(roundoff=0.0, max_iterations=12), args)
+    assert int(stuck.code) == Result.MAX_ITERATIONS
+    floor = float(roundoff_floor(K, a))
+    assert 1e-8 < float(stuck.residual_norm) <= floor       # stagnating below the floor, above the tolerance
+    done = solve(jf.NewtonOptions(max_iterations=12), args)
+    assert int(done.code) == Result.SUCCESS and int(done.iterations) < 6
+    assert float(np.max(np.abs(done.x - a) / np.abs(a))) < 1e-14
+    # Scaled to unit stiffness and unknowns, the same problem meets the plain tolerance (1e-8) by a
+    # quadratic drop, and the floor (1e-14) plays no part: the same iterations with and without it.
+    K1 = jax.tree_util.tree_map(lambda v: v / 1e9, K)
+    args1 = (K1, K1.matvec(a / 1e3))
+    plain, floored = solve(jf.NewtonOptions(roundoff=0.0), args1), solve(jf.NewtonOptions(), args1)
+    assert int(plain.code) == int(floored.code) == Result.SUCCESS
+    assert int(plain.iterations) == int(floored.iterations)
+    assert float(floored.residual_norm) <= 1e-8
