@@ -37,9 +37,9 @@ from benchutil import median_time, write_rows  # noqa: E402
 
 import jaxfric as jf  # noqa: E402
 from jaxfric import scenes  # noqa: E402
-from jaxfric.assembly import ELEMENT_CHUNK, element_chunk  # noqa: E402
+from jaxfric.assembly import element_chunk  # noqa: E402
 from jaxfric.linalg import BLOCK_SOLVERS, block_solver, linear_solve, resolved_block_solver  # noqa: E402
-from jaxfric.sweep import stack_models, sweep  # noqa: E402
+from jaxfric.sweep import default_chunk, stack_models, sweep  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -117,8 +117,8 @@ def iteration_cost(built, chunk=None) -> None:
     v0 = [v if ax is None else v[0] for v, ax in zip(values, axes)]
     states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n,) + a.shape) + 0, state)
     one = median_time(jax.jit(iteration), v0, state, repeat=20)
-    # As jaxfric.sweep.sweep traces its members (or the chunk asked for).
-    with element_chunk(chunk if chunk is not None else max(ELEMENT_CHUNK // n, 16)):
+    chunk = default_chunk(n) if chunk is None else chunk   # as jaxfric.sweep.sweep traces its members
+    with element_chunk(chunk):
         own = median_time(jax.jit(jax.vmap(iteration, in_axes=(axes, 0))), values, states, repeat=10)
     shared = median_time(jax.jit(jax.vmap(iteration, in_axes=(axes, None))), values, state, repeat=10)
     print(f"one Newton iteration: single {1e3 * one:.2f} ms; {n} members vmapped, each at its own state "
@@ -132,7 +132,7 @@ def iteration_cost(built, chunk=None) -> None:
         return jf.linearize_step(model, s, s.phase, s.time)
 
     lin1 = jax.jit(linearise)(v0, state)
-    with element_chunk(chunk if chunk is not None else max(ELEMENT_CHUNK // n, 16)):
+    with element_chunk(chunk):
         lin_one = median_time(jax.jit(linearise), v0, state, repeat=20)
         lin_own = median_time(jax.jit(jax.vmap(linearise, in_axes=(axes, 0))), values, states, repeat=10)
         lins = jax.jit(jax.vmap(linearise, in_axes=(axes, 0)))(values, states)

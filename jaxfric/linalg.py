@@ -327,11 +327,16 @@ def block_solver(name: str):
         _SOLVER.reset(token)
 
 
+def on_gpu() -> bool:
+    """Whether JAX's default backend (where programs traced now will run) is a GPU."""
+    return jax.default_backend() in ("gpu", "cuda", "rocm")
+
+
 def resolved_block_solver() -> str:
     """The solver a solve traced now uses: ``"thomas"`` or ``"cyclic"`` (``"auto"`` resolved)."""
     name = _SOLVER.get()
     if name == "auto":
-        return "cyclic" if jax.default_backend() in ("gpu", "cuda", "rocm") else "thomas"
+        return "cyclic" if on_gpu() else "thomas"
     return name
 
 

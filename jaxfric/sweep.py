@@ -36,11 +36,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from .assembly import ELEMENT_CHUNK, element_chunk
+from .linalg import on_gpu
 from .newton import NewtonOptions
 from .contact import AugmentedLagrangian, Penalty
 from .simulate import Simulation, StepControl, StripModel, default_observe, simulate, simulate_flat
 
-__all__ = ["SweepResult", "sweep", "stack_models"]
+__all__ = ["SweepResult", "sweep", "stack_models", "default_chunk"]
 
 
 def stack_models(models: Sequence[StripModel]):
@@ -106,6 +107,13 @@ class SweepResult:
         return out
 
 
+def default_chunk(n_members: int) -> int:
+    """The element chunk per member a sweep of ``n_members`` traces with by default: on a CPU
+    ``ELEMENT_CHUNK // n`` (at least 16), the same working set per batched chunk as a single run's; on
+    a GPU ``ELEMENT_CHUNK``, more work per launch (RESULTS.md, batched sweeps)."""
+    return ELEMENT_CHUNK if on_gpu() else max(ELEMENT_CHUNK // n_members, 16)
+
+
 def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions(),
           control: StepControl = StepControl(), observe: Callable = default_observe,
           flat: bool | None = None, chunk: int | None = None) -> SweepResult:
@@ -115,9 +123,7 @@ def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions
     (the members advance at different paces). ``flat``: one Newton iteration per loop pass
     (:func:`jaxfric.simulate.simulate_flat`), so that no member waits for another's attempt; the
     default where the law allows it (penalty, or no tools). The results are the same either way.
-    ``chunk``: elements per chunk of the element loop, per member. Default on a CPU
-    ``ELEMENT_CHUNK // n`` (at least 16), which keeps one batched chunk's working set in cache; on a
-    GPU ``ELEMENT_CHUNK``, more work per launch (measured there with 512, RESULTS.md).
+    ``chunk``: elements per chunk of the element loop, per member (default :func:`default_chunk`).
     """
     if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
         raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
@@ -133,12 +139,9 @@ def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions
         return loop(model, newton=newton, control=control, observe=observe)
 
     t0 = time.perf_counter()
-    # Chunks of the element loop n times smaller under vmap over n members: the same working set per
-    # chunk as a single run's (16 flat-die members: one batched iteration 2x cheaper, RESULTS.md).
-    if chunk is None:
-        gpu = jax.default_backend() in ("gpu", "cuda", "rocm")
-        chunk = ELEMENT_CHUNK if gpu else max(ELEMENT_CHUNK // len(models), 16)
-    with element_chunk(chunk):
+    # On a CPU, chunks n times smaller under vmap over n members (16 flat-die members: one batched
+    # iteration 2x cheaper, RESULTS.md).
+    with element_chunk(default_chunk(len(models)) if chunk is None else chunk):
         compiled = jax.jit(jax.vmap(one, in_axes=(axes,))).lower(values).compile()
     compile_s = time.perf_counter() - t0
     t1 = time.perf_counter()
