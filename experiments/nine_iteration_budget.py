@@ -1,8 +1,10 @@
 """What the Nine test's Newton iteration count depends on: residual tolerance and nominal increments.
 
-    python experiments/nine_iteration_budget.py [--mesh 300x3] [--cases SPEC ...]
+    python experiments/nine_iteration_budget.py [--mesh 300x3] [--variant mu017] [--set NAME=VALUE ...]
+        [--cases SPEC ...] [--out CSV]
 
-Runs ``nine mu017`` with ``lcp_ssn`` (the ``make run`` case) once per case, a case being
+Runs ``nine mu017`` with ``lcp_ssn`` (the ``make run`` case; ``--variant`` and ``--set`` change it as
+``jaxfric run`` does) once per case, a case being
 ``dU,dq_clamp,rtol`` (the nominal increments of the draw and of the clamp in mm, and Newton's
 relative residual tolerance; the spec's are 0.1, 0.1, 1e-8). Writes ``results/nine_iteration_budget.csv``
 (steps, cutbacks, Newton iterations per phase, steady drawing force, wall and compile time) and prints
@@ -26,7 +28,7 @@ import numpy as np  # noqa: E402
 
 from jaxfric.newton import NewtonOptions  # noqa: E402
 from jaxfric.run import run  # noqa: E402
-from jaxfric.scenes import nine  # noqa: E402
+from jaxfric.scenes import make  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_CASES = ("0.1,0.1,1e-8", "0.05,0.05,1e-8", "0.1,0.1,1e-6", "0.1,0.1,1e-5", "0.1,0.1,1e-4",
@@ -37,8 +39,8 @@ FIELDS = ("dU", "dq_clamp", "rtol", "converged", "n_steps", "cutbacks", "newton_
           "compile_s", "message")
 
 
-def one(nx: int, ny: int, dU: float, dq: float, rtol: float) -> dict:
-    scene = nine.build(nine.NineConfig(nx=nx, ny=ny, dU=dU, dq_clamp=dq), "lcp_ssn", "mu017")
+def one(variant: str, overrides: dict, dU: float, dq: float, rtol: float) -> dict:
+    scene = make("nine", variant, "lcp_ssn", {**overrides, "dU": dU, "dq_clamp": dq})
     r = run(scene.model, newton=NewtonOptions(rtol=rtol), control=scene.control, observe=scene.observe,
             progress=False, raise_on_failure=False)
     h = r.history
@@ -58,14 +60,16 @@ def one(nx: int, ny: int, dU: float, dq: float, rtol: float) -> dict:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mesh", default="300x3")
+    ap.add_argument("--variant", default="mu017")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="config field override")
     ap.add_argument("--cases", nargs="+", default=list(DEFAULT_CASES), metavar="DU,DQ,RTOL")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "nine_iteration_budget.csv"))
     a = ap.parse_args(argv)
-    nx, ny = (int(v) for v in a.mesh.lower().split("x"))
+    overrides = {"mesh": a.mesh, **dict(item.split("=", 1) for item in a.set)}
     rows = []
     for case in a.cases:
         dU, dq, rtol = (float(v) for v in case.split(","))
-        row = one(nx, ny, dU, dq, rtol)
+        row = one(a.variant, overrides, dU, dq, rtol)
         rows.append(row)
         print({k: row[k] for k in FIELDS if k != "message"}, row["message"], flush=True)
     # Richardson (first order) from the spec's increments and their half, both at the spec's tolerance.
