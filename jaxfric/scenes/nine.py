@@ -24,7 +24,11 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
   106 cutbacks free, 330 and 67 guided). A strip fed horizontally, as in the physical drawbead
   simulator, keeps the check meaningful.
   ``entry_guide`` = False restores the spec's free end;
-- ``U_draw`` = 70 mm; nominal increments ``dq_clamp`` = 0.1 mm and ``dU`` = 0.1 mm;
+- ``U_draw`` = 70 mm; nominal increments ``dq_clamp`` = 0.1 mm and ``dU`` = 0.1 mm. Measured cost of
+  that choice (``experiments/nine_iteration_budget.py``, RESULTS.md "Scenes"): at 300 x 3 the steady
+  drawing force carries a step error of about -1.1 %, first order in the increment (-0.5 % at 0.05 mm,
+  -2.2 % at 0.2 mm), from the return mapping along the plastic bending path; halve both fields for
+  half the error at 1.4x the Newton iterations;
 - ``steady_window`` = (20, 35) mm;
 - eps_t = mu eps_n [paper] (``eps_t`` None), with mu the largest coefficient of the scene.
 - exact contact by lcp_lemke: ``band`` = 128 of the 602 candidate nodes (at 300 x 3) enter the complementarity
