@@ -200,3 +200,19 @@ def test_a_penetrating_node_whose_stick_piece_pulls_slips_instead_of_cycling():
     assert res.converged, res.message
     assert res.history["max_penetration"].max() < 1e-10
     assert res.history["n_active"][-1] > 0          # B presses on the strip at the end of the clamp
+
+
+@pytest.mark.slow  # the Nine at 300 x 3 to the end of its draw, about a minute (make test-all)
+def test_line_search_merit_of_accepted_iterates_does_not_jump_up_between_directions():
+    """The in-loop line search measures a trial with the forces its direction predicts, the hint the
+    next direction's merit starts from. Measured with the direction's own hint, the merit of the same
+    iterate rose 5 to 20 times at each new direction once the entry-guided tail (a candidate node
+    with a prescribed dof) reached shoulder A, the iterates drifted along the draw-in mode, and this
+    run stopped at U = 43.7 mm (Newton's limit at the smallest increment); it now completes."""
+    from jaxfric.scenes import make
+
+    scene = make("nine", "mu017", "lcp_ssn", {"dU": 0.4, "dq_clamp": 0.4})
+    result = jf.run(scene.model, newton=jf.NewtonOptions(rtol=1e-5), control=scene.control,
+                    observe=scene.observe, progress=False, raise_on_failure=False)
+    assert result.converged, result.message
+    assert result.history["drawing_displacement"][-1] == pytest.approx(70.0)
