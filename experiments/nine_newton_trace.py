@@ -104,7 +104,7 @@ def main(argv=None) -> None:
             while k < opts.max_iterations:
                 k += 1
                 x_t = x + alpha * dx
-                it_t, r, scale, merit_t = evaluate(x_t, args, p_new, p_step if k == 1 else p, frames)
+                it_t, r, scale, merit_t = evaluate(x_t, args, p_new, p_new, frames)
                 status_t = exact._status(p_new, mu_pairs)
                 plastic_t = np.asarray(it_t.states.eqps > eqps0)
                 tol = opts.atol + opts.rtol * max(float(scale), 1e-6)
