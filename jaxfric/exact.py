@@ -600,12 +600,11 @@ class _Trial(NamedTuple):
 
     dx: jax.Array
     alpha: jax.Array     # () step length of the trial (1, 1/4 or 1/16 of dx)
-    p_new: jax.Array     # (m, 2) forces the direction predicts
+    p_new: jax.Array     # (m, 2) forces the direction predicts (the hint of the trials' merit)
     in_band: jax.Array
     stats: jax.Array     # (3,) of the direction's solve
     lcp_ok: jax.Array
-    hint: jax.Array      # (m, 2) forces the direction was built with (the merit's f_c^prev)
-    merit: jax.Array     # () the merit at the point the direction starts from
+    merit: jax.Array     # () the merit at the point the direction starts from (with the direction's hint)
     frames: object       # _Frames there (constants of the merit), or None without a search
 
 
@@ -679,12 +678,12 @@ def _exact_newton(args, x0, x_ref, options: NewtonOptions, law: Complementarity)
             hint = jnp.where(k == 0, p_step, p)
             if not search:
                 dx, p_new, in_band, s, lcp_ok = step(it, args, x, p, law, hint)
-                return _Trial(dx, jnp.array(1.0), p_new, in_band, s, lcp_ok, hint, tr.merit, tr.frames), s
+                return _Trial(dx, jnp.array(1.0), p_new, in_band, s, lcp_ok, tr.merit, tr.frames), s
             # The frames (nodes, constants, kappa rows) serve the direction and the merit alike.
             frames = _frames(it, args)
             dx, p_new, in_band, s, lcp_ok = _active_set_step(it, args, x, p, law, hint, frames=frames)
             merit = _merit(x, it, args, hint, frames[0])
-            return _Trial(dx, jnp.array(1.0), p_new, in_band, s, lcp_ok, hint, merit, frames[0]), s
+            return _Trial(dx, jnp.array(1.0), p_new, in_band, s, lcp_ok, merit, frames[0]), s
 
         def shorter():
             return tr._replace(alpha=0.25 * tr.alpha), no_stats
@@ -703,7 +702,7 @@ def _exact_newton(args, x0, x_ref, options: NewtonOptions, law: Complementarity)
     p0 = jnp.zeros((m, 2))
     # The last converged forces (simulate passes them as lam_n, lam_t): the first active set.
     p_step = jnp.stack([jnp.concatenate(c.lam_n), jnp.concatenate(c.lam_t)], -1)
-    tr0 = _Trial(jnp.zeros_like(x0), jnp.array(1.0), p0, jnp.zeros(m, bool), no_stats, jnp.array(True), p0,
+    tr0 = _Trial(jnp.zeros_like(x0), jnp.array(1.0), p0, jnp.zeros(m, bool), no_stats, jnp.array(True),
                  jnp.array(jnp.inf), frames0)
     r_hist = jnp.full(options.max_iterations + 1, jnp.nan)
     carry = (jnp.array(0, jnp.int32), x0, zeros(it_shape), p0, jnp.zeros(m, jnp.int8), x0, tr0,
