@@ -61,10 +61,11 @@ def main(argv=None) -> None:
     state = eqx.tree_at(lambda s: s.time, sim.final, jnp.asarray(1.0 + a.u0 / config.U_draw))
 
     @eqx.filter_jit
-    def evaluate(x, args, p_new, hint, frames):
+    def evaluate(x, args, p_new, frames):
+        # The trial's merit takes the forces its direction predicts as hint, as the solver's does.
         it = exact._linearize(x, args)
         R, _ = exact._residual(x, it, p_new, args)
-        merit = jnp.nan if frames is None else exact._merit(x, it, args, hint, frames)
+        merit = jnp.nan if frames is None else exact._merit(x, it, args, p_new, frames)
         return it, jnp.max(jnp.abs(R)), jnp.max(jnp.abs(it.f_int)), merit
 
     @eqx.filter_jit
@@ -92,7 +93,7 @@ def main(argv=None) -> None:
             eqps0 = state.material.eqps
             c = args.contact
             p_step = jnp.stack([jnp.concatenate(c.lam_n), jnp.concatenate(c.lam_t)], -1)
-            it, r, _, _ = evaluate(x, args, jnp.zeros((m, 2)), None, None)
+            it, r, _, _ = evaluate(x, args, jnp.zeros((m, 2)), None)
             p, status = jnp.zeros((m, 2)), jnp.zeros(m, jnp.int8)
             plastic = np.asarray(it.states.eqps > eqps0)
             U = (t_target - 1.0) * config.U_draw
@@ -104,7 +105,7 @@ def main(argv=None) -> None:
             while k < opts.max_iterations:
                 k += 1
                 x_t = x + alpha * dx
-                it_t, r, scale, merit_t = evaluate(x_t, args, p_new, p_new, frames)
+                it_t, r, scale, merit_t = evaluate(x_t, args, p_new, frames)
                 status_t = exact._status(p_new, mu_pairs)
                 plastic_t = np.asarray(it_t.states.eqps > eqps0)
                 tol = opts.atol + opts.rtol * max(float(scale), 1e-6)
