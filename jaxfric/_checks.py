@@ -19,6 +19,9 @@ def is_concrete(value) -> bool:
 def _as_float(name: str, value) -> float | None:
     if not is_concrete(value):
         return None
+    # np.asarray would read None as nan and "0" as 0.0: a number must be given as one.
+    if value is None or isinstance(value, (str, bytes, bool)):
+        raise ValueError(f"field '{name}' must be a number, got {value!r}")
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):

@@ -35,6 +35,18 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(message)
 
 
+class _Once(argparse.Action):
+    """Store the value of an option that may be given once: a repeated option is refused, not
+    silently replaced by its last value."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        given = namespace.__dict__.setdefault("_given", {})
+        if self.dest in given:
+            raise argparse.ArgumentError(self, f"given twice ({given[self.dest]!r} and {values!r})")
+        given[self.dest] = values
+        setattr(namespace, self.dest, values)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="jaxfric", description="Differentiable 2D FE simulator of sheet-metal "
                                                  "tribology benchmarks.")
@@ -45,17 +57,17 @@ def build_parser() -> argparse.ArgumentParser:
                          description="Run one scene variant and write its run directory "
                                      "(history.csv, summary.json, contact.npz, forces/contact/mesh.png).")
     run.add_argument("scene", help="flat_die, bead, nine or blankholder")
-    run.add_argument("--variant", help="scene variant (default: the scene's first)")
+    run.add_argument("--variant", action=_Once, help="scene variant (default: the scene's first)")
     # Exact contact by default: no gap, no penalty to choose, and the cheapest run on the Nine and
     # blankholder scenes. ``fit`` keeps penalty: it needs derivatives, which exact contact has not.
-    run.add_argument("--algorithm", default="lcp_ssn", help=f"one of {', '.join(ALGORITHMS)} (default lcp_ssn)")
-    run.add_argument("--mesh", metavar="NXxNY", help="elements along x and through the thickness, e.g. 300x3")
+    run.add_argument("--algorithm", action=_Once, default="lcp_ssn", help=f"one of {', '.join(ALGORITHMS)} (default lcp_ssn)")
+    run.add_argument("--mesh", action=_Once, metavar="NXxNY", help="elements along x and through the thickness, e.g. 300x3")
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
                      help="override a config field (repeatable); see 'jaxfric scenes'")
-    run.add_argument("--out", metavar="DIR", help="run directory (default runs/SCENE/VARIANT/ALGORITHM)")
-    run.add_argument("--tag", help="study tag recorded in summary.json (regex [A-Za-z0-9][A-Za-z0-9._+-]*)")
+    run.add_argument("--out", action=_Once, metavar="DIR", help="run directory (default runs/SCENE/VARIANT/ALGORITHM)")
+    run.add_argument("--tag", action=_Once, help="study tag recorded in summary.json (regex [A-Za-z0-9][A-Za-z0-9._+-]*)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
-    run.add_argument("--error-estimate", choices=["basic", "sensitivity", "step"], default="basic",
+    run.add_argument("--error-estimate", action=_Once, choices=["basic", "sensitivity", "step"], default="basic",
                      help="basic: from the run's penetration, force scatter and Newton tolerance; "
                           "sensitivity (penalty only): also eps_N dF/d eps_N by forward mode along the run "
                           "(about one more run and its compilation); step: also the change when the "
@@ -66,11 +78,11 @@ def build_parser() -> argparse.ArgumentParser:
                                      "'jaxfric run' is valid) by Levenberg-Marquardt; writes fit.json, "
                                      "fit_history.csv and fit.png.")
     fit.add_argument("scene", help="flat_die, bead, nine or blankholder")
-    fit.add_argument("--data", required=True, metavar="CSV", help="measured curve")
-    fit.add_argument("--param", required=True, metavar="NAME[,NAME...]", help="config fields to fit, e.g. mu,R1")
-    fit.add_argument("--variant", help="scene variant (default: the scene's first)")
-    fit.add_argument("--algorithm", default="penalty", help=f"one of {', '.join(ALGORITHMS)} (default penalty)")
-    fit.add_argument("--mesh", metavar="NXxNY", help="elements along x and through the thickness")
+    fit.add_argument("--data", action=_Once, required=True, metavar="CSV", help="measured curve")
+    fit.add_argument("--param", action=_Once, required=True, metavar="NAME[,NAME...]", help="config fields to fit, e.g. mu,R1")
+    fit.add_argument("--variant", action=_Once, help="scene variant (default: the scene's first)")
+    fit.add_argument("--algorithm", action=_Once, default="penalty", help=f"one of {', '.join(ALGORITHMS)} (default penalty)")
+    fit.add_argument("--mesh", action=_Once, metavar="NXxNY", help="elements along x and through the thickness")
     fit.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
                      help="override a config field; for a fitted field this is its start value")
     fit.add_argument("--bounds", action="append", default=[], metavar="NAME=LOW:HIGH",
@@ -78,22 +90,22 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--grid", action="append", default=[], metavar="NAME=LOW:HIGH:N",
                      help="global stage: adaptive runs at N equally spaced values of NAME (every --grid "
                           "combined), Levenberg-Marquardt from the best interpolated point")
-    fit.add_argument("--starts", type=int, default=1, metavar="K",
+    fit.add_argument("--starts", action=_Once, type=int, default=1, metavar="K",
                      help="with --grid: Levenberg-Marquardt from the K lowest local minima of the "
                           "interpolated misfit, the best fit kept (default 1)")
-    fit.add_argument("--window", type=float, metavar="MM",
+    fit.add_argument("--window", action=_Once, type=float, metavar="MM",
                      help="fit the mean force over windows of this length instead of every point")
-    fit.add_argument("--out", metavar="DIR", help="output directory (default fits/SCENE/VARIANT)")
+    fit.add_argument("--out", action=_Once, metavar="DIR", help="output directory (default fits/SCENE/VARIANT)")
     fit.add_argument("--quiet", action="store_true", help="no progress lines")
     report = sub.add_parser("report", help="studies across many runs (accuracy-cost)",
                             description="Error against run time: references, the sweep of algorithms, "
                                         "penalties, meshes and steps, Pareto plots and what to pick for "
-                                        "10 %%, 1 %% and 0.1 %% accuracy (jaxfric.accuracy).")
+                                        "10 %, 1 % and 0.1 % accuracy (jaxfric.accuracy).")
     report.add_argument("which", choices=["accuracy-cost"], help="the report")
     report.add_argument("--quick", action="store_true", help="the small sweep (a few minutes)")
     report.add_argument("--test", action="append", default=None, metavar="NAME",
                         help="run only this test (repeatable), e.g. flat_die_const_force")
-    report.add_argument("--out", metavar="DIR", help="output directory (default runs/report/accuracy_cost, "
+    report.add_argument("--out", action=_Once, metavar="DIR", help="output directory (default runs/report/accuracy_cost, "
                                                      "with --quick runs/report/accuracy_cost_quick)")
     report.add_argument("--rerun", action="store_true", help="recompute runs already in DIR")
     report.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -226,6 +238,8 @@ def _writable_dir(out: str) -> None:
         os.remove(probe)
     except OSError as err:
         raise UsageError(f"--out {out!r} is not a writable directory: {err.strerror or err}") from None
+    except ValueError as err:  # e.g. an embedded null byte
+        raise UsageError(f"--out {out!r} is not a valid path: {err}") from None
 
 
 def _run(args) -> int:
@@ -292,6 +306,8 @@ def _bounds(pairs, names) -> dict:
             raise UsageError(f"--bounds expects NAME=LOW:HIGH, got {text!r}")
         if name not in names:
             raise UsageError(f"--bounds names {name!r}, which --param does not fit ({', '.join(names)})")
+        if name in out:
+            raise UsageError(f"--bounds gives {name!r} twice")
         try:
             out[name] = (float(low), float(high))
         except ValueError:
@@ -300,7 +316,9 @@ def _bounds(pairs, names) -> dict:
 
 
 def _grid(specs, names) -> dict:
-    out = {}
+    from .fit import MAX_GRID_POINTS
+
+    out, points = {}, 1
     for text in specs:
         name, sep, rng = text.partition("=")
         parts = rng.split(":")
@@ -309,12 +327,17 @@ def _grid(specs, names) -> dict:
             raise UsageError(f"--grid expects NAME=LOW:HIGH:N, got {text!r}")
         if name not in names:
             raise UsageError(f"--grid names {name!r}, which --param does not fit ({', '.join(names)})")
+        if name in out:
+            raise UsageError(f"--grid gives {name!r} twice")
         try:
             low, high, n = float(parts[0]), float(parts[1]), int(parts[2])
         except ValueError:
             raise UsageError(f"--grid {text!r}: LOW and HIGH must be numbers and N an integer") from None
-        if n < 2:
-            raise UsageError(f"--grid {text!r}: N must be at least 2")
+        if not 2 <= n <= MAX_GRID_POINTS:
+            raise UsageError(f"--grid {text!r}: N must be at least 2 and at most {MAX_GRID_POINTS}")
+        points *= n
+        if points > MAX_GRID_POINTS:
+            raise UsageError(f"--grid: the grids combined give {points} runs, more than {MAX_GRID_POINTS}")
         out[name] = [low + (high - low) * k / (n - 1) for k in range(n)]
     return out
 
@@ -334,11 +357,11 @@ def _fit(args) -> int:
     out = os.path.join("fits", args.scene, variant) if args.out is None else args.out
     if not os.path.isfile(args.data):
         raise UsageError(f"--data {args.data!r} is not a file")
-    _writable_dir(out)
     try:
+        # The output directory is made once fit() has validated the input, before its first simulation.
         result = fit(args.scene, args.data, names, variant=variant, algorithm=args.algorithm,
                      overrides=overrides, bounds=bounds, window=args.window, grid=grid or None,
-                     starts=args.starts, progress=not args.quiet)
+                     starts=args.starts, progress=not args.quiet, ready=lambda: _writable_dir(out))
     except ValueError as err:
         raise UsageError(str(err)) from None
     except FitError as err:
@@ -357,21 +380,19 @@ def _fit(args) -> int:
     return EXIT_OK
 
 
-if __name__ == "__main__":
-    sys.exit(main())
-
-
 def _report(args) -> int:
     from . import accuracy
 
     # The quick report has its own default folder: its test shares a name with the full report's.
     default = os.path.join("runs", "report", "accuracy_cost_quick" if args.quick else "accuracy_cost")
     out = default if args.out is None else args.out
-    _writable_dir(out)
     known = [t.name for t in (accuracy.QUICK_TESTS if args.quick else accuracy.TESTS)]
     for name in args.test or []:
         if name not in known:
             raise UsageError(f"--test {name!r} is not a test of this report; choose from {', '.join(known)}")
+        if args.test.count(name) > 1:
+            raise UsageError(f"--test {name!r} given twice")
+    _writable_dir(out)
     log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     rows = accuracy.accuracy_cost(out, quick=args.quick, tests=args.test, rerun=args.rerun,
                                   progress=not args.quiet, log=log)
@@ -384,3 +405,6 @@ def _report(args) -> int:
         print(f"note: {len(failed)} of {len(rows)} runs did not complete (listed in the report)")
     return EXIT_OK
 
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -213,7 +213,8 @@ def mesh_figure(path: str, title: str, contact: dict, outlines: dict, roi, y_sca
     region = _region(contact, [name], roi, y_scale)
     _, _, size = _layout(region, 1)
     fig, ax = plt.subplots(figsize=size, dpi=_DPI, layout="constrained")
-    fig.suptitle(_title(title, y_scale) + f": deformed mesh at '{name}'")
+    fig.suptitle(_title(title, y_scale))   # the spec's title; what is shown goes on the axes
+    ax.set_title(f"deformed mesh at '{name}'")
     eqps = contact[f"{name}__eqps"]
     top = float(np.max(eqps)) if eqps.size and np.max(eqps) > 0 else 1.0
     coll = _draw_sheet(ax, contact[f"{name}__x"], contact["elements"], y_scale, values=eqps, edge="k",

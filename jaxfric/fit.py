@@ -49,12 +49,15 @@ import math
 import os
 import sys
 import time
+from collections.abc import Mapping
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 
+from ._checks import check_int, check_positive
 from .newton import NewtonOptions
 from .params import Parameterization, adaptive_run, parameterize, path_function
 from .results import Result, describe
@@ -62,6 +65,11 @@ from .results import Result, describe
 __all__ = ["Measurement", "FitResult", "FitError", "read_measurement", "bin_means", "fit", "write_fit"]
 
 _COLUMNS = ("drawing_displacement", "drawing_force")
+# Beyond these a measured value is not a sheet-drawing measurement (and its squares overflow the misfit).
+MAX_MAGNITUDE = {"drawing_displacement": 1e6, "drawing_force": 1e12}  # mm, N/mm
+MAX_WINDOWS = 100_000  # fitted windows (``window``)
+MAX_GRID_POINTS = 10_000  # adaptive runs of the global stage (``grid``), every axis combined
+FIT_ALGORITHMS = ("penalty", "auglag")  # exact contact (lcp_*) has no derivatives
 
 
 class FitError(RuntimeError):
@@ -86,14 +94,19 @@ def read_measurement(data) -> Measurement:
     if isinstance(data, (str, os.PathLike)):
         source = os.fspath(data)
         try:
-            with open(source, newline="") as f:
-                rows = list(csv.DictReader(f))
+            # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name.
+            with open(source, newline="", encoding="utf-8-sig") as f:
+                reader = csv.DictReader(f)
+                rows = list(reader)
+                header = reader.fieldnames or []
         except OSError as err:
             raise ValueError(f"measurement file {source!r} cannot be read: {err.strerror or err}") from None
         except (csv.Error, UnicodeDecodeError) as err:
             raise ValueError(f"measurement file {source!r} is not a CSV file: {err}") from None
-        header = rows[0].keys() if rows else ()
-        missing = [c for c in _COLUMNS if c not in header]
+        twice = [c for c in header if header.count(c) > 1]
+        if twice:
+            raise ValueError(f"measurement file {source!r} has the column {twice[0]!r} twice")
+        missing = [c for c in _COLUMNS if c not in header or not rows]
         if missing:
             raise ValueError(f"measurement file {source!r} lacks the column(s) {', '.join(missing)}"
                              + ("" if rows else " (no data rows)"))
@@ -128,6 +141,10 @@ def read_measurement(data) -> Measurement:
         if bad.size:
             raise ValueError(f"measurement {source!r}: column {name!r} holds a non-finite value at row "
                              f"{bad[0] + 1} ({v[bad[0]]})")
+        bad = np.flatnonzero(np.abs(v) > MAX_MAGNITUDE[name])
+        if bad.size:
+            raise ValueError(f"measurement {source!r}: column {name!r} holds {v[bad[0]]:g} at row {bad[0] + 1}, "
+                             f"beyond {MAX_MAGNITUDE[name]:g} in magnitude")
     keep = x > 0
     x, f = x[keep], f[keep]
     if x.size == 0:
@@ -293,9 +310,12 @@ def _windows(x: np.ndarray, window, n_params: int):
     """Window edges over [x_0, x_last] of width about ``window`` (mm), or None (pointwise)."""
     if window is None:
         return None
+    check_positive("window", window)
     w = float(window)
-    if not (math.isfinite(w) and w > 0):
-        raise ValueError(f"field 'window' must be a finite length > 0 (mm), got {window!r}")
+    count = (x[-1] - x[0]) / w  # inf where the quotient overflows
+    if count > MAX_WINDOWS:
+        raise ValueError(f"field 'window' = {w:g} mm leaves {count:.3g} windows over the measured stroke "
+                         f"[{x[0]:g}, {x[-1]:g}] mm, more than {MAX_WINDOWS:,}")
     n = int((x[-1] - x[0]) // w)
     if n < max(n_params, 1):
         raise ValueError(f"field 'window' = {w:g} mm leaves {n} window(s) over the measured stroke "
@@ -329,6 +349,9 @@ def _grid_axes(grid, names, lo, hi) -> list:
             raise ValueError(f"field 'grid' of {name!r} = [{v[0]:g}, {v[-1]:g}] leaves the bounds "
                              f"[{lo[i]:g}, {hi[i]:g}]")
         axes.append(v)
+    points = math.prod(a.size for a in axes if a is not None)
+    if points > MAX_GRID_POINTS:
+        raise ValueError(f"field 'grid' gives {points:,} runs (the product of its axes), more than {MAX_GRID_POINTS:,}")
     return axes
 
 
@@ -411,7 +434,7 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
         overrides: dict | None = None, bounds: dict | None = None, window: float | None = None,
         newton: NewtonOptions | None = None, max_iter: int = 30, xtol: float = 1e-7,
         max_replans: int = 4, substeps: int = 1, grid: dict | None = None, starts: int = 1,
-        progress: bool = True) -> FitResult:
+        progress: bool = True, ready: Callable[[], None] | None = None) -> FitResult:
     """Fit the config fields ``params`` of ``scene`` to the measured drawing-force curve ``data``.
 
     Args:
@@ -447,26 +470,43 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
             misfit is the result (its ``start``), the others are kept in ``local_fits``. Where the
             interpolation error of the grid is larger than the misfit differences between basins,
             the lowest interpolated minimum need not be in the lowest basin.
+        ready: called once the input is validated, before the first simulation (the command line
+            makes its output directory there, so that refused input leaves none).
 
     Raises ValueError (one line, naming the field) on bad input, before any simulation, and
     :class:`FitError` when the simulation at the start values fails.
     """
     t_start = time.perf_counter()
-    names = (params,) if isinstance(params, str) else tuple(params)
+    if isinstance(params, str):
+        params = (params,)
+    if not (isinstance(params, (tuple, list)) and all(isinstance(n, str) for n in params)):
+        raise ValueError(f"field 'params' must be a name or a sequence of names of config fields, got {params!r}")
+    names = tuple(params)
+    if algorithm in ("lcp_lemke", "lcp_ssn"):
+        raise ValueError(f"field 'algorithm' = {algorithm!r} cannot be fitted: exact contact has no derivatives; "
+                         f"choose one of {', '.join(FIT_ALGORITHMS)}")
+    for name, value in (("overrides", overrides), ("bounds", bounds), ("grid", grid)):
+        if value is not None and not isinstance(value, Mapping):
+            raise ValueError(f"field {name!r} must be a dict keyed by config field, got {value!r}")
+    if newton is not None and not isinstance(newton, NewtonOptions):
+        raise ValueError(f"field 'newton' must be a NewtonOptions or None, got {newton!r}")
+    check_positive("xtol", xtol)
+    for name, value, least in (("max_iter", max_iter, 1), ("max_replans", max_replans, 0), ("substeps", substeps, 1),
+                               ("starts", starts, 1)):
+        check_int(name, value, least)
     meas = read_measurement(data)
     if meas.displacement.size < len(names):
         raise ValueError(f"measurement {meas.source!r} has {meas.displacement.size} point(s) at displacement > 0, "
                          f"fewer than the {len(names)} parameter(s)")
-    for name, value, least in (("max_iter", max_iter, 1), ("max_replans", max_replans, 0), ("substeps", substeps, 1),
-                               ("starts", starts, 1)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < least:
-            raise ValueError(f"field {name!r} must be an integer >= {least}, got {value!r}")
     if starts > 1 and not grid:
         raise ValueError(f"field 'starts' = {starts} needs a grid (the starts are minima of the global stage)")
     edges = _windows(meas.displacement, window, len(names))
     observed = meas.force if edges is None else bin_means(meas.displacement, meas.force, edges)
     par = parameterize(scene, names, variant=variant, algorithm=algorithm, overrides=overrides)
     lo, hi = _bounds(names, par.p0, bounds)
+    axes = _grid_axes(grid, names, lo, hi) if grid else None
+    if ready is not None:
+        ready()
     project = jax.jit(lambda p: optax.projections.projection_box(p, jnp.asarray(lo), jnp.asarray(hi)))
     say = (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)
     counts = {"simulations": 0, "replans": 0}
@@ -579,7 +619,6 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
 
     p_start, grid_rows = par.p0.copy(), []
     if grid:
-        axes = _grid_axes(grid, names, lo, hi)
         axes = [np.array([par.p0[i]]) if a is None else a for i, a in enumerate(axes)]
         points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(names))
         runs = _GRIDS.setdefault((*model_key, tuple(a.tobytes() for a in axes)), {})

@@ -16,16 +16,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_finite
+from ._checks import check_finite, check_finite_array
 
 __all__ = ["Motion", "Ramp", "Affine", "RigidMotion", "DirichletBC", "Phase", "with_steps", "constraint_masks",
            "prescribed_values", "Schedule", "schedule"]
 
 
 def _vec2(name, value):
-    arr = jnp.asarray(value, dtype=jnp.float64)
+    try:
+        arr = jnp.asarray(value, dtype=jnp.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"field '{name}' must be a 2-vector of numbers, got {value!r}") from None
     if arr.shape != (2,):
         raise ValueError(f"field '{name}' must be a 2-vector, got shape {arr.shape}")
+    check_finite_array(name, arr)
     return arr
 
 
@@ -113,9 +117,12 @@ class DirichletBC(eqx.Module):
     motion: Motion
 
     def __init__(self, nodes, components=(0, 1), motion: Motion | None = None):
-        nodes = tuple(int(n) for n in np.asarray(nodes).ravel())
-        if len(nodes) == 0:
+        arr = np.asarray(nodes).ravel()
+        if arr.size == 0:
             raise ValueError("field 'nodes' of a DirichletBC must not be empty")
+        if not np.issubdtype(arr.dtype, np.integer):  # int(0.5) would silently constrain node 0
+            raise ValueError(f"field 'nodes' of a DirichletBC must hold integer node indices, got {nodes!r}")
+        nodes = tuple(int(n) for n in arr)
         components = tuple(int(c) for c in components)
         if not components or any(c not in (0, 1) for c in components) or len(set(components)) != len(components):
             raise ValueError(f"field 'components' must be a non-empty subset of (0, 1), got {components}")
@@ -133,6 +140,9 @@ class Phase(eqx.Module):
         increments: nominal increments as ``((tau_end, n_steps), ...)``: from the previous breakpoint
             to tau_end the phase is divided into n_steps equal steps. The last tau_end is 1. The step
             controller may cut these steps and grows them back, never beyond the nominal value.
+
+    The constructor takes either ``n_steps`` (equal nominal steps over the whole phase, the same as
+    ``increments=((1.0, n_steps),)``) or ``increments``.
     """
 
     name: str = eqx.field(static=True)
@@ -141,7 +151,12 @@ class Phase(eqx.Module):
 
     def __init__(self, name: str, bcs=(), n_steps: int | None = 10, increments=None):
         self.name = str(name)
+        # A string is iterable too: "abc" must not become three conditions named by letters.
+        if isinstance(bcs, (str, bytes)) or not hasattr(bcs, "__iter__"):
+            raise ValueError(f"field 'bcs' of phase {name!r} must be a sequence of DirichletBC, got {bcs!r}")
         self.bcs = tuple(bcs)
+        if not all(isinstance(bc, DirichletBC) for bc in self.bcs):
+            raise ValueError(f"field 'bcs' of phase {name!r} must hold DirichletBC only, got {bcs!r}")
         if increments is None:
             if isinstance(n_steps, bool) or not isinstance(n_steps, (int, np.integer)) or n_steps < 1:
                 raise ValueError(f"field 'n_steps' of phase {name!r} must be an integer >= 1, got {n_steps!r}")

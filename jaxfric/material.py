@@ -61,9 +61,9 @@ def _is_concrete(x) -> bool:
 
 
 def _number_like(name: str, value) -> None:
-    """A material constant must be a number (or an array / tracer of them): name it otherwise."""
-    if value is None or isinstance(value, (str, bytes, bool)):
-        raise ValueError(f"J2Material: {name} = {value!r} is invalid: it must be a number.")
+    """A material constant must be a real number (or an array / tracer of them): name it otherwise."""
+    if value is None or isinstance(value, (str, bytes, bool)) or np.iscomplexobj(value):
+        raise ValueError(f"J2Material: {name} = {value!r} is invalid: it must be a real number.")
 
 
 class J2Material(eqx.Module):

@@ -16,11 +16,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_finite, check_finite_array, check_int, check_positive
+from ._checks import check_finite, check_finite_array, check_int, check_positive, is_concrete
 
 __all__ = ["StripMesh", "strip_mesh", "graded_coordinates", "MAX_ELEMENTS"]
 
-MAX_ELEMENTS = 1_000_000  # per direction: beyond any mesh a 2D strip needs, and far from int32 limits
+MAX_ELEMENTS = 1_000_000  # nx * ny: beyond any mesh a 2D strip needs, and far from int32 limits
 
 
 class StripMesh(eqx.Module):
@@ -146,6 +146,8 @@ def strip_mesh(x_left, x_right, y_bottom, thickness, nx: int, ny: int,
     """
     check_int("nx", nx, 1, MAX_ELEMENTS)
     check_int("ny", ny, 1, MAX_ELEMENTS)
+    if nx * ny > MAX_ELEMENTS:
+        raise ValueError(f"fields 'nx' x 'ny' = {nx} x {ny} give {nx * ny:,} elements, more than {MAX_ELEMENTS:,}")
     for name, value in (("x_left", x_left), ("x_right", x_right), ("y_bottom", y_bottom)):
         check_finite(name, value)
     check_positive("thickness", thickness)
@@ -154,6 +156,14 @@ def strip_mesh(x_left, x_right, y_bottom, thickness, nx: int, ny: int,
     check_positive("grading_y", grading_y)
     xs = graded_coordinates(x_left, x_right, int(nx), grading_x)
     ys = graded_coordinates(y_bottom, y_bottom + thickness, int(ny), grading_y)
+    # Element sizes that round to zero or overflow: name the grading (or the length) given, not the
+    # coordinates 'xs' / 'ys' that StripMesh.from_coordinates would name.
+    for c, n, grading, name, length in ((xs, nx, grading_x, "grading_x", "length (x_right - x_left)"),
+                                        (ys, ny, grading_y, "grading_y", "thickness")):
+        if is_concrete(c) and not (np.all(np.isfinite(c)) and np.all(np.diff(np.asarray(c)) > 0)):
+            field = length if is_concrete(grading) and float(grading) == 1.0 else name
+            raise ValueError(f"field '{field}' gives elements of zero or non-finite size over {n} elements "
+                             f"({name} = {grading!r})")
     return StripMesh.from_coordinates(xs, ys)
 
 

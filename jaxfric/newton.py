@@ -17,7 +17,15 @@ to the residual tolerance once an iteration fails to reduce ||R|| tenfold. The u
 represented to eps |x| only (and the residual is evaluated from them with an error of that order),
 so Newton's iterates stagnate within about eps |J| |x| of zero: late in a long draw on a fine mesh
 (displacements of 65 mm, stiffness entries of 1e6 N/mm^2) that is 1e-6 N/mm while the relative
-tolerance has fallen to 2e-7 (RESULTS.md, mesh convergence). A quadratically converging iteration
+tolerance has fallen to 2e-7 (RESULTS.md, mesh convergence). Where the residual is computed from
+positions X + u rather than from u (the contact gaps), its round-off is relative to |X + u|, which
+the linearisation then passes as ``magnitude``: a penalty of 1e9 N/mm at a node 13 mm from the origin
+resolves forces to 1e9 x ulp(13 mm) = 1.8e-6 N/mm, however small u is. That floor is used only where
+the caller asks (``positions``: the step controller's continuation stages at the smallest increment,
+:class:`jaxfric.simulate.StepControl`): it can exceed the residual tolerance, and an iteration that
+merely converges slowly (a stick/slip 2-cycle) also fails to reduce ||R|| tenfold, so as the default
+it would end such iterations early and change the load path of runs that converge without it (the
+flat die at eps_N = 1e9, 24 x 1, mu = 0.04 then stopped in its draw). A quadratically converging iteration
 never takes this exit. It never raises: it returns a :class:`~jaxfric.results.Result` code.
 
 Derivatives. At a converged solution R(x*, args) = 0, so dx*/dargs = -J^-1 dR/dargs. The JVP rule
@@ -87,6 +95,8 @@ class Linearization(NamedTuple):
     aux: Any                 # by-products at x
     status: Any = None       # optional int array (contact status): must not change in the last iteration
     prescribed_error: Any = None  # optional () max |x - x_presc| over prescribed dofs (mm)
+    magnitude: Any = None    # optional (N,) size of what each unknown's round-off is relative to (|x|
+                             # by default): positions |X + u| where the residual uses them (contact gaps)
 
 
 class NewtonSolution(NamedTuple):
@@ -138,7 +148,7 @@ def newton_start(x0, lin_shape, options: NewtonOptions) -> NewtonCarry:
 
 
 def newton_pass(c: NewtonCarry, args, x_ref, linearize: Callable, options: NewtonOptions,
-                search=True) -> NewtonCarry:
+                search=True, positions=False) -> NewtonCarry:
     """One pass of the Newton loop: evaluate the pending point (the initial guess first, then each
     trial), decide (accept, reject, converged, failed), and set up the next trial. A loop of passes
     holds one linearisation and one linear solve in the traced program (each copy costs compile time:
@@ -152,7 +162,8 @@ def newton_pass(c: NewtonCarry, args, x_ref, linearize: Callable, options: Newto
         res_ok = r_norm <= tol
         if options.roundoff > 0.0:   # static
             stagnant = r_norm > 0.1 * r_prev
-            res_ok = res_ok | (stagnant & (r_norm <= tol + options.roundoff * roundoff_floor(lin.jacobian, x)))
+            size = x if lin.magnitude is None else jnp.where(positions, lin.magnitude, jnp.abs(x))
+            res_ok = res_ok | (stagnant & (r_norm <= tol + options.roundoff * roundoff_floor(lin.jacobian, size)))
         dx_ok = dx_norm <= options.du_atol + options.du_rtol * jnp.max(jnp.abs(x - x_ref))
         code = jnp.select(
             [~finite, ~lin.valid, (k >= 1) & res_ok & dx_ok & same_status, k >= options.max_iterations],
@@ -198,20 +209,22 @@ def newton_result(c: NewtonCarry) -> NewtonSolution:
     return NewtonSolution(c.x, c.lin.aux, c.k - 1, c.code, c.r_hist[c.k - 1], c.r_hist)
 
 
-def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions, search=True):
+def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions, search=True, positions=False):
     """The Newton loop; returns the solution and the Jacobian at it (for the JVP rule).
 
     ``search`` (bool, may be traced): False switches the line search of ``options`` off.
+    ``positions`` (bool, may be traced): the round-off floor is taken relative to the linearisation's
+    ``magnitude`` (positions) instead of |x| (module doc).
     """
     start = newton_start(x0, eqx.filter_eval_shape(linearize, x0, args), options)
     c = jax.lax.while_loop(lambda c: c.code == Result.CONTINUE,
-                           lambda c: newton_pass(c, args, x_ref, linearize, options, search), start)
+                           lambda c: newton_pass(c, args, x_ref, linearize, options, search, positions), start)
     return newton_result(c), c.lin.jacobian
 
 
 @eqx.filter_custom_jvp
 def newton_solve(args, x0, x_ref, *, linearize: Callable, residual: Callable,
-                 options: NewtonOptions, search=True) -> NewtonSolution:
+                 options: NewtonOptions, search=True, positions=False) -> NewtonSolution:
     """Solve R(x, args) = 0 by Newton from the initial guess ``x0``; differentiable in ``args``.
 
     ``x_ref`` (the last converged state) is the reference of the increment test. Neither ``x0`` nor
@@ -220,14 +233,14 @@ def newton_solve(args, x0, x_ref, *, linearize: Callable, residual: Callable,
     derivatives reach it. ``search`` (bool, may be traced) False switches the line search off for this
     solve (the step controller's last attempt at the smallest increment).
     """
-    return _newton(args, x0, x_ref, linearize, options, search)[0]
+    return _newton(args, x0, x_ref, linearize, options, search, positions)[0]
 
 
 @newton_solve.def_jvp
-def _newton_solve_jvp(primals, tangents, *, linearize, residual, options, search=True):
+def _newton_solve_jvp(primals, tangents, *, linearize, residual, options, search=True, positions=False):
     args, x0, x_ref = primals
     args_dot = tangents[0]  # the initial guess and the reference do not change the solution
-    solution, _ = _newton(args, x0, x_ref, linearize, options, search)
+    solution, _ = _newton(args, x0, x_ref, linearize, options, search, positions)
     # The converged point is all the derivative needs: named, so that a checkpointed load loop can
     # keep it and, in the backward pass, rebuild the Jacobian at it by one linearisation instead of
     # re-running the Newton iterations (see SOLUTION_NAME).

@@ -27,7 +27,8 @@ class RunResult:
     Attributes:
         model: the model that was run.
         history: dict of per-row arrays (row 0 = initial state): ``time``, ``phase`` (index),
-            ``phase_name``, ``newton_iters``, ``cutbacks``, ``wall_s``, plus every observation.
+            ``phase_name``, ``newton_iters``, ``cutbacks`` (attempts before the accepted one),
+            ``augmentations`` (AL), ``wall_s``, plus every observation.
         final: the last converged :class:`~jaxfric.simulate.SimState`.
         simulation: the raw :class:`~jaxfric.simulate.Simulation` (device arrays, full buffers).
         converged: True if the whole load path was completed.
@@ -84,8 +85,18 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     Newton iterations when ``progress``. If the run stops early it raises :class:`SimulationError`
     whose ``result`` holds everything converged up to the failure (or returns it, with
     ``raise_on_failure=False``). ``snapshot(model, state) -> pytree`` (a module-level function) is
-    evaluated at every accepted step and kept on the host in ``RunResult.snapshots``.
+    evaluated at every accepted step and kept on the host in ``RunResult.snapshots``. ``adaptive``
+    False runs the nominal steps without cutting (:func:`~jaxfric.simulate.simulate_fixed`) instead
+    of the adaptive controller (:func:`~jaxfric.simulate.simulate`).
     """
+    for name, value, kind in (("model", model, StripModel), ("newton", newton, NewtonOptions),
+                              ("control", control, StepControl)):
+        if not isinstance(value, kind):
+            raise ValueError(f"field '{name}' must be a {kind.__name__}, got {value!r}")
+    for name, value in (("observe", observe), ("snapshot", snapshot)):
+        if not (callable(value) or (name == "snapshot" and value is None)):
+            raise ValueError(f"field '{name}' must be a function{' or None' if name == 'snapshot' else ''}, "
+                             f"got {value!r}")
     t0 = time.perf_counter()
     compiled = _compiled(model, newton, control, observe, snapshot, adaptive)
     compile_s = time.perf_counter() - t0

@@ -71,6 +71,10 @@ class StripModel(eqx.Module):
     contact: Penalty | Complementarity | None = None
 
     def __check_init__(self):
+        if not isinstance(self.mesh, StripMesh):
+            raise ValueError(f"field 'mesh' must be a StripMesh (jaxfric.strip_mesh), got {self.mesh!r}")
+        if not (hasattr(self.material, "update") and hasattr(self.material, "init_state")):
+            raise ValueError(f"field 'material' must be a material law such as J2Material, got {self.material!r}")
         if self.formulation not in FORMULATIONS:
             raise ValueError(f"field 'formulation' must be one of {FORMULATIONS}, got {self.formulation!r}")
         if len(self.phases) == 0 or not all(isinstance(p, Phase) for p in self.phases):
@@ -158,6 +162,18 @@ class StepControl(eqx.Module):
         easy_iterations: a step is easy when each of its Newton solves (one per AL augmentation)
             needed at most this many iterations.
         max_steps: size of the history buffer (accepted steps); default 10x the nominal count + 100.
+        continuation: penalty law only. At the smallest increment, after the retry from the converged
+            state and before the attempt without line search, solve the step first with the penalties
+            eps_n and eps_t divided by 10^m, then by 10^(m-1), ..., each stage starting from the last
+            one's solution, the last one at the true penalties (m = ceil(log10(eps_n / E)), so the
+            first stage has a penalty of the order of the sheet's modulus E; none when eps_n <= E).
+            A stage's solution is only a starting point: the step is accepted, as any other, when
+            Newton converges at the true penalties. In the stages Newton's round-off floor is taken
+            relative to the positions X + u, from which the gaps are computed (:mod:`jaxfric.newton`).
+            The stages count as attempts in the step's ``cutbacks``. Why: at a stiff penalty (1e9 N/mm on the Nine's cylinders) a pair touching a
+            curved tool 2-cycles between open (the free node is driven 1e-4 mm into the tool) and
+            closed at a spurious force of 1e4 N/mm (whose geometric stiffness throws it out again);
+            from the softer problem's solution the pair arrives closed with about its true force.
     """
 
     max_cuts: int = eqx.field(static=True, default=10)
@@ -165,9 +181,12 @@ class StepControl(eqx.Module):
     easy_iterations: int = eqx.field(static=True, default=6)
     easy_steps: int = eqx.field(static=True, default=2)
     max_steps: int | None = eqx.field(static=True, default=None)
+    continuation: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         check_int("max_cuts", self.max_cuts, 0, 60)
+        if not isinstance(self.continuation, bool):
+            raise ValueError(f"field 'continuation' must be True or False, got {self.continuation!r}")
         check_int("easy_iterations", self.easy_iterations, 1)
         check_int("easy_steps", self.easy_steps, 1)
         check_int("max_steps", self.max_steps, 1, 10_000_000, optional=True)
@@ -215,6 +234,8 @@ class Simulation(eqx.Module):
 
 
 def initial_state(model: StripModel) -> SimState:
+    """The state before the first step: zero displacements, virgin material at every Gauss point, the
+    tools at their initial positions (with no force), pseudo-time 0 in phase 0."""
     n_el = model.mesh.n_elements
     one = model.material.init_state()
     states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n_el, 4) + a.shape), one)
@@ -420,13 +441,40 @@ def linearize_step(model: StripModel, state: SimState, phase, t_target) -> Linea
     return linearize(_unknowns(model, state.u, _tool_q(state)), args)
 
 
+def _softenable(model: StripModel) -> bool:
+    """Static: the model's contact law is the plain penalty law, which :class:`StepControl`'s
+    continuation may soften."""
+    return bool(model.tools) and isinstance(model.contact, Penalty) and not isinstance(
+        model.contact, AugmentedLagrangian)
+
+
+def _continuation_stages(model: StripModel) -> jax.Array:
+    """() int32: m = ceil(log10(eps_n / E)) clipped to [0, 12], the first stage's penalty divisor
+    10^m (:class:`StepControl`); 0 when the law cannot be softened."""
+    if not _softenable(model):
+        return jnp.array(0, jnp.int32)
+    m = jnp.ceil(jnp.log10(model.contact.eps_n / model.material.E))
+    return jnp.clip(jnp.nan_to_num(m), 0, 12).astype(jnp.int32)
+
+
+def _soften(args: StepArgs, m) -> StepArgs:
+    """``args`` with the penalty law's eps_n and eps_t divided by 10^m (m = 0: unchanged, bit for bit)."""
+    scale = 10.0 ** (-jnp.asarray(m, jnp.float64))
+    law = args.contact.law
+    return eqx.tree_at(lambda a: (a.contact.law.eps_n, a.contact.law.eps_t), args,
+                       (law.eps_n * scale, law.eps_t * scale))
+
+
 def solve_step(model: StripModel, state: SimState, phase, t_target,
                newton: NewtonOptions = NewtonOptions(), ctx: "_Context | None" = None, guess=None,
-               search=True):
+               search=True, soften=None):
     """Solve one load step from the converged ``state`` to pseudo-time ``t_target`` in phase ``phase``.
 
     ``guess`` is Newton's initial point ``(u (n_nodes, 2), q (n_tools,))`` (default: the last state).
     ``search`` False switches Newton's line search off (penalty and augmented Lagrangian laws).
+    ``soften`` (int, may be traced; penalty law only): a continuation stage of :class:`StepControl`
+    when >= 0: eps_n and eps_t divided by 10^soften (0: the model's law), and Newton's round-off floor
+    relative to the positions (:mod:`jaxfric.newton`); None or < 0: a plain attempt.
 
     Returns the :class:`StepSolution` (iterations, code, residual history, AL augmentations) and the
     new :class:`SimState` (meaningful only when ``solution.code == Result.SUCCESS``).
@@ -435,6 +483,10 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
     t_target = jnp.asarray(t_target, jnp.float64)
     phase = jnp.asarray(phase, jnp.int32)
     args, q_start, f_start = _step_args(model, state, phase, t_target, ctx)
+    stage = jnp.array(False)
+    if soften is not None and _softenable(model):
+        stage = jnp.asarray(soften) >= 0
+        args = _soften(args, jnp.maximum(soften, 0))
     x_ref = _unknowns(model, state.u, _tool_q(state))
     x0 = x_ref if guess is None else _unknowns(model, *guess)
     no_aug = jnp.array(0, jnp.int32)
@@ -445,7 +497,7 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
         sol = _augment(model, args, x0, x_ref, newton, search)
     else:
         sol = newton_solve(args, x0, x_ref, linearize=linearize, residual=residual, options=newton,
-                           search=search)
+                           search=search, positions=stage)
         sol = StepSolution(*sol, augmentations=no_aug, stats=jnp.zeros(3, jnp.int32))
     return sol, _step_state(model, args, sol, t_target, phase, q_start, f_start)
 
@@ -541,6 +593,11 @@ class _Loop(eqx.Module):
     r_norm: jax.Array      # residual norm of the last attempt
     plain: jax.Array       # this attempt runs Newton without the line search (last one at the floor)
     last_code: jax.Array   # result code of the last attempt
+    soft: jax.Array        # continuation stage of this attempt: penalties / 10^soft; -1: none
+    soft_tried: jax.Array  # the continuation has failed for the pending step
+    stage_u: jax.Array     # (n_nodes, 2) the last stage's solution: the next stage's start ...
+    stage_q: jax.Array     # (n_tools,) ... with these tool positions
+    staged: jax.Array      # stage_u / stage_q hold a stage's solution
 
 
 def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
@@ -559,7 +616,8 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
 
     def body(c: _Loop) -> _Loop:
         t_try, phase, guess = setup(c)
-        sol, new_state = solve_step(model, c.state, phase, t_try, newton, ctx, guess=guess, search=~c.plain)
+        sol, new_state = solve_step(model, c.state, phase, t_try, newton, ctx, guess=guess, search=~c.plain,
+                                    soften=c.soft)
         return finish(c, sol, new_state, t_try)
 
     out = jax.lax.while_loop(lambda c: c.code == Result.CONTINUE, body, init)
@@ -579,17 +637,22 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
     n_buf = control.max_steps or 10 * sched.n_nominal_steps + 100
     state0 = initial_state(model)
     int0 = jnp.array(0, jnp.int32)
+    n_stages = _continuation_stages(model) if control.continuation else int0
 
     def setup(c: _Loop):
         t_start, dt_nom, end = c.state.time, seg_dt[c.seg], seg_end[c.seg]
         # Snap to the segment end when within round-off of it (steps end exactly on breakpoints).
         t_try = jnp.where(t_start + c.dt >= end - 1e-9 * dt_nom, end, t_start + c.dt)
-        guess = c.predictor.guess(c.state, t_try - t_start, seg_phase[c.seg], retry=c.cuts > 0)
+        u, q = c.predictor.guess(c.state, t_try - t_start, seg_phase[c.seg], retry=c.cuts > 0)
+        guess = (jnp.where(c.staged, c.stage_u, u), jnp.where(c.staged, c.stage_q, q))
         return t_try, seg_phase[c.seg], guess
 
     def finish(c: _Loop, sol, new_state, t_try) -> _Loop:
         t_start, dt_nom, end = c.state.time, seg_dt[c.seg], seg_end[c.seg]
-        ok = sol.code == Result.SUCCESS
+        converged = sol.code == Result.SUCCESS
+        # A converged continuation stage before the last gives the next stage's start, not a step.
+        stage_done = converged & (c.soft > 0)
+        ok = converged & (c.soft <= 0)
         iters = c.iters + sol.iterations
         stats = c.stats + sol.stats
         row = c.history.n_rows
@@ -622,9 +685,13 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
         # If that fails too, the run stops with the code and residual of the attempt before it (the
         # last one with the line search): a plain Newton that strays ends in whatever it met first.
         # (Exact contact has no line search to switch off: no such attempt.)
+        # Before that, the penalty law's continuation (StepControl.continuation): stages of softened
+        # penalties, each from the last one's solution; a stage that fails ends it.
+        start_soft = at_floor & ~again & ~c.plain & (c.soft < 0) & ~c.soft_tried & (n_stages > 0)
+        soft_failed = (c.soft >= 0) & ~converged
         searched = not isinstance(model.contact, Complementarity)
-        plain = at_floor & ~again & ~c.plain & searched
-        too_small = at_floor & ~again & ~plain
+        plain = at_floor & ~again & ~c.plain & searched & ~start_soft & ~stage_done
+        too_small = at_floor & ~again & ~plain & ~start_soft & ~stage_done
         finished = seg_done & (c.seg == n_seg - 1)
         full = ok & ~finished & (row + 1 >= n_buf + 1)
         code = jnp.select([too_small, finished, full], [jnp.where(c.plain, c.last_code, sol.code),
@@ -635,18 +702,25 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
                          lambda: None)
         return _Loop(state=_select(ok, new_state, c.state),
                      predictor=c.predictor.after(ok, c.state, new_state),
-                     dt=jnp.where(ok, dt_ok, jnp.where(again | plain, t_try - t_start, dt_cut)), seg=next_seg,
+                     dt=jnp.where(ok, dt_ok, jnp.where(again | plain | start_soft | stage_done, t_try - t_start,
+                                                       dt_cut)), seg=next_seg,
                      n_easy=jnp.where(grow, 0, n_easy), cuts=jnp.where(ok, 0, c.cuts + 1),
                      iters=jnp.where(ok, 0, iters), stats=jnp.where(ok, 0, stats), history=history, code=code,
                      failed_t=jnp.where(ok, c.failed_t, t_try),
                      r_norm=jnp.where(too_small & c.plain, c.r_norm, sol.residual_norm),
-                     plain=~ok & (c.plain | plain), last_code=sol.code.astype(jnp.int32))
+                     plain=~ok & (c.plain | plain), last_code=sol.code.astype(jnp.int32),
+                     soft=jnp.where(start_soft, n_stages, jnp.where(stage_done, c.soft - 1, -1)).astype(jnp.int32),
+                     soft_tried=~ok & (c.soft_tried | soft_failed),
+                     stage_u=jnp.where(stage_done, new_state.u, c.stage_u),
+                     stage_q=jnp.where(stage_done, _tool_q(new_state), c.stage_q), staged=stage_done)
 
     init = _Loop(state=state0, predictor=_Predictor.empty(state0),
                  dt=seg_dt[0], seg=int0, n_easy=int0, cuts=int0, iters=int0, stats=jnp.zeros(3, jnp.int32),
                  history=_empty_history(n_buf + 1, observe(model, state0)),
                  code=jnp.array(Result.CONTINUE, jnp.int32), failed_t=jnp.array(jnp.nan),
-                 r_norm=jnp.array(0.0), plain=jnp.array(False), last_code=int0)
+                 r_norm=jnp.array(0.0), plain=jnp.array(False), last_code=int0,
+                 soft=jnp.array(-1, jnp.int32), soft_tried=jnp.array(False), stage_u=jnp.zeros_like(state0.u),
+                 stage_q=jnp.zeros_like(_tool_q(state0)), staged=jnp.array(False))
     return init, setup, finish
 
 
@@ -678,8 +752,10 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     def body(carry):
         c, t_try, phase, nc = carry
         args, q_start, f_start = _step_args(model, c.state, phase, t_try, ctx)
+        if _softenable(model):
+            args = _soften(args, jnp.maximum(c.soft, 0))
         x_ref = _unknowns(model, c.state.u, _tool_q(c.state))
-        nc = newton_pass(nc, args, x_ref, linearize, newton, search=~c.plain)
+        nc = newton_pass(nc, args, x_ref, linearize, newton, search=~c.plain, positions=c.soft >= 0)
         done = nc.code != Result.CONTINUE
         sol = StepSolution(*newton_result(nc), augmentations=jnp.array(0, jnp.int32),
                            stats=jnp.zeros(3, jnp.int32))
@@ -712,9 +788,10 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
     Memory of reverse mode: the history rows are scan outputs, not a carried buffer, so a step's carry
     is the converged state alone (displacements, tool positions, material and contact state). With
     ``checkpoint`` (default) every step is rematerialised in the backward pass (``jax.checkpoint``):
-    the forward pass keeps only the carry at each step, n_steps x (carry size), and the backward pass
-    re-solves one step at a time, so the memory grows as n_steps x state size, whatever the cost of a
-    step's linearisation and factorisation. Without it every step's Newton residuals and factors are
+    the forward pass keeps only the carry at each step and its converged solution (named
+    ``SOLUTION_NAME``), and the backward pass rebuilds one step at a time from them by one
+    linearisation, without re-running Newton, so the memory grows as n_steps x state size, whatever
+    the cost of a step's linearisation and factorisation. Without it every step's Newton residuals and factors are
     kept (n_steps x step intermediates), several times more; the factor is measured by
     ``experiments/bench_grad_memory.py``. Forward mode (``jax.jvp``) is unaffected.
     """

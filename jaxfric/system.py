@@ -194,6 +194,12 @@ def linearize(x, args: StepArgs) -> Linearization:
     # is what carries the blankholder through 'close': with the tool rows included here, shape1 at the
     # spec mesh stopped at step 4 of 'close' (Newton iteration limit, 10 cutbacks); without them it runs
     # to the end (1983 steps, 17150 iterations, 131 cutbacks).
+    # Round-off of the residual (Newton's floor, where the caller asks for it: jaxfric.newton): the
+    # contact gaps are computed from the positions X + u, so with tools it is relative to those.
+    magnitude = None
+    if contact is not None:
+        n = args.mesh.n_dofs
+        magnitude = jnp.concatenate([jnp.abs(args.mesh.nodes.reshape(-1) + x[:n]), jnp.abs(x[n:])])
     return Linearization(R, J, jnp.max(jnp.abs(a.f_int)), a.det_min > 0.0,
-                         (a.f_int, a.states, aux_contact), status, presc)
+                         (a.f_int, a.states, aux_contact), status, presc, magnitude)
 

@@ -71,7 +71,7 @@ CLI_CASES = [
     (["run", ""], "unknown scene ''"),
     (["run", "flat_die", "--variant", "mu017"], "unknown variant 'mu017'"),  # a variant of nine
     (["run", "bead", "--variant", ""], "unknown variant ''"),
-    (["run", "flat_die", "--variant", "const_force", "--variant", "const"], "unknown variant 'const'"),
+    (["run", "flat_die", "--variant", "const_force", "--variant", "const"], "--variant: given twice"),
     (["run", "nine", "--algorithm", "Penalty"], "unknown algorithm 'Penalty'"),
     (["run", "nine", "--algorithm", ""], "unknown algorithm ''"),
     (["run", "nine", "--set", "MU=0.1"], "'MU'"),
@@ -153,6 +153,32 @@ CLI_CASES = [
     pytest.param(["run", "flat_die", "--set", "mesh=4x1", "--set", "nx=8"], "nx", id="--set-mesh+--set-nx"),
     pytest.param(["run", "flat_die", *TINY, "--set", "dU_fine=1e-300"], "'dU_fine'", id="dU_fine=1e-300"),
     pytest.param(["run", "flat_die", *TINY, "--out", ""], "--out", id="out=''"),
+    pytest.param(["run", "flat_die", *TINY, "--out", "a\0b"], "--out", id="out-nul"),
+    # a mesh whose directions pass but whose element count does not
+    pytest.param(["run", "flat_die", "--mesh", "100000x100000"], "'mesh'", id="mesh-product"),
+    pytest.param(["run", "flat_die", "--set", "nx=1000000", "--set", "ny=1000000"], "'nx'", id="nx*ny"),
+    # lengths that overflow the derived geometry or no longer close a tool chain
+    pytest.param(["run", "blankholder", *TINY, "--set", "r=1e300"], "'r'", id="blankholder-r=1e300"),
+    pytest.param(["run", "blankholder", *TINY, "--set", "Rp=1e300"], "'Rp'", id="blankholder-Rp=1e300"),
+    pytest.param(["run", "blankholder", *TINY, "--set", "r_e=1e300"], "'r_e'", id="blankholder-r_e=1e300"),
+    pytest.param(["run", "bead", *TINY, "--set", "r_e=1e300"], "'r_e'", id="bead-r_e=1e300"),
+    pytest.param(["run", "nine", *TINY, "--set", "R2=1e300"], "'R2'", id="nine-R2=1e300"),
+    pytest.param(["run", "flat_die", *TINY, "--set", "L=1e308"], "'L'", id="flat_die-L=1e308"),
+    # a steady window outside the drawing stroke, a stroke of zero
+    pytest.param(["run", "flat_die", *TINY, "--set", "steady_window=1,2"], "'steady_window'", id="flat_die-window"),
+    pytest.param(["run", "nine", *TINY, "--set", "steady_window=20,80"], "'steady_window'", id="nine-window"),
+    pytest.param(["run", "bead", *TINY, "--set", "steady_window=-1,4"], "'steady_window'", id="bead-window"),
+    pytest.param(["run", "blankholder", *TINY, "--set", "U_pull=30", "--set", "steady_window=35,55"],
+                 "'steady_window'", id="blankholder-window"),
+    pytest.param(["run", "flat_die", *TINY, "--set", "U_draw=0"], "'U_draw'", id="U_draw=0"),
+    pytest.param(["run", "bead", *TINY, "--set", "s_draw=0"], "'s_draw'", id="s_draw=0"),
+    pytest.param(["run", "blankholder", *TINY, "--set", "U_pull=0"], "'U_pull'", id="U_pull=0"),
+    # options given twice
+    pytest.param(["run", "flat_die", *TINY, "--algorithm", "penalty", "--algorithm", "auglag"], "--algorithm: given twice",
+                 id="algorithm-twice"),
+    pytest.param(["run", "flat_die", "--mesh", "4x1", "--mesh", "8x1"], "--mesh: given twice", id="mesh-twice"),
+    # the report validates before it makes its directory
+    pytest.param(["report", "accuracy-cost", "--test", "nope"], "--test 'nope'", id="report-test=nope"),
 ]
 
 
@@ -161,6 +187,27 @@ def test_cli_bad_input_is_refused_in_one_line(workdir, capsys, argv, words):
     line = cli_error(capsys, argv)
     assert words in line, line
     assert list(workdir.iterdir()) == []  # nothing written (no default run directory)
+
+
+def test_repeated_option_is_refused_not_replaced(workdir, capsys):
+    line = cli_error(capsys, ["run", "flat_die", "--variant", "const_force", "--variant", "const_position"])
+    assert "--variant: given twice" in line and "'const_position'" in line, line
+
+
+def test_default_steady_window_beyond_a_short_stroke_is_kept():
+    """Only a window the user gives is checked against the stroke: a shortened stroke with the default
+    window is a run without a steady force (reported as such), not bad input."""
+    scene = scenes.make("flat_die", overrides={**FAST, "U_draw": 0.01})
+    assert scene.steady_window == (0.02, 0.03)
+
+
+def test_module_runs_as_a_script():
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "jaxfric.cli", "report", "--help"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert "10 %, 1 % and 0.1 %" in " ".join(done.stdout.split())
 
 
 def test_cli_bad_input_creates_no_run_directory(workdir, tmp_path, capsys):
@@ -327,7 +374,36 @@ API_CASES = [
     pytest.param(lambda: scenes.parse_override("nine", "nx", "inf"), "'nx'", id="parse_override-nx=inf"),
     pytest.param(lambda: scenes.parse_mesh((INF, 3)), "'mesh'", id="parse_mesh-(inf,3)"),
     pytest.param(lambda: scenes.parse_mesh(("a", 3)), "'mesh'", id="parse_mesh-('a',3)"),
+    pytest.param(lambda: scenes.parse_mesh("100000x100000"), "'mesh'", id="parse_mesh-product"),
+    pytest.param(_mesh(nx=10**6, ny=10**6), "'nx'", id="mesh-nx*ny"),
+    pytest.param(_mesh(x_left="0"), "'x_left'", id="mesh-x_left='0'"),
+    pytest.param(_mesh(x_left=None), "'x_left'", id="mesh-x_left=None"),
+    pytest.param(_mesh(grading_x=1e300), "'grading_x'", id="mesh-grading_x=1e300"),
+    pytest.param(_mesh(grading_y=1e-300), "'grading_y'", id="mesh-grading_y=1e-300"),
+    pytest.param(_material(E=1 + 0j), "J2Material: E = ", id="mat-E=1+0j"),
+    pytest.param(lambda: jf.Phase("x", None, n_steps=2), "'bcs'", id="phase-bcs=None"),
+    pytest.param(lambda: jf.Phase("x", "abc", n_steps=2), "'bcs'", id="phase-bcs='abc'"),
+    pytest.param(lambda: jf.DirichletBC([0.5]), "'nodes'", id="bc-nodes=[0.5]"),
+    pytest.param(lambda: jf.Ramp((0, 0), (NAN, 0)), "'end'", id="ramp-end=nan"),
+    pytest.param(lambda: jf.Ramp(("a", 0), (1, 0)), "'start'", id="ramp-start=str"),
+    pytest.param(lambda: scenes.make(["nine"]), "scene ['nine']", id="make-scene=list"),
+    pytest.param(lambda: scenes.make("nine", ["mu017"]), "variant ['mu017']", id="make-variant=list"),
+    pytest.param(lambda: scenes.make("nine", {}), "variant {}", id="make-variant=dict"),
+    pytest.param(lambda: scenes.make("flat_die", algorithm=["penalty"]), "algorithm ['penalty']",
+                 id="make-algorithm=list"),
+    pytest.param(lambda: jf.run(None), "'model'", id="run-model=None"),
+    pytest.param(lambda: jf.run(_tiny_model(), newton="x"), "'newton'", id="run-newton='x'"),
+    pytest.param(lambda: jf.run(_tiny_model(), control=3), "'control'", id="run-control=3"),
+    pytest.param(lambda: jf.StripModel(jf.strip_mesh(**MESH), "steel", (jf.Phase("p", [], n_steps=1),)),
+                 "'material'", id="model-material=str"),
+    pytest.param(lambda: jf.StripModel(None, jf.J2Material(**BEAD), (jf.Phase("p", [], n_steps=1),)),
+                 "'mesh'", id="model-mesh=None"),
 ]
+
+
+def _tiny_model():
+    mesh = jf.strip_mesh(**MESH)
+    return jf.StripModel(mesh, jf.J2Material(**BEAD), (jf.Phase("load", [jf.DirichletBC(mesh.left)], n_steps=2),))
 
 
 @pytest.mark.parametrize("build, field", API_CASES)

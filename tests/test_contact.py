@@ -315,3 +315,33 @@ def test_pairs_on_the_coulomb_cone_count_as_slipping_for_newton():
     assert np.all(law[slipping] == STICK)                      # the law's branch flipped ...
     assert np.all(np.asarray(lin2.status)[slipping] == SLIP)   # ... the convergence test sees no change
     np.testing.assert_allclose(np.asarray(lin2.residual), np.asarray(lin.residual), rtol=0, atol=1e-9)
+
+
+def test_continuation_stages_soften_the_penalty_law_only_and_exactly():
+    """StepControl.continuation: the first stage divides eps_n (and eps_t) by 10^m, m = ceil(log10(eps_n
+    / E)) (4 for 1e9 N/mm on steel, E = 2.1e5 MPa; none at or below E, nor for AL or exact contact), and
+    the last stage (m = 0) is the model's own law bit for bit."""
+    import equinox as eqx
+
+    from jaxfric.scenes import make
+    from jaxfric.simulate import _continuation_stages, _soften
+
+    small = {"mesh": "10x1", "U_draw": 0.5}
+    assert int(_continuation_stages(make("nine", "mu017", "penalty", {**small, "eps_n": 1e9}).model)) == 4
+    assert int(_continuation_stages(make("nine", "mu017", "penalty", {**small, "eps_n": 1e12}).model)) == 7
+    assert int(_continuation_stages(make("nine", "mu017", "penalty", {**small, "eps_n": 1e5}).model)) == 0
+    assert int(_continuation_stages(make("nine", "mu017", "auglag", {**small, "eps_n": 1e9}).model)) == 0
+    assert int(_continuation_stages(make("nine", "mu017", "lcp_ssn", small).model)) == 0
+
+    class Step(eqx.Module):
+        law: Penalty
+
+    class Args(eqx.Module):
+        contact: Step
+
+    args = Args(Step(Penalty(1e9, 1.7e8)))
+    same = _soften(args, 0)
+    assert float(same.contact.law.eps_n) == 1e9 and float(same.contact.law.eps_t) == 1.7e8
+    soft = _soften(args, jnp.array(4))
+    assert float(soft.contact.law.eps_n) == pytest.approx(1e5, rel=1e-15)
+    assert float(soft.contact.law.eps_t) == pytest.approx(1.7e4, rel=1e-15)

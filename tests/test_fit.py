@@ -236,3 +236,109 @@ def test_refined_plan_splits_every_step_and_keeps_phase_ends():
     np.testing.assert_array_equal(r["cutbacks"], [0, 0, 0, 2, 0, 0, 0, 1, 0])
     with pytest.raises(ValueError, match="substeps"):
         fit("flat_die", {"drawing_displacement": [1.0, 2.0], "drawing_force": [1.0, 2.0]}, ["mu"], substeps=0)
+
+
+# ---- refused input: no simulation, no output directory ---------------------------------------------------
+
+GOOD = "drawing_displacement,drawing_force\n0.001,1\n0.002,2\n0.003,3\n0.004,4\n0.005,5\n"
+
+
+class _Started(Exception):
+    """Raised by the stubbed simulation: the input got past validation."""
+
+
+@pytest.fixture
+def no_simulation(monkeypatch):
+    import jaxfric.fit as fit_module
+
+    def refuse(*args, **kwargs):
+        raise _Started("the input reached the simulation")
+
+    monkeypatch.setattr(fit_module, "adaptive_run", refuse)
+
+
+def _csv(tmp_path, content=GOOD, name="m.csv", encoding="utf-8"):
+    path = tmp_path / name
+    path.write_text(content, encoding=encoding)
+    return str(path)
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--param", "mu", "--algorithm", "lcp_ssn"], "'algorithm'"),
+    (["--param", "mu", "--algorithm", "lcp_lemke"], "'algorithm'"),
+    (["--param", "mu", "--window", "1e-12"], "'window'"),
+    (["--param", "mu", "--window", "1e-300"], "'window'"),
+    (["--param", "mu", "--grid", "mu=0:1:1000000000"], "--grid"),
+    (["--param", "mu,E", "--grid", "mu=0:1:1000", "--grid", "E=1:2:1000"], "--grid"),
+    (["--param", "mu", "--bounds", "mu=0:1", "--bounds", "mu=0:2"], "--bounds gives 'mu' twice"),
+    (["--param", "mu", "--grid", "mu=0:1:3", "--grid", "mu=0:1:4"], "--grid gives 'mu' twice"),
+    (["--param", "mu", "--param", "E"], "--param: given twice"),
+    (["--param", "mu", "--window", "1", "--window", "2"], "--window: given twice"),
+    (["--param", "bogus"], "'bogus'"),
+    (["--param", "mu", "--set", "mu=x"], "'mu'"),
+    (["--param", "mu", "--starts", "2"], "'starts'"),
+    (["--param", "mu", "--bounds", "mu=0.5:1"], "'mu'"),
+    (["--param", "mu", "--set", "steady_window=1,2"], "'steady_window'"),
+])
+def test_cli_fit_refuses_before_making_its_directory(no_simulation, tmp_path, capsys, args, needle):
+    out = tmp_path / "fits" / "o"
+    code = main(["fit", *FLAT, "--data", _csv(tmp_path), "--quiet", "--out", str(out), *args])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert needle in err and err.count("\n") == 1 and "Traceback" not in err, err
+    assert not (tmp_path / "fits").exists()
+
+
+def test_cli_fit_refuses_an_out_path_with_a_nul_byte(no_simulation, tmp_path, capsys):
+    code = main(["fit", *FLAT, "--data", _csv(tmp_path), "--quiet", "--param", "mu", "--out", "a\0b"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--out" in err and err.count("\n") == 1, err
+
+
+def test_cli_fit_default_directory_is_made_only_for_valid_input(no_simulation, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    data = _csv(tmp_path)
+    assert main(["fit", *FLAT, "--data", data, "--quiet", "--param", "bogus"]) == 2
+    assert not (tmp_path / "fits").exists()
+    with pytest.raises(_Started):
+        main(["fit", *FLAT, "--data", data, "--quiet", "--param", "mu"])
+    assert (tmp_path / "fits" / "flat_die" / "const_force").is_dir()
+
+
+@pytest.mark.parametrize("content, needle", [
+    ("drawing_displacement,drawing_force,drawing_force\n0.001,1,5\n0.002,2,6\n", "column 'drawing_force' twice"),
+    ("drawing_displacement,drawing_force\n0.001,1e308\n0.002,1e308\n", "'drawing_force'"),
+    ("drawing_displacement,drawing_force\n0.001,1\n1e300,2\n", "'drawing_displacement'"),
+])
+def test_measurements_with_duplicate_columns_or_unphysical_values(tmp_path, content, needle):
+    with pytest.raises(ValueError) as info:
+        read_measurement(_csv(tmp_path, content))
+    assert needle in str(info.value) and "\n" not in str(info.value), str(info.value)
+
+
+def test_measurement_with_a_byte_order_mark(tmp_path):
+    meas = read_measurement(_csv(tmp_path, GOOD, encoding="utf-8-sig"))
+    np.testing.assert_array_equal(meas.force, [1, 2, 3, 4, 5])
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    ({"params": None}, "'params'"),
+    ({"params": [1]}, "'params'"),
+    ({"bounds": "mu"}, "'bounds'"),
+    ({"window": "abc"}, "'window'"),
+    ({"window": [1]}, "'window'"),
+    ({"window": 1e-12}, "'window'"),
+    ({"grid": [1, 2]}, "'grid'"),
+    ({"grid": {"mu": [0.0, 0.1]}, "max_iter": 0}, "'max_iter'"),
+    ({"overrides": [("mu", 0.1)]}, "'overrides'"),
+    ({"xtol": float("nan")}, "'xtol'"),
+    ({"xtol": "a"}, "'xtol'"),
+    ({"xtol": -1.0}, "'xtol'"),
+    ({"newton": "x"}, "'newton'"),
+    ({"algorithm": "lcp_ssn"}, "'algorithm'"),
+])
+def test_fit_api_bad_input_names_the_field(no_simulation, tmp_path, kwargs, field):
+    args = {"params": ["mu"], "overrides": {"mesh": "4x1"}, "progress": False, **kwargs}
+    with pytest.raises((ValueError, TypeError)) as info:
+        fit("flat_die", _csv(tmp_path), args.pop("params"), **args)
+    assert field in str(info.value) and "\n" not in str(info.value), str(info.value)

@@ -294,3 +294,45 @@ def test_newton_stops_at_the_round_off_floor_and_only_there():
     assert int(plain.code) == int(floored.code) == Result.SUCCESS
     assert int(plain.iterations) == int(floored.iterations)
     assert float(floored.residual_norm) <= 1e-8
+
+
+def _offset_linearize(x, args):
+    K, b, X = args
+    from jaxfric.newton import Linearization
+
+    return Linearization(residual=K.matvec(X + x) - b, jacobian=K, scale=jnp.array(1.0), valid=jnp.array(True),
+                         aux=(), magnitude=jnp.abs(X + x))
+
+
+def _offset_residual(x, args):
+    K, b, X = args
+    return K.matvec(X + x) - b, ()
+
+
+@pytest.mark.parametrize("positions", [False, True])
+def test_the_round_off_floor_is_relative_to_the_positions_the_residual_is_computed_from(positions):
+    """R(x) = K (X + x) - K (X + a), as a contact gap is computed from the position X + u: with |X| ~ 1e3,
+    |a| ~ 1e-3 and K ~ 1e9, R is resolved to eps |K| |X| ~ 1e-3 only, while eps |K| |x| is 1e-9. With
+    the displacements as the floor's measure (the default), Newton stagnates above it to its iteration
+    limit; asked to use the positions the linearisation passes (``positions``: the step controller's
+    continuation stages), it stops at a's neighbours."""
+    from jaxfric.linalg import BlockTridiag
+    from jaxfric.newton import newton_solve
+
+    rng = np.random.default_rng(5)
+    nb, m = 12, 4
+    K = BlockTridiag(lower=jnp.asarray(1e9 * rng.standard_normal((nb - 1, m, m))),
+                     diag=jnp.asarray(1e9 * (rng.standard_normal((nb, m, m)) + 4.0 * m * np.eye(m))),
+                     upper=jnp.asarray(1e9 * rng.standard_normal((nb - 1, m, m))))
+    X = jnp.asarray(1e3 * (1.0 + rng.random(nb * m)))
+    a = jnp.asarray(1e-3 * (1.0 + rng.random(nb * m)))
+    args = (K, K.matvec(X + a), X)
+    x0 = jnp.zeros_like(a)
+    sol = newton_solve(args, x0, x0, linearize=_offset_linearize, residual=_offset_residual,
+                       options=jf.NewtonOptions(max_iterations=12), positions=positions)
+    if positions:
+        assert int(sol.code) == Result.SUCCESS and int(sol.iterations) < 6
+        assert float(np.max(np.abs(sol.x - a))) < 1e-11      # a to the resolution of X + a (ulp(2e3) = 2e-13)
+    else:
+        assert int(sol.code) == Result.MAX_ITERATIONS
+        assert 1e-8 < float(sol.residual_norm)

@@ -20,6 +20,7 @@ import typing
 
 from ..mesh import MAX_ELEMENTS
 from . import bead, blankholder, flat_die, nine
+from ._common import check_steady_window
 from .base import ALGORITHMS, Scene, contact_law
 
 __all__ = ["SCENES", "ALGORITHMS", "Scene", "contact_law", "scene_names", "variants", "default_variant",
@@ -32,7 +33,7 @@ _CONFIGS = {"flat_die": flat_die.FlatDieConfig, "bead": bead.BeadConfig, "nine":
 
 
 def _module(name: str):
-    if name not in SCENES:
+    if not isinstance(name, str) or name not in SCENES:
         raise ValueError(f"unknown scene {name!r}; choose one of {', '.join(SCENES)}")
     return SCENES[name]
 
@@ -90,6 +91,8 @@ def parse_mesh(text) -> tuple[int, int]:
             raise ValueError(f"field 'mesh' must read NXxNY with integers (e.g. 300x3), got {text!r}") from None
     if int(nx) != nx or int(ny) != ny or not (1 <= nx <= MAX_ELEMENTS and 1 <= ny <= MAX_ELEMENTS):
         raise ValueError(f"field 'mesh' needs integers in [1, {MAX_ELEMENTS}], got {text!r}")
+    if nx * ny > MAX_ELEMENTS:
+        raise ValueError(f"field 'mesh' = {text!r} gives {int(nx) * int(ny):,} elements, more than {MAX_ELEMENTS:,}")
     return int(nx), int(ny)
 
 
@@ -163,7 +166,7 @@ def make(name: str, variant: str | None = None, algorithm: str = "penalty",
     ``mesh`` -> "NXxNY" sets nx and ny), for ``algorithm`` (one of :data:`ALGORITHMS`)."""
     module = _module(name)
     variant = module.DEFAULT_VARIANT if variant is None else variant
-    if variant not in module.VARIANTS:
+    if not isinstance(variant, str) or variant not in module.VARIANTS:
         raise ValueError(f"unknown variant {variant!r} of scene '{name}'; choose one of "
                          f"{', '.join(module.VARIANTS)}")
     values = dict(module.VARIANTS[variant])
@@ -177,4 +180,8 @@ def make(name: str, variant: str | None = None, algorithm: str = "penalty",
             values["nx"], values["ny"] = parse_mesh(value)
         else:
             values[field] = _coerce(name, field, value)
-    return module.build(config_class(name)(**values), algorithm, variant)
+    config = config_class(name)(**values)
+    scene = module.build(config, algorithm, variant)
+    if "steady_window" in overrides:
+        check_steady_window(config, module.STROKE_FIELD)
+    return scene

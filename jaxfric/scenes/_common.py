@@ -21,7 +21,7 @@ from ..simulate import StepControl, reactions
 from ..tools import GAP_OPEN
 from .base import ALGORITHMS
 
-__all__ = ["spec_field", "check_config", "check_variant", "check_algorithm", "pair_forces",
+__all__ = ["spec_field", "check_config", "check_steady_window", "check_variant", "check_algorithm", "pair_forces",
            "tool_resultants", "contact_columns", "phase_progress", "ContactSnapshot", "n_steps",
            "schedule_entry", "friction_table", "material_dict", "config_dict", "end_reaction",
            "resolve_eps_t", "step_control"]
@@ -44,6 +44,9 @@ MAX_AUGMENTATIONS_DOC = ("auglag: augmentations allowed per step attempt before 
 MAX_STEPS_DOC = ("size of the history buffer in accepted steps; a run that fills it stops (MAX_STEPS). "
                  "None: 10x the nominal step count + 200 [chosen]")
 MAX_NOMINAL_STEPS = 1_000_000  # per phase: an increment that needs more is a typo, not a study
+# A dimension of the sheet or a tool beyond 1 km is a typo; far beyond it the tool chains no longer close
+# in float64 (an edge radius of 1e300 mm next to a 1 mm sheet) and derived lengths overflow.
+MAX_LENGTH = 1e6  # mm
 
 
 def _bad(field: str, value, why: str) -> ValueError:
@@ -59,7 +62,7 @@ def _number(field: str, value) -> float:
     return v
 
 
-def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=None) -> None:
+def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=None, lengths=()) -> None:
     """Validate the common fields of a scene config; every error names the field.
 
     Args:
@@ -68,6 +71,8 @@ def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=No
         nonnegative: names of fields that must be finite and >= 0 (None allowed).
         integers: names of fields that must be integers >= 1 (None allowed).
         choices: {field: allowed values} for string fields.
+        lengths: names of the geometry's fields (mm) that must be finite with |value| <= MAX_LENGTH
+            (None allowed).
     """
     for name in positive:
         v = getattr(config, name)
@@ -81,6 +86,10 @@ def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=No
         v = getattr(config, name)
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1):
             raise _bad(name, v, "it must be an integer >= 1")
+    for name in lengths:
+        v = getattr(config, name)
+        if v is not None and not abs(_number(name, v)) <= MAX_LENGTH:
+            raise _bad(name, v, f"a length of the geometry must be at most {MAX_LENGTH:g} mm")
     for name, allowed in (choices or {}).items():
         v = getattr(config, name)
         if v not in allowed:
@@ -108,14 +117,23 @@ def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=No
         raise _bad("steady_window", window, "it must be a pair (a, b) with a < b (mm)")
 
 
+def check_steady_window(config, stroke: str) -> None:
+    """A steady window given by the user must lie within the drawing stroke [0, config.<stroke>] (a
+    default window beyond a shortened stroke leaves the run without a steady force, reported as such)."""
+    (a, b), end = config.steady_window, getattr(config, stroke)
+    if not 0.0 <= a < b <= end:
+        raise _bad("steady_window", config.steady_window, f"it must lie within the drawing stroke [0, {end:g}] mm "
+                                                          f"({stroke})")
+
+
 def check_variant(scene: str, variants: dict, variant: str) -> None:
-    if variant not in variants:
+    if not isinstance(variant, str) or variant not in variants:
         raise ValueError(f"unknown variant {variant!r} of scene '{scene}'; choose one of "
                          f"{', '.join(variants)}")
 
 
 def check_algorithm(algorithm: str) -> None:
-    if algorithm not in ALGORITHMS:
+    if not isinstance(algorithm, str) or algorithm not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {algorithm!r}; choose one of {', '.join(ALGORITHMS)}")
 
 

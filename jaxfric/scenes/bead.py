@@ -53,6 +53,7 @@ NAME = "bead"
 DEFAULT_VARIANT = "th090_mu017"
 # Config fields of the nominal increments (a float: an increment; an int: a phase's step count).
 STEP_FIELDS = ("n_clamp", "dtheta", "ds")
+STROKE_FIELD = "s_draw"  # the drawing stroke: steady_window lies in [0, s_draw]
 PHASES = ("clamp", "wind", "draw")
 TOOLS = ("die_up", "die_lo", "roller")
 INSTANTS = ("clamped", "folded", "drawing", "final")
@@ -146,9 +147,9 @@ class BeadObserve(eqx.Module):
 
 
 def _check(config: BeadConfig) -> None:
-    cm.check_config(config, positive=("t", "R_r", "r_e", "F_clamp", "dtheta", "ds"),
-                    nonnegative=("mu_clamp", "mu_roller", "theta", "s_draw"),
-                    integers=("nx", "ny", "band", "n_clamp"))
+    cm.check_config(config, positive=("t", "R_r", "r_e", "F_clamp", "s_draw", "dtheta", "ds"),
+                    nonnegative=("mu_clamp", "mu_roller", "theta"), integers=("nx", "ny", "band", "n_clamp"),
+                    lengths=("x_left", "x_right", "t", "R_r", "x_clamp_left", "x_clamp_right", "r_e", "x_jaw"))
     if not config.x_right > config.x_left:
         raise ValueError(f"config field 'x_right' = {config.x_right!r} must exceed x_left = {config.x_left!r}")
     if not config.x_clamp_left < config.x_clamp_right:

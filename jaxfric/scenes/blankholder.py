@@ -81,6 +81,7 @@ NAME = "blankholder"
 DEFAULT_VARIANT = "shape1"
 # Config fields of the nominal increments (a float: an increment; an int: a phase's step count).
 STEP_FIELDS = ("ds_close", "n_lock", "dU")
+STROKE_FIELD = "U_pull"  # the drawing stroke: steady_window lies in [0, U_pull]
 PHASES = ("close", "lock", "draw")
 TOOLS = ("upper", "lower")
 INSTANTS = ("closed", "locked", "drawing", "final")
@@ -193,10 +194,12 @@ class BlankholderObserve(eqx.Module):
 
 
 def _check(config: BlankholderConfig) -> None:
-    cm.check_config(config, positive=("H", "R", "r", "Rp", "L", "t", "r_e", "element_length", "ds_close", "dU"),
-                    nonnegative=("mu", "F_clamp", "U_pull", "upstream_margin", "grip_length", "land_margin",
-                                 "clearance"),
-                    integers=("nx", "ny", "band", "n_lock", "newton_iterations"), choices={"lock_control": ("force", "position")})
+    cm.check_config(config, positive=("H", "R", "r", "Rp", "L", "t", "r_e", "element_length", "U_pull", "ds_close",
+                                      "dU"),
+                    nonnegative=("mu", "F_clamp", "upstream_margin", "grip_length", "land_margin", "clearance"),
+                    integers=("nx", "ny", "band", "n_lock", "newton_iterations"), choices={"lock_control": ("force", "position")},
+                    lengths=("H", "R", "r", "Rp", "L", "t", "r_e", "x_left", "x_right", "upstream_margin",
+                             "grip_length", "land_margin", "clearance"))
     if config.R > config.H:
         raise ValueError(f"config field 'R' = {config.R!r} must not exceed H = {config.H!r} (the nose sits "
                          "on flanks of height H - R)")

@@ -41,6 +41,7 @@ NAME = "flat_die"
 DEFAULT_VARIANT = "const_force"
 # Config fields of the nominal increments (a float: an increment; an int: a phase's step count).
 STEP_FIELDS = ("dU_fine", "dU", "n_clamp")
+STROKE_FIELD = "U_draw"  # the drawing stroke: steady_window lies in [0, U_draw]
 PHASES = ("clamp", "draw")
 TOOLS = ("die",)
 INSTANTS = ("clamped", "intermediate", "sliding", "final")
@@ -110,9 +111,9 @@ class FlatDieObserve(eqx.Module):
 
 
 def _check(config: FlatDieConfig) -> None:
-    cm.check_config(config, positive=("L", "h", "die_overhang", "U_fine", "dU_fine", "dU"),
-                    nonnegative=("mu", "F_clamp", "U_draw"), integers=("nx", "ny", "band", "n_clamp"),
-                    choices={"draw_control": ("force", "position")})
+    cm.check_config(config, positive=("L", "h", "die_overhang", "U_draw", "U_fine", "dU_fine", "dU"),
+                    nonnegative=("mu", "F_clamp"), integers=("nx", "ny", "band", "n_clamp"),
+                    choices={"draw_control": ("force", "position")}, lengths=("L", "h", "die_overhang"))
 
 
 def _draw_increments(config: FlatDieConfig) -> tuple:

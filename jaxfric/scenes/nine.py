@@ -60,6 +60,7 @@ NAME = "nine"
 DEFAULT_VARIANT = "mu017"
 # Config fields of the nominal increments (a float: an increment; an int: a phase's step count).
 STEP_FIELDS = ("dq_clamp", "dU")
+STROKE_FIELD = "U_draw"  # the drawing stroke: steady_window lies in [0, U_draw]
 PHASES = ("clamp", "draw")
 TOOLS = ("A", "B", "C", "D", "E")
 INSTANTS = ("clamped", "steady", "final")
@@ -135,8 +136,9 @@ class NineObserve(eqx.Module):
 
 
 def _check(config: NineConfig) -> None:
-    cm.check_config(config, positive=("t", "R1", "R2", "L1", "dq_clamp", "dU"),
-                    nonnegative=("mu", "mu_guides", "stroke", "U_draw", "L2", "L3"), integers=("nx", "ny", "band"))
+    cm.check_config(config, positive=("t", "R1", "R2", "L1", "U_draw", "dq_clamp", "dU"),
+                    nonnegative=("mu", "mu_guides", "stroke", "L2", "L3"), integers=("nx", "ny", "band"),
+                    lengths=("x_left", "x_right", "t", "R1", "R2", "L1", "L2", "L3"))
     if not config.x_right > config.x_left:
         raise ValueError(f"config field 'x_right' = {config.x_right!r} must exceed x_left = {config.x_left!r}")
 
