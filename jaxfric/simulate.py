@@ -707,8 +707,11 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
                      n_easy=jnp.where(grow, 0, n_easy), cuts=jnp.where(ok, 0, c.cuts + 1),
                      iters=jnp.where(ok, 0, iters), stats=jnp.where(ok, 0, stats), history=history, code=code,
                      failed_t=jnp.where(ok, c.failed_t, t_try),
-                     r_norm=jnp.where(too_small & c.plain, c.r_norm, sol.residual_norm),
-                     plain=~ok & (c.plain | plain), last_code=sol.code.astype(jnp.int32),
+                     # (A continuation stage leaves both: a run that stops reports the attempt before
+                     # the stages, at the model's own law, not one of the softened problems.)
+                     r_norm=jnp.where((too_small & c.plain) | (c.soft >= 0), c.r_norm, sol.residual_norm),
+                     plain=~ok & (c.plain | plain),
+                     last_code=jnp.where(c.soft >= 0, c.last_code, sol.code).astype(jnp.int32),
                      soft=jnp.where(start_soft, n_stages, jnp.where(stage_done, c.soft - 1, -1)).astype(jnp.int32),
                      soft_tried=~ok & (c.soft_tried | soft_failed),
                      stage_u=jnp.where(stage_done, new_state.u, c.stage_u),
