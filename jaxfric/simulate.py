@@ -167,13 +167,19 @@ class StepControl(eqx.Module):
             eps_n and eps_t divided by 10^m, then by 10^(m-1), ..., each stage starting from the last
             one's solution, the last one at the true penalties (m = ceil(log10(eps_n / E)), so the
             first stage has a penalty of the order of the sheet's modulus E; none when eps_n <= E).
-            A stage's solution is only a starting point: the step is accepted, as any other, when
-            Newton converges at the true penalties. In the stages Newton's round-off floor is taken
-            relative to the positions X + u, from which the gaps are computed (:mod:`jaxfric.newton`).
+            A stage's solution is only a starting point: the step is accepted when Newton converges
+            at the true penalties (the last stage). In the stages, the last included, Newton's
+            round-off floor is taken relative to the positions X + u, from which the gaps are
+            computed (:mod:`jaxfric.newton`), instead of the displacements: a looser test than other
+            steps get, and only where the step would otherwise stop the run.
             The stages count as attempts in the step's ``cutbacks``. Why: at a stiff penalty (1e9 N/mm on the Nine's cylinders) a pair touching a
             curved tool 2-cycles between open (the free node is driven 1e-4 mm into the tool) and
             closed at a spurious force of 1e4 N/mm (whose geometric stiffness throws it out again);
             from the softer problem's solution the pair arrives closed with about its true force.
+            The forward-mode derivative of such a step is that of its converged solution, as for any
+            step; but a fixed-step replay (:func:`simulate_fixed`, behind reverse mode and
+            ``jaxfric.fit``'s replays) has no stages, so it fails at a step the adaptive run accepted
+            only after them.
     """
 
     max_cuts: int = eqx.field(static=True, default=10)
@@ -451,9 +457,10 @@ def _softenable(model: StripModel) -> bool:
 def _continuation_stages(model: StripModel) -> jax.Array:
     """() int32: m = ceil(log10(eps_n / E)) clipped to [0, 12], the first stage's penalty divisor
     10^m (:class:`StepControl`); 0 when the law cannot be softened."""
-    if not _softenable(model):
+    E = getattr(model.material, "E", None)   # the sheet's stiffness scale (a law without one: no stages)
+    if not _softenable(model) or E is None:
         return jnp.array(0, jnp.int32)
-    m = jnp.ceil(jnp.log10(model.contact.eps_n / model.material.E))
+    m = jnp.ceil(jnp.log10(model.contact.eps_n / E))
     return jnp.clip(jnp.nan_to_num(m), 0, 12).astype(jnp.int32)
 
 
@@ -707,11 +714,11 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
                      n_easy=jnp.where(grow, 0, n_easy), cuts=jnp.where(ok, 0, c.cuts + 1),
                      iters=jnp.where(ok, 0, iters), stats=jnp.where(ok, 0, stats), history=history, code=code,
                      failed_t=jnp.where(ok, c.failed_t, t_try),
-                     # (A continuation stage leaves both: a run that stops reports the attempt before
-                     # the stages, at the model's own law, not one of the softened problems.)
-                     r_norm=jnp.where((too_small & c.plain) | (c.soft >= 0), c.r_norm, sol.residual_norm),
+                     # (A continuation stage that does not end the step leaves both: a run that stops
+                     # reports the attempt before the stages, not one of the softened problems.)
+                     r_norm=jnp.where((too_small & c.plain) | ((c.soft >= 0) & ~ok), c.r_norm, sol.residual_norm),
                      plain=~ok & (c.plain | plain),
-                     last_code=jnp.where(c.soft >= 0, c.last_code, sol.code).astype(jnp.int32),
+                     last_code=jnp.where((c.soft >= 0) & ~ok, c.last_code, sol.code).astype(jnp.int32),
                      soft=jnp.where(start_soft, n_stages, jnp.where(stage_done, c.soft - 1, -1)).astype(jnp.int32),
                      soft_tried=~ok & (c.soft_tried | soft_failed),
                      stage_u=jnp.where(stage_done, new_state.u, c.stage_u),
