@@ -624,7 +624,7 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     def body(c: _Loop) -> _Loop:
         t_try, phase, guess = setup(c)
         sol, new_state = solve_step(model, c.state, phase, t_try, newton, ctx, guess=guess, search=~c.plain,
-                                    soften=c.soft)
+                                    soften=c.soft if control.continuation else None)
         return finish(c, sol, new_state, t_try)
 
     out = jax.lax.while_loop(lambda c: c.code == Result.CONTINUE, body, init)
@@ -644,14 +644,17 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
     n_buf = control.max_steps or 10 * sched.n_nominal_steps + 100
     state0 = initial_state(model)
     int0 = jnp.array(0, jnp.int32)
-    n_stages = _continuation_stages(model) if control.continuation else int0
+    # Static: only a penalty model carries (and compiles) the continuation's state and logic; for the
+    # other laws the loop is the one without it.
+    soft_on = control.continuation and _softenable(model)
+    n_stages = _continuation_stages(model) if soft_on else int0
 
     def setup(c: _Loop):
         t_start, dt_nom, end = c.state.time, seg_dt[c.seg], seg_end[c.seg]
         # Snap to the segment end when within round-off of it (steps end exactly on breakpoints).
         t_try = jnp.where(t_start + c.dt >= end - 1e-9 * dt_nom, end, t_start + c.dt)
         u, q = c.predictor.guess(c.state, t_try - t_start, seg_phase[c.seg], retry=c.cuts > 0)
-        guess = (jnp.where(c.staged, c.stage_u, u), jnp.where(c.staged, c.stage_q, q))
+        guess = (jnp.where(c.staged, c.stage_u, u), jnp.where(c.staged, c.stage_q, q)) if soft_on else (u, q)
         return t_try, seg_phase[c.seg], guess
 
     def finish(c: _Loop, sol, new_state, t_try) -> _Loop:
@@ -659,7 +662,7 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
         converged = sol.code == Result.SUCCESS
         # A converged continuation stage before the last gives the next stage's start, not a step.
         stage_done = converged & (c.soft > 0)
-        ok = converged & (c.soft <= 0)
+        ok = converged & (c.soft <= 0) if soft_on else converged
         iters = c.iters + sol.iterations
         stats = c.stats + sol.stats
         row = c.history.n_rows
@@ -694,11 +697,19 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
         # (Exact contact has no line search to switch off: no such attempt.)
         # Before that, the penalty law's continuation (StepControl.continuation): stages of softened
         # penalties, each from the last one's solution; a stage that fails ends it.
-        start_soft = at_floor & ~again & ~c.plain & (c.soft < 0) & ~c.soft_tried & (n_stages > 0)
-        soft_failed = (c.soft >= 0) & ~converged
         searched = not isinstance(model.contact, Complementarity)
-        plain = at_floor & ~again & ~c.plain & searched & ~start_soft & ~stage_done
-        too_small = at_floor & ~again & ~plain & ~start_soft & ~stage_done
+        plain = at_floor & ~again & ~c.plain & searched
+        too_small = at_floor & ~again & ~plain
+        repeat = again | plain
+        if soft_on:
+            start_soft = at_floor & ~again & ~c.plain & (c.soft < 0) & ~c.soft_tried & (n_stages > 0)
+            soft_failed = (c.soft >= 0) & ~converged
+            plain = plain & ~start_soft & ~stage_done
+            too_small = at_floor & ~again & ~plain & ~start_soft & ~stage_done
+            repeat = again | plain | start_soft | stage_done
+            # A stage that does not end the step leaves r_norm and last_code: a run that stops after
+            # the stages reports the attempt before them, not one of the softened problems.
+            held = (c.soft >= 0) & ~ok
         finished = seg_done & (c.seg == n_seg - 1)
         full = ok & ~finished & (row + 1 >= n_buf + 1)
         code = jnp.select([too_small, finished, full], [jnp.where(c.plain, c.last_code, sol.code),
@@ -707,30 +718,33 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
         if progress or snapshot is not None:
             jax.lax.cond(ok, lambda: _report(row, t_try, iters, c.cuts, snapshot, model, new_state),
                          lambda: None)
+        keep_r = too_small & c.plain
+        stages = dict(soft=c.soft, soft_tried=c.soft_tried, stage_u=c.stage_u, stage_q=c.stage_q, staged=c.staged)
+        last_code = sol.code
+        if soft_on:
+            keep_r = keep_r | held
+            last_code = jnp.where(held, c.last_code, sol.code)
+            stages = dict(soft=jnp.where(start_soft, n_stages, jnp.where(stage_done, c.soft - 1, -1)).astype(jnp.int32),
+                          soft_tried=~ok & (c.soft_tried | soft_failed),
+                          stage_u=jnp.where(stage_done, new_state.u, c.stage_u),
+                          stage_q=jnp.where(stage_done, _tool_q(new_state), c.stage_q), staged=stage_done)
         return _Loop(state=_select(ok, new_state, c.state),
                      predictor=c.predictor.after(ok, c.state, new_state),
-                     dt=jnp.where(ok, dt_ok, jnp.where(again | plain | start_soft | stage_done, t_try - t_start,
-                                                       dt_cut)), seg=next_seg,
+                     dt=jnp.where(ok, dt_ok, jnp.where(repeat, t_try - t_start, dt_cut)), seg=next_seg,
                      n_easy=jnp.where(grow, 0, n_easy), cuts=jnp.where(ok, 0, c.cuts + 1),
                      iters=jnp.where(ok, 0, iters), stats=jnp.where(ok, 0, stats), history=history, code=code,
                      failed_t=jnp.where(ok, c.failed_t, t_try),
-                     # (A continuation stage that does not end the step leaves both: a run that stops
-                     # reports the attempt before the stages, not one of the softened problems.)
-                     r_norm=jnp.where((too_small & c.plain) | ((c.soft >= 0) & ~ok), c.r_norm, sol.residual_norm),
-                     plain=~ok & (c.plain | plain),
-                     last_code=jnp.where((c.soft >= 0) & ~ok, c.last_code, sol.code).astype(jnp.int32),
-                     soft=jnp.where(start_soft, n_stages, jnp.where(stage_done, c.soft - 1, -1)).astype(jnp.int32),
-                     soft_tried=~ok & (c.soft_tried | soft_failed),
-                     stage_u=jnp.where(stage_done, new_state.u, c.stage_u),
-                     stage_q=jnp.where(stage_done, _tool_q(new_state), c.stage_q), staged=stage_done)
+                     r_norm=jnp.where(keep_r, c.r_norm, sol.residual_norm),
+                     plain=~ok & (c.plain | plain), last_code=last_code.astype(jnp.int32), **stages)
 
     init = _Loop(state=state0, predictor=_Predictor.empty(state0),
                  dt=seg_dt[0], seg=int0, n_easy=int0, cuts=int0, iters=int0, stats=jnp.zeros(3, jnp.int32),
                  history=_empty_history(n_buf + 1, observe(model, state0)),
                  code=jnp.array(Result.CONTINUE, jnp.int32), failed_t=jnp.array(jnp.nan),
                  r_norm=jnp.array(0.0), plain=jnp.array(False), last_code=int0,
-                 soft=jnp.array(-1, jnp.int32), soft_tried=jnp.array(False), stage_u=jnp.zeros_like(state0.u),
-                 stage_q=jnp.zeros_like(_tool_q(state0)), staged=jnp.array(False))
+                 soft=jnp.array(-1, jnp.int32), soft_tried=jnp.array(False),
+                 stage_u=jnp.zeros_like(state0.u) if soft_on else jnp.zeros((0, 2)),
+                 stage_q=jnp.zeros_like(_tool_q(state0)) if soft_on else jnp.zeros(0), staged=jnp.array(False))
     return init, setup, finish
 
 
@@ -753,6 +767,7 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
                          "and exact contact have loops of their own inside a step)")
     ctx = _Context.build(model)
     init, setup, finish = _controller(model, control, observe, False, None)
+    soft_on = control.continuation and _softenable(model)
 
     def attempt(c: _Loop):
         """The next attempt of ``c``: its target time, phase and Newton start."""
@@ -762,10 +777,11 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     def body(carry):
         c, t_try, phase, nc = carry
         args, q_start, f_start = _step_args(model, c.state, phase, t_try, ctx)
-        if _softenable(model):
+        if soft_on:
             args = _soften(args, jnp.maximum(c.soft, 0))
         x_ref = _unknowns(model, c.state.u, _tool_q(c.state))
-        nc = newton_pass(nc, args, x_ref, linearize, newton, search=~c.plain, positions=c.soft >= 0)
+        nc = newton_pass(nc, args, x_ref, linearize, newton, search=~c.plain,
+                         positions=(c.soft >= 0) if soft_on else False)
         done = nc.code != Result.CONTINUE
         sol = StepSolution(*newton_result(nc), augmentations=jnp.array(0, jnp.int32),
                            stats=jnp.zeros(3, jnp.int32))

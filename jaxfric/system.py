@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .assembly import internal_force, internal_force_and_tangent
-from .contact import ContactStep, evaluate_pairs, pair_mu, pair_nodes, tool_forces
+from .contact import ContactStep, Penalty, evaluate_pairs, pair_mu, pair_nodes, tool_forces
 from .contact_laws import SLIP
 from .tools import GAP_OPEN
 from .element import ElementGeometry
@@ -195,9 +195,10 @@ def linearize(x, args: StepArgs) -> Linearization:
     # spec mesh stopped at step 4 of 'close' (Newton iteration limit, 10 cutbacks); without them it runs
     # to the end (1983 steps, 17150 iterations, 131 cutbacks).
     # Round-off of the residual (Newton's floor, where the caller asks for it: jaxfric.newton): the
-    # contact gaps are computed from the positions X + u, so with tools it is relative to those.
+    # contact gaps are computed from the positions X + u, so with tools it is relative to those. Only
+    # the penalty law's continuation stages ask (jaxfric.simulate.StepControl); no other law traces it.
     magnitude = None
-    if contact is not None:
+    if contact is not None and type(args.contact.law) is Penalty:
         n = args.mesh.n_dofs
         magnitude = jnp.concatenate([jnp.abs(args.mesh.nodes.reshape(-1) + x[:n]), jnp.abs(x[n:])])
     return Linearization(R, J, jnp.max(jnp.abs(a.f_int)), a.det_min > 0.0,
