@@ -13,7 +13,7 @@ from .material import J2Material, MaterialState, von_mises  # noqa: E402
 from .mesh import StripMesh, graded_coordinates, strip_mesh  # noqa: E402
 from .newton import NewtonOptions  # noqa: E402
 from .results import Result, SimulationError  # noqa: E402
-from .run import RunResult, run  # noqa: E402
+from .run import MemoryBudgetError, RunResult, run  # noqa: E402
 from .simulate import (SimState, Simulation, StepControl, StripModel, default_observe,  # noqa: E402
                        initial_state, linearize_step, reactions, simulate, simulate_flat, simulate_fixed,
                        solve_step, stresses)
@@ -25,7 +25,7 @@ __all__ = [
     "Affine", "DirichletBC", "Motion", "Phase", "Ramp", "RigidMotion",
     "J2Material", "MaterialState", "von_mises",
     "StripMesh", "graded_coordinates", "strip_mesh",
-    "NewtonOptions", "Result", "SimulationError", "RunResult", "run",
+    "NewtonOptions", "Result", "SimulationError", "MemoryBudgetError", "RunResult", "run",
     "SimState", "Simulation", "StepControl", "StripModel", "default_observe", "initial_state",
     "simulate", "simulate_flat", "simulate_fixed", "solve_step", "stresses", "linearize_step", "reactions",
 ]

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
 
 __all__ = ["main", "build_parser", "UsageError"]
@@ -242,19 +243,36 @@ def _writable_dir(out: str) -> None:
         raise UsageError(f"--out {out!r} is not a valid path: {err}") from None
 
 
+def _first_missing(path: str) -> str | None:
+    """The outermost directory of ``path`` that does not exist yet (None if ``path`` exists)."""
+    path = os.path.abspath(path)
+    if os.path.exists(path):
+        return None
+    while not os.path.exists(os.path.dirname(path)) and os.path.dirname(path) != path:
+        path = os.path.dirname(path)
+    return path
+
+
 def _run(args) -> int:
     scene = _build(args)
     from . import output
-    from .run import run
+    from .run import MemoryBudgetError, run
 
     if args.error_estimate == "sensitivity" and scene.algorithm != "penalty":
         raise UsageError(f"--error-estimate sensitivity applies to algorithm penalty, not {scene.algorithm}")
 
     out = os.path.join("runs", scene.name, scene.variant, scene.algorithm) if args.out is None else args.out
+    created = _first_missing(out)
     _writable_dir(out)
     label = f"{scene.name}/{scene.variant}/{scene.algorithm} "
-    result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
-                 progress=not args.quiet, raise_on_failure=False, label=label)
+    try:
+        result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                     snapshot=scene.snapshot, progress=not args.quiet, raise_on_failure=False, label=label)
+    except MemoryBudgetError as err:
+        # Refused before it started: remove the directories made for it, if still empty.
+        if created is not None and not any(files for _, _, files in os.walk(created)):
+            shutil.rmtree(created, ignore_errors=True)
+        raise UsageError(str(err)) from None
     tangent = None
     if args.error_estimate == "sensitivity" and result.converged:
         from .accuracy import penalty_tangent

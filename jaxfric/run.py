@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from typing import Callable
 
@@ -17,7 +18,61 @@ from .results import Result, SimulationError, describe
 from .simulate import (Simulation, StepControl, StripModel, default_observe, initial_state, simulate,
                        simulate_fixed)
 
-__all__ = ["RunResult", "run"]
+__all__ = ["RunResult", "run", "MemoryBudgetError", "available_memory"]
+
+
+class MemoryBudgetError(ValueError):
+    """The compiled run needs more memory than the machine has available (raised before it starts)."""
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation now (Linux ``MemAvailable``; else the free
+    physical pages), or None where neither can be read."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def check_memory(compiled, model: StripModel, available: int | None = None) -> int | None:
+    """Refuse a run whose compiled program needs more memory than is available, before it allocates.
+
+    The need is XLA's own account of the compiled program (``memory_analysis()``: its arguments,
+    outputs, with the history buffers, and temporary buffers, with the Jacobian's blocks, which grow
+    as nx (ny + 1)^2). Checked on the CPU only (an accelerator's runtime reports its own out-of-memory
+    error); ``available`` defaults to :func:`available_memory`. Returns the bytes needed (None if XLA
+    gives no account).
+
+    Raises:
+        MemoryBudgetError: naming the mesh, when the need exceeds what is available.
+    """
+    try:
+        # equinox's filter_jit wraps JAX's compiled object as ``.compiled``
+        analysis = getattr(compiled, "compiled", compiled).memory_analysis()
+    except Exception:  # noqa: BLE001 - an account some backends do not give
+        return None
+    if analysis is None:
+        return None
+    need = int(analysis.temp_size_in_bytes + analysis.argument_size_in_bytes + analysis.output_size_in_bytes)
+    if jax.default_backend() != "cpu":
+        return need
+    available = available_memory() if available is None else available
+    if available is not None and need > available:
+        mesh = model.mesh
+        raise MemoryBudgetError(
+            f"field 'mesh': the run at {mesh.nx}x{mesh.ny} needs about {need / 2**30:.3g} GiB of memory "
+            f"(XLA's account of the compiled program: the Jacobian's {mesh.nx + 1} blocks of "
+            f"{2 * (mesh.ny + 1)}x{2 * (mesh.ny + 1)}, the work arrays and the history buffers), more than the "
+            f"{available / 2**30:.3g} GiB available; use a coarser mesh (fewer elements through the thickness "
+            f"first: the memory grows with their square)")
+    return need
 
 
 @dataclasses.dataclass
@@ -87,7 +142,9 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     ``raise_on_failure=False``). ``snapshot(model, state) -> pytree`` (a module-level function) is
     evaluated at every accepted step and kept on the host in ``RunResult.snapshots``. ``adaptive``
     False runs the nominal steps without cutting (:func:`~jaxfric.simulate.simulate_fixed`) instead
-    of the adaptive controller (:func:`~jaxfric.simulate.simulate`).
+    of the adaptive controller (:func:`~jaxfric.simulate.simulate`). A run that would need more memory
+    than is available raises :class:`MemoryBudgetError` after compiling, before it starts
+    (:func:`check_memory`).
     """
     for name, value, kind in (("model", model, StripModel), ("newton", newton, NewtonOptions),
                               ("control", control, StepControl)):
@@ -100,6 +157,7 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     t0 = time.perf_counter()
     compiled = _compiled(model, newton, control, observe, snapshot, adaptive)
     compile_s = time.perf_counter() - t0
+    check_memory(compiled, model)
     with ProgressMonitor(total_time=model.n_phases, show=progress, label=label) as monitor:
         t1, c1 = time.perf_counter(), time.process_time()
         sim = jax.block_until_ready(compiled(model))

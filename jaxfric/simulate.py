@@ -454,6 +454,12 @@ def _softenable(model: StripModel) -> bool:
         model.contact, AugmentedLagrangian)
 
 
+def _continuation_on(model: StripModel, control: StepControl) -> bool:
+    """Static: the load loop carries (and compiles) the continuation's stages: asked for, and a law
+    that can be softened."""
+    return control.continuation and _softenable(model)
+
+
 def _continuation_stages(model: StripModel) -> jax.Array:
     """() int32: m = ceil(log10(eps_n / E)) clipped to [0, 12], the first stage's penalty divisor
     10^m (:class:`StepControl`); 0 when the law cannot be softened."""
@@ -646,7 +652,7 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
     int0 = jnp.array(0, jnp.int32)
     # Static: only a penalty model carries (and compiles) the continuation's state and logic; for the
     # other laws the loop is the one without it.
-    soft_on = control.continuation and _softenable(model)
+    soft_on = _continuation_on(model, control)
     n_stages = _continuation_stages(model) if soft_on else int0
 
     def setup(c: _Loop):
@@ -660,8 +666,6 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
     def finish(c: _Loop, sol, new_state, t_try) -> _Loop:
         t_start, dt_nom, end = c.state.time, seg_dt[c.seg], seg_end[c.seg]
         converged = sol.code == Result.SUCCESS
-        # A converged continuation stage before the last gives the next stage's start, not a step.
-        stage_done = converged & (c.soft > 0)
         ok = converged & (c.soft <= 0) if soft_on else converged
         iters = c.iters + sol.iterations
         stats = c.stats + sol.stats
@@ -702,6 +706,8 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
         too_small = at_floor & ~again & ~plain
         repeat = again | plain
         if soft_on:
+            # A converged continuation stage before the last gives the next stage's start, not a step.
+            stage_done = converged & (c.soft > 0)
             start_soft = at_floor & ~again & ~c.plain & (c.soft < 0) & ~c.soft_tried & (n_stages > 0)
             soft_failed = (c.soft >= 0) & ~converged
             plain = plain & ~start_soft & ~stage_done
@@ -767,7 +773,7 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
                          "and exact contact have loops of their own inside a step)")
     ctx = _Context.build(model)
     init, setup, finish = _controller(model, control, observe, False, None)
-    soft_on = control.continuation and _softenable(model)
+    soft_on = _continuation_on(model, control)
 
     def attempt(c: _Loop):
         """The next attempt of ``c``: its target time, phase and Newton start."""

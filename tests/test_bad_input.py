@@ -421,3 +421,29 @@ def test_string_false_does_not_silently_mean_true():
         assert "'entry_guide'" in str(err) and "\n" not in str(err)
     else:
         assert scene.config.entry_guide is False, repr(scene.config.entry_guide)
+
+
+# ---- a mesh within the limits but too large for this machine's memory --------------------------------
+
+def test_a_run_that_needs_more_memory_than_available_is_refused_before_it_starts(tmp_path, capsys, monkeypatch):
+    """XLA's account of the compiled program is checked against the available memory: the command line
+    gives one line naming the mesh and leaves no run directory; the API raises MemoryBudgetError."""
+    monkeypatch.setattr(RUN_MODULE, "available_memory", lambda: 1)   # one byte: any run is too large
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "out" / "run1"
+    line = cli_error(capsys, ["run", "flat_die", *TINY, "--quiet", "--out", str(out)])
+    assert "field 'mesh'" in line and "4x1" in line and "GiB" in line, line
+    assert not (tmp_path / "out").exists()
+    assert list(tmp_path.iterdir()) == []
+
+    scene = scenes.make("flat_die", overrides={"mesh": "4x1"})
+    with pytest.raises(jf.MemoryBudgetError, match="field 'mesh'") as info:
+        jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+               snapshot=scene.snapshot, progress=False)
+    assert "\n" not in str(info.value)
+    compiled = RUN_MODULE._compiled(scene.model, scene.newton, scene.control, scene.observe, scene.snapshot, True)
+    need = RUN_MODULE.check_memory(compiled, scene.model, available=2**50)   # plenty: the need, no error
+    assert need is not None and 0 < need < 2**30
+    with pytest.raises(jf.MemoryBudgetError):
+        RUN_MODULE.check_memory(compiled, scene.model, available=need - 1)
+    RUN_MODULE.check_memory(compiled, scene.model, available=need)
