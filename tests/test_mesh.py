@@ -49,6 +49,35 @@ def test_tangent_is_block_tridiagonal_and_matches_dense_jacobian():
     assert float(jnp.max(a.states.eqps)) > 0  # the point is plastic: the tangent is the consistent one
 
 
+@pytest.mark.parametrize("n_chunks", [1, 2, 3])
+def test_element_chunks_hold_one_copy_of_the_element_code_and_give_the_same_values(n_chunks):
+    """11 elements in chunks of 11 // c (padded to equal chunks): the values of one vmap over all of
+    them, and one element evaluation in the traced program (``lax.map`` would evaluate a remainder
+    that is not a whole chunk with a second copy: two return-mapping loops instead of one)."""
+    from jaxfric import assembly
+
+    mesh = jf.strip_mesh(0.0, 11.0, 0.0, 1.0, nx=11, ny=1)
+    material = jf.J2Material(E=1000.0, nu=0.3, sigma_y=1.0, A=10.0, n=0.5)
+    model = jf.StripModel(mesh, material, (jf.Phase("p", [jf.DirichletBC(mesh.left)]),))
+    geo = mesh_geometry(mesh)
+    states = initial_state(model).material
+    u = 0.05 * jax.random.normal(jax.random.PRNGKey(1), (mesh.n_nodes, 2))
+
+    def traced(chunk):
+        def assemble(v):   # a new function per setting: JAX reuses a function's trace
+            return internal_force_and_tangent(mesh, material, "fbar", geo, v, states)
+
+        with assembly.element_chunk(chunk):
+            return jax.jit(assemble)(u), str(jax.make_jaxpr(assemble)(u)).count("while[")
+
+    whole, loops_one = traced(1000)   # one chunk of all 11
+    chunked, loops = traced(11 // n_chunks)
+    assert loops_one >= 1 and loops == loops_one, (loops, loops_one)
+    for a, b in zip(jax.tree_util.tree_leaves(chunked), jax.tree_util.tree_leaves(whole)):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-13 * float(jnp.max(jnp.abs(b))))
+    assert float(jnp.max(whole.states.eqps)) > 0
+
+
 @pytest.mark.parametrize("kwargs, field", [
     (dict(thickness=0.0), "thickness"),
     (dict(thickness=-1.0), "thickness"),
