@@ -104,7 +104,7 @@ def element_chunk(size: int):
 
 def _element_map(fn, material, formulation, geo, u_el, states):
     """``fn`` over the elements in n // c equal chunks (c = :data:`ELEMENT_CHUNK` or the traced setting;
-    at least one chunk), so each chunk holds between c and 2c elements.
+    at least one chunk), so a chunk holds fewer than 2c elements (all of them when there are fewer than c).
 
     The elements are padded (repeats of the last one, results dropped) to a whole number of equal chunks:
     ``lax.map`` evaluates a remainder that is not a whole chunk with a second copy of ``fn``, which
