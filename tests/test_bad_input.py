@@ -425,25 +425,40 @@ def test_string_false_does_not_silently_mean_true():
 
 # ---- a mesh within the limits but too large for this machine's memory --------------------------------
 
-def test_a_run_that_needs_more_memory_than_available_is_refused_before_it_starts(tmp_path, capsys, monkeypatch):
-    """XLA's account of the compiled program is checked against the available memory: the command line
-    gives one line naming the mesh and leaves no run directory; the API raises MemoryBudgetError."""
-    monkeypatch.setattr(RUN_MODULE, "available_memory", lambda: 1)   # one byte: any run is too large
+class _Accounted:
+    """A stand-in for a compiled run: XLA's memory account only (40 GiB of temporaries)."""
+
+    def memory_analysis(self):
+        import types
+
+        return types.SimpleNamespace(temp_size_in_bytes=40 * 2**30, argument_size_in_bytes=0,
+                                     output_size_in_bytes=2**20)
+
+
+def test_cli_run_that_needs_more_memory_than_available_is_refused_in_one_line(tmp_path, capsys, monkeypatch):
+    """The command line gives one line naming the mesh, exit 2, and removes the directories it made."""
+    monkeypatch.setattr(RUN_MODULE, "_compiled", lambda *a, **k: _Accounted())   # nothing compiles or runs
+    monkeypatch.setattr(RUN_MODULE, "available_memory", lambda: 8 * 2**30)
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "out" / "run1"
     line = cli_error(capsys, ["run", "flat_die", *TINY, "--quiet", "--out", str(out)])
-    assert "field 'mesh'" in line and "4x1" in line and "GiB" in line, line
-    assert not (tmp_path / "out").exists()
+    assert "field 'mesh'" in line and "4x1" in line and "40 GiB" in line and "8 GiB available" in line, line
     assert list(tmp_path.iterdir()) == []
 
-    scene = scenes.make("flat_die", overrides={"mesh": "4x1"})
+
+def test_a_run_that_needs_more_memory_than_available_is_refused_before_it_starts(monkeypatch):
+    """XLA's account of a real compiled run against the available memory: refused (MemoryBudgetError, one
+    line naming the mesh) when it exceeds it, accepted up to it."""
+    from models import clamped_pull
+
+    model = clamped_pull(nx=2, ny=1, unload=False, n_steps=1)
+    monkeypatch.setattr(RUN_MODULE, "available_memory", lambda: 1)   # one byte: any run is too large
     with pytest.raises(jf.MemoryBudgetError, match="field 'mesh'") as info:
-        jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-               snapshot=scene.snapshot, progress=False)
-    assert "\n" not in str(info.value)
-    compiled = RUN_MODULE._compiled(scene.model, scene.newton, scene.control, scene.observe, scene.snapshot, True)
-    need = RUN_MODULE.check_memory(compiled, scene.model, available=2**50)   # plenty: the need, no error
+        jf.run(model, progress=False)
+    assert "\n" not in str(info.value) and "2x1" in str(info.value)
+    compiled = RUN_MODULE._compiled(model, jf.NewtonOptions(), jf.StepControl(), jf.default_observe, None, True)
+    need = RUN_MODULE.check_memory(compiled, model, available=2**50)   # plenty: the need, no error
     assert need is not None and 0 < need < 2**30
     with pytest.raises(jf.MemoryBudgetError):
-        RUN_MODULE.check_memory(compiled, scene.model, available=need - 1)
-    RUN_MODULE.check_memory(compiled, scene.model, available=need)
+        RUN_MODULE.check_memory(compiled, model, available=need - 1)
+    RUN_MODULE.check_memory(compiled, model, available=need)
