@@ -81,9 +81,10 @@ def _scatter_tangent(K_el: jax.Array, nx: int, ny: int) -> BlockTridiag:
 
 
 # Elements are processed in chunks of this many (up to twice as many: `_element_map`), vmapped inside a
-# chunk: the per-element working set of the material derivatives then stays in cache. Measured on the 2-core CPU: one vmap over all 7200
-# elements of a 1200 x 6 strip costs 10.7 us per element, chunks of 128-600 cost 6.0-6.4, the same as a
-# 300 x 3 strip, so the assembly cost grows linearly with the number of elements.
+# chunk: the per-element working set of the material derivatives then stays in cache. Measured on the
+# 2-core CPU: one vmap over all 7200 elements of a 1200 x 6 strip costs 10.7 us per element, chunks of
+# 128-600 cost 6.0-6.4, the same as a 300 x 3 strip, so the assembly cost grows linearly with the number
+# of elements.
 ELEMENT_CHUNK = 512
 _CHUNK = contextvars.ContextVar("element_chunk", default=ELEMENT_CHUNK)
 
