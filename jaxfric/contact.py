@@ -41,8 +41,8 @@ from .contact_laws import OPEN, augmented_pair
 from .tools import Tool, project
 
 __all__ = ["Move", "Force", "RigidTool", "Penalty", "AugmentedLagrangian", "Complementarity", "ContactState", "ContactStep", "PairResult",
-           "initial_contact_state", "evaluate_pairs", "tool_forces", "split_pairs", "pair_nodes", "pair_mu",
-           "max_penetration"]
+           "initial_contact_state", "is_plain_penalty", "evaluate_pairs", "tool_forces", "split_pairs",
+           "pair_nodes", "pair_mu", "max_penetration"]
 
 
 class Move(eqx.Module):
@@ -181,6 +181,12 @@ class AugmentedLagrangian(Penalty):
             raise ValueError(f"field 'target_gap' must be > 0, got {float(target_gap)}")
         self.target_gap = jnp.asarray(target_gap, jnp.float64)
         self.max_augmentations = check_int("max_augmentations", max_augmentations, 1, 10_000)
+
+
+def is_plain_penalty(law) -> bool:
+    """Static: ``law`` is the penalty law itself, not the augmented Lagrangian built on it (the law
+    whose penalties the load loop's continuation softens, :class:`jaxfric.simulate.StepControl`)."""
+    return isinstance(law, Penalty) and not isinstance(law, AugmentedLagrangian)
 
 
 SOLVERS = ("ssn", "ssn_condensed", "lemke")

@@ -27,7 +27,7 @@ import numpy as np
 
 from .assembly import internal_force, mesh_geometry
 from .contact import (AugmentedLagrangian, Complementarity, ContactState, ContactStep, Force, Move, Penalty,
-                      initial_contact_state, max_penetration, pair_mu, pair_nodes, split_pairs)
+                      initial_contact_state, is_plain_penalty, max_penetration, pair_mu, pair_nodes, split_pairs)
 from .contact_laws import SLIP, STICK
 from .element import FORMULATIONS, ElementGeometry
 from .exact import exact_solve
@@ -450,8 +450,7 @@ def linearize_step(model: StripModel, state: SimState, phase, t_target) -> Linea
 def _softenable(model: StripModel) -> bool:
     """Static: the model's contact law is the plain penalty law, which :class:`StepControl`'s
     continuation may soften."""
-    return bool(model.tools) and isinstance(model.contact, Penalty) and not isinstance(
-        model.contact, AugmentedLagrangian)
+    return bool(model.tools) and is_plain_penalty(model.contact)
 
 
 def _continuation_on(model: StripModel, control: StepControl) -> bool:
@@ -630,7 +629,7 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     def body(c: _Loop) -> _Loop:
         t_try, phase, guess = setup(c)
         sol, new_state = solve_step(model, c.state, phase, t_try, newton, ctx, guess=guess, search=~c.plain,
-                                    soften=c.soft if control.continuation else None)
+                                    soften=c.soft if _continuation_on(model, control) else None)
         return finish(c, sol, new_state, t_try)
 
     out = jax.lax.while_loop(lambda c: c.code == Result.CONTINUE, body, init)
@@ -730,7 +729,8 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
         if soft_on:
             keep_r = keep_r | held
             last_code = jnp.where(held, c.last_code, sol.code)
-            stages = dict(soft=jnp.where(start_soft, n_stages, jnp.where(stage_done, c.soft - 1, -1)).astype(jnp.int32),
+            soft = jnp.where(start_soft, n_stages, jnp.where(stage_done, c.soft - 1, -1)).astype(jnp.int32)
+            stages = dict(soft=soft,
                           soft_tried=~ok & (c.soft_tried | soft_failed),
                           stage_u=jnp.where(stage_done, new_state.u, c.stage_u),
                           stage_q=jnp.where(stage_done, _tool_q(new_state), c.stage_q), staged=stage_done)
@@ -768,7 +768,7 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     ``experiments/RESULTS.md``, batched sweeps). Forward only (derivatives: :func:`simulate`,
     whose steps are differentiated by the implicit function theorem); no progress reports.
     """
-    if model.tools and (not isinstance(model.contact, Penalty) or isinstance(model.contact, AugmentedLagrangian)):
+    if model.tools and not is_plain_penalty(model.contact):
         raise ValueError("field 'contact': simulate_flat runs the penalty law only (augmented Lagrangian "
                          "and exact contact have loops of their own inside a step)")
     ctx = _Context.build(model)

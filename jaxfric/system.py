@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .assembly import internal_force, internal_force_and_tangent
-from .contact import ContactStep, Penalty, evaluate_pairs, pair_mu, pair_nodes, tool_forces
+from .contact import ContactStep, evaluate_pairs, is_plain_penalty, pair_mu, pair_nodes, tool_forces
 from .contact_laws import SLIP
 from .tools import GAP_OPEN
 from .element import ElementGeometry
@@ -198,7 +198,7 @@ def linearize(x, args: StepArgs) -> Linearization:
     # contact gaps are computed from the positions X + u, so with tools it is relative to those. Only
     # the penalty law's continuation stages ask (jaxfric.simulate.StepControl); no other law traces it.
     magnitude = None
-    if contact is not None and type(args.contact.law) is Penalty:
+    if contact is not None and is_plain_penalty(args.contact.law):
         n = args.mesh.n_dofs
         magnitude = jnp.concatenate([jnp.abs(args.mesh.nodes.reshape(-1) + x[:n]), jnp.abs(x[n:])])
     return Linearization(R, J, jnp.max(jnp.abs(a.f_int)), a.det_min > 0.0,
