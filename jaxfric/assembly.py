@@ -13,6 +13,7 @@ import contextvars
 import functools
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -22,7 +23,7 @@ from .linalg import BlockTridiag
 from .mesh import StripMesh
 
 __all__ = ["Assembled", "mesh_geometry", "internal_force", "internal_force_and_tangent",
-           "tangent_scatter_index", "element_chunk", "ELEMENT_CHUNK"]
+           "tangent_scatter_index", "element_chunk", "ELEMENT_CHUNK", "shared_trace"]
 
 
 class Assembled(NamedTuple):
@@ -101,6 +102,26 @@ def element_chunk(size: int):
         yield
     finally:
         _CHUNK.reset(token)
+
+
+def shared_trace(fn):
+    """``fn`` jitted, so that its calls with the same argument structure within one traced program share
+    a single trace: a loop's ``filter_eval_shape`` (the shapes of its carry) and the loop body that
+    calls ``fn`` again (the element tangent was traced twice per run program, four times with the
+    augmented Lagrangian; ``experiments/bench_compile.py``). The compiled program is the same: XLA
+    inlines the call. The :func:`element_chunk` setting is part of the key, so a trace made under one
+    setting is never reused under another.
+    """
+    @eqx.filter_jit
+    def jitted(chunk, *args):
+        with element_chunk(chunk):
+            return fn(*args)
+
+    @functools.wraps(fn)
+    def wrapper(*args):
+        return jitted(_CHUNK.get(), *args)
+
+    return wrapper
 
 
 def _element_map(fn, material, formulation, geo, u_el, states):

@@ -65,7 +65,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .assembly import internal_force_and_tangent
+from .assembly import internal_force_and_tangent, shared_trace
 from .contact import Complementarity, ContactStep, pair_mu, pair_nodes, split_pairs
 from .lcp import (_OPEN, _SLIP_NEG, _SLIP_POS, _STICK, ForceDrive, LemkeStatus, _alart_curnier, _keep_tools_touching, _piece, contact_status,
                   diagonal_parameters, lemke_contact_callback, lemke_start, polish, ssn_contact, ssn_start)
@@ -136,6 +136,7 @@ def _geometry(step: ContactStep, nodes_ref, u, q):
     return cat("gap"), cat("normal"), cat("zeta"), cat("zeta_increment"), cat("valid"), jnp.concatenate(jac)
 
 
+@shared_trace     # the loop's shapes (filter_eval_shape before the loop) and its body: one trace
 def _linearize(x, args) -> _Iterate:
     n = args.mesh.n_dofs
     u = x[:n].reshape(-1, 2)
@@ -391,6 +392,7 @@ class _Frames(NamedTuple):
     kappa: jax.Array     # (n_dofs,) the rows of prescribed dofs (module docstring, step 1)
 
 
+@shared_trace
 def _frames(it: _Iterate, args) -> tuple[_Frames, BlockTridiag]:
     """The frames and constants at the iterate, and the tangent with kappa rows on prescribed dofs."""
     c = args.contact

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .assembly import internal_force, mesh_geometry
+from .assembly import internal_force, mesh_geometry, shared_trace
 from .contact import (AugmentedLagrangian, Complementarity, ContactState, ContactStep, Force, Move, Penalty,
                       initial_contact_state, is_plain_penalty, max_penetration, pair_mu, pair_nodes, split_pairs)
 from .contact_laws import SLIP, STICK
@@ -385,6 +385,7 @@ def _augment(model: StripModel, args: "StepArgs", x0, x_ref, newton: NewtonOptio
     """
     law = model.contact
 
+    @shared_trace     # one trace for the loop's shapes (below) and its body
     def solve(a, lam_n, lam_t, x_start):
         step = eqx.tree_at(lambda c: (c.lam_n, c.lam_t), a.contact, (lam_n, lam_t))
         return newton_solve(eqx.tree_at(lambda b: b.contact, a, step), x_start, x_ref,

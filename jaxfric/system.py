@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .assembly import internal_force, internal_force_and_tangent
+from .assembly import internal_force, internal_force_and_tangent, shared_trace
 from .contact import ContactStep, evaluate_pairs, is_plain_penalty, pair_mu, pair_nodes, tool_forces
 from .contact_laws import SLIP
 from .tools import GAP_OPEN
@@ -156,6 +156,7 @@ def _contact_jacobian(args: StepArgs, K: BlockTridiag, pairs, keep):
     return Bordered(A=K, B=jnp.stack(B_cols, axis=1), C=jnp.stack(C_rows), D=jnp.diag(jnp.stack(D_diag)))
 
 
+@shared_trace     # a Newton loop's shapes (filter_eval_shape before the loop) and its body: one trace
 def linearize(x, args: StepArgs) -> Linearization:
     R, a, contact = _evaluate(x, args, jacobian=True)
     keep = jnp.where(args.mask, 0.0, 1.0)

@@ -78,6 +78,60 @@ def test_element_chunks_hold_one_copy_of_the_element_code_and_give_the_same_valu
     assert float(jnp.max(whole.states.eqps)) > 0
 
 
+def test_shared_trace_traces_once_per_chunk_setting():
+    """A ``shared_trace`` function called twice with the same argument structure inside one traced
+    program (a loop's eval_shape and its body) is traced once; under another element-chunk setting it
+    is traced again, so a sweep's smaller chunks are never replaced by a single run's trace."""
+    from jaxfric import assembly
+
+    seen = []
+
+    @assembly.shared_trace
+    def f(x):
+        seen.append(assembly._CHUNK.get())
+        return jnp.sin(x) * 2.0
+
+    def program():   # a new outer function per use: JAX reuses a function's trace
+        def loop(x):
+            shape = jax.eval_shape(f, x)
+            return jax.lax.fori_loop(0, 3, lambda i, y: f(y), jnp.zeros(shape.shape, shape.dtype) + x)
+        return loop
+
+    x = jnp.arange(3.0)
+    np.testing.assert_allclose(jax.jit(program())(x), jnp.sin(jnp.sin(jnp.sin(x) * 2) * 2) * 2, rtol=1e-15)
+    assert seen == [assembly.ELEMENT_CHUNK], seen
+    jax.make_jaxpr(program())(x)     # the same setting: the trace is reused
+    assert seen == [assembly.ELEMENT_CHUNK], seen
+    with assembly.element_chunk(7):
+        jax.make_jaxpr(program())(x)
+    assert seen == [assembly.ELEMENT_CHUNK, 7], seen
+
+
+def test_a_step_traces_the_element_tangent_once(monkeypatch):
+    """One load step with exact contact, and one with the augmented Lagrangian (whose Newton solve
+    sits in the augmentation loop), each trace the element tangent once: the loops' shapes reuse the
+    trace of their bodies (before, twice and four times)."""
+    from jaxfric import assembly, exact, system
+    from jaxfric.scenes import make
+    from jaxfric.simulate import solve_step
+
+    calls = []
+    original = assembly.internal_force_and_tangent
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(exact, "internal_force_and_tangent", counted)
+    monkeypatch.setattr(system, "internal_force_and_tangent", counted)
+    for algorithm in ("lcp_ssn", "auglag"):
+        calls.clear()
+        scene = make("nine", "mu017", algorithm, {"mesh": "12x1"})
+        state = initial_state(scene.model)
+        jax.make_jaxpr(lambda s: solve_step(scene.model, s, 0, 0.01, scene.newton))(state)
+        assert len(calls) == 1, (algorithm, len(calls))
+
+
 @pytest.mark.parametrize("kwargs, field", [
     (dict(thickness=0.0), "thickness"),
     (dict(thickness=-1.0), "thickness"),
