@@ -3,18 +3,20 @@
 ``jaxfric report accuracy-cost [--quick] [--out DIR]`` (and ``experiments/accuracy_cost.py``) runs, per
 test (flat die ``const_force`` / ``const_position``, Nine ``mu000`` / ``mu017``):
 
-- a **reference**: ``auglag`` with the test's target gap ``ref_gap`` (default ``REF_GAP``), on the
+- a **reference**: ``auglag`` with the test's target gap ``ref_gap`` (default ``REF_GAP``), or exact
+  contact (``ref_algorithm`` ``lcp_ssn``), on the
   reference mesh (each sweep mesh at most as fine) with a fraction ``ref_step`` of the nominal
   increments (half by default); and its
-  **checks** (``ref_checks``), the mesh refined once more (element size halved in both directions) and
-  the increments halved once more. The reference counts as
+  **checks** (``ref_checks``), the mesh refined once more (element size halved in both directions, or
+  along x and through the thickness apart) and the increments halved once more. The reference counts as
   converged for a measure when its checks change it by less than a tenth of the smallest error of that
   measure in the sweep (the table says, per measure, whether it did);
 - a test may also be a **same-mesh** test (``tag``, e.g. ``nine_mu017_at_100x2``): its reference is on
   the sweep's own mesh and has only the step check (at a thirty-second of the nominal increments, so
   that its own step error is resolved below 0.1 %), so its errors are those of the contact algorithm
-  and the step size on that mesh, with the discretisation error left out (the Nine's steady force still
-  moves by 5.6 % from a 200 x 4 to a 400 x 8 mesh, so no affordable reference bounds its total error).
+  and the step size on that mesh, with the discretisation error left out (on the Nine the total error at
+  the sweep's mesh is over 20 %, and the fine reference's own uncertainty, about 1 %, hides the contact
+  algorithms' and step sizes' errors of 0.1 to 1 %).
   It shares its sweep runs with the parent test (``runs``) and has no mesh family;
 - the **sweep**: ``penalty`` over five decades of eps_N, ``auglag`` over eps_N x target gap, ``lcp_ssn``,
   and, with the scene's default algorithm and penalty, coarser/finer meshes and larger/smaller steps;
@@ -79,7 +81,11 @@ class Test:
         ref_gap: target gap of the reference's augmented Lagrangian (mm).
         main: the measure the recommendations use (the flat die at constant force draws mu F_clamp
             exactly once it slides, so its steady and peak forces carry no error; its curve does).
-        ref_checks: the reference's checks, ``"mesh"`` and/or ``"step"``.
+        ref_checks: the reference's checks: ``"step"`` (increments halved), ``"mesh"`` (element size
+            halved in both directions), ``"mesh_x"`` / ``"mesh_y"`` (halved along x / through the
+            thickness only).
+        ref_algorithm: the reference's algorithm, ``"auglag"`` (at ``ref_gap``) or ``"lcp_ssn"`` (exact
+            contact, no penetration).
         tag: suffix of the test's name and of its reference's labels (a second test of one variant).
         runs: directory of the runs under ``runs/`` when shared with another test (default: the name).
         ref_step: the reference's increments, a factor on the nominal ones (its step check halves
@@ -109,6 +115,7 @@ class Test:
     ref_step: float = 0.5
     ssn_steps: tuple = ()
     penalty_rows: tuple = ()
+    ref_algorithm: str = "auglag"
 
     @property
     def name(self) -> str:
@@ -118,10 +125,10 @@ class Test:
     def run_dir(self) -> str:
         return self.runs or self.name
 
-    @property
-    def check_mesh(self) -> tuple:
-        """(nx, ny) of the reference's mesh check: its element size halved in both directions."""
-        return (2 * self.ref_mesh[0], 2 * self.ref_mesh[1])
+    def check_mesh_of(self, check: str) -> tuple:
+        """(nx, ny) of the mesh check ``check`` (``"mesh"``, ``"mesh_x"`` or ``"mesh_y"``)."""
+        nx, ny = self.ref_mesh
+        return {"mesh": (2 * nx, 2 * ny), "mesh_x": (2 * nx, ny), "mesh_y": (nx, 2 * ny)}[check]
 
     @property
     def reference(self) -> str:
@@ -145,23 +152,34 @@ _NINE_PENALTIES = (1e2, 1e3, 1e4, 1e5, 1e6)
 # (mu017) and 33.7 mm (mu000) of 36: its stiff penalty cuts the increments far below the nominal ones.
 _NINE_PENALTY_ROWS = ((1e6, 15_000),)
 _NINE_AUGLAG = ((1e4, 1e-3), (1e4, 1e-4), (1e5, 1e-4), (1e5, 1e-5))
+# [chosen] The Nine's total-error reference: exact contact (``lcp_ssn``) on a mesh fine along x, checked by
+# halving the elements along x and through the thickness apart. The steady force converges slowly along
+# x (``mesh_convergence`` study: 1.6 % from 600 to 1200 columns) and little through the thickness (0.6 %
+# from 3 to 6 layers at 1200 columns); an AL reference at 200 x 4 moved by 5.6 % (mu017) at 400 x 8.
+# 1200 x 3 at half the nominal increments costs 6 minutes on one core, its checks (2400 x 3, 1200 x 6, a
+# quarter of the increments) 15 to 30 each (RESULTS.md).
+_NINE_REF_MESH = (1200, 3)
+# [chosen] The mesh family (penalty): up to the spec's 300 x 3, no finer than the reference through the
+# thickness (it ended at 200 x 4 while the reference was AL at 200 x 4).
+_NINE_MESHES = ((50, 2), (100, 2), (200, 3), (300, 3))
 
 
 def _nine_tests(variant: str) -> tuple:
-    """The Nine variant's two tests: total error against a finer reference (200 x 4, checked at 400 x 8),
+    """The Nine variant's two tests: total error against a finer reference (1200 x 3, exact contact),
     and the contact algorithm's and step size's error on the sweep's own mesh (100 x 2), which shares the
     first test's runs."""
     # [chosen] lcp_ssn at a half, a quarter and an eighth of the nominal increments: the step family
     # (penalty) cannot show the step size's error on the Nine, where the controller's cutbacks set the
     # increments (x2 and x0.5 give the same steps within 3 %).
-    full = Test("nine", variant, _NINE_BASE, (100, 2), (200, 4), ((50, 2), (100, 2), (200, 4)),
+    full = Test("nine", variant, _NINE_BASE, (100, 2), _NINE_REF_MESH, _NINE_MESHES,
                 (2.0, 0.5), _NINE_PENALTIES, _NINE_AUGLAG, "steady", ref_gap=_NINE_REF_GAP,
-                ssn_steps=(0.5, 0.25, 0.125), penalty_rows=_NINE_PENALTY_ROWS)
+                ssn_steps=(0.5, 0.25, 0.125), penalty_rows=_NINE_PENALTY_ROWS,
+                ref_checks=("step", "mesh_x", "mesh_y"), ref_algorithm="lcp_ssn")
     # [chosen] The same-mesh reference takes a thirty-second of the nominal increments: at half of them
     # (2026-11-26), halving once more moved its steady force by 5.8e-4 (mu017) and 4.4e-4 (mu000), so no
     # error under 0.6 % could be resolved; the step error falls about in proportion to the increment.
     same = dataclasses.replace(full, ref_mesh=full.mesh, meshes=(), ref_checks=("step",), tag="_at_100x2",
-                               runs=full.name, ref_step=1 / 32)
+                               runs=full.name, ref_step=1 / 32, ref_algorithm="auglag")
     return full, same
 
 
@@ -201,9 +219,7 @@ def _mesh(m) -> str:
 def cases(test: Test) -> list[tuple]:
     """(label, family, algorithm, overrides) of the sweep, the reference (family ``reference``) and its
     checks (``ref_check``)."""
-    from . import scenes
-
-    default_eps = next(f.default for f in dataclasses.fields(scenes.config_class(test.scene)) if f.name == "eps_n")
+    default_eps = _default_eps(test)
     mesh = _mesh(test.mesh)
     rows = dict(test.penalty_rows)
     out = [(f"penalty_eps{e:.0e}", "penalty", "penalty",
@@ -217,15 +233,31 @@ def cases(test: Test) -> list[tuple]:
     out += [(f"mesh_{_mesh(m)}", "mesh", "penalty", {"mesh": _mesh(m), "eps_n": default_eps}) for m in test.meshes]
     out += [(f"step_x{f:g}", "step", "penalty", {"mesh": mesh, "eps_n": default_eps, **_steps(test, f)})
             for f in test.step_factors]
-    ref = {"eps_n": default_eps, "target_gap": test.ref_gap, **_steps(test, test.ref_step)}
-    out.append((test.reference, "reference", "auglag", {"mesh": _mesh(test.ref_mesh), **ref}))
-    # The step check first: the mesh check is the longest run of a test.
+    out.append((test.reference, "reference", test.ref_algorithm, reference_overrides(test, test.ref_mesh, test.ref_step)))
+    # The step check first: the mesh checks are the longest runs of a test.
     if "step" in test.ref_checks:
-        out.append((f"ref_check_step{test.tag}", "ref_check", "auglag",
-                    {"mesh": _mesh(test.ref_mesh), **ref, **_steps(test, test.ref_step / 2)}))
-    if "mesh" in test.ref_checks:
-        out.append((f"ref_check_mesh{test.tag}", "ref_check", "auglag", {"mesh": _mesh(test.check_mesh), **ref}))
+        out.append((f"ref_check_step{test.tag}", "ref_check", test.ref_algorithm,
+                    reference_overrides(test, test.ref_mesh, test.ref_step / 2)))
+    for check in ("mesh", "mesh_x", "mesh_y"):
+        if check in test.ref_checks:
+            out.append((f"ref_check_{check}{test.tag}", "ref_check", test.ref_algorithm,
+                        reference_overrides(test, test.check_mesh_of(check), test.ref_step)))
     return [(label, family, algorithm, {**test.base, **ov}) for label, family, algorithm, ov in out]
+
+
+def reference_overrides(test: Test, mesh: tuple, step: float) -> dict:
+    """Overrides of a run made as ``test``'s reference (its algorithm, target gap and base), on ``mesh``
+    with ``step`` times the nominal increments: the reference and its checks, and the runs that choose
+    the reference's mesh (``experiments/reference_candidate.py``)."""
+    gap = {"target_gap": test.ref_gap} if test.ref_algorithm == "auglag" else {}
+    return {**test.base, "mesh": _mesh(mesh), "eps_n": _default_eps(test), **gap, **_steps(test, step)}
+
+
+def _default_eps(test: Test) -> float:
+    """The scene's default penalty eps_N."""
+    from . import scenes
+
+    return next(f.default for f in dataclasses.fields(scenes.config_class(test.scene)) if f.name == "eps_n")
 
 
 # ---- the penalty's share of a run's error ---------------------------------------------------------------
@@ -581,8 +613,7 @@ def _pareto_figure(path: str, test: Test, rows: list[dict]) -> None:
         ax.grid(True, which="both", alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
-    fig.suptitle(f"{test.name}: error against run time (reference: auglag, target gap "
-                 f"{test.ref_gap:g} mm, mesh {_mesh(test.ref_mesh)}, increments nominal / {1 / test.ref_step:g})",
+    fig.suptitle(f"{test.name}: error against run time (reference: {_reference_law(test)}, mesh {_mesh(test.ref_mesh)}, increments nominal / {1 / test.ref_step:g})",
                  fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -629,12 +660,18 @@ def _error_cell(value, resolution) -> str:
     return _fmt(value)
 
 
+def _reference_law(test: Test) -> str:
+    """The reference's contact law, in words."""
+    if test.ref_algorithm == "auglag":
+        return f"auglag, target gap {test.ref_gap:g} mm"
+    return f"{test.ref_algorithm} (exact contact)"
+
+
 def _reference_lines(rows: list[dict], quick: bool) -> list[str]:
     """A table of what each test's errors are measured against."""
     known = {t.name: t for t in (QUICK_TESTS if quick else TESTS)}
-    lines = ["**What each test measures** (the reference is `auglag` at the named target gap; a same-mesh "
-             "test leaves the discretisation error out):", "",
-             "| test | reference mesh | reference increments | reference target gap (mm) | reference checks | "
+    lines = ["**What each test measures** (a same-mesh test leaves the discretisation error out):", "",
+             "| test | reference law | reference mesh | reference increments | reference checks | "
              "errors measured |", "|---|---|---|---|---|---|"]
     for name in dict.fromkeys(r["test"] for r in rows):
         t = known.get(name)
@@ -642,10 +679,10 @@ def _reference_lines(rows: list[dict], quick: bool) -> list[str]:
             continue
         what = ("contact algorithm and step size on the sweep's mesh" if t.ref_mesh == t.mesh and not t.meshes
                 else "total: contact algorithm, step size and mesh")
-        checks = ", ".join({"mesh": f"mesh {_mesh(t.check_mesh)}",
-                            "step": f"increments nominal / {2 / t.ref_step:g}"}[c] for c in t.ref_checks)
-        lines.append(f"| {name} | {_mesh(t.ref_mesh)} | nominal / {1 / t.ref_step:g} | {t.ref_gap:g} | {checks} "
-                     f"| {what} |")
+        checks = ", ".join(f"increments nominal / {2 / t.ref_step:g}" if c == "step" else
+                           f"mesh {_mesh(t.check_mesh_of(c))}" for c in t.ref_checks)
+        lines.append(f"| {name} | {_reference_law(t)} | {_mesh(t.ref_mesh)} | nominal / {1 / t.ref_step:g} | "
+                     f"{checks} | {what} |")
     return lines + [""]
 
 

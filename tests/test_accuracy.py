@@ -105,7 +105,14 @@ def test_plan_of_each_test(test):
         if isinstance(ref[field], float):
             assert ref[field] == pytest.approx(base[field] / 2 * test.ref_step)
             assert check[field] == pytest.approx(base[field] / 4 * test.ref_step)
-    assert ref["target_gap"] == test.ref_gap
+    assert ref.get("target_gap") == (test.ref_gap if test.ref_algorithm == "auglag" else None)
+    # Each mesh check halves the reference's elements as named, with the reference's algorithm and steps.
+    for name in {"mesh", "mesh_x", "mesh_y"} & set(test.ref_checks):
+        label, family, algorithm, ov = next(p for p in plan if p[0] == f"ref_check_{name}{test.tag}")
+        nx, ny = map(int, ov["mesh"].split("x"))
+        assert (nx / nx_ref, ny / ny_ref) == {"mesh": (2, 2), "mesh_x": (2, 1), "mesh_y": (1, 2)}[name]
+        assert algorithm == test.ref_algorithm and {k: v for k, v in ov.items() if k != "mesh"} == \
+            {k: v for k, v in ref.items() if k != "mesh"}
 
 
 def test_the_same_mesh_test_shares_its_parents_sweep_runs():
