@@ -349,6 +349,16 @@ def test_rows_kept_from_the_csv_must_share_the_tests_reference():
     assert not accuracy._same_reference({"ref_mesh": "200x4", "ref_step": 1 / 32}, test)
 
 
+def test_the_report_names_each_reference_law_and_check():
+    """The reference table says which law each reference uses (AL with its gap, or exact contact) and
+    every check with its mesh, so that a reader knows what the uncertainty was measured against."""
+    rows = [{"test": name} for name in ("flat_die_const_force", "nine_mu017")]
+    table = "\n".join(accuracy._reference_lines(rows, quick=False))
+    assert "| flat_die_const_force | auglag, target gap 1e-08 mm | 240x2 |" in table
+    assert "| nine_mu017 | lcp_ssn (exact contact) | 1200x3 | nominal / 2 | increments nominal / 4, mesh 2400x3, " \
+           "mesh 1200x6 |" in table
+
+
 def test_the_curve_error_starts_from_the_state_the_draw_starts_from():
     """A run whose first drawing increment is larger than the reference's is not extrapolated over the
     steep start of the draw: both curves start from the last clamping row (U = 0)."""
