@@ -38,7 +38,7 @@ def main(argv=None) -> int:
                    "(default: the test's ref_step)")
     p.add_argument("--root", required=True, help="directory of the runs")
     p.add_argument("--chunk", type=int, default=None, help="elements per chunk of the element loops "
-                   "(default: the package's; on a GPU a whole mesh in one chunk is faster)")
+                   "(default: the package's)")
     p.add_argument("--progress", action="store_true", help="progress bar on stderr")
     a = p.parse_args(argv)
     tests = {t.name: t for t in accuracy.TESTS}
