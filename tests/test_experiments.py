@@ -26,6 +26,14 @@ def test_bench_contact_iteration_timing_runs_for_exact_contact():
     assert bench_contact.iteration_ms(model, jf.initial_state(model), 1) > 0
 
 
+def test_bench_element_cores_runs_at_a_tiny_size(capsys):
+    import bench_element_cores
+
+    assert bench_element_cores.main(["--mesh", "20x1", "--calls", "2"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split(" median")[0].strip() for line in lines] == ["as assembled", "one vmap", "two halves"]
+
+
 # ---- experiments/studies.py: the table, section and comparison helpers (no simulation) -------------
 
 import numpy as np  # noqa: E402

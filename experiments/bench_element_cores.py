@@ -1,0 +1,67 @@
+"""Does the element loop use both cores? ``python experiments/bench_element_cores.py [--mesh 300x3]``.
+
+Times the Nine scene's element forces and tangents (jitted alone, at a small random displacement from the
+initial state) three ways: as the run assembles them (:func:`jaxfric.assembly.internal_force_and_tangent`,
+with the scatter into the block-tridiagonal tangent), as one ``vmap`` over all elements, and as two
+independent ``vmap`` over the two halves of the elements (which XLA could run side by side). Run it once
+as it is and once under ``taskset -c 0``: equal times mean the loop runs on one core either way
+(RESULTS.md, Nine test). Prints the median and the fastest of 30 calls; writes nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxfric import assembly, scenes
+from jaxfric.element import element_force_and_tangent, element_geometry
+from jaxfric.simulate import initial_state
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--mesh", default="300x3")
+    parser.add_argument("--calls", type=int, default=30)
+    args = parser.parse_args(argv)
+    jax.config.update("jax_enable_x64", True)
+    model = scenes.make("nine", "mu017", "lcp_ssn", {"mesh": args.mesh}).model
+    mesh, material, formulation = model.mesh, model.material, model.formulation
+    geo = element_geometry(mesh.nodes[mesh.elements])
+    states = initial_state(model).material
+    u = jnp.asarray(np.random.default_rng(0).normal(scale=1e-3, size=mesh.nodes.shape))
+
+    def elements(u, states, part):
+        g = jax.tree_util.tree_map(lambda a: a[part], geo)
+        s = jax.tree_util.tree_map(lambda a: a[part], states)
+        return jax.vmap(lambda *a: element_force_and_tangent(material, formulation, *a))(
+            g.dN_dX, g.dN_dX_center, g.weight, u[mesh.elements[part]], s)
+
+    def assembled(u, states):
+        a = assembly.internal_force_and_tangent(mesh, material, formulation, geo, u, states)
+        return a.f_int, a.tangent
+
+    def halves(u, states):
+        n = mesh.n_elements
+        first, second = elements(u, states, slice(0, n // 2)), elements(u, states, slice(n // 2, n))
+        return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), first, second)
+
+    for name, fn in (("as assembled", assembled), ("one vmap", lambda u, s: elements(u, s, slice(None))),
+                     ("two halves", halves)):
+        compiled = jax.jit(fn)
+        jax.block_until_ready(compiled(u, states))
+        times = []
+        for _ in range(args.calls):
+            t = time.perf_counter()
+            jax.block_until_ready(compiled(u, states))
+            times.append(time.perf_counter() - t)
+        print(f"{name:13s} median {1e3 * np.median(times):6.2f} ms, fastest {1e3 * min(times):6.2f} ms",
+              flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
