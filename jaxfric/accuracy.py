@@ -613,8 +613,8 @@ def _pareto_figure(path: str, test: Test, rows: list[dict]) -> None:
         ax.grid(True, which="both", alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
-    fig.suptitle(f"{test.name}: error against run time (reference: {_reference_law(test)}, mesh {_mesh(test.ref_mesh)}, increments nominal / {1 / test.ref_step:g})",
-                 fontsize=10)
+    fig.suptitle(f"{test.name}: error against run time (reference: {_reference_law(test)}, mesh "
+                 f"{_mesh(test.ref_mesh)}, increments nominal / {1 / test.ref_step:g})", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
