@@ -8,7 +8,7 @@ export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=true
 # (tests/conftest.py): 9 min 10 s against 13.5 to 16 min on the 2-core AMD EPYC of 2026-11-27.
 WORKERS ?= 2
 
-.PHONY: run test test-all bench clean
+.PHONY: run lint test test-all bench clean
 
 $(VENV)/.installed: pyproject.toml
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
@@ -19,10 +19,15 @@ $(VENV)/.installed: pyproject.toml
 run: $(VENV)/.installed
 	$(VENV)/bin/jaxfric run nine --variant mu017
 
-test: $(VENV)/.installed
+# Lint (ruff: style, imports, pyupgrade, blind except) and type-check (mypy, the package) before the tests.
+lint: $(VENV)/.installed
+	$(VENV)/bin/ruff check jaxfric tests experiments notebooks/execute.py
+	$(VENV)/bin/mypy
+
+test: $(VENV)/.installed lint
 	$(PY) -m pytest -q -m "not slow" -n $(WORKERS) --dist loadfile --durations=15
 
-test-all: $(VENV)/.installed
+test-all: $(VENV)/.installed lint
 	$(PY) -m pytest -q -n $(WORKERS) --dist loadfile
 
 bench: $(VENV)/.installed

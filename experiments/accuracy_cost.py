@@ -2,7 +2,7 @@
 
 Runs :func:`jaxfric.accuracy.accuracy_cost` (the same as ``jaxfric report accuracy-cost``) into
 ``experiments/results/accuracy_cost/`` (run directories under ``runs/``, not committed; a run already on
-disk is read back, so an interrupted sweep resumes) and writes its section of ``experiments/RESULTS.md``
+disk is read back, so an interrupted sweep resumes) and writes its section of ``docs/results.md``
 (between ``<!-- BEGIN study:accuracy_cost -->`` and ``<!-- END study:accuracy_cost -->``).
 """
 
@@ -13,9 +13,8 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from studies import write_section  # noqa: E402
-
 from jaxfric import accuracy  # noqa: E402
+from studies import write_section  # noqa: E402
 
 OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "accuracy_cost")
 
@@ -36,7 +35,8 @@ def main(argv=None) -> int:
                                log=lambda m: print(m, flush=True))
     # The section covers every test on disk, not only this invocation's.
     rows = accuracy.collect(out, quick=a.quick)
-    rel = os.path.relpath(out, os.path.dirname(os.path.abspath(__file__)))
+    # Links relative to docs/results.md, where the section is written.
+    rel = os.path.relpath(out, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs"))
     figures = "\n".join(f"![{name}]({rel}/pareto_{name}.png)" for name in dict.fromkeys(r["test"] for r in rows))
     write_section("accuracy_cost" + ("_quick" if a.quick else ""),
                   f"### Error against run time{' (quick)' if a.quick else ''}\n\nRegenerate: `python "

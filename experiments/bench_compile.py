@@ -5,7 +5,7 @@
 For each algorithm, in a fresh process each (JAX keeps traces and executables for the life of a
 process), prints the seconds spent tracing and lowering the program that :func:`jaxfric.run` compiles
 (``lower``) and in XLA's compilation (``compile``), and how many times the element tangent was traced
-(one per program since ``jaxfric.assembly.shared_trace``; RESULTS.md, Nine test). Writes nothing.
+(one per program since ``jaxfric.assembly.shared_trace``; docs/results.md, run time of the Nine test). Writes nothing.
 """
 
 from __future__ import annotations

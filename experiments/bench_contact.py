@@ -22,8 +22,9 @@ import numpy as np
 import jaxfric as jf
 from benchutil import median_time, write_rows
 from jaxfric import exact
+from jaxfric.contact import Move, RigidTool
+from jaxfric.formulations import AugmentedLagrangian, Complementarity, Penalty
 from jaxfric.linalg import linear_solve
-from jaxfric.contact import AugmentedLagrangian, Complementarity, Move, Penalty, RigidTool
 from jaxfric.simulate import _Context, _step_args, _unknowns
 from jaxfric.tools import Tool
 
@@ -93,7 +94,8 @@ def main():
         bare = jf.StripModel(model.mesh, model.material, model.phases)  # the same strip, no tools
         without = iteration_ms(bare, jf.SimState(state.u, state.material, state.f_int, state.time,
                                                      state.phase), args.repeat)
-        row = dict(algorithm=name, band=getattr(law, "band", None), converged=res.converged, n_steps=n_steps, newton_iters=iters,
+        row = dict(algorithm=name, band=getattr(law, "band", None), converged=res.converged, n_steps=n_steps,
+                   newton_iters=iters,
                    iters_per_step=iters / n_steps, augmentations_per_step=h["augmentations"].sum() / n_steps,
                    ssn_iters_per_step=h.get("ssn_iters", np.zeros(1)).sum() / n_steps,
                    lemke_pivots_per_step=h.get("lcp_pivots", np.zeros(1)).sum() / n_steps,

@@ -5,7 +5,8 @@ initial state) three ways: as the run assembles them (:func:`jaxfric.assembly.in
 with the scatter into the block-tridiagonal tangent), as one ``vmap`` over all elements, and as two
 independent ``vmap`` over the two halves of the elements (which XLA could run side by side). Run it once
 as it is and once under ``taskset -c 0``: times no shorter with two cores than with one mean the second
-core buys the loop nothing (RESULTS.md, Nine test). Prints the median and the fastest of 30 calls; writes nothing.
+core buys the loop nothing (docs/results.md, run time of the Nine test). Prints the median and the
+fastest of 30 calls; writes nothing.
 """
 
 from __future__ import annotations

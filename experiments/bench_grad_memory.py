@@ -23,7 +23,6 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(__file__))
 from benchutil import write_rows  # noqa: E402
-
 from jaxfric.loading import schedule  # noqa: E402
 from jaxfric.params import parameterize  # noqa: E402
 from jaxfric.simulate import simulate_fixed  # noqa: E402

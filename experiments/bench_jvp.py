@@ -26,7 +26,6 @@ import jax.numpy as jnp
 
 sys.path.insert(0, os.path.dirname(__file__))
 from benchutil import write_rows  # noqa: E402
-
 from jaxfric import scenes  # noqa: E402
 from jaxfric.simulate import simulate, simulate_fixed  # noqa: E402
 

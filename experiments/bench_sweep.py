@@ -33,9 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(__file__))
-from benchutil import median_time, write_rows  # noqa: E402
-
 import jaxfric as jf  # noqa: E402
+from benchutil import median_time, write_rows  # noqa: E402
 from jaxfric import scenes  # noqa: E402
 from jaxfric.assembly import element_chunk  # noqa: E402
 from jaxfric.linalg import BLOCK_SOLVERS, block_solver, linear_solve, resolved_block_solver  # noqa: E402

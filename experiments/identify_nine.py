@@ -12,12 +12,12 @@
    (about 1 min a fit instead of 5). What that costs in accuracy is measured by the noise-free fit on
    the same terms (row ``none, start plan``): its distance to the truth is the bias the draws carry.
 
-**Global stage for mu + R1** (``--grid``, default ``mu=0.101:0.251:7,R1=5.07:5.97:9``, chosen so that the truth lies on no grid line): the two
-parameters compensate each other, and the windowed misfit has local minima along the valley they leave
-(``scan_joint_misfit.py``), so the joint fits start from the minimum of the misfit interpolated between
-adaptive runs on a grid (``jaxfric.fit.fit(..., grid=...)``; the truth is not a grid point). The grid's
-runs do not depend on the data: the noise draws reuse them. ``--params mu,R1`` runs one parameter set and
-keeps the CSV rows of the others.
+**Global stage for mu + R1** (``--grid``, default ``mu=0.101:0.251:7,R1=5.07:5.97:9``, chosen so that the
+truth lies on no grid line): the two parameters compensate each other, and the windowed misfit has local
+minima along the valley they leave (``scan_joint_misfit.py``), so the joint fits start from the minimum
+of the misfit interpolated between adaptive runs on a grid (``jaxfric.fit.fit(..., grid=...)``; the truth
+is not a grid point). The grid's runs do not depend on the data: the noise draws reuse them.
+``--params mu,R1`` runs one parameter set and keeps the CSV rows of the others.
 
 **The draws seen by the linearised model** (``_Linear``): for every draw, the estimate and interval
 of the model linearised at the truth (columns ``*_linear_*``), and the coverage of those intervals
@@ -39,9 +39,8 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(__file__))
-from benchutil import write_rows  # noqa: E402
-
 import jaxfric  # noqa: E402
+from benchutil import write_rows  # noqa: E402
 from jaxfric import scenes  # noqa: E402
 from jaxfric.cli import _grid as parse_grid  # noqa: E402
 from jaxfric.fit import _Curve, _windows, bin_means, fit  # noqa: E402

@@ -6,7 +6,7 @@ Runs :func:`jaxfric.accuracy.reference_overrides` of ``TEST`` (a name of ``jaxfr
 its reference algorithm, base overrides and target gap) on ``--mesh`` with ``--step`` times the nominal
 increments, into ``DIR/<test's run directory>/ref_<algorithm>_<mesh>_x<step>/`` (the run directory of
 :func:`jaxfric.batch.run_case`, no figures), and prints one line with its steps, iterations, times and
-forces. Used to choose a reference's mesh (a ladder of meshes, RESULTS.md); a run's directory can then
+forces. Used to choose a reference's mesh (a ladder of meshes, docs/results.md); a run's directory can then
 be copied to the label the test gives its reference or a check (:func:`jaxfric.accuracy.cases`), whose
 overrides are the same. ``experiments/device_reference.sh`` runs a ladder of them side by side on a lent
 GPU.

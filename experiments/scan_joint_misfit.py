@@ -10,6 +10,7 @@ import numpy as np
 import jaxfric as jf
 from jaxfric import scenes
 from jaxfric.fit import bin_means
+
 base = {"mesh": "100x2", "U_draw": 10.0}
 def curve(mu, R1):
     sc = scenes.make("nine", "mu017", "penalty", {**base, "mu": mu, "R1": R1})

@@ -30,7 +30,6 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(__file__))
 from benchutil import write_rows  # noqa: E402
-
 from jaxfric.newton import NewtonOptions  # noqa: E402
 from jaxfric.params import parameterize, path_function  # noqa: E402
 
@@ -85,7 +84,7 @@ def main(argv=None) -> None:
     ap.add_argument("--tag", default="", help="suffix of the output files")
     a = ap.parse_args(argv)
     # Steps five times smaller than the scene's: with them the friction and material columns of the
-    # exact law come close to their differences (RESULTS.md, derivative checks).
+    # exact law come close to their differences (docs/results.md, smoothed contact law).
     base = {"mesh": a.mesh, "U_draw": a.stroke, "dU": 0.02, "dq_clamp": 0.05}
     rows = []
     for s in (float(v) for v in a.smoothing.split(",")):

@@ -8,8 +8,9 @@ with ``--spec`` the spec's load path (the penalty study's case with the second c
 penalty law at ``--eps-n`` until it stops, then repeats the failed attempt by hand from the last
 converged state: Newton steps on ``jaxfric.system.linearize`` with the solver's line search (the full
 step, a quarter, a sixteenth, which is kept). Prints, per iteration, the step length taken, the residual
-before and after (max norm, N/mm), the linear solve's own residual |J dx + R|, every pair whose status (open 0 / stick 1 / slip 2) changed,
-with its gap and forces before and after, and the residual tolerance of the convergence test.
+before and after (max norm, N/mm), the linear solve's own residual |J dx + R|, every pair whose status
+(open 0 / stick 1 / slip 2) changed, with its gap and forces before and after, and the residual tolerance
+of the convergence test.
 """
 
 from __future__ import annotations
@@ -62,7 +63,8 @@ def main(argv=None) -> None:
     x = _unknowns(model, state.u, _tool_q(state))
     lin = lin_at(x)
     opts = scene.newton
-    print(f"step t {t:.9g}; residual tolerance at the start point {opts.atol + opts.rtol * max(float(lin.scale), 1e-6):.3e} N/mm "
+    print(f"step t {t:.9g}; residual tolerance at the start point "
+          f"{opts.atol + opts.rtol * max(float(lin.scale), 1e-6):.3e} N/mm "
           f"(scale |f_int| {float(lin.scale):.4g} N/mm)")
     for k in range(a.iterations):
         dx = solve(lin.jacobian, -lin.residual)

@@ -7,6 +7,15 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from .contact import Force, Move, RigidTool  # noqa: E402
+from .formulations import (  # noqa: E402
+    ALGORITHMS,
+    AbstractContactFormulation,
+    AugmentedLagrangian,
+    Complementarity,
+    Penalty,
+    formulation,
+)
 from .linalg import BlockTridiag, Bordered, block_tridiag_solve, bordered_solve, dense_solve, linear_solve  # noqa: E402
 from .loading import Affine, DirichletBC, Motion, Phase, Ramp, RigidMotion  # noqa: E402
 from .material import J2Material, MaterialState, von_mises  # noqa: E402
@@ -14,13 +23,30 @@ from .mesh import StripMesh, graded_coordinates, strip_mesh  # noqa: E402
 from .newton import NewtonOptions  # noqa: E402
 from .results import Result, SimulationError  # noqa: E402
 from .run import MemoryBudgetError, RunResult, run  # noqa: E402
-from .simulate import (SimState, Simulation, StepControl, StripModel, default_observe,  # noqa: E402
-                       initial_state, linearize_step, reactions, simulate, simulate_flat, simulate_fixed,
-                       solve_step, stresses)
+from .simulate import (  # noqa: E402
+    SimState,
+    Simulation,
+    StepControl,
+    StripModel,
+    default_observe,
+    initial_state,
+    linearize_step,
+    reactions,
+    simulate,
+    simulate_fixed,
+    simulate_flat,
+    solve_step,
+    stresses,
+)
+from .status import OPEN, SLIP, STICK, contact_status  # noqa: E402
+from .tools import Tool  # noqa: E402
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "RigidTool", "Move", "Force", "Tool",
+    "ALGORITHMS", "AbstractContactFormulation", "Penalty", "AugmentedLagrangian", "Complementarity", "formulation",
+    "OPEN", "STICK", "SLIP", "contact_status",
     "BlockTridiag", "Bordered", "block_tridiag_solve", "bordered_solve", "dense_solve", "linear_solve",
     "Affine", "DirichletBC", "Motion", "Phase", "Ramp", "RigidMotion",
     "J2Material", "MaterialState", "von_mises",

@@ -157,7 +157,7 @@ _NINE_AUGLAG = ((1e4, 1e-3), (1e4, 1e-4), (1e5, 1e-4), (1e5, 1e-5))
 # x (``mesh_convergence`` study: 1.6 % from 600 to 1200 columns) and little through the thickness (0.6 %
 # from 3 to 6 layers at 1200 columns); an AL reference at 200 x 4 moved by 5.6 % (mu017) at 400 x 8.
 # 1200 x 3 at half the nominal increments costs 6 minutes on one core, its checks (2400 x 3, 1200 x 6, a
-# quarter of the increments) 15 to 30 each (RESULTS.md).
+# quarter of the increments) 15 to 30 each (docs/results.md, reference ladder).
 _NINE_REF_MESH = (1200, 3)
 # [chosen] The mesh family (penalty): up to the spec's 300 x 3, no finer than the reference through the
 # thickness (it ended at 200 x 4 while the reference was AL at 200 x 4).
@@ -233,7 +233,8 @@ def cases(test: Test) -> list[tuple]:
     out += [(f"mesh_{_mesh(m)}", "mesh", "penalty", {"mesh": _mesh(m), "eps_n": default_eps}) for m in test.meshes]
     out += [(f"step_x{f:g}", "step", "penalty", {"mesh": mesh, "eps_n": default_eps, **_steps(test, f)})
             for f in test.step_factors]
-    out.append((test.reference, "reference", test.ref_algorithm, reference_overrides(test, test.ref_mesh, test.ref_step)))
+    out.append((test.reference, "reference", test.ref_algorithm,
+                reference_overrides(test, test.ref_mesh, test.ref_step)))
     # The step check first: the mesh checks are the longest runs of a test.
     if "step" in test.ref_checks:
         out.append((f"ref_check_step{test.tag}", "ref_check", test.ref_algorithm,
@@ -257,7 +258,9 @@ def _default_eps(test: Test) -> float:
     """The scene's default penalty eps_N."""
     from . import scenes
 
-    return next(f.default for f in dataclasses.fields(scenes.config_class(test.scene)) if f.name == "eps_n")
+    default = next(f.default for f in dataclasses.fields(scenes.config_class(test.scene)) if f.name == "eps_n")
+    assert default is not dataclasses.MISSING  # every scene config gives eps_n a default
+    return default
 
 
 # ---- the penalty's share of a run's error ---------------------------------------------------------------
@@ -499,7 +502,8 @@ def accuracy_cost(out: str, quick: bool = False, tests=None, rerun: bool = False
     names = {t.name for t in chosen}
     kept = _read_rows(out)
     before = {t.name: _test_rows(out, t, run_missing=False, kept=kept) for t in chosen}
-    done, started = [], set()
+    done: list[dict] = []
+    started: set[str] = set()
 
     def write_partial(current: list[dict]) -> None:
         others = [r for r in _read_rows(out) if r["test"] not in names]
@@ -707,8 +711,8 @@ def report_markdown(rows: list[dict], checks: dict, quick: bool) -> str:
         measure = next(x for x in recs if x["test"] == test)["measure"]
         lines.append(f"| {test} | `{measure}` | " + " | ".join(cells) + " |")
     lines += ["", "**Is the reference converged?** Its uncertainty is the largest change of a measure under its "
-              "checks (its mesh or its steps halved once more, as the test has them); it must be below a tenth of the smallest error reported "
-              "(errors below 10 x the uncertainty are reported as unresolved):", "",
+              "checks (its mesh or its steps halved once more, as the test has them); it must be below a tenth of "
+              "the smallest error reported (errors below 10 x the uncertainty are reported as unresolved):", "",
               "| test | measure | uncertainty | resolution | smallest resolved error | unresolved runs | converged |",
               "|---|---|---|---|---|---|---|"]
     for test, per in checks.items():

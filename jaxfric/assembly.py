@@ -49,14 +49,14 @@ def mesh_geometry(mesh: StripMesh) -> ElementGeometry:
     return element_geometry(mesh.nodes[mesh.elements])
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def tangent_scatter_index(nx: int, ny: int) -> np.ndarray:
     """(n_el*64,) positions of the entries of every (8, 8) element tangent in the flat storage
     ``concat(diag.ravel(), lower.ravel(), upper.ravel())`` of a BlockTridiag with nx+1 blocks."""
     m = 2 * (ny + 1)
     nb = nx + 1
-    i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
-    i, j = i.ravel(), j.ravel()
+    i_grid, j_grid = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    i, j = i_grid.ravel(), j_grid.ravel()
     # Block column and in-block dof of each of the 8 element dofs (node-major, x then y).
     col = i[:, None] + np.repeat([0, 1, 1, 0], 2)[None, :]
     row = 2 * (j[:, None] + np.repeat([0, 0, 1, 1], 2)[None, :]) + np.tile([0, 1], 4)[None, :]

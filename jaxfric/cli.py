@@ -19,9 +19,10 @@ import os
 import shutil
 import sys
 
+from .formulations import ALGORITHMS
+
 __all__ = ["main", "build_parser", "UsageError"]
 
-ALGORITHMS = ("penalty", "auglag", "lcp_lemke", "lcp_ssn")
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 
 
@@ -61,12 +62,15 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--variant", action=_Once, help="scene variant (default: the scene's first)")
     # Exact contact by default: no gap, no penalty to choose, and the cheapest run on the Nine and
     # blankholder scenes. ``fit`` keeps penalty: it needs derivatives, which exact contact has not.
-    run.add_argument("--algorithm", action=_Once, default="lcp_ssn", help=f"one of {', '.join(ALGORITHMS)} (default lcp_ssn)")
-    run.add_argument("--mesh", action=_Once, metavar="NXxNY", help="elements along x and through the thickness, e.g. 300x3")
+    run.add_argument("--algorithm", action=_Once, default="lcp_ssn",
+                     help=f"one of {', '.join(ALGORITHMS)} (default lcp_ssn)")
+    run.add_argument("--mesh", action=_Once, metavar="NXxNY",
+                     help="elements along x and through the thickness, e.g. 300x3")
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
                      help="override a config field (repeatable); see 'jaxfric scenes'")
     run.add_argument("--out", action=_Once, metavar="DIR", help="run directory (default runs/SCENE/VARIANT/ALGORITHM)")
-    run.add_argument("--tag", action=_Once, help="study tag recorded in summary.json (regex [A-Za-z0-9][A-Za-z0-9._+-]*)")
+    run.add_argument("--tag", action=_Once,
+                     help="study tag recorded in summary.json (regex [A-Za-z0-9][A-Za-z0-9._+-]*)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.add_argument("--error-estimate", action=_Once, choices=["basic", "sensitivity", "step"], default="basic",
                      help="basic: from the run's penetration, force scatter and Newton tolerance; "
@@ -80,9 +84,11 @@ def build_parser() -> argparse.ArgumentParser:
                                      "fit_history.csv and fit.png.")
     fit.add_argument("scene", help="flat_die, bead, nine or blankholder")
     fit.add_argument("--data", action=_Once, required=True, metavar="CSV", help="measured curve")
-    fit.add_argument("--param", action=_Once, required=True, metavar="NAME[,NAME...]", help="config fields to fit, e.g. mu,R1")
+    fit.add_argument("--param", action=_Once, required=True, metavar="NAME[,NAME...]",
+                     help="config fields to fit, e.g. mu,R1")
     fit.add_argument("--variant", action=_Once, help="scene variant (default: the scene's first)")
-    fit.add_argument("--algorithm", action=_Once, default="penalty", help=f"one of {', '.join(ALGORITHMS)} (default penalty)")
+    fit.add_argument("--algorithm", action=_Once, default="penalty",
+                     help=f"one of {', '.join(ALGORITHMS)} (default penalty)")
     fit.add_argument("--mesh", action=_Once, metavar="NXxNY", help="elements along x and through the thickness")
     fit.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
                      help="override a config field; for a fitted field this is its start value")
@@ -106,8 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("--quick", action="store_true", help="the small sweep (a few minutes)")
     report.add_argument("--test", action="append", default=None, metavar="NAME",
                         help="run only this test (repeatable), e.g. flat_die_const_force")
-    report.add_argument("--out", action=_Once, metavar="DIR", help="output directory (default runs/report/accuracy_cost, "
-                                                     "with --quick runs/report/accuracy_cost_quick)")
+    report.add_argument("--out", action=_Once, metavar="DIR",
+                        help="output directory (default runs/report/accuracy_cost, "
+                             "with --quick runs/report/accuracy_cost_quick)")
     report.add_argument("--rerun", action="store_true", help="recompute runs already in DIR")
     report.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
@@ -117,7 +124,7 @@ def _one_line(text) -> str:
     return " ".join(str(text).split())
 
 
-def _error(message: str, code: int) -> int:
+def _error(message: str | Exception, code: int) -> int:
     print(f"jaxfric: error: {_one_line(message)}", file=sys.stderr)
     return code
 

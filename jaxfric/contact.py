@@ -29,20 +29,20 @@ balance row takes over; with P = 0 it rests touching the sheet with zero force.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_int, check_nonnegative, is_concrete
-from .contact_laws import OPEN, augmented_pair
+from ._checks import check_nonnegative, is_concrete
+from .contact_laws import augmented_pair
+from .status import OPEN
 from .tools import Tool, project
 
-__all__ = ["Move", "Force", "RigidTool", "Penalty", "AugmentedLagrangian", "Complementarity", "ContactState", "ContactStep", "PairResult",
-           "initial_contact_state", "is_plain_penalty", "evaluate_pairs", "tool_forces", "split_pairs",
-           "pair_nodes", "pair_mu", "max_penetration"]
+__all__ = ["Move", "Force", "RigidTool", "ContactState", "ContactStep", "PairResult", "initial_contact_state",
+           "evaluate_pairs", "tool_forces", "split_pairs", "pair_nodes", "pair_mu", "max_penetration"]
 
 
 class Move(eqx.Module):
@@ -88,7 +88,10 @@ class RigidTool(eqx.Module):
         candidates: static tuple of candidate sheet-node indices.
         controls: one :class:`Move` or :class:`Force` per phase.
         mu: (n_phases,) friction coefficient per phase.
-        frictional: static; False when mu is 0 in every phase (then no friction term is built).
+        frictional: static; whether the tool's pairs carry a friction term. Declared, or when not
+            given, False only for a concrete mu of 0 in every phase (a traced mu keeps the term). A tool
+            declared frictional with mu = 0 builds the same program as with any other mu, so a
+            derivative or a fit can start from mu = 0.
     """
 
     name: str = eqx.field(static=True)
@@ -99,14 +102,20 @@ class RigidTool(eqx.Module):
     mu: jax.Array
     frictional: bool = eqx.field(static=True)
 
-    def __init__(self, name, geometry: Tool, drive, candidates, controls, mu):
+    def __init__(self, name, geometry: Tool, drive, candidates, controls, mu, frictional: bool | None = None):
         self.name = str(name)
         self.geometry = geometry
         self.drive = jnp.asarray(drive, jnp.float64)
         self.candidates = tuple(int(a) for a in np.asarray(candidates).ravel())
         self.controls = tuple(controls)
-        # Static, decided from the argument as given (inside jit, even a converted constant is a tracer).
-        self.frictional = (not is_concrete(mu)) or bool(np.any(np.asarray(mu) > 0))
+        # Undeclared: decided from the argument as given (inside jit, even a converted constant is a tracer).
+        if frictional is None:
+            frictional = (not is_concrete(mu)) or bool(np.any(np.asarray(mu) > 0))
+        if isinstance(frictional, np.bool_):
+            frictional = bool(frictional)
+        if not isinstance(frictional, bool):
+            raise ValueError(f"tool {self.name!r}: field 'frictional' must be True, False or None, got {frictional!r}")
+        self.frictional = frictional
         mu = jnp.asarray(mu, jnp.float64)
         self.mu = jnp.broadcast_to(mu, (len(self.controls),)) if mu.ndim == 0 else mu
 
@@ -123,104 +132,14 @@ class RigidTool(eqx.Module):
             raise ValueError(f"tool {self.name!r}: field 'mu' must be a scalar or one value per phase")
         if is_concrete(self.mu) and not np.all(np.isfinite(self.mu) & (np.asarray(self.mu) >= 0)):
             raise ValueError(f"tool {self.name!r}: field 'mu' must be finite and >= 0, got {self.mu}")
+        if not self.frictional and is_concrete(self.mu) and np.any(np.asarray(self.mu) > 0):
+            raise ValueError(f"tool {self.name!r}: field 'mu' = {self.mu} on a tool declared frictionless "
+                             f"(frictional=False); declare it frictional or give mu = 0")
 
     @property
     def force_driven(self) -> bool:
         """Static: whether any phase drives this tool by a force (it then owns an extra unknown)."""
         return any(isinstance(c, Force) for c in self.controls)
-
-
-class Penalty(eqx.Module):
-    """Penalty regularisation of contact and friction (spec 1.5): eps_n, eps_t in N/mm per mm.
-
-    ``smoothing`` (N/mm, default 0: the exact law) smooths the normal and stick/slip kinks over a force
-    band of that width (:mod:`jaxfric.contact_laws`), for gradient-based work; whether it is on is
-    static (decided from its value at construction), its value is an array leaf.
-    """
-
-    eps_n: jax.Array
-    eps_t: jax.Array
-    smoothing: jax.Array
-    smooth: bool = eqx.field(static=True)
-
-    def __init__(self, eps_n, eps_t, smoothing=0.0):
-        for name, v in (("eps_n", eps_n), ("eps_t", eps_t), ("smoothing", smoothing)):
-            check_nonnegative(name, v)
-        self.eps_n = jnp.asarray(eps_n, jnp.float64)
-        self.eps_t = jnp.asarray(eps_t, jnp.float64)
-        self.smoothing = jnp.asarray(smoothing, jnp.float64)
-        # Decided from the argument as given: inside jit, even a converted constant is a tracer.
-        self.smooth = (not is_concrete(smoothing)) or float(np.asarray(smoothing)) > 0
-
-    def __check_init__(self):
-        if is_concrete(self.eps_n) and not float(self.eps_n) > 0:
-            raise ValueError(f"field 'eps_n' must be > 0, got {float(self.eps_n)}")
-
-
-class AugmentedLagrangian(Penalty):
-    """Augmented Lagrangian (spec 1.6, paper eq. 20): the penalty law with multipliers, updated
-    between converged Newton solves (lambda <- R, an Uzawa iteration; the slip reference stays at the
-    start of the step, see ``jaxfric.simulate._augment`` for why) until the largest penetration AND the
-    largest slip of a sticking pair over the step (the tangential stick error, which the tangential
-    penalty alone leaves at R_T / eps_t) are at most ``target_gap`` (mm), at most
-    ``max_augmentations`` times per step. The spec's test checks the normal gap only; without the
-    tangential part, eps_t = mu eps_n = 1.5e4 N/mm leaves elastic slips of 1e-5 mm where the flat die's
-    early stroke is 2.5e-5 mm per step, and its drawing curve is 3 % (of mu P) off the exact one.
-
-    Multipliers start each step from the converged forces of the last one (warm start), so a step that
-    already meets the target needs no augmentation.
-    """
-
-    target_gap: jax.Array
-    max_augmentations: int = eqx.field(static=True)
-
-    def __init__(self, eps_n, eps_t, target_gap=1e-5, max_augmentations: int = 20, smoothing=0.0):
-        super().__init__(eps_n, eps_t, smoothing)
-        check_nonnegative("target_gap", target_gap)
-        if is_concrete(target_gap) and not float(target_gap) > 0:
-            raise ValueError(f"field 'target_gap' must be > 0, got {float(target_gap)}")
-        self.target_gap = jnp.asarray(target_gap, jnp.float64)
-        self.max_augmentations = check_int("max_augmentations", max_augmentations, 1, 10_000)
-
-
-def is_plain_penalty(law) -> bool:
-    """Static: ``law`` is the penalty law itself, not the augmented Lagrangian built on it (the law
-    whose penalties the load loop's continuation softens, :class:`jaxfric.simulate.StepControl`)."""
-    return isinstance(law, Penalty) and not isinstance(law, AugmentedLagrangian)
-
-
-SOLVERS = ("ssn", "ssn_condensed", "lemke")
-
-
-class Complementarity(eqx.Module):
-    """Exact contact (spec 1.7, algorithms ``lcp_lemke`` and ``lcp_ssn``): at every Newton iterate the
-    contact conditions of the linearised problem are solved exactly; no penalty, no penetration beyond
-    the Newton tolerance (:mod:`jaxfric.exact`).
-
-    Attributes:
-        solver (static):
-            "ssn" (``lcp_ssn``): semismooth Newton on the Alart-Curnier equations of every candidate
-            inside the global Newton loop, on the block-tridiagonal system itself.
-            "ssn_condensed": semismooth Newton on the problem condensed on the band (Lemke fallback
-            if it does not converge).
-            "lemke" (``lcp_lemke``): Lemke's pivoting on the condensed problem, on the host through
-            ``jax.pure_callback``.
-        band: static number of candidate nodes in the condensed problem (the proximity band: the
-            nodes nearest to a tool). None: every candidate node. Too small a band is detected (a node
-            outside it penetrates) and fails the attempt. Not used by "ssn" (every candidate).
-        ssn_max_iter: semismooth Newton iterations on one linearised problem (static): "ssn" then
-            takes its last active set, "ssn_condensed" falls back to Lemke.
-    """
-
-    solver: str = eqx.field(static=True, default="ssn")
-    band: int | None = eqx.field(static=True, default=None)
-    ssn_max_iter: int = eqx.field(static=True, default=50)
-
-    def __check_init__(self):
-        if self.solver not in SOLVERS:
-            raise ValueError(f"field 'solver' must be one of {', '.join(map(repr, SOLVERS))}, got {self.solver!r}")
-        check_int("band", self.band, optional=True)
-        check_int("ssn_max_iter", self.ssn_max_iter, 1, 10_000)
 
 
 class ContactState(eqx.Module):
@@ -253,7 +172,7 @@ class ContactStep(eqx.Module):
     """Everything the contact terms of one load step depend on (differentiable data)."""
 
     tools: tuple
-    law: Penalty
+    law: Any             # the contact formulation (jaxfric.formulations); pair laws read its penalties
     mu: tuple            # per tool, () coefficient of this phase
     lam_n: tuple         # per tool, (n_k,) frozen normal multipliers (0 for the penalty method; exact
                          # contact: the last converged R_N, which only guesses Lemke's starting basis)
@@ -280,7 +199,7 @@ class PairResult(NamedTuple):
     slip: jax.Array       # slip since the reference configuration (mm)
 
 
-def _pair(tool: RigidTool, law: Penalty, frictional: bool, X, u, q, mu, lam_n, lam_t, u_ref, q_ref):
+def _pair(tool: RigidTool, law, frictional: bool, X, u, q, mu, lam_n, lam_t, u_ref, q_ref):
     # Relative motion of node and tool since the reference configuration; the slip is the change of zeta
     # it causes, computed from the increment itself (round-off, see jaxfric.tools.project).
     increment = (u - u_ref) - (q - q_ref) * tool.drive

@@ -38,9 +38,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-__all__ = ["OPEN", "STICK", "SLIP", "PairForce", "augmented_pair", "penalty_pair", "status_of"]
+from .status import OPEN, SLIP, STICK, contact_status
 
-OPEN, STICK, SLIP = 0, 1, 2
+__all__ = ["PairForce", "augmented_pair"]
 
 
 class PairForce(NamedTuple):
@@ -83,17 +83,4 @@ def _smoothed_pair(gap, slip, lambda_n, lambda_t, mu, eps_n, eps_t, valid, s) ->
     rt_trial = jnp.where(valid, lambda_t - eps_t * slip, 0.0)
     limit = mu * rn
     rt = rt_trial - s * jax.nn.softplus((rt_trial - limit) / s) + s * jax.nn.softplus((-rt_trial - limit) / s)
-    return PairForce(rn, rt, status_of(rn, rt, mu))
-
-
-def penalty_pair(gap, slip, rt_prev, mu, eps_n, eps_t, valid=True) -> PairForce:
-    """The penalty pair law: ``augmented_pair`` with lambda_N = 0 and lambda_T = R_T,n."""
-    return augmented_pair(gap, slip, jnp.zeros_like(gap), rt_prev, mu, eps_n, eps_t, valid)
-
-
-def status_of(rn, rt, mu) -> jax.Array:
-    """Contact status from forces by the spec's thresholds (spec 0): 0 open (R_N <= 1e-9 N/mm),
-    1 stick (|R_T| < (1 - 1e-6) mu R_N), 2 slip otherwise (closed frictionless pairs slip)."""
-    closed = rn > 1e-9
-    stick = jnp.abs(rt) < (1.0 - 1e-6) * mu * rn
-    return jnp.where(closed, jnp.where(stick, STICK, SLIP), OPEN).astype(jnp.int8)
+    return PairForce(rn, rt, contact_status(rn, rt, mu))

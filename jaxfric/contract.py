@@ -19,8 +19,12 @@ import re
 import struct
 import sys
 import zipfile
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
+
+from .formulations import ALGORITHMS
 
 __all__ = ["check_run_dir", "FILES", "SCENES"]
 
@@ -29,10 +33,9 @@ REQUIRED = ("step", "phase", "time", "drawing_displacement", "drawing_force", "c
             "tool_position", "max_penetration", "n_active", "n_slip", "newton_iters", "wall_s")
 _INT_REQUIRED = ("step", "n_active", "n_slip", "newton_iters")
 _INT_EXTRAS = ("cutbacks", "n_aug", "lcp_pivots", "ssn_iters", "ssn_fallbacks")
-ALGORITHMS = ("penalty", "auglag", "lcp_lemke", "lcp_ssn")
 
 # Per scene: variants, phases, instants, tools, (clamping tool, e_q), default steady window (mm).
-SCENES = {
+SCENES: dict[str, dict[str, Any]] = {
     "flat_die": dict(variants=("const_force", "const_position"), phases=("clamp", "draw"),
                      instants=("clamped", "intermediate", "sliding", "final"), tools=("die",),
                      clamp=("die", (0.0, -1.0)), window=(0.02, 0.03)),
@@ -135,7 +138,7 @@ def _read_history(path: str, scene: dict | None, out: list) -> dict | None:
         if any(field == "" for field in row):
             out.append(f"history.csv: row {i} has an empty field")
             return None
-    cols = {}
+    cols: dict[str, list] = {}  # column name -> its str, int or float values, by column
     for k, name in enumerate(header):
         raw = [row[k] for row in rows]
         if name == "phase":
@@ -255,6 +258,11 @@ _SUMMARY_TYPES = {
 }
 
 
+def _scene(name: Any) -> dict[str, Any] | None:
+    """The metadata of the scene ``name`` (any value read from summary.json); None if it names no scene."""
+    return SCENES.get(name)
+
+
 def _check_error_estimate(get) -> list:
     """error_estimate: the main output's value and a finite, non-negative relative error."""
     est = get("error_estimate")
@@ -295,10 +303,10 @@ def _check_summary(s: dict, cols: dict | None, out: list) -> None:
             out.append(f"summary.json: missing key {key!r}")
         elif not _type_ok(s[key], kind):
             out.append(f"summary.json: key {key!r} must be {kind}, got {s[key]!r:.60}")
-    get = s.get
+    get: Callable[[str], Any] = s.get  # the value of a key, of any JSON type, or None
     if get("schema_version") != 1:
         out.append("summary.json: schema_version must be 1")
-    scene = SCENES.get(get("scene"))
+    scene = _scene(get("scene"))
     if scene is None:
         out.append(f"summary.json: unknown scene {get('scene')!r}")
     elif get("variant") not in scene["variants"]:
@@ -463,8 +471,8 @@ def _check_contact(path: str, s: dict | None, cols: dict | None, out: list) -> N
     if s is not None and isinstance(s.get("mesh"), list) and len(s["mesh"]) == 2:
         nx, ny = s["mesh"]
         if _is_int(nx) and _is_int(ny) and ((nx + 1) * (ny + 1), nx * ny) == (n_nodes, n_el):
-            i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
-            i, j = i.ravel(), j.ravel()
+            i_grid, j_grid = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+            i, j = i_grid.ravel(), j_grid.ravel()
             node = lambda a, b: a * (ny + 1) + b  # noqa: E731
             expected = np.stack([node(i, j), node(i + 1, j), node(i + 1, j + 1), node(i, j + 1)], axis=1)
             if not np.array_equal(elements, expected):
@@ -484,7 +492,7 @@ def _check_contact(path: str, s: dict | None, cols: dict | None, out: list) -> N
     if np.any((data["pair_tool"] < 0) | (data["pair_tool"] >= n_tools)):
         out.append("contact.npz: pair_tool out of range")
         ok = False
-    scene = SCENES.get(s.get("scene")) if s is not None else None
+    scene = _scene(s.get("scene")) if s is not None else None
     tools = [str(t) for t in data["tool_names"]]
     if scene is not None and tuple(tools) != scene["tools"]:
         out.append(f"contact.npz: tool_names {tools} must be {list(scene['tools'])}")
@@ -592,7 +600,7 @@ def check_run_dir(path) -> list[str]:
         return [f"{path}: not a directory"]
     _check_files(path, out)
     summary = _read_summary(path, out)
-    scene = SCENES.get(summary.get("scene")) if summary is not None else None
+    scene = _scene(summary.get("scene")) if summary is not None else None
     cols = _read_history(path, scene, out)
     if summary is not None:
         _check_summary(summary, cols, out)

@@ -66,12 +66,28 @@ import jax.numpy as jnp
 import numpy as np
 
 from .assembly import internal_force_and_tangent, shared_trace
-from .contact import Complementarity, ContactStep, pair_mu, pair_nodes, split_pairs
-from .lcp import (_OPEN, _SLIP_NEG, _SLIP_POS, _STICK, ForceDrive, LemkeStatus, _alart_curnier, _keep_tools_touching, _piece, contact_status,
-                  diagonal_parameters, lemke_contact_callback, lemke_start, polish, ssn_contact, ssn_start)
+from .contact import ContactStep, pair_mu, pair_nodes, split_pairs
+from .lcp import (
+    _OPEN,
+    _SLIP_NEG,
+    _SLIP_POS,
+    _STICK,
+    ForceDrive,
+    LemkeStatus,
+    _alart_curnier,
+    _keep_tools_touching,
+    _piece,
+    diagonal_parameters,
+    lemke_contact_callback,
+    lemke_start,
+    polish,
+    ssn_contact,
+    ssn_start,
+)
 from .linalg import BlockTridiag, Bordered, block_tridiag_solve, bordered_solve
 from .newton import NewtonOptions, NewtonSolution
 from .results import Result
+from .status import contact_status
 from .system import _constrain_rows
 from .tools import project
 
@@ -142,6 +158,7 @@ def _linearize(x, args) -> _Iterate:
     u = x[:n].reshape(-1, 2)
     q = _tool_positions(args, x[n:])
     a = internal_force_and_tangent(args.mesh, args.material, args.formulation, args.geo, u, args.states)
+    assert a.tangent is not None
     gap, normal, zeta, slip, valid, jac = _geometry(args.contact, args.mesh.nodes, u, q)
     return _Iterate(a.f_int, a.tangent, a.states, a.det_min, q, gap, normal, zeta, slip, valid, jac)
 
@@ -278,7 +295,7 @@ def _lemke(K, r, gap, slip, mu, drive, hint):
     return du_c, p, dq, pivots, refined, (status == LemkeStatus.SOLVED) | solved
 
 
-def _solve_contact(law: Complementarity, K, r, gap, slip, mu, drive, hint) -> _LCPSolution:
+def _solve_contact(law, K, r, gap, slip, mu, drive, hint) -> _LCPSolution:
     zero = jnp.array(0, jnp.int32)
     if law.solver == "lemke":
         du_c, p, dq, pivots, refined, ok = _lemke(K, r, gap, slip, mu, drive, hint)
@@ -298,7 +315,7 @@ def _solve_contact(law: Complementarity, K, r, gap, slip, mu, drive, hint) -> _L
                         fallback)
 
 
-def _contact_newton_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint):
+def _contact_newton_step(it: _Iterate, args, x, p_prev, law, hint):
     """The increment (du, dq) of one iteration, the new pair forces (m, 2), the band, the solver stats.
 
     ``hint`` (m, 2): forces whose active set starts Lemke or semismooth Newton (the last iterate's,
@@ -458,7 +475,7 @@ def _merit(x, it: _Iterate, args, hint, fr: _Frames) -> jax.Array:
     return total
 
 
-def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint, frames=None):
+def _active_set_step(it: _Iterate, args, x, p_prev, law, hint, frames=None):
     """One iteration of semismooth Newton on the whole step (solver ``"ssn"``): the increment (du, dq),
     the pair forces it predicts (m, 2), the pairs used, the solver stats; same contract as
     :func:`_contact_newton_step`, at the cost of one bulk solve.
@@ -589,7 +606,7 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law: Complementarity, hint, 
 
 
 def _status(p, mu_pairs):
-    return contact_status(p.reshape(-1), mu_pairs).astype(jnp.int8)
+    return contact_status(p[:, 0], p[:, 1], mu_pairs)
 
 
 def _contact_out(it: _Iterate, p, tool_f, status):
@@ -610,7 +627,7 @@ class _Trial(NamedTuple):
     frames: object       # _Frames there (constants of the merit), or None without a search
 
 
-def _exact_newton(args, x0, x_ref, options: NewtonOptions, law: Complementarity):
+def _exact_newton(args, x0, x_ref, options: NewtonOptions, law):
     c = args.contact
     mu_pairs = pair_mu(c.tools, c.mu)
     m = mu_pairs.shape[0]
@@ -717,7 +734,7 @@ def _exact_newton(args, x0, x_ref, options: NewtonOptions, law: Complementarity)
 
 
 @eqx.filter_custom_jvp
-def exact_solve(args, x0, x_ref, *, options: NewtonOptions, law: Complementarity):
+def exact_solve(args, x0, x_ref, *, options: NewtonOptions, law):
     """Solve one load step with exact contact from the initial guess ``x0`` (``x_ref``: the last
     converged state, reference of the increment test).
 

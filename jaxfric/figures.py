@@ -16,10 +16,10 @@ import matplotlib
 matplotlib.use("Agg")
 
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.collections import PolyCollection  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
-import matplotlib.ticker  # noqa: E402
 
 __all__ = ["forces_figure", "contact_figure", "mesh_figure", "contact_forces"]
 

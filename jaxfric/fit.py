@@ -49,8 +49,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Mapping
-from typing import Callable
+from collections.abc import Callable, Mapping
 
 import jax
 import jax.numpy as jnp
@@ -58,6 +57,7 @@ import numpy as np
 import optax
 
 from ._checks import check_int, check_positive
+from .formulations import ALGORITHMS, DIFFERENTIABLE_ALGORITHMS
 from .newton import NewtonOptions
 from .params import Parameterization, adaptive_run, parameterize, path_function
 from .results import Result, describe
@@ -69,7 +69,6 @@ _COLUMNS = ("drawing_displacement", "drawing_force")
 MAX_MAGNITUDE = {"drawing_displacement": 1e6, "drawing_force": 1e12}  # mm, N/mm
 MAX_WINDOWS = 100_000  # fitted windows (``window``)
 MAX_GRID_POINTS = 10_000  # adaptive runs of the global stage (``grid``), every axis combined
-FIT_ALGORITHMS = ("penalty", "auglag")  # exact contact (lcp_*) has no derivatives
 
 
 class FitError(RuntimeError):
@@ -95,8 +94,8 @@ def read_measurement(data) -> Measurement:
         source = os.fspath(data)
         try:
             # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name.
-            with open(source, newline="", encoding="utf-8-sig") as f:
-                reader = csv.DictReader(f)
+            with open(source, newline="", encoding="utf-8-sig") as stream:
+                reader = csv.DictReader(stream)
                 rows = list(reader)
                 header = reader.fieldnames or []
         except OSError as err:
@@ -168,8 +167,8 @@ class FitResult:
             or None (pointwise).
         covariance: (n, n) Gauss-Newton covariance at the optimum.
         residual_rms: sqrt(mean r^2) (N/mm) at the optimum; cost: |r|^2 / 2.
-        n_points: fitted observations (measured points, or windows); n_simulations: simulations run (adaptive planning runs and
-            frozen-sequence runs, each frozen-sequence run with its n forward-mode tangents);
+        n_points: fitted observations (measured points, or windows); n_simulations: simulations run (adaptive
+            planning runs and frozen-sequence runs, each frozen-sequence run with its n forward-mode tangents);
             n_replans: adaptive runs after the first.
         wall_s: total wall time (s), compilation included; converged; message.
         iterations: per accepted or rejected trial, a dict (iteration, accepted, cost, damping, params).
@@ -224,7 +223,7 @@ def bin_means(x, f, edges):
     return (area[1:] - area[:-1]) / (edges[1:] - edges[:-1])
 
 
-_CURVES = {}  # compiled curves by scene, parameters and step sequence: repeated fits reuse them
+_CURVES: dict[tuple, _Curve] = {}  # compiled curves by scene, parameters and step sequence: repeated fits reuse them
 REPLAY_ITERATIONS = 60  # Newton iterations per step allowed in the frozen-sequence replays
 
 
@@ -251,7 +250,7 @@ class _Curve:
 
         self._fn = jax.jit(jax.jacfwd(curve, has_aux=True))
 
-    def same_plan(self, other: "_Curve") -> bool:
+    def same_plan(self, other: _Curve) -> bool:
         return self.times.shape == other.times.shape and np.allclose(self.times, other.times, rtol=0, atol=1e-12)
 
     def __call__(self, p):
@@ -323,7 +322,9 @@ def _windows(x: np.ndarray, window, n_params: int):
     return np.linspace(x[0], x[-1], n + 1)
 
 
-_GRIDS = {}  # adaptive runs of the global stage by scene, parameters and grid: repeated fits reuse them
+# Adaptive runs (their histories; None: failed) of the global stage by scene, parameters and grid: repeated
+# fits reuse them.
+_GRIDS: dict[tuple, dict[int, dict | None]] = {}
 
 
 def _grid_axes(grid, names, lo, hi) -> list:
@@ -333,7 +334,7 @@ def _grid_axes(grid, names, lo, hi) -> list:
     unknown = [k for k in grid if k not in names]
     if unknown:
         raise ValueError(f"field 'grid' names {unknown[0]!r}, which is not a fitted parameter ({', '.join(names)})")
-    axes = []
+    axes: list[np.ndarray | None] = []
     for i, name in enumerate(names):
         if name not in grid:
             axes.append(None)
@@ -423,7 +424,7 @@ def _surrogate_minima(axes: list, obs: np.ndarray, observed: np.ndarray, count: 
         minima.append((point, value))
     # Lattice minima of one basin polish to (nearly) the same point: keep the lowest of each, and
     # basins at least a lattice step apart.
-    distinct = []
+    distinct: list[tuple[np.ndarray, float]] = []
     for point, value in sorted(minima, key=lambda m: m[1]):
         if all(np.max(np.abs(point - other) / step) >= 1.0 for other, _ in distinct):
             distinct.append((point, value))
@@ -482,12 +483,12 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
     if not (isinstance(params, (tuple, list)) and all(isinstance(n, str) for n in params)):
         raise ValueError(f"field 'params' must be a name or a sequence of names of config fields, got {params!r}")
     names = tuple(params)
-    if algorithm in ("lcp_lemke", "lcp_ssn"):
-        raise ValueError(f"field 'algorithm' = {algorithm!r} cannot be fitted: exact contact has no derivatives; "
-                         f"choose one of {', '.join(FIT_ALGORITHMS)}")
-    for name, value in (("overrides", overrides), ("bounds", bounds), ("grid", grid)):
-        if value is not None and not isinstance(value, Mapping):
-            raise ValueError(f"field {name!r} must be a dict keyed by config field, got {value!r}")
+    if algorithm in ALGORITHMS and algorithm not in DIFFERENTIABLE_ALGORITHMS:
+        raise ValueError(f"field 'algorithm' = {algorithm!r} cannot be fitted: its formulation has no derivatives; "
+                         f"choose one of {', '.join(DIFFERENTIABLE_ALGORITHMS)}")
+    for name, mapping in (("overrides", overrides), ("bounds", bounds), ("grid", grid)):
+        if mapping is not None and not isinstance(mapping, Mapping):
+            raise ValueError(f"field {name!r} must be a dict keyed by config field, got {mapping!r}")
     if newton is not None and not isinstance(newton, NewtonOptions):
         raise ValueError(f"field 'newton' must be a NewtonOptions or None, got {newton!r}")
     check_positive("xtol", xtol)
@@ -525,8 +526,8 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
         if meas.displacement[-1] > top * (1 + 1e-12):
             raise ValueError(f"measurement {meas.source!r} reaches drawing_displacement {meas.displacement[-1]:g} "
                              f"mm, beyond the simulated stroke {top:g} mm (raise the scene's stroke field)")
-        key = (*model_key, history["time"].tobytes(), meas.displacement.tobytes(), None if edges is None else edges.tobytes(),
-               substeps)
+        key = (*model_key, history["time"].tobytes(), meas.displacement.tobytes(),
+               None if edges is None else edges.tobytes(), substeps)
         if key not in _CURVES:
             while len(_CURVES) >= 8:
                 _CURVES.pop(next(iter(_CURVES)))
@@ -619,6 +620,7 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
 
     p_start, grid_rows = par.p0.copy(), []
     if grid:
+        assert axes is not None  # set from the grid above
         axes = [np.array([par.p0[i]]) if a is None else a for i, a in enumerate(axes)]
         points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(names))
         runs = _GRIDS.setdefault((*model_key, tuple(a.tobytes() for a in axes)), {})
@@ -629,10 +631,12 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
                 res = adaptive_run(par, p, newton)
                 counts["simulations"] += 1
                 runs[j] = res.history if res.converged else None
-            if runs[j] is not None:
-                obs[j] = _observations(runs[j], meas.displacement, edges)
+            grid_run = runs[j]
+            if grid_run is not None:
+                obs[j] = _observations(grid_run, meas.displacement, edges)
             r = obs[j] - observed
-            grid_rows.append({**dict(zip(names, p.tolist())), "cost": 0.5 * float(r @ r) if runs[j] is not None else math.inf,
+            grid_rows.append({**dict(zip(names, p.tolist())),
+                              "cost": 0.5 * float(r @ r) if runs[j] is not None else math.inf,
                               "converged": runs[j] is not None})
             say(f"  grid point {j + 1}/{len(points)}: misfit {grid_rows[-1]['cost']:.6g} at "
                 + ", ".join(f"{n} = {v:.6g}" for n, v in zip(names, p)))
@@ -659,7 +663,8 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
                 raise
             say(f"  start {number + 1} abandoned: {failure}")
     best = min(outcomes, key=lambda o: o["cur"]["cost"])
-    cur, converged, message, p_start, start_force = (best[k] for k in ("cur", "converged", "message", "p_start", "start_force"))
+    cur, converged, message, p_start, start_force = (
+        best[k] for k in ("cur", "converged", "message", "p_start", "start_force"))
     iterations = [row for o in outcomes for row in o["iterations"]]
     if len(starts_at) > 1:
         say(f"  best of {len(outcomes)} starts: start {best['number'] + 1}, misfit {cur['cost']:.6g}")
@@ -804,7 +809,8 @@ def _plot_grid(result: FitResult, live: list, ax) -> None:
             ax.plot([r[a] for r in bad], [r[b] for r in bad], "x", color="0.5", label="run failed")
         ax.plot([r[a] for r in its], [r[b] for r in its], ".-", color="tab:red", ms=4, lw=1,
                 label="Levenberg-Marquardt iterates")
-        ax.plot(result.start[a], result.start[b], "s", mfc="none", color="tab:blue", label="start (interpolated minimum)")
+        ax.plot(result.start[a], result.start[b], "s", mfc="none", color="tab:blue",
+                label="start (interpolated minimum)")
         ax.figure.colorbar(sc, ax=ax, label="misfit (N/mm)^2")
         ax.set_xlabel(a)
         ax.set_ylabel(b)

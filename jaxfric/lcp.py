@@ -53,6 +53,7 @@ from scipy.linalg import lapack
 from scipy.linalg.blas import dger
 
 from ._checks import is_concrete
+from .status import OPEN, STICK, contact_status
 
 __all__ = [
     "ForceDrive",
@@ -60,7 +61,6 @@ __all__ = [
     "LemkeResult",
     "LemkeContactResult",
     "SSNResult",
-    "ContactStatus",
     "lemke",
     "lemke_callback",
     "lemke_contact_callback",
@@ -72,13 +72,8 @@ __all__ = [
     "ssn_contact",
     "ssn_start",
     "diagonal_parameters",
-    "contact_status",
-    "OPEN_FORCE",
-    "STICK_MARGIN",
 ]
 
-OPEN_FORCE = 1e-9      # N/mm: R_N at or below this is "open" (spec section 0)
-STICK_MARGIN = 1e-6    # |R_T| < (1 - STICK_MARGIN) mu R_N is "stick" (spec section 0)
 DEFAULT_SHIFT = 1e3    # mm: alpha of spec 1.8, larger than any tool increment |dq|
 _NOISE = 1e-11         # relative round-off scale of the basic values in Lemke (ties within it)
 _MEMORY = 5            # semismooth Newton: iterates in the non-monotone line search reference
@@ -131,7 +126,7 @@ class ForceDrive(eqx.Module):
             raise ValueError(f"ForceDrive field 'shift' must be > 0 mm, got {self.shift}")
 
     @classmethod
-    def single(cls, e_dot_n, e_dot_t, force, shift: float = DEFAULT_SHIFT) -> "ForceDrive":
+    def single(cls, e_dot_n, e_dot_t, force, shift: float = DEFAULT_SHIFT) -> ForceDrive:
         """One tool: ``e_dot_n``, ``e_dot_t`` (n_c,) are e_q . n_a and e_q . t_a (0 for the
         candidates of other tools), ``force`` the scalar P (N/mm)."""
         e_dot_n, e_dot_t = jnp.asarray(e_dot_n), jnp.asarray(e_dot_t)
@@ -632,6 +627,7 @@ def _choose_row(T, basis, entering, ties, n, pivot_tol) -> int:
         if not _leads_to_ray(T, row, entering, _complement(int(basis[row]), n), pivot_tol):
             return row
         remaining = remaining[remaining != row]
+    assert first is not None   # ``ties`` is never empty
     return first
 
 
@@ -853,8 +849,8 @@ def lemke_start(p, slip, mu) -> jax.Array:
     p = jnp.asarray(p).reshape(-1, 2)
     R_N, R_T = p[:, 0], p[:, 1]
     mu = jnp.asarray(mu, p.dtype)
-    closed = R_N > OPEN_FORCE
-    stick = closed & (jnp.abs(R_T) < (1.0 - STICK_MARGIN) * mu * R_N)
+    status = contact_status(R_N, R_T, mu)
+    closed, stick = status != OPEN, status == STICK
     by_force = closed & (mu > 0.0)
     plus = ~stick & jnp.where(by_force, R_T > 0.0, jnp.asarray(slip) < 0.0)
     minus = ~stick & ~plus
@@ -886,7 +882,7 @@ def lemke_contact_callback(K_star, r_star, gap, slip, mu, drive: ForceDrive | No
     M, q = contact_lcp(K_star, r_star, gap, slip, mu, drive)
     n_q = 0 if drive is None else drive.num_tools
     n_c3 = q.shape[-1] - n_q
-    if n_q:
+    if drive is not None and n_q:
         tools = slice(n_c3, None)
         q = q + drive.shift * jnp.sum(M[:, tools], axis=1)           # unshifted: z_q = dq
         coupling = jnp.linalg.solve(M[tools, tools], jnp.concatenate([M[tools, :n_c3], q[tools, None]], 1))
@@ -1040,7 +1036,7 @@ def polish(K_star, r_star, gap, slip, mu, du_c, dq, drive: ForceDrive | None = N
                                  jnp.array(0, jnp.int32), keep)
     # The forces of the piece: an open candidate carries none. K* du - r* leaves it the round-off of
     # the forces around it (1e-8 N/mm next to 300 N/mm on the blankholder's lands), above the open
-    # threshold of :func:`contact_status`, so that its status flipped between iterations.
+    # threshold of :func:`jaxfric.status.contact_status`, so that its status flipped between iterations.
     p = (K_star @ du - r_star).reshape(n_c, 2)
     p = jnp.where((classify(du, dq) == _OPEN)[:, None], 0.0, p)
     return du, p.reshape(-1), dq, iters, solved
@@ -1092,10 +1088,10 @@ def ssn_start(p, gap, mu) -> jax.Array:
     the cold start's rule for all.
     """
     p = jnp.asarray(p).reshape(-1, 2)
-    status = contact_status(p, jnp.broadcast_to(jnp.asarray(mu, p.dtype), p[:, 0].shape))
+    status = contact_status(p[:, 0], p[:, 1], jnp.broadcast_to(jnp.asarray(mu, p.dtype), p[:, 0].shape))
     slip = jnp.where((p[:, 1] >= 0.0) | (jnp.asarray(mu) == 0.0), _SLIP_POS, _SLIP_NEG)
     by_gap = jnp.where(jnp.asarray(gap) <= 0.0, _STICK, _OPEN)
-    return jnp.select([status == ContactStatus.OPEN, status == ContactStatus.STICK], [by_gap, _STICK],
+    return jnp.select([status == OPEN, status == STICK], [by_gap, _STICK],
                       slip).astype(jnp.int32)
 
 
@@ -1247,33 +1243,3 @@ def ssn_contact(K_star, r_star, gap, slip, mu, *, drive: ForceDrive | None = Non
     k, x, _, _, _, converged = lax.while_loop(cond, body, carry0)
     du, dq = x[: 2 * n_c], x[2 * n_c:]
     return SSNResult(du, K_star @ du - r_star, k, converged, dq)
-
-
-# --------------------------------------------------------------------------------------------
-# Contact status (spec section 0)
-# --------------------------------------------------------------------------------------------
-
-
-class ContactStatus(enum.IntEnum):
-    OPEN = 0
-    STICK = 1
-    SLIP = 2   # includes closed frictionless pairs
-
-
-def contact_status(p, mu) -> jax.Array:
-    """Status of each candidate from its forces (spec section 0).
-
-    open if ``R_N <= 1e-9`` N/mm; else stick if ``|R_T| < (1 - 1e-6) mu R_N``; else slip.
-
-    Args:
-        p: (2 n_c,) forces (R_N, R_T) per candidate, N/mm.
-        mu: (n_c,) friction coefficients.
-
-    Returns:
-        (n_c,) int32 :class:`ContactStatus` codes.
-    """
-    p = jnp.asarray(p).reshape(-1, 2)
-    R_N, R_T = p[:, 0], p[:, 1]
-    stick = jnp.abs(R_T) < (1.0 - STICK_MARGIN) * jnp.asarray(mu, p.dtype) * R_N
-    return jnp.where(R_N <= OPEN_FORCE, ContactStatus.OPEN,
-                     jnp.where(stick, ContactStatus.STICK, ContactStatus.SLIP)).astype(jnp.int32)

@@ -314,7 +314,7 @@ def block_solver(name: str):
     """Trace the block-tridiagonal solves with ``name``: ``"thomas"``, ``"cyclic"`` or ``"auto"``.
 
     ``"auto"`` (the default) is the cyclic reduction where JAX's default backend is a GPU and the
-    Thomas sweep elsewhere (RESULTS.md, batched sweeps: on a CPU the sweep is faster and compiles
+    Thomas sweep elsewhere (docs/results.md, batched sweeps: on a CPU the sweep is faster and compiles
     in less than half the time; on an H100 the Thomas sweep's 241 sequential steps cost 22 ms an
     iteration, the reduction 0.5 ms). A setting read when a program is traced, not when it runs: a
     program already compiled keeps its solver, and ``jax.jit`` reuses a function's trace."""

@@ -177,8 +177,8 @@ class J2Material(eqx.Module):
 
         Algorithm (spec section 1.2):
             b^e_tr = F C_p,n^-1 F^T,  eps_tr = 1/2 ln b^e_tr,  tau_tr = kappa tr(eps_tr) I + 2G dev(eps_tr),
-            q_tr = sqrt(3/2) |dev tau_tr|.  Elastic if q_tr - sigma_Y(eqps_n) <= 1e-10 sigma_Y (round-off guard); otherwise solve
-            R(dg) = q_tr - 3G dg - sigma_Y(eqps_n + dg) = 0 by Newton from dg = 0 and set
+            q_tr = sqrt(3/2) |dev tau_tr|.  Elastic if q_tr - sigma_Y(eqps_n) <= 1e-10 sigma_Y (round-off guard);
+            otherwise solve R(dg) = q_tr - 3G dg - sigma_Y(eqps_n + dg) = 0 by Newton from dg = 0 and set
             eps^e = eps_tr - sqrt(3/2) dg N = eps_tr - (3G dg / q_tr) dev eps_tr,  eqps_{n+1} = eqps_n + dg,
             b^e_{n+1} = exp(2 eps^e),  C_p,n+1^-1 = F^-1 b^e_{n+1} F^-T.
 

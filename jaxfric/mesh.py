@@ -68,8 +68,8 @@ class StripMesh(eqx.Module):
     @property
     def elements(self) -> np.ndarray:
         """(n_el, 4) int64 connectivity, counter-clockwise from the lower-left node."""
-        i, j = np.meshgrid(np.arange(self.nx), np.arange(self.ny), indexing="ij")
-        i, j = i.ravel(), j.ravel()
+        i_grid, j_grid = np.meshgrid(np.arange(self.nx), np.arange(self.ny), indexing="ij")
+        i, j = i_grid.ravel(), j_grid.ravel()
         return np.stack(
             [self.node_index(i, j), self.node_index(i + 1, j),
              self.node_index(i + 1, j + 1), self.node_index(i, j + 1)], axis=1
@@ -104,7 +104,7 @@ class StripMesh(eqx.Module):
         return getattr(self, name)
 
     @classmethod
-    def from_coordinates(cls, xs, ys) -> "StripMesh":
+    def from_coordinates(cls, xs, ys) -> StripMesh:
         """Tensor-product mesh from 1D node coordinates ``xs`` (nx+1,) and ``ys`` (ny+1,)."""
         xs = jnp.asarray(xs, dtype=jnp.float64)
         ys = jnp.asarray(ys, dtype=jnp.float64)

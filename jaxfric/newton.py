@@ -17,7 +17,7 @@ to the residual tolerance once an iteration fails to reduce ||R|| tenfold. The u
 represented to eps |x| only (and the residual is evaluated from them with an error of that order),
 so Newton's iterates stagnate within about eps |J| |x| of zero: late in a long draw on a fine mesh
 (displacements of 65 mm, stiffness entries of 1e6 N/mm^2) that is 1e-6 N/mm while the relative
-tolerance has fallen to 2e-7 (RESULTS.md, mesh convergence). Where the residual is computed from
+tolerance has fallen to 2e-7 (docs/results.md, mesh convergence). Where the residual is computed from
 positions X + u rather than from u (the contact gaps), its round-off is relative to |X + u|, which
 the linearisation then passes as ``magnitude``: a penalty of 1e9 N/mm at a node 13 mm from the origin
 resolves forces to 1e9 x ulp(13 mm) = 1.8e-6 N/mm, however small u is. That floor is used only where
@@ -38,7 +38,8 @@ by a JVP of ``residual`` at (x*, args) along (dx*, dargs).
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax

@@ -23,7 +23,7 @@ import numpy as np
 
 __all__ = ["SCHEMA_VERSION", "REQUIRED_COLUMNS", "INT_COLUMNS", "ALGORITHM_EXTRAS", "SCENE_PHASES",
            "SCENE_INSTANTS", "STEADY_TOL", "GAP_NO_PROJECTION", "OutputError", "select_instants",
-           "steady_rows", "steady_drawing_force", "error_estimate", "steady_window", "contact_status",
+           "steady_rows", "steady_drawing_force", "error_estimate", "steady_window",
            "history_table", "write_run", "format_title"]
 
 SCHEMA_VERSION = 1
@@ -67,7 +67,7 @@ _RUN_KEYS = ("time", "phase", "phase_name", "newton_iters", "cutbacks", "augment
 #   ("first_half_slip",)        : first draw row with n_active > 0 and n_slip >= n_active / 2
 #   ("first_all_slip",)         : first draw row with n_active > 0 and n_slip == n_active
 #   ("final",)                  : the last row
-_INSTANT_RULES = {
+_INSTANT_RULES: dict[str, dict[str, tuple]] = {
     "flat_die": {"clamped": ("end", "clamp"), "intermediate": ("first_half_slip",),
                  "sliding": ("first_all_slip",), "final": ("final",)},
     "bead": {"clamped": ("end", "clamp"), "folded": ("end", "wind"), "drawing": ("closest", "draw", 4.0),
@@ -222,24 +222,12 @@ def steady_window(scene_name: str, history: dict, default) -> tuple[tuple, str]:
 
 # ---- contact status ---------------------------------------------------------------------------------
 
-def contact_status(rn, rt, mu):
-    """Contact status of candidate pairs from their forces (benchmarks spec section 0), int8:
-    0 open (R_N <= 1e-9 N/mm), 1 stick (|R_T| < (1 - 1e-6) μ R_N), 2 slip (otherwise; a closed
-    frictionless pair is "slip"). Works on NumPy and JAX arrays (jit-able)."""
-    import jax.numpy as jnp
-
-    rn, rt, mu = jnp.asarray(rn), jnp.asarray(rt), jnp.asarray(mu)
-    closed = rn > 1e-9
-    stick = jnp.abs(rt) < (1.0 - 1e-6) * mu * rn
-    return jnp.where(closed, jnp.where(stick, 1, 2), 0).astype(jnp.int8)
-
-
 # ---- history.csv ------------------------------------------------------------------------------------
 
 def _format(value, integer: bool) -> str:
     if integer:
         return str(int(value))
-    return "%.12g" % float(value)
+    return f"{float(value):.12g}"
 
 
 def _extra_columns(history: dict) -> list:
@@ -296,7 +284,7 @@ def history_table(scene, result) -> tuple[list, list, dict]:
             integer = name in INT_COLUMNS or value.dtype.kind in "iub"
             text[name] = [_format(v, integer) for v in value]
     lines = [",".join(text[c][i] for c in columns) for i in range(n)]
-    values = {}
+    values: dict[str, list] = {}  # column name -> its str, int or float values, by column
     for name in columns:
         if name == "phase":
             values[name] = list(text[name])
@@ -396,6 +384,8 @@ def error_estimate(scene, values: dict, window, steady, penalty_tangent=None, st
         if steady is not None:
             change = steady_drawing_force({"phase": values["phase"], "drawing_displacement":
                                            values["drawing_displacement"], "drawing_force": tangent}, window)
+            # ``steady`` is the steady force over the same rows and window, so it exists here too.
+            assert change is not None
         else:
             change = float(tangent[int(np.argmax(force))])
         parts["penalty"] = abs(change) / abs(value) if value else 0.0
@@ -461,7 +451,7 @@ def _summary(scene, result, tag, values, instants, fallback, window, steady, not
         "dtype": "float64",
         "device": _device(),
         "jax_version": jax.__version__,
-        "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "created_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
 
 

@@ -103,18 +103,20 @@ def parameterize(scene: str, names, *, variant: str | None = None, algorithm: st
         raise ValueError(f"field 'param' names a parameter twice: {', '.join(names)}")
     overrides = dict(overrides or {})
     base = scenes.make(scene, variant, algorithm, overrides)
-    p0 = []
+    config = base.config
+    assert dataclasses.is_dataclass(config)  # a scene's config is its config dataclass (Scene.config: object)
+    start = []
     for name in names:
-        if name == "mesh" or name not in {f.name for f in dataclasses.fields(base.config)}:
-            known = ", ".join(f.name for f in dataclasses.fields(base.config))
+        if name == "mesh" or name not in {f.name for f in dataclasses.fields(config)}:
+            known = ", ".join(f.name for f in dataclasses.fields(config))
             raise ValueError(f"unknown parameter {name!r} of scene '{scene}'; config fields: {known}")
         value = getattr(base.config, name)
         kind, _ = scenes._field_type(scene, name)
         if kind is not float or value is None or isinstance(value, bool):
             raise ValueError(f"parameter {name!r} of scene '{scene}' is not differentiable: it is "
                              f"{'unset (None)' if value is None else 'not a real number'} ({value!r})")
-        p0.append(float(value))
-    p0 = np.array(p0)
+        start.append(float(value))
+    p0 = np.array(start)
     leaves0, treedef0, static0 = _leaves(base.model)
 
     def build(p):
@@ -153,7 +155,8 @@ def parameterize(scene: str, names, *, variant: str | None = None, algorithm: st
             raise ValueError(f"parameters {names[i]!r} and {names[j]!r} of scene '{scene}' are not "
                              f"differentiable together: they enter the model jointly (a cross term, "
                              f"e.g. eps_t = max(mu) eps_n); fit them one at a time")
-    per_leaf, moved = [], [0] * n
+    per_leaf: list[np.ndarray | None] = []  # per leaf: None or (n, *leaf.shape)
+    moved = [0] * n
     for k in range(len(leaves0)):
         stack = np.stack([slopes[i][k] for i in range(n)])
         if np.any(stack != 0):
@@ -189,9 +192,9 @@ def path_function(par: Parameterization, *, newton: NewtonOptions | None = None,
     ``history`` is the simulation's :class:`~jaxfric.simulate.History`: ``history.observed`` holds the
     scene's columns (``drawing_force``, ``clamping_force``, ...), rows 0 .. ``history.n_rows`` - 1
     filled (row 0: the initial state), e.g. the last drawing force is
-    ``history.observed["drawing_force"][history.n_rows - 1]``. Why frozen steps: the adaptive controller would choose other
-    steps at other parameter values, and the forces would then change by the discretisation noise of
-    the new sequence, which no derivative describes.
+    ``history.observed["drawing_force"][history.n_rows - 1]``. Why frozen steps: the adaptive controller would
+    choose other steps at other parameter values, and the forces would then change by the discretisation
+    noise of the new sequence, which no derivative describes.
 
     ``reverse=False``: the steps are replayed by the adaptive loop (:func:`~jaxfric.simulate.simulate`
     with the accepted steps as nominal steps), which still cuts a step that fails at other values, so

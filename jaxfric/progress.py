@@ -14,7 +14,7 @@ import numpy as np
 
 __all__ = ["ProgressMonitor", "report", "active"]
 
-_ACTIVE: "ProgressMonitor | None" = None
+_ACTIVE: ProgressMonitor | None = None
 
 
 class ProgressMonitor:
@@ -91,7 +91,7 @@ class ProgressMonitor:
         return out
 
 
-def active() -> "ProgressMonitor | None":
+def active() -> ProgressMonitor | None:
     return _ACTIVE
 
 

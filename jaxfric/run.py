@@ -5,18 +5,25 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
 import numpy as np
 
-from .contact import Complementarity
 from .newton import NewtonOptions
 from .progress import ProgressMonitor
 from .results import Result, SimulationError, describe
-from .simulate import (Simulation, StepControl, StripModel, default_observe, initial_state, simulate,
-                       simulate_fixed)
+from .simulate import (
+    SimState,
+    Simulation,
+    StepControl,
+    StripModel,
+    default_observe,
+    initial_state,
+    simulate,
+    simulate_fixed,
+)
 
 __all__ = ["RunResult", "run", "MemoryBudgetError", "available_memory"]
 
@@ -98,7 +105,7 @@ class RunResult:
 
     model: StripModel
     history: dict
-    final: object
+    final: SimState
     simulation: Simulation
     converged: bool
     code: Result
@@ -150,10 +157,10 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
                               ("control", control, StepControl)):
         if not isinstance(value, kind):
             raise ValueError(f"field '{name}' must be a {kind.__name__}, got {value!r}")
-    for name, value in (("observe", observe), ("snapshot", snapshot)):
-        if not (callable(value) or (name == "snapshot" and value is None)):
+    for name, function in (("observe", observe), ("snapshot", snapshot)):
+        if not (callable(function) or (name == "snapshot" and function is None)):
             raise ValueError(f"field '{name}' must be a function{' or None' if name == 'snapshot' else ''}, "
-                             f"got {value!r}")
+                             f"got {function!r}")
     t0 = time.perf_counter()
     compiled = _compiled(model, newton, control, observe, snapshot, adaptive)
     compile_s = time.perf_counter() - t0
@@ -184,9 +191,9 @@ def _to_host(model, sim: Simulation, monitor, compile_s, wall_s, cpu_s) -> RunRe
         "cutbacks": np.asarray(h.cutbacks[:n]),
         "augmentations": np.asarray(h.augmentations[:n]),
     }
-    if isinstance(model.contact, Complementarity):
+    if model.tools and model.contact is not None and model.contact.solver_stats:
         stats = np.asarray(h.solver_stats[:n])
-        history.update(lcp_pivots=stats[:, 0], ssn_iters=stats[:, 1], ssn_fallbacks=stats[:, 2])
+        history.update({name: stats[:, k] for k, name in enumerate(model.contact.solver_stats)})
     history["wall_s"] = monitor.step_wall_times(n)
     for name, value in h.observed.items():
         history[name] = np.asarray(value[:n])

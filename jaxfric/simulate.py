@@ -18,30 +18,38 @@ the loading path. Failures are result codes; :func:`jaxfric.run.run` turns them 
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .assembly import internal_force, mesh_geometry, shared_trace
-from .contact import (AugmentedLagrangian, Complementarity, ContactState, ContactStep, Force, Move, Penalty,
-                      initial_contact_state, is_plain_penalty, max_penetration, pair_mu, pair_nodes, split_pairs)
-from .contact_laws import SLIP, STICK
+from ._checks import check_int, check_nonnegative, is_concrete
+from .assembly import internal_force, mesh_geometry
+from .contact import (
+    ContactState,
+    ContactStep,
+    Force,
+    Move,
+    initial_contact_state,
+    max_penetration,
+    pair_mu,
+    pair_nodes,
+    split_pairs,
+)
 from .element import FORMULATIONS, ElementGeometry
-from .exact import exact_solve
-from .lcp import contact_status
+from .formulations import AbstractContactFormulation, StepSolution, newton_step
 from .loading import Phase, constraint_masks, prescribed_values, schedule
 from .material import J2Material
 from .mesh import StripMesh
-from .newton import (SOLUTION_NAME, Linearization, NewtonOptions, newton_pass, newton_result, newton_solve,
-                     newton_start)
+from .newton import SOLUTION_NAME, Linearization, NewtonOptions, newton_pass, newton_result, newton_start
 from .progress import report
 from .results import Result
-from .system import StepArgs, linearize, residual
+from .status import SLIP, contact_status
+from .system import StepArgs, linearize
 from .tools import project
-from ._checks import check_int, check_nonnegative, is_concrete
 
 __all__ = ["StripModel", "SimState", "StepControl", "History", "Simulation", "initial_state",
            "default_observe", "stresses", "solve_step", "linearize_step", "reactions",
@@ -59,8 +67,9 @@ class StripModel(eqx.Module):
         formulation: "fbar" (default), "eas" (enhanced strain Q1/E4) or "q4" (plain Q4, for elastic
             checks only); static. See :mod:`jaxfric.element`.
         tools: rigid tools (:class:`~jaxfric.contact.RigidTool`), one control per phase each.
-        contact: the contact formulation, needed with tools: :class:`~jaxfric.contact.Penalty`,
-            :class:`~jaxfric.contact.AugmentedLagrangian` or :class:`~jaxfric.contact.Complementarity`.
+        contact: the contact formulation, needed with tools
+            (:class:`~jaxfric.formulations.AbstractContactFormulation`: :class:`~jaxfric.formulations.Penalty`,
+            :class:`~jaxfric.formulations.AugmentedLagrangian` or :class:`~jaxfric.formulations.Complementarity`).
     """
 
     mesh: StripMesh
@@ -68,7 +77,7 @@ class StripModel(eqx.Module):
     phases: tuple
     formulation: str = eqx.field(static=True, default="fbar")
     tools: tuple = ()
-    contact: Penalty | Complementarity | None = None
+    contact: AbstractContactFormulation | None = None
 
     def __check_init__(self):
         if not isinstance(self.mesh, StripMesh):
@@ -83,8 +92,9 @@ class StripModel(eqx.Module):
         if len(set(names)) != len(names):
             raise ValueError(f"field 'phases' has repeated phase names: {names}")
         constraint_masks(self.mesh.n_nodes, self.phases)  # validates node indices
-        if self.tools and self.contact is None:
-            raise ValueError("field 'contact' (e.g. Penalty(eps_n, eps_t)) is required when there are tools")
+        if self.tools and not isinstance(self.contact, AbstractContactFormulation):
+            raise ValueError(f"field 'contact' must be a contact formulation (e.g. Penalty(eps_n, eps_t)) when "
+                             f"there are tools, got {self.contact!r}")
         names = [t.name for t in self.tools]
         if len(set(names)) != len(names):
             raise ValueError(f"field 'tools' has repeated tool names: {names}")
@@ -143,7 +153,7 @@ class SimState(eqx.Module):
     """
 
     u: jax.Array
-    material: object
+    material: Any
     f_int: jax.Array
     time: jax.Array
     phase: jax.Array
@@ -162,24 +172,22 @@ class StepControl(eqx.Module):
         easy_iterations: a step is easy when each of its Newton solves (one per AL augmentation)
             needed at most this many iterations.
         max_steps: size of the history buffer (accepted steps); default 10x the nominal count + 100.
-        continuation: penalty law only. At the smallest increment, after the retry from the converged
-            state and before the attempt without line search, solve the step first with the penalties
-            eps_n and eps_t divided by 10^m, then by 10^(m-1), ..., each stage starting from the last
-            one's solution, the last one at the true penalties (m = ceil(log10(eps_n / E)), so the
-            first stage has a penalty of the order of the sheet's modulus E; none when eps_n <= E).
-            A stage's solution is only a starting point: the step is accepted when Newton converges
-            at the true penalties (the last stage). In the stages, the last included, Newton's
-            round-off floor is taken relative to the positions X + u, from which the gaps are
-            computed (:mod:`jaxfric.newton`), instead of the displacements: a looser test than other
-            steps get, and only where the step would otherwise stop the run.
-            The stages count as attempts in the step's ``cutbacks``. Why: at a stiff penalty (1e9 N/mm on the Nine's cylinders) a pair touching a
-            curved tool 2-cycles between open (the free node is driven 1e-4 mm into the tool) and
-            closed at a spurious force of 1e4 N/mm (whose geometric stiffness throws it out again);
-            from the softer problem's solution the pair arrives closed with about its true force.
-            The forward-mode derivative of such a step is that of its converged solution, as for any
-            step; but a fixed-step replay (:func:`simulate_fixed`, behind reverse mode and
-            ``jaxfric.fit``'s replays) has no stages, so it fails at a step the adaptive run accepted
-            only after them.
+        continuation: for a formulation that has one (the penalty law: ``continuation_stages``,
+            ``softened``). At the smallest increment, after the retry from the converged state and
+            before the attempt without line search, the step is solved first with the penalties
+            divided by 10^m, then by 10^(m-1), ..., each stage from the last one's solution, the last
+            one at the true penalties (m = ceil(log10(eps_n / E)): the first stage's penalty is of
+            the order of the sheet's modulus E; no stage when eps_n <= E). A stage's solution is only
+            a starting point: the step is accepted when Newton converges at the true penalties. In
+            the stages Newton's round-off floor is relative to the positions X + u, from which the
+            gaps are computed (:mod:`jaxfric.newton`): a looser test, used only where the step would
+            otherwise stop the run. The stages count as attempts in the step's ``cutbacks``.
+            Reason: at a stiff penalty a pair touching a curved tool can 2-cycle between open (the
+            free node driven into the tool) and closed at a spurious force whose geometric stiffness
+            throws it out again; from the softer problem's solution it arrives closed with about its
+            true force (``tests/test_extreme.py::test_nine_edges``, eps_n 1e9). The derivative of a step is
+            that of its converged solution; a fixed-step replay (:func:`simulate_fixed`) has no
+            stages, so it fails at a step the adaptive run accepted only after them.
     """
 
     max_cuts: int = eqx.field(static=True, default=10)
@@ -219,7 +227,7 @@ class History(eqx.Module):
     cutbacks: jax.Array
     augmentations: jax.Array
     solver_stats: jax.Array
-    observed: object
+    observed: Any
     n_rows: jax.Array
 
 
@@ -304,7 +312,7 @@ class _Context(eqx.Module):
     masks: jax.Array
 
     @classmethod
-    def build(cls, model: StripModel) -> "_Context":
+    def build(cls, model: StripModel) -> _Context:
         masks = jnp.asarray(constraint_masks(model.mesh.n_nodes, model.phases))
         return cls(model, mesh_geometry(model.mesh), masks)
 
@@ -312,6 +320,7 @@ class _Context(eqx.Module):
 def _contact_step(model: StripModel, state: SimState, phase, tau, law) -> tuple:
     """The contact data of a step in ``phase`` at phase-local time ``tau``, from the last state."""
     c = state.contact
+    assert c is not None   # a model with tools
     new_phase = phase != state.phase
     # Controls are relative to the tool's position / force at the start of the phase.
     q_start = jnp.where(new_phase, c.q, c.q_start)
@@ -333,11 +342,9 @@ def _contact_step(model: StripModel, state: SimState, phase, tau, law) -> tuple:
         # R_T,n restarts from 0 at a phase boundary where the tool's mu changes (spec 1.5).
         reset = new_phase & (tool.mu[phase] != tool.mu[state.phase])
         lam_t.append(jnp.where(reset, 0.0, rt))
-    # Penalty: lambda_N = 0. Augmented Lagrangian: warm start from the last converged R_N (spec 1.6).
-    # Exact contact has no multipliers here; (lambda_N, lambda_T) = the last converged forces only
-    # guess the active set that Lemke starts from.
-    warm = isinstance(law, (AugmentedLagrangian, Complementarity))
-    lam_n = split_pairs(model.tools, c.rn if warm else jnp.zeros_like(c.rn))
+    # lambda_N: the last converged R_N where the formulation starts from it (the augmented Lagrangian's
+    # warm start, spec 1.6; exact contact's guess of the first active set); the penalty law's is 0.
+    lam_n = split_pairs(model.tools, c.rn if law.warm_start else jnp.zeros_like(c.rn))
     step = ContactStep(tools=model.tools, law=law, mu=mu_now, lam_n=lam_n, lam_t=tuple(lam_t),
                        u_ref=_candidates(model, state.u), q_ref=c.q, q_presc=jnp.stack(q_table)[phase],
                        force=jnp.stack(f_table)[phase], force_mask=jnp.asarray(force_mask)[phase])
@@ -349,75 +356,7 @@ def _candidates(model: StripModel, u: jax.Array) -> tuple:
     return tuple(u[np.asarray(t.candidates)] for t in model.tools)
 
 
-class StepSolution(NamedTuple):
-    """Outcome of one load-step attempt: the Newton solution(s) summed over AL augmentations."""
-
-    x: jax.Array
-    aux: object
-    iterations: jax.Array       # () Newton iterations, all augmentations included
-    code: jax.Array             # () Result
-    residual_norm: jax.Array
-    residual_history: jax.Array  # of the last Newton solve
-    augmentations: jax.Array    # () AL augmentations (0 for the penalty method)
-    stats: jax.Array            # (3,) exact contact: Lemke pivots, SSN iterations, fallbacks
-    hardest: jax.Array | None = None  # () the most iterations one Newton solve took (AL: of all the
-    #                                    augmentations; None: ``iterations``)
-
-
-def _constraint_error(contact_out: dict) -> jax.Array:
-    """AL acceptance measure: largest penetration, and largest slip of a sticking pair (mm)."""
-    stick_slip = jnp.where(contact_out["status"] == STICK, jnp.abs(contact_out["slip"]), 0.0)
-    return jnp.maximum(max_penetration(contact_out["status"], contact_out["gap"]), jnp.max(stick_slip))
-
-
-def _augment(model: StripModel, args: "StepArgs", x0, x_ref, newton: NewtonOptions,
-             search=True) -> StepSolution:
-    """Augmented Lagrangian loop (spec 1.6): solve with the step's multipliers, then, while the step's
-    largest penetration or stick slip exceeds the target, set lambda <- R and solve again (Uzawa
-    iteration). The first solve is the loop's first pass, so that the traced program holds one Newton
-    solve (each copy costs compile time).
-
-    The slip reference stays at the start of the step. Resetting it at each augmentation, as the spec
-    words it, makes the tangential update telescope: R_T^(K) = lambda_T^(0) - eps_T (sum of the slips of
-    all augmentations) = R_T,n - eps_T (slip since the step start), which is the penalty law itself,
-    so the stick error could never fall below R_T / eps_t. With a fixed reference, a converged sticking
-    pair has exactly zero slip over the step and the multiplier carries the whole stick force.
-    """
-    law = model.contact
-
-    @shared_trace     # one trace for the loop's shapes (below) and its body
-    def solve(a, lam_n, lam_t, x_start):
-        step = eqx.tree_at(lambda c: (c.lam_n, c.lam_t), a.contact, (lam_n, lam_t))
-        return newton_solve(eqx.tree_at(lambda b: b.contact, a, step), x_start, x_ref,
-                            linearize=linearize, residual=residual, options=newton, search=search)
-
-    def pending(c):
-        sol, n_aug = c[:2]
-        return (n_aug < 0) | ((sol.code == Result.SUCCESS) & (_constraint_error(sol.aux[2]) > law.target_gap))
-
-    def body(c):
-        sol, n_aug, iters, hardest = c
-        out = sol.aux[2]
-        first = n_aug < 0     # the step's own multipliers (the last converged forces) and start
-        pick = lambda a, b: jnp.where(first, a, b)  # noqa: E731
-        lam_n = jax.tree_util.tree_map(pick, args.contact.lam_n, split_pairs(model.tools, out["rn"]))
-        lam_t = jax.tree_util.tree_map(pick, args.contact.lam_t, split_pairs(model.tools, out["rt"]))
-        new = solve(args, lam_n, lam_t, pick(x0, sol.x))
-        # After the last allowed augmentation the target must be met, or the attempt fails.
-        exhausted = (n_aug + 1 >= law.max_augmentations) & (new.code == Result.SUCCESS) & (
-            _constraint_error(new.aux[2]) > law.target_gap)
-        code = jnp.where(exhausted, Result.AUGMENTATIONS, new.code).astype(jnp.int32)
-        return new._replace(code=code), n_aug + 1, iters + new.iterations, jnp.maximum(hardest, new.iterations)
-
-    shape = eqx.filter_eval_shape(solve, args, args.contact.lam_n, args.contact.lam_t, x0)
-    sol0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shape)
-    int0 = jnp.array(0, jnp.int32)
-    sol, n_aug, iters, hardest = jax.lax.while_loop(pending, body, (sol0, jnp.array(-1, jnp.int32), int0, int0))
-    return StepSolution(sol.x, sol.aux, iters, sol.code, sol.residual_norm, sol.residual_history, n_aug,
-                        jnp.zeros(3, jnp.int32), hardest)
-
-
-def _step_args(model: StripModel, state: SimState, phase, t_target, ctx: "_Context"):
+def _step_args(model: StripModel, state: SimState, phase, t_target, ctx: _Context):
     phase = jnp.asarray(phase, jnp.int32)
     t_target = jnp.asarray(t_target, jnp.float64)
     tau = t_target - phase.astype(t_target.dtype)
@@ -449,44 +388,42 @@ def linearize_step(model: StripModel, state: SimState, phase, t_target) -> Linea
 
 
 def _softenable(model: StripModel) -> bool:
-    """Static: the model's contact law is the plain penalty law, which :class:`StepControl`'s
-    continuation may soften."""
-    return bool(model.tools) and is_plain_penalty(model.contact)
+    """Static: the model's contact formulation has a continuation (:class:`StepControl`)."""
+    return bool(model.tools) and model.contact is not None and model.contact.continuation
 
 
 def _continuation_on(model: StripModel, control: StepControl) -> bool:
-    """Static: the load loop carries (and compiles) the continuation's stages: asked for, and a law
-    that can be softened."""
+    """Static: the load loop carries (and compiles) the continuation's stages: asked for, and a
+    formulation that has them."""
     return control.continuation and _softenable(model)
 
 
 def _continuation_stages(model: StripModel) -> jax.Array:
-    """() int32: m = ceil(log10(eps_n / E)) clipped to [0, 12], the first stage's penalty divisor
-    10^m (:class:`StepControl`); 0 when the law cannot be softened."""
+    """() int32: the number of continuation stages of the model's formulation (:class:`StepControl`);
+    0 when it has none or the material gives no stiffness scale."""
     E = getattr(model.material, "E", None)   # the sheet's stiffness scale (a law without one: no stages)
     if not _softenable(model) or E is None:
         return jnp.array(0, jnp.int32)
-    m = jnp.ceil(jnp.log10(model.contact.eps_n / E))
-    return jnp.clip(jnp.nan_to_num(m), 0, 12).astype(jnp.int32)
+    assert model.contact is not None
+    return model.contact.continuation_stages(E)
 
 
 def _soften(args: StepArgs, m) -> StepArgs:
-    """``args`` with the penalty law's eps_n and eps_t divided by 10^m (m = 0: unchanged, bit for bit)."""
-    scale = 10.0 ** (-jnp.asarray(m, jnp.float64))
-    law = args.contact.law
-    return eqx.tree_at(lambda a: (a.contact.law.eps_n, a.contact.law.eps_t), args,
-                       (law.eps_n * scale, law.eps_t * scale))
+    """``args`` with the formulation of continuation stage m (m = 0: unchanged, bit for bit)."""
+    assert args.contact is not None
+    return eqx.tree_at(lambda a: a.contact.law, args, args.contact.law.softened(m))
 
 
 def solve_step(model: StripModel, state: SimState, phase, t_target,
-               newton: NewtonOptions = NewtonOptions(), ctx: "_Context | None" = None, guess=None,
+               newton: NewtonOptions = NewtonOptions(), ctx: _Context | None = None, guess=None,
                search=True, soften=None):
     """Solve one load step from the converged ``state`` to pseudo-time ``t_target`` in phase ``phase``.
 
     ``guess`` is Newton's initial point ``(u (n_nodes, 2), q (n_tools,))`` (default: the last state).
     ``search`` False switches Newton's line search off (penalty and augmented Lagrangian laws).
-    ``soften`` (int, may be traced; penalty law only): a continuation stage of :class:`StepControl`
-    when >= 0: eps_n and eps_t divided by 10^soften (0: the model's law), and Newton's round-off floor
+    ``soften`` (int, may be traced; formulations with a continuation only): a continuation stage of
+    :class:`StepControl` when >= 0: the formulation's ``softened(soften)`` (penalty: eps_n and eps_t
+    divided by 10^soften; 0: the model's law), and Newton's round-off floor
     relative to the positions (:mod:`jaxfric.newton`); None or < 0: a plain attempt.
 
     Returns the :class:`StepSolution` (iterations, code, residual history, AL augmentations) and the
@@ -502,16 +439,10 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
         args = _soften(args, jnp.maximum(soften, 0))
     x_ref = _unknowns(model, state.u, _tool_q(state))
     x0 = x_ref if guess is None else _unknowns(model, *guess)
-    no_aug = jnp.array(0, jnp.int32)
-    if isinstance(model.contact, Complementarity):
-        sol, stats = exact_solve(args, x0, x_ref, options=newton, law=model.contact)
-        sol = StepSolution(*sol, augmentations=no_aug, stats=stats)
-    elif isinstance(model.contact, AugmentedLagrangian):
-        sol = _augment(model, args, x0, x_ref, newton, search)
-    else:
-        sol = newton_solve(args, x0, x_ref, linearize=linearize, residual=residual, options=newton,
-                           search=search, positions=stage)
-        sol = StepSolution(*sol, augmentations=no_aug, stats=jnp.zeros(3, jnp.int32))
+    if model.tools:
+        sol = args.contact.law.solve_step(args, x0, x_ref, newton, search, stage)
+    else:   # no contact: one Newton solve
+        sol = newton_step(args, x0, x_ref, newton, search, stage)
     return sol, _step_state(model, args, sol, t_target, phase, q_start, f_start)
 
 
@@ -523,8 +454,7 @@ def _step_state(model: StripModel, args, sol, t_target, phase, q_start, f_start)
         kept = {k: v for k, v in c_out.items() if k != "slip"}  # slip is a per-attempt measure only
         # The stored status follows the spec's force thresholds (section 0) for every law, so that the
         # counts of closed and slipping pairs agree with the forces written out.
-        kept["status"] = contact_status(jnp.stack([kept["rn"], kept["rt"]], -1),
-                                        pair_mu(model.tools, args.contact.mu)).astype(jnp.int8)
+        kept["status"] = contact_status(kept["rn"], kept["rt"], pair_mu(model.tools, args.contact.mu))
         new_contact = ContactState(q_start=q_start, f_start=f_start, **kept)
     return SimState(u=sol.x[: model.mesh.n_dofs].reshape(-1, 2), material=states, f_int=f_int,
                     time=t_target, phase=phase, contact=new_contact)
@@ -575,7 +505,7 @@ class _Predictor(eqx.Module):
     dt: jax.Array   # () its pseudo-time increment (0: no prediction)
 
     @classmethod
-    def empty(cls, state: SimState) -> "_Predictor":
+    def empty(cls, state: SimState) -> _Predictor:
         return cls(jnp.zeros_like(state.u), jnp.zeros_like(_tool_q(state)), jnp.array(0.0))
 
     def guess(self, state: SimState, dt_next, phase_next, retry=False):
@@ -583,7 +513,7 @@ class _Predictor(eqx.Module):
         scale = jnp.where(use, dt_next / jnp.where(use, self.dt, 1.0), 0.0)
         return state.u + scale * self.du, _tool_q(state) + scale * self.dq
 
-    def after(self, ok, old: SimState, new: SimState) -> "_Predictor":
+    def after(self, ok, old: SimState, new: SimState) -> _Predictor:
         return _Predictor(du=jnp.where(ok, new.u - old.u, self.du),
                           dq=jnp.where(ok, _tool_q(new) - _tool_q(old), self.dq),
                           dt=jnp.where(ok, new.time - old.time, self.dt))
@@ -698,10 +628,10 @@ def _controller(model: StripModel, control: StepControl, observe: Callable, prog
         # iterations with the line search, plain Newton converges in 11).
         # If that fails too, the run stops with the code and residual of the attempt before it (the
         # last one with the line search): a plain Newton that strays ends in whatever it met first.
-        # (Exact contact has no line search to switch off: no such attempt.)
-        # Before that, the penalty law's continuation (StepControl.continuation): stages of softened
+        # (A formulation without a line search to switch off has no such attempt.)
+        # Before that, the formulation's continuation (StepControl.continuation): stages of softened
         # penalties, each from the last one's solution; a stage that fails ends it.
-        searched = not isinstance(model.contact, Complementarity)
+        searched = model.contact is None or not model.tools or model.contact.unsearched_retry
         plain = at_floor & ~again & ~c.plain & searched
         too_small = at_floor & ~again & ~plain
         repeat = again | plain
@@ -766,12 +696,12 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     waits for no other member's attempt: the sweep takes as many passes as its largest member's total
     of Newton iterations and attempts, against the sum over attempts of the slowest member's
     iterations with the nested loops (a batched pass itself still costs more than a single one:
-    ``experiments/RESULTS.md``, batched sweeps). Forward only (derivatives: :func:`simulate`,
+    ``docs/results.md``, batched sweeps). Forward only (derivatives: :func:`simulate`,
     whose steps are differentiated by the implicit function theorem); no progress reports.
     """
-    if model.tools and not is_plain_penalty(model.contact):
-        raise ValueError("field 'contact': simulate_flat runs the penalty law only (augmented Lagrangian "
-                         "and exact contact have loops of their own inside a step)")
+    if model.tools and model.contact is not None and not model.contact.one_newton_solve:
+        raise ValueError(f"field 'contact': simulate_flat runs formulations whose step is one Newton solve "
+                         f"(the penalty law), not {type(model.contact).__name__} (a loop of its own inside a step)")
     ctx = _Context.build(model)
     init, setup, finish = _controller(model, control, observe, False, None)
     soft_on = _continuation_on(model, control)
@@ -854,7 +784,8 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
         return (_select(ok, new_state, state), predictor.after(ok, state, new_state), code, failed_t,
                 jnp.where(alive, sol.residual_norm, r_norm)), row
 
-    step = jax.checkpoint(body, policy=jax.checkpoint_policies.save_only_these_names(SOLUTION_NAME)) if checkpoint else body
+    policy = jax.checkpoint_policies.save_only_these_names(SOLUTION_NAME)
+    step = jax.checkpoint(body, policy=policy) if checkpoint else body
     init = (state0, _Predictor.empty(state0), jnp.array(Result.CONTINUE, jnp.int32), jnp.array(jnp.nan),
             jnp.array(0.0))
     (state, _, code, failed_t, r_norm), rows = jax.lax.scan(
@@ -868,9 +799,10 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
         return jnp.concatenate([first[None], filled])
 
     hist = History(time=column(0.0, t), phase=column(0, ph.astype(jnp.int32)),
-                   newton_iters=column(0, iters.astype(jnp.int32)), cutbacks=column(0, jnp.zeros_like(iters, jnp.int32)),
-                   augmentations=column(0, augs.astype(jnp.int32)), solver_stats=column(jnp.zeros(3, jnp.int32),
-                                                                                       stats.astype(jnp.int32)),
+                   newton_iters=column(0, iters.astype(jnp.int32)),
+                   cutbacks=column(0, jnp.zeros_like(iters, jnp.int32)),
+                   augmentations=column(0, augs.astype(jnp.int32)),
+                   solver_stats=column(jnp.zeros(3, jnp.int32), stats.astype(jnp.int32)),
                    observed=jax.tree_util.tree_map(column, row0, observed), n_rows=1 + n_ok)
     code = jnp.where(code == Result.CONTINUE, Result.SUCCESS, code).astype(jnp.int32)
     return Simulation(history=hist, final=state, code=code, failed_time=failed_t, residual_norm=r_norm,

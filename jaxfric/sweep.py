@@ -17,7 +17,7 @@ nearly every attempt paid some member's iteration limit: 31x one run. The penalt
 sweeps with :func:`~jaxfric.simulate.simulate_flat` (one Newton iteration per pass, each member's
 step controller advancing on its own), whose number of passes is the largest member's total of
 Newton iterations and attempts. That halved the flat-die sweep, but on the 2-core CPU a batched pass
-still costs nearly one single pass per member (16 members: 18x one run; ``experiments/RESULTS.md``):
+still costs nearly one single pass per member (16 members: 18x one run; ``docs/results.md``, batched sweeps):
 each member has its own state, so the element arithmetic, which a single run already evaluates as
 one vectorised batch, is done 16 times over. The members are traced with element chunks n times
 smaller (:func:`jaxfric.assembly.element_chunk`) so that one chunk's working set stays in cache
@@ -28,7 +28,8 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -38,7 +39,6 @@ import numpy as np
 from .assembly import ELEMENT_CHUNK, element_chunk
 from .linalg import on_gpu
 from .newton import NewtonOptions
-from .contact import AugmentedLagrangian, Penalty
 from .simulate import Simulation, StepControl, StripModel, default_observe, simulate, simulate_flat
 
 __all__ = ["SweepResult", "sweep", "stack_models", "default_chunk"]
@@ -51,7 +51,7 @@ def stack_models(models: Sequence[StripModel]):
     if len(models) == 0:
         raise ValueError("field 'models' must hold at least one model")
     dyn0, static0 = eqx.partition(models[0], eqx.is_array)
-    treedef = jax.tree_util.tree_structure(dyn0)
+    treedef: Any = jax.tree_util.tree_structure(dyn0)
     dyns = [dyn0]
     for i, model in enumerate(models[1:], start=1):
         dyn, static = eqx.partition(model, eqx.is_array)
@@ -65,7 +65,8 @@ def stack_models(models: Sequence[StripModel]):
 
     # Flat lists of leaves: vmap's in_axes then need no knowledge of the model's classes.
     leaves = [jax.tree_util.tree_leaves(d) for d in dyns]
-    values, axes = [], []
+    values: list = []
+    axes: list[int | None] = []
     for column in zip(*leaves):
         first = np.asarray(column[0])
         if all(np.array_equal(first, np.asarray(x), equal_nan=True) for x in column[1:]):
@@ -110,7 +111,7 @@ class SweepResult:
 def default_chunk(n_members: int) -> int:
     """The element chunk per member a sweep of ``n_members`` traces with by default: on a CPU
     ``ELEMENT_CHUNK // n`` (at least 16), the same working set per batched chunk as a single run's; on
-    a GPU ``ELEMENT_CHUNK``, more work per launch (RESULTS.md, batched sweeps)."""
+    a GPU ``ELEMENT_CHUNK``, more work per launch (docs/results.md, batched sweeps)."""
     return ELEMENT_CHUNK if on_gpu() else max(ELEMENT_CHUNK // n_members, 16)
 
 
@@ -130,8 +131,7 @@ def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions
     values, axes, (treedef, static) = stack_models(models)
     first = models[0]
     if flat is None:
-        flat = not first.tools or (isinstance(first.contact, Penalty)
-                                   and not isinstance(first.contact, AugmentedLagrangian))
+        flat = first.contact is None or not first.tools or first.contact.one_newton_solve
     loop = simulate_flat if flat else simulate
 
     def one(v):
@@ -140,7 +140,7 @@ def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions
 
     t0 = time.perf_counter()
     # On a CPU, chunks n times smaller under vmap over n members (16 flat-die members: one batched
-    # iteration 2x cheaper, RESULTS.md).
+    # iteration 2x cheaper, docs/results.md).
     with element_chunk(default_chunk(len(models)) if chunk is None else chunk):
         compiled = jax.jit(jax.vmap(one, in_axes=(axes,))).lower(values).compile()
     compile_s = time.perf_counter() - t0

@@ -25,7 +25,7 @@ import pytest
 
 import jaxfric as jf
 from jaxfric import cli, output, scenes
-from jaxfric.contact import AugmentedLagrangian, Complementarity, Penalty
+from jaxfric.formulations import AugmentedLagrangian, Complementarity, Penalty
 
 NAN, INF = math.nan, math.inf
 PREFIX = "jaxfric: error: "
@@ -174,8 +174,8 @@ CLI_CASES = [
     pytest.param(["run", "bead", *TINY, "--set", "s_draw=0"], "'s_draw'", id="s_draw=0"),
     pytest.param(["run", "blankholder", *TINY, "--set", "U_pull=0"], "'U_pull'", id="U_pull=0"),
     # options given twice
-    pytest.param(["run", "flat_die", *TINY, "--algorithm", "penalty", "--algorithm", "auglag"], "--algorithm: given twice",
-                 id="algorithm-twice"),
+    pytest.param(["run", "flat_die", *TINY, "--algorithm", "penalty", "--algorithm", "auglag"],
+                 "--algorithm: given twice", id="algorithm-twice"),
     pytest.param(["run", "flat_die", "--mesh", "4x1", "--mesh", "8x1"], "--mesh: given twice", id="mesh-twice"),
     # the report validates before it makes its directory
     pytest.param(["report", "accuracy-cost", "--test", "nope"], "--test 'nope'", id="report-test=nope"),

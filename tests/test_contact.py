@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 import jaxfric as jf
-from jaxfric.contact import AugmentedLagrangian, Complementarity, Force, Move, Penalty, RigidTool
+from jaxfric.contact import Force, Move, RigidTool
+from jaxfric.formulations import AugmentedLagrangian, Complementarity, Penalty
 from jaxfric.tools import Tool
 from models import STEEL, flat_die_strip, wrapped_strip
 
@@ -296,10 +297,10 @@ def test_pairs_on_the_coulomb_cone_count_as_slipping_for_newton():
     2.4e-8 N/mm against a tolerance of 1.7e-6, some 20 pairs flipping at every iteration). Here: the
     flat die's converged, sliding end state re-linearised with mu 1e-12 (relative) larger, so that
     its slipping pairs take the law's stick branch at an unchanged force."""
-    from jaxfric.contact_laws import SLIP, STICK
     from jaxfric.run import run
     from jaxfric.scenes import make
     from jaxfric.simulate import linearize_step
+    from jaxfric.status import SLIP, STICK
 
     config = {"mesh": "12x1", "L": 4.8, "U_draw": 0.006}
     scene = make("flat_die", "const_force", "penalty", config)

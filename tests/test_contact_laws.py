@@ -5,9 +5,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfric.contact_laws import OPEN, SLIP, STICK, augmented_pair, penalty_pair, status_of
+from jaxfric.contact_laws import augmented_pair
+from jaxfric.status import OPEN, SLIP, STICK, contact_status
 
 EPS_N, EPS_T, MU = 1e5, 1.5e4, 0.2
+
+
+def penalty_pair(gap, slip, rt_prev, mu, eps_n, eps_t):
+    """The penalty law: the augmented-Lagrangian pair law with lambda_N = 0 and lambda_T = R_T,n."""
+    return augmented_pair(gap, slip, 0.0, rt_prev, mu, eps_n, eps_t)
 
 
 def test_penalty_branches():
@@ -33,7 +39,7 @@ def test_touching_pair_is_closed_with_normal_stiffness_and_no_spurious_stick():
 def test_frictionless_and_status_thresholds():
     f = penalty_pair(-1e-4, 1e-3, 0.0, 0.0, EPS_N, EPS_T)
     assert float(f.tangential) == 0.0 and int(f.status) == SLIP
-    np.testing.assert_array_equal(status_of(jnp.array([0.0, 1.0, 1.0]), jnp.array([0.0, 0.1, 0.2]), 0.2),
+    np.testing.assert_array_equal(contact_status(jnp.array([0.0, 1.0, 1.0]), jnp.array([0.0, 0.1, 0.2]), 0.2),
                                   [OPEN, STICK, SLIP])
 
 
@@ -75,7 +81,8 @@ def test_smoothed_law_has_finite_tangents_on_invalid_pairs_with_a_traced_scale()
 
 def test_static_flags_follow_the_given_values_inside_jit():
     """Built inside jit from plain numbers, a penalty is not smoothed and a mu = 0 tool is frictionless."""
-    from jaxfric.contact import Move, Penalty, RigidTool
+    from jaxfric.contact import Move, RigidTool
+    from jaxfric.formulations import Penalty
     from jaxfric.tools import Tool
 
     @jax.jit

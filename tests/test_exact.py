@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import jaxfric as jf
-from jaxfric.contact import AugmentedLagrangian, Complementarity
+from jaxfric.formulations import AugmentedLagrangian, Complementarity
 from jaxfric.results import Result
 from jaxfric.simulate import initial_state, solve_step
 from models import flat_die_strip

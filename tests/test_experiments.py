@@ -18,9 +18,8 @@ def test_bench_contact_iteration_timing_runs_for_exact_contact():
     """The exact-contact iteration timed by bench_contact (it broke once, unnoticed, when the contact
     iteration gained an argument)."""
     import bench_contact
-
     import jaxfric as jf
-    from jaxfric.contact import Complementarity
+    from jaxfric.formulations import Complementarity
 
     model = bench_contact.three_cylinders(Complementarity("ssn", 16), nx=40, ny=1)
     assert bench_contact.iteration_ms(model, jf.initial_state(model), 1) > 0
@@ -38,11 +37,12 @@ def test_bench_element_cores_runs_at_a_tiny_size(capsys):
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+
 import studies  # noqa: E402
 
 
 def test_study_section_is_replaced_not_duplicated(tmp_path, monkeypatch):
-    md = tmp_path / "RESULTS.md"
+    md = tmp_path / "results.md"
     md.write_text("# results\n\nhand-written text\n")
     monkeypatch.setattr(studies, "RESULTS_MD", str(md))
     studies.write_section("demo", "first body")

@@ -4,7 +4,8 @@ The fast case is the flat die at 24 x 1 (0.7 s a run): drawing the clamped sheet
 through the elastic stick range (slope set by E) to the sliding plateau mu F_clamp. The measurement is
 the run's own ``history.csv``, so the fit must return the values it was made with. The Nine
 identification of the issue (mu = 0.17 from synthetic data, with and without noise) is
-``experiments/identify_nine.py`` (results in RESULTS.md); the slow test below runs its noise-free case.
+``experiments/identify_nine.py`` (results in docs/results.md, identification); the slow test below runs
+its noise-free case.
 """
 
 import json
@@ -102,8 +103,10 @@ def test_several_starts_are_written_and_the_kept_one_is_plotted(tmp_path):
     rows = [{"iteration": i, "accepted": True, "cost": c, "damping": 1e-3, "mu": m, "start": n}
             for n, track in ((1, [(2.0, 0.2), (1.0, 0.18)]), (2, [(0.5, 0.16), (1e-3, 0.15)]))
             for i, (c, m) in enumerate(track)]
-    local = [{"number": 1, "start": {"mu": 0.2}, "end": {"mu": 0.18}, "cost": 1.0, "converged": True, "message": "converged"},
-             {"number": 2, "start": {"mu": 0.16}, "end": {"mu": 0.15}, "cost": 1e-3, "converged": True, "message": "converged"}]
+    local = [{"number": 1, "start": {"mu": 0.2}, "end": {"mu": 0.18}, "cost": 1.0, "converged": True,
+              "message": "converged"},
+             {"number": 2, "start": {"mu": 0.16}, "end": {"mu": 0.15}, "cost": 1e-3, "converged": True,
+              "message": "converged"}]
     grid = [{"mu": v, "cost": c, "converged": True} for v, c in ((0.1, 3.0), (0.2, 2.0), (0.3, 5.0))]
     res = FitResult(scene="flat_die", variant="const_force", algorithm="penalty", overrides={}, names=("mu",),
                     params={"mu": 0.15}, stderr={"mu": 1e-3}, ci95={"mu": (0.148, 0.152)}, start={"mu": 0.16},

@@ -7,11 +7,12 @@ Tolerances. Forward and reverse mode compute the same implicit-function derivati
 association orders: they agree to 1e-8 relative to the largest entry of each output's row. Central
 differences with h = 1e-4 |p| have a truncation error of order h^2 |f^(3)| / 6 (~1e-9 relative) and
 a round-off error of about r / h, with r the force left by Newton (tolerances tightened to rtol 1e-12,
-atol 1e-10 on the flat die, rtol 1e-11, atol 1e-9 on the curved tools; with the flat die's penalty of 1e9 N/mm/mm the contact forces carry ~1e-9 N/mm of
-round-off). With mu = 0.15 (h = 1.5e-5) that is ~1e-4 N/mm against entries of order 1 to 50 N/mm:
-1e-5 relative to the largest entry of a row, the issue's figure for smooth regimes, holds with margin;
-h = 1e-6 |p| does not (2e-4, round-off). h is small enough that no contact pair changes status
-(stick/slip, open/closed) between p - h and p + h on these paths.
+atol 1e-10 on the flat die, rtol 1e-11, atol 1e-9 on the curved tools; with the flat die's penalty of
+1e9 N/mm/mm the contact forces carry ~1e-9 N/mm of round-off). With mu = 0.15 (h = 1.5e-5) that is
+~1e-4 N/mm against entries of order 1 to 50 N/mm: 1e-5 relative to the largest entry of a row, the
+issue's figure for smooth regimes, holds with margin; h = 1e-6 |p| does not (2e-4, round-off). h is
+small enough that no contact pair changes status (stick/slip, open/closed) between p - h and p + h on
+these paths.
 
 Where a pair sits on a switch of the exact law at the start values, the derivative returned is the
 one-sided derivative of the branch the law takes there (``jaxfric.contact_laws``), and a central
@@ -55,8 +56,8 @@ CASES = {
     # The R_r column takes h = 1e-5 |p| (REL_H): at 1e-4 it differs by 2.2e-5 of its row (truncation),
     # at 1e-5 by 4.8e-6.
     # The smoothed law: the fixed replay then survives H +/- h (with the exact law an element inverts).
-    "blankholder_smoothed": ("shape3", {"element_length": 2.0, "U_pull": 1.0, "smoothing": 10.0}, ["R", "H", "mu", "F_clamp"],
-                             NewtonOptions(rtol=1e-11, atol=1e-9, max_iterations=60)),
+    "blankholder_smoothed": ("shape3", {"element_length": 2.0, "U_pull": 1.0, "smoothing": 10.0},
+                             ["R", "H", "mu", "F_clamp"], NewtonOptions(rtol=1e-11, atol=1e-9, max_iterations=60)),
     "bead_smoothed": ("th090_mu017", {"mesh": "60x2", "s_draw": 0.5, "smoothing": 10.0},
                       ["R_r", "mu_roller", "F_clamp", "E"], NewtonOptions(rtol=1e-12, atol=1e-8, max_iterations=60)),
 }
@@ -131,7 +132,7 @@ KNOWN = {
                    "replay fails at H +/- 1e-4 H (an element inverts, result code 3): no differences to compare; "
                    "along the adaptive replay the steps cut at mu +/- h differ and the last row's force "
                    "moves with the 2 mm elements' ripple (differences 4.4 against 494). Case "
-                   "blankholder_smoothed passes (RESULTS.md, gradients)",
+                   "blankholder_smoothed passes (docs/results.md, gradients)",
 }
 
 

@@ -20,12 +20,10 @@ import numpy as np
 import pytest
 
 from jaxfric.lcp import (
-    ContactStatus,
     ForceDrive,
     LemkeStatus,
     contact_lcp,
     contact_solution,
-    contact_status,
     diagonal_parameters,
     lemke,
     lemke_callback,
@@ -36,6 +34,7 @@ from jaxfric.lcp import (
     ssn_contact,
     ssn_start,
 )
+from jaxfric.status import OPEN, SLIP, STICK, contact_status
 
 AGREE = 1e-8        # relative agreement of Lemke and SSN (spec 1.7: "to solver tolerance")
 LAW = 1e-9          # relative violation allowed in the Signorini-Coulomb conditions
@@ -496,7 +495,7 @@ def test_all_open_gives_the_free_solution():
     for du, p in [(lem.du_c, lem.p), (ssn.du_c, ssn.p)]:
         np.testing.assert_allclose(du, du_free, rtol=1e-10, atol=1e-14)
         np.testing.assert_allclose(p, 0.0, atol=1e-10 * np.abs(r).max())
-    np.testing.assert_array_equal(contact_status(ssn.p, mu), ContactStatus.OPEN)
+    np.testing.assert_array_equal(packed_status(ssn.p, mu), OPEN)
 
 
 def test_all_closed_in_stick_and_in_slip():
@@ -505,14 +504,14 @@ def test_all_closed_in_stick_and_in_slip():
     K, _, _, _, mu = random_problem(12, 10, 0.5)
     r = np.zeros(20)
     gap = np.full(10, -0.01)
-    for slip, expected in [(np.zeros(10), ContactStatus.STICK), (np.full(10, 0.5), ContactStatus.SLIP)]:
+    for slip, expected in [(np.zeros(10), STICK), (np.full(10, 0.5), SLIP)]:
         lem = lemke_contact(K, r, gap, slip, mu)
         ssn = ssn_jit(K, r, gap, slip, mu)
         assert bool(ssn.converged) and lem.status == LemkeStatus.SOLVED
         assert_agree(lem, ssn, gap, slip, r)
         np.testing.assert_allclose(gap + lem.du_c[0::2], 0.0, atol=1e-14)
-        np.testing.assert_array_equal(contact_status(lem.p, mu), expected)
-        if expected == ContactStatus.SLIP:
+        np.testing.assert_array_equal(packed_status(lem.p, mu), expected)
+        if expected == SLIP:
             np.testing.assert_allclose(lem.p[1::2], -mu * lem.p[0::2], rtol=1e-10)
         else:
             np.testing.assert_allclose(slip + lem.du_c[1::2], 0.0, atol=1e-14)
@@ -704,6 +703,12 @@ def test_ssn_jit_matches_vmap_and_does_not_retrace():
     assert len(traces) == 1
 
 
+def packed_status(p, mu):
+    """The status rule (jaxfric.status) of forces packed as (R_N, R_T) per candidate."""
+    p = np.asarray(p).reshape(-1, 2)
+    return contact_status(p[:, 0], p[:, 1], mu)
+
+
 def test_contact_status_thresholds():
     mu = np.array([0.5, 0.5, 0.5, 0.5, 0.0, 0.5])
     p = np.array([1e-9, 0.0,                   # R_N at the open threshold: open
@@ -712,9 +717,9 @@ def test_contact_status_thresholds():
                   1.0, 0.5,                    # on the cone: slip
                   1.0, 0.0,                    # closed frictionless: slip
                   -1.0, 0.0])                  # tensile (not a solution, but classified): open
-    expected = [ContactStatus.OPEN, ContactStatus.SLIP, ContactStatus.STICK, ContactStatus.SLIP,
-                ContactStatus.SLIP, ContactStatus.OPEN]
-    np.testing.assert_array_equal(contact_status(p, mu), expected)
+    expected = [OPEN, SLIP, STICK, SLIP,
+                SLIP, OPEN]
+    np.testing.assert_array_equal(packed_status(p, mu), expected)
 
 
 @pytest.mark.parametrize("n_c", [30])

@@ -15,10 +15,10 @@ from jaxfric.linalg import (
     block_cyclic_solve,
     block_solver,
     block_tridiag_solve,
-    resolved_block_solver,
     bordered_solve,
     dense_solve,
     linear_solve,
+    resolved_block_solver,
 )
 
 RTOL = 1e-10

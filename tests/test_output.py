@@ -11,6 +11,7 @@ import pytest
 import jaxfric as jf
 from jaxfric import cli, output
 from jaxfric.contract import check_run_dir
+from jaxfric.status import contact_status
 
 # A few-second flat die: 24 x 2 mesh, 2 clamp steps, 3 draw steps to U = 3 um (cf. spec section 2).
 SHORT = ["--mesh", "24x2", "--set", "n_clamp=2", "--set", "U_draw=0.003", "--set", "U_fine=0.001",
@@ -111,7 +112,7 @@ def test_contact_status_thresholds():
     rn = np.array([0.0, 1e-9, 1.0, 1.0, 1.0, 2.0])
     rt = np.array([0.0, 0.0, 0.1, 0.15, -0.15 * (1 - 5e-7), 0.0])
     mu = np.array([0.15, 0.15, 0.15, 0.15, 0.15, 0.0])
-    assert np.asarray(output.contact_status(rn, rt, mu)).tolist() == [0, 0, 1, 2, 2, 2]
+    assert np.asarray(contact_status(rn, rt, mu)).tolist() == [0, 0, 1, 2, 2, 2]
 
 
 # ---- writer and checker on a real run -------------------------------------------------------------------
@@ -121,8 +122,8 @@ def flat():
     from jaxfric import scenes
 
     scene = scenes.make("flat_die", None, "penalty", dict(OVERRIDES))
-    result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
-                    progress=False, raise_on_failure=False)
+    result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                    snapshot=scene.snapshot, progress=False, raise_on_failure=False)
     assert result.converged, result.message
     return scene, result
 
@@ -189,8 +190,8 @@ def test_failed_run_writes_a_conforming_directory(flat, tmp_path):
     """A genuinely failed run (history buffer full in `draw`) writes all six files and passes."""
     scene, _ = flat
     scene = dataclasses.replace(scene, control=jf.StepControl(max_steps=5))
-    result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
-                    progress=False, raise_on_failure=False)
+    result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                    snapshot=scene.snapshot, progress=False, raise_on_failure=False)
     assert not result.converged
     summary = output.write_run(scene, result, str(tmp_path))
     assert check_run_dir(str(tmp_path)) == []

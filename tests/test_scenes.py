@@ -13,9 +13,19 @@ from jaxfric.contact import pair_nodes
 from jaxfric.loading import schedule
 from jaxfric.results import Result
 from jaxfric.run import run
-from jaxfric.scenes import (ALGORITHMS, config_fields, make, parse_mesh, parse_override, scene_names,
-                            variants)
-from jaxfric.scenes import bead, blankholder, flat_die, nine
+from jaxfric.scenes import (
+    ALGORITHMS,
+    bead,
+    blankholder,
+    config_fields,
+    flat_die,
+    make,
+    nine,
+    parse_mesh,
+    parse_override,
+    scene_names,
+    variants,
+)
 from jaxfric.tools import project
 
 SPEC_VARIANTS = {
@@ -241,7 +251,8 @@ def test_bead_geometry():
     wind = scene.model.phases[1].bcs[0].motion
     x = np.asarray(wind(jnp.array([[80.0, 0.0]]), 1.0))[0] + [80.0, 0.0]
     th = math.radians(135.0)
-    expected = np.array([0.0, -5.0]) + np.array([[math.cos(th), math.sin(th)], [-math.sin(th), math.cos(th)]]) @ [80.0, 5.0]
+    rotation = np.array([[math.cos(th), math.sin(th)], [-math.sin(th), math.cos(th)]])
+    expected = np.array([0.0, -5.0]) + rotation @ [80.0, 5.0]
     np.testing.assert_allclose(x, expected, atol=1e-12)
     draw = scene.model.phases[2].bcs[0].motion
     shift = np.asarray(draw(jnp.array([[80.0, 0.0]]), 1.0))[0] - np.asarray(wind(jnp.array([[80.0, 0.0]]), 1.0))[0]
@@ -302,8 +313,8 @@ def test_blankholder_tools_at_rest():
 # ---- short runs at a coarse mesh ----------------------------------------------------------------
 
 def _run(scene):
-    result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, snapshot=scene.snapshot,
-                 progress=False)
+    result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                 snapshot=scene.snapshot, progress=False)
     h = result.history
     for key in REQUIRED + EXTRA[scene.name]:
         assert key in h and np.all(np.isfinite(h[key])), key
@@ -342,7 +353,8 @@ def test_flat_die_short_run():
     assert h["n_active"][-1] == h["n_slip"][-1] == h["n_candidates"][-1] == 25
     np.testing.assert_allclose([h["drawing_force"][-1], h["sum_ft"][-1]], 0.15 * 50.0, rtol=1e-6)
     np.testing.assert_allclose(h["mu_sum_fn"][-1], 0.15 * 50.0, rtol=1e-8)
-    assert np.all(result.snapshots[end_clamp]["mu"] == 0.0) and np.all(result.snapshots[len(h["time"]) - 1]["mu"] == 0.15)
+    assert np.all(result.snapshots[end_clamp]["mu"] == 0.0)
+    assert np.all(result.snapshots[len(h["time"]) - 1]["mu"] == 0.15)
 
 
 def test_smoothing_field_selects_the_smoothed_law():
@@ -423,7 +435,8 @@ def test_bead_short_run():
     np.testing.assert_allclose(h["clamping_force"][loaded], 600.0, rtol=1e-8)
     wind = h["phase_name"] == "wind"
     assert h["theta_deg"][wind][-1] == pytest.approx(10.0) and h["theta_deg"][-1] == pytest.approx(10.0)
-    assert h["drawing_displacement"][-1] == pytest.approx(0.5) and np.all(h["drawing_displacement"][~(h["phase_name"] == "draw")] == 0)
+    assert h["drawing_displacement"][-1] == pytest.approx(0.5)
+    assert np.all(h["drawing_displacement"][~(h["phase_name"] == "draw")] == 0)
     assert h["tail_x"][-1] > -100.0
     snap = result.snapshots[len(h["time"]) - 1]
     n = len(scene.model.tools[0].candidates) + len(scene.model.tools[1].candidates)

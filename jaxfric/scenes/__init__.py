@@ -18,12 +18,13 @@ import math
 import types
 import typing
 
+from ..formulations import ALGORITHMS
 from ..mesh import MAX_ELEMENTS
 from . import bead, blankholder, flat_die, nine
 from ._common import check_steady_window
-from .base import ALGORITHMS, Scene, contact_law
+from .base import Scene
 
-__all__ = ["SCENES", "ALGORITHMS", "Scene", "contact_law", "scene_names", "variants", "default_variant",
+__all__ = ["SCENES", "ALGORITHMS", "Scene", "scene_names", "variants", "default_variant",
            "config_class", "config_fields", "make", "parse_override", "parse_mesh", "scaled_steps"]
 
 SCENES = {"flat_die": flat_die, "bead": bead, "nine": nine, "blankholder": blankholder}

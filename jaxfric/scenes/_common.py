@@ -15,11 +15,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..contact import max_penetration, split_pairs
-from ..contact_laws import SLIP
+from ..formulations import ALGORITHMS
 from ..loading import Phase, schedule
 from ..simulate import StepControl, reactions
+from ..status import SLIP
 from ..tools import GAP_OPEN
-from .base import ALGORITHMS
 
 __all__ = ["spec_field", "check_config", "check_steady_window", "check_variant", "check_algorithm", "pair_forces",
            "tool_resultants", "contact_columns", "phase_progress", "ContactSnapshot", "n_steps",

@@ -11,35 +11,12 @@ region).
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+from collections.abc import Callable
 
-from ..contact import AugmentedLagrangian, Complementarity, Penalty
 from ..newton import NewtonOptions
 from ..simulate import StepControl, StripModel
 
-__all__ = ["ALGORITHMS", "Scene", "contact_law"]
-
-ALGORITHMS = ("penalty", "auglag", "lcp_lemke", "lcp_ssn")
-
-
-def contact_law(algorithm: str, eps_n, eps_t, target_gap, band: int | None = None, smoothing=0.0,
-                max_augmentations: int = 20):
-    """The contact formulation of an algorithm identifier (outputs spec section 1); ``smoothing`` > 0
-    (N/mm) smooths the penalty and AL laws (:mod:`jaxfric.contact_laws`); exact contact has none.
-    ``max_augmentations`` is the AL's limit per step attempt (spec 1.6: 20)."""
-    if algorithm in ("lcp_lemke", "lcp_ssn") and smoothing != 0:
-        raise ValueError(f"field 'smoothing' = {smoothing!r} applies to algorithms penalty and auglag only; "
-                         f"exact contact ({algorithm}) has no smoothed law")
-    if algorithm == "penalty":
-        return Penalty(eps_n, eps_t, smoothing)
-    if algorithm == "auglag":
-        return AugmentedLagrangian(eps_n, eps_t, target_gap, max_augmentations, smoothing=smoothing)
-    if algorithm == "lcp_lemke":
-        return Complementarity("lemke", band)
-    if algorithm == "lcp_ssn":
-        return Complementarity("ssn", band)
-    raise ValueError(f"unknown algorithm {algorithm!r}; choose one of {', '.join(ALGORITHMS)}")
-
+__all__ = ["Scene"]
 
 @dataclasses.dataclass(frozen=True)
 class Scene:

@@ -39,13 +39,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..contact import Force, Move, RigidTool
+from ..formulations import formulation
 from ..loading import DirichletBC, Phase, RigidMotion
 from ..material import J2Material
 from ..mesh import strip_mesh
 from ..simulate import StripModel
 from ..tools import Arc, Segment, Tool
 from . import _common as cm
-from .base import Scene, contact_law
+from .base import Scene
 
 __all__ = ["NAME", "BeadConfig", "VARIANTS", "DEFAULT_VARIANT", "BeadObserve", "build", "jaw_nodes"]
 
@@ -202,12 +203,12 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
     mu_c = config.mu_clamp if config.mu_clamp > 0 else 0.0
     mu_r = config.mu_roller if config.mu_roller > 0 else 0.0
     tools = (RigidTool("die_up", upper, (0.0, -1.0), mesh.top,
-                       (Force(P, start=0.0), Force(P, start=P), Force(P, start=P)), mu_c),
-             RigidTool("die_lo", lower, (0.0, 1.0), mesh.bottom, fixed, mu_c),
-             RigidTool("roller", roller, (0.0, 1.0), mesh.bottom, fixed, mu_r))
+                       (Force(P, start=0.0), Force(P, start=P), Force(P, start=P)), mu_c, frictional=mu_c > 0),
+             RigidTool("die_lo", lower, (0.0, 1.0), mesh.bottom, fixed, mu_c, frictional=mu_c > 0),
+             RigidTool("roller", roller, (0.0, 1.0), mesh.bottom, fixed, mu_r, frictional=mu_r > 0))
 
     eps_t = cm.resolve_eps_t(config, max(config.mu_clamp, config.mu_roller))
-    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
+    law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=tools, contact=law)

@@ -65,6 +65,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..contact import Force, Move, RigidTool
+from ..formulations import formulation
 from ..loading import DirichletBC, Phase, Ramp
 from ..material import J2Material
 from ..mesh import strip_mesh
@@ -72,7 +73,7 @@ from ..newton import NewtonOptions
 from ..simulate import StripModel
 from ..tools import Arc, Segment, Tool
 from . import _common as cm
-from .base import Scene, contact_law
+from .base import Scene
 
 __all__ = ["NAME", "BlankholderConfig", "VARIANTS", "DEFAULT_VARIANT", "BlankholderObserve", "build",
            "groove_geometry", "sheet_extent"]
@@ -197,7 +198,8 @@ def _check(config: BlankholderConfig) -> None:
     cm.check_config(config, positive=("H", "R", "r", "Rp", "L", "t", "r_e", "element_length", "U_pull", "ds_close",
                                       "dU"),
                     nonnegative=("mu", "F_clamp", "upstream_margin", "grip_length", "land_margin", "clearance"),
-                    integers=("nx", "ny", "band", "n_lock", "newton_iterations"), choices={"lock_control": ("force", "position")},
+                    integers=("nx", "ny", "band", "n_lock", "newton_iterations"),
+                    choices={"lock_control": ("force", "position")},
                     lengths=("H", "R", "r", "Rp", "L", "t", "r_e", "x_left", "x_right", "upstream_margin",
                              "grip_length", "land_margin", "clearance"))
     if config.R > config.H:
@@ -232,7 +234,7 @@ def _lower_tool(config: BlankholderConfig, x_far: float) -> Tool:
     """At rest (s = 0), chain left to right, sheet above (normal side 'left'): land at y = -H, flank,
     nose (centre (0, -R)), flank, land. The flanks exist when H > R."""
     H, R = config.H, config.R
-    prims = [Segment((-x_far, -H), (-R, -H))]
+    prims: list[Segment | Arc] = [Segment((-x_far, -H), (-R, -H))]
     if H > R:
         prims.append(Segment((-R, -H), (-R, -R)))
     prims.append(Arc((0.0, -R), R, math.pi, 0.0))
@@ -264,12 +266,13 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
     # The die is set `clearance` above the sheet (along its e_q = (0, -1)) and held there (module doc).
     fixed = (Move(-config.clearance, -config.clearance), Move(0.0, 0.0), Move(0.0, 0.0))
     draw = Force(config.F_clamp, start=config.F_clamp) if config.lock_control == "force" else Move(0.0, 0.0)
-    tools = (RigidTool("upper", _upper_die(config, x_g, groove["alpha"]), (0.0, -1.0), mesh.top, fixed, mu),
+    tools = (RigidTool("upper", _upper_die(config, x_g, groove["alpha"]), (0.0, -1.0), mesh.top, fixed, mu,
+                       frictional=mu > 0),
              RigidTool("lower", _lower_tool(config, x_far), (0.0, 1.0), mesh.bottom,
-                       (Move(0.0, config.H), Force(config.F_clamp), draw), mu))
+                       (Move(0.0, config.H), Force(config.F_clamp), draw), mu, frictional=mu > 0))
 
     eps_t = cm.resolve_eps_t(config, config.mu)
-    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
+    law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=tools, contact=law)

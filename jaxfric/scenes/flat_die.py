@@ -27,13 +27,14 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ..contact import Force, Move, RigidTool
+from ..formulations import formulation
 from ..loading import DirichletBC, Phase, Ramp
 from ..material import J2Material
 from ..mesh import strip_mesh
 from ..simulate import StripModel
 from ..tools import Tool
 from . import _common as cm
-from .base import Scene, contact_law
+from .base import Scene
 
 __all__ = ["NAME", "FlatDieConfig", "VARIANTS", "DEFAULT_VARIANT", "FlatDieObserve", "build"]
 
@@ -143,10 +144,11 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
                     d_capture=config.d_capture)
     draw = Force(config.F_clamp, start=config.F_clamp) if config.draw_control == "force" else Move(0.0, 0.0)
     mu = (0.0, config.mu) if config.mu > 0 else 0.0
-    tool = RigidTool("die", die, (0.0, -1.0), mesh.top, (Force(config.F_clamp, start=0.0), draw), mu)
+    tool = RigidTool("die", die, (0.0, -1.0), mesh.top, (Force(config.F_clamp, start=0.0), draw), mu,
+                     frictional=config.mu > 0)
 
     eps_t = cm.resolve_eps_t(config, config.mu)
-    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
+    law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=(tool,), contact=law)

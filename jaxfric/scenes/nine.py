@@ -25,7 +25,8 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
   simulator, keeps the check meaningful.
   ``entry_guide`` = False restores the spec's free end;
 - ``U_draw`` = 70 mm; nominal increments ``dq_clamp`` = 0.1 mm and ``dU`` = 0.1 mm. Measured cost of
-  that choice (``experiments/nine_iteration_budget.py``, RESULTS.md "Scenes"): at 300 x 3 the steady
+  that choice (``experiments/nine_iteration_budget.py``; docs/results.md, run time of the Nine test): at
+  300 x 3 the steady
   drawing force carries a step error of about -1.1 %, first order in the increment (-0.5 % at 0.05 mm,
   -2.2 % at 0.2 mm), from the return mapping along the plastic bending path; halve both fields for
   half the error at 1.4x the Newton iterations;
@@ -46,13 +47,14 @@ import math
 import equinox as eqx
 
 from ..contact import Move, RigidTool
+from ..formulations import formulation
 from ..loading import DirichletBC, Phase, Ramp
 from ..material import J2Material
 from ..mesh import strip_mesh
 from ..simulate import StripModel
 from ..tools import Tool
 from . import _common as cm
-from .base import Scene, contact_law
+from .base import Scene
 
 __all__ = ["NAME", "NineConfig", "VARIANTS", "DEFAULT_VARIANT", "NineObserve", "build"]
 
@@ -174,12 +176,13 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
         candidates = mesh.top if above[name] else mesh.bottom
         stroke = config.stroke if name == "B" else 0.0
         controls = (Move(0.0, stroke), Move(0.0, 0.0))
-        # A frictionless tool gets a scalar 0, so that no friction term is built for it.
-        tools.append(RigidTool(name, geometry, drive, candidates, controls, mu[name] if mu[name] > 0 else 0.0))
+        # A tool of mu = 0 is declared frictionless: no friction term is built for it.
+        tools.append(RigidTool(name, geometry, drive, candidates, controls, mu[name] if mu[name] > 0 else 0.0,
+                               frictional=mu[name] > 0))
 
     mu_max = max(mu.values())
     eps_t = cm.resolve_eps_t(config, mu_max)
-    law = contact_law(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
+    law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=tuple(tools), contact=law)
