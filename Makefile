@@ -5,7 +5,7 @@ export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=true
 # The suite is bound by XLA compilation, which runs on one core: two pytest workers (pytest-xdist), one
 # test file each at a time so that module fixtures are built once, took the fast suite from 13 min 17 s
 # to 8 min 14 s on a 2-core machine. The suite also asks XLA for its faster-compiling CPU emitters
-# (tests/conftest.py): 9 min 10 s against 13.5 to 16 min on the 2-core AMD EPYC of 2026-11-27.
+# (tests/conftest.py): 9 min 10 s against 13.5 to 16 min on the same machine.
 WORKERS ?= 2
 
 .PHONY: run lint test test-all bench clean

@@ -12,9 +12,8 @@ import argparse
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from jaxfric import accuracy  # noqa: E402
-from studies import write_section  # noqa: E402
+from jaxfric import accuracy
+from studies import write_section
 
 OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "accuracy_cost")
 

@@ -25,7 +25,7 @@ from jaxfric import exact
 from jaxfric.contact import Move, RigidTool
 from jaxfric.formulations import AugmentedLagrangian, Complementarity, Penalty
 from jaxfric.linalg import linear_solve
-from jaxfric.simulate import _Context, _step_args, _unknowns
+from jaxfric.step import StepContext, step_args, unknowns
 from jaxfric.tools import Tool
 
 R1, PITCH, E_SHEET = 5.5, 11.97, 0.97
@@ -53,15 +53,15 @@ def iteration_ms(model: jf.StripModel, state, repeat: int) -> float:
     search's merit; for the condensed solvers the band's condensation and the contact problem)."""
     if isinstance(model.contact, Complementarity):
         def iteration(m, s):
-            args, _, _ = _step_args(m, s, s.phase, s.time, _Context.build(m))
-            x = _unknowns(m, s.u, s.contact.q)
+            args, _, _ = step_args(m, s, s.phase, s.time, StepContext.build(m))
+            x = unknowns(m, s.u, s.contact.q)
             p = jnp.stack([s.contact.rn, s.contact.rt], -1)
-            it = exact._linearize(x, args)
+            it = exact.linearize_iterate(x, args)
             if m.contact.solver != "ssn":
-                return exact._contact_newton_step(it, args, x, p, m.contact, p)[:2]
+                return exact.contact_newton_step(it, args, x, p, m.contact, p)[:2]
             # The in-loop solver's iteration also evaluates its line search's merit function.
-            merit = exact._merit(x, it, args, p, exact._frames(it, args)[0])
-            return exact._active_set_step(it, args, x, p, m.contact, p)[:2], merit
+            merit = exact.semismooth_merit(x, it, args, p, exact.contact_frames(it, args)[0])
+            return exact.active_set_step(it, args, x, p, m.contact, p)[:2], merit
     else:
         def iteration(m, s):
             lin = jf.linearize_step(m, s, s.phase, s.time)

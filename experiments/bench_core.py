@@ -1,6 +1,6 @@
 """Core performance benchmark: ``python experiments/bench_core.py [--meshes 300x3,1200x6] [--repeat 20]``.
 
-For the stretch-bend strip (plastic stretching then bending, :func:`jaxfric.examples.stretch_bend_strip`)
+For the stretch-bend strip (plastic stretching then bending, ``experiments/strips.py``)
 at each mesh, prints and writes to ``experiments/results/bench_core.csv``:
 
 - compile time of the whole jitted simulation;
@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import jaxfric as jf
 from benchutil import median_time, write_rows
 from jaxfric.assembly import internal_force_and_tangent, mesh_geometry
-from jaxfric.examples import stretch_bend_strip
+from strips import stretch_bend_strip
 
 
 def bench(nx: int, ny: int, repeat: int = 20) -> dict:

@@ -20,7 +20,7 @@ import numpy as np
 
 from jaxfric import assembly, scenes
 from jaxfric.element import element_force_and_tangent, element_geometry
-from jaxfric.simulate import initial_state
+from jaxfric.model import initial_state
 
 
 def main(argv=None) -> int:

@@ -14,18 +14,16 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(__file__))
-from benchutil import write_rows  # noqa: E402
-from jaxfric.loading import schedule  # noqa: E402
-from jaxfric.params import parameterize  # noqa: E402
-from jaxfric.simulate import simulate_fixed  # noqa: E402
+from benchutil import write_rows
+from jaxfric.loading import schedule
+from jaxfric.params import parameterize
+from jaxfric.simulate import simulate_fixed
 
 
 def _timed(fn, p, repeat=3):

@@ -17,17 +17,15 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-sys.path.insert(0, os.path.dirname(__file__))
-from benchutil import write_rows  # noqa: E402
-from jaxfric import scenes  # noqa: E402
-from jaxfric.simulate import simulate, simulate_fixed  # noqa: E402
+from benchutil import write_rows
+from jaxfric import scenes
+from jaxfric.simulate import simulate, simulate_fixed
 
 
 def main(argv=None) -> None:

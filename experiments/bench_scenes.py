@@ -13,17 +13,15 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(__file__))
-import jaxfric as jf  # noqa: E402
-from benchutil import median_time, write_rows  # noqa: E402
-from jaxfric import scenes  # noqa: E402
-from jaxfric.contact import Move, pair_nodes  # noqa: E402
+import jaxfric as jf
+from benchutil import median_time, write_rows
+from jaxfric import scenes
+from jaxfric.contact import Move, pair_nodes
 
 CASES = [("flat_die", "const_force"), ("bead", None), ("nine", "mu000"), ("nine", "mu017"), ("blankholder", None)]
 

@@ -25,20 +25,18 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(__file__))
-import jaxfric as jf  # noqa: E402
-from benchutil import median_time, write_rows  # noqa: E402
-from jaxfric import scenes  # noqa: E402
-from jaxfric.assembly import element_chunk  # noqa: E402
-from jaxfric.linalg import BLOCK_SOLVERS, block_solver, linear_solve, resolved_block_solver  # noqa: E402
-from jaxfric.sweep import default_chunk, stack_models, sweep  # noqa: E402
+import jaxfric as jf
+from benchutil import median_time, write_rows
+from jaxfric import scenes
+from jaxfric.assembly import element_chunk
+from jaxfric.linalg import BLOCK_SOLVERS, block_solver, linear_solve, resolved_block_solver
+from jaxfric.sweep import default_chunk, stack_models, sweep
 
 
 def main(argv=None) -> None:

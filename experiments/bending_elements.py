@@ -15,15 +15,12 @@ case, moment ratio) and prints the table.
 from __future__ import annotations
 
 import os
-import sys
 
 import jax
 
 import jaxfric as jf
 from benchutil import write_rows
-
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
-from models import bending_ratio, end_moment, pure_bending  # noqa: E402
+from strips import bending_ratio, end_moment, pure_bending
 
 jax.config.update("jax_enable_x64", True)
 

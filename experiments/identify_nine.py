@@ -33,18 +33,18 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(__file__))
-import jaxfric  # noqa: E402
-from benchutil import write_rows  # noqa: E402
-from jaxfric import scenes  # noqa: E402
-from jaxfric.cli import _grid as parse_grid  # noqa: E402
-from jaxfric.fit import _Curve, _windows, bin_means, fit  # noqa: E402
-from jaxfric.params import parameterize  # noqa: E402
+import jaxfric
+from benchutil import write_rows
+from jaxfric import scenes
+from jaxfric.cli import parse_grid
+from jaxfric.fit import bin_means, fit
+from jaxfric.fit_curve import Curve
+from jaxfric.fit_data import window_edges
+from jaxfric.params import parameterize
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 TRUE = {"mu": 0.17, "R1": 5.5}
@@ -154,8 +154,8 @@ class _Linear:
         x = np.asarray(clean["drawing_displacement"])
         self.keep = x > 0
         self.x = x[self.keep]
-        self.edges = None if a.window in (None, "") else _windows(self.x, float(a.window), len(names))
-        obs, jac, _, code, _ = _Curve(par, history, self.x, self.edges, None)(np.array([TRUE[n] for n in names]))
+        self.edges = None if a.window in (None, "") else window_edges(self.x, float(a.window), len(names))
+        obs, jac, _, code, _ = Curve(par, history, self.x, self.edges, None)(np.array([TRUE[n] for n in names]))
         if code != 0:
             raise RuntimeError(f"the replay at the truth fails ({code})")
         self.names, self.jac, self.sigma, self.n_rows = names, jac, sigma, x.size
@@ -224,7 +224,7 @@ def _truth_rms(clean, sigma, seed, window):
     x, f = x[keep], f[keep]
     if window is None or window == "":
         return float(np.sqrt(np.mean((noisy - f) ** 2)))
-    edges = _windows(x, float(window), 1)  # the fit's own windows
+    edges = window_edges(x, float(window), 1)  # the fit's own windows
     return float(np.sqrt(np.mean((bin_means(x, noisy, edges) - bin_means(x, f, edges)) ** 2)))
 
 

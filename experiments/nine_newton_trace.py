@@ -5,7 +5,7 @@ at every iterate of the exact-contact solver.
 
 Runs Nine mu017 (``lcp_ssn``) to U = u0 mm, then takes ``--steps`` nominal drawing steps from the
 secant predictor, each twice: with :func:`jaxfric.simulate.solve_step` (the iteration count the runs
-report) and with a host-driven copy of the loop of :func:`jaxfric.exact._exact_newton` built from the
+report) and with a host-driven copy of the loop of :func:`jaxfric.exact.exact_solve` built from the
 same pieces (linearisation, semismooth direction, merit, status), which records at every evaluated
 point: ||R||_inf against the tolerance, the step length (1, or 1/4 and 1/16 after a rejected trial),
 how many pairs changed contact status, and how many Gauss points changed between elastic and plastic
@@ -31,9 +31,11 @@ import numpy as np  # noqa: E402
 
 from jaxfric import exact  # noqa: E402
 from jaxfric.contact import pair_mu  # noqa: E402
+from jaxfric.model import tool_positions  # noqa: E402
 from jaxfric.newton import NewtonOptions  # noqa: E402
 from jaxfric.scenes import nine  # noqa: E402
-from jaxfric.simulate import _Context, _step_args, _tool_q, _unknowns, simulate, solve_step  # noqa: E402
+from jaxfric.simulate import simulate  # noqa: E402
+from jaxfric.step import StepContext, solve_step, step_args, unknowns  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 FIELDS = ("step", "U", "k", "alpha", "residual", "tolerance", "status_changes", "gauss_point_switches",
@@ -55,7 +57,7 @@ def main(argv=None) -> None:
     if int(sim.code) != 0:
         raise SystemExit(f"the run to U = {a.u0} mm did not converge (code {int(sim.code)})")
     model = nine.build(config, "lcp_ssn", "mu017").model
-    ctx, law, opts = _Context.build(model), model.contact, NewtonOptions()
+    ctx, law, opts = StepContext.build(model), model.contact, NewtonOptions()
     dt = config.dU / config.U_draw
     # The short run ends at pseudo-time 2 = its U_draw; in the full run that state sits at u0 / U_draw.
     state = eqx.tree_at(lambda s: s.time, sim.final, jnp.asarray(1.0 + a.u0 / config.U_draw))
@@ -63,16 +65,16 @@ def main(argv=None) -> None:
     @eqx.filter_jit
     def evaluate(x, args, p_new, frames):
         # The trial's merit takes the forces its direction predicts as hint, as the solver's does.
-        it = exact._linearize(x, args)
-        R, _ = exact._residual(x, it, p_new, args)
-        merit = jnp.nan if frames is None else exact._merit(x, it, args, p_new, frames)
+        it = exact.linearize_iterate(x, args)
+        R, _ = exact.iterate_residual(x, it, p_new, args)
+        merit = jnp.nan if frames is None else exact.semismooth_merit(x, it, args, p_new, frames)
         return it, jnp.max(jnp.abs(R)), jnp.max(jnp.abs(it.f_int)), merit
 
     @eqx.filter_jit
     def direction(it, args, x, hint):
-        frames = exact._frames(it, args)
-        dx, p_new, _, stats, _ = exact._active_set_step(it, args, x, None, law, hint, frames=frames)
-        return dx, p_new, stats, exact._merit(x, it, args, hint, frames[0]), frames[0]
+        frames = exact.contact_frames(it, args)
+        dx, p_new, _, stats, _ = exact.active_set_step(it, args, x, None, law, hint, frames=frames)
+        return dx, p_new, stats, exact.semismooth_merit(x, it, args, hint, frames[0]), frames[0]
 
     step = eqx.filter_jit(lambda st, t, g: solve_step(model, st, 1, t, opts, ctx, guess=g))
     rows, prev = [], None
@@ -85,11 +87,11 @@ def main(argv=None) -> None:
         if int(sol.code) != 0:
             raise SystemExit(f"step {s} did not converge (code {int(sol.code)})")
         if prev is not None:
-            args, _, _ = _step_args(model, state, 1, t_target, ctx)
+            args, _, _ = step_args(model, state, 1, t_target, ctx)
             mu_pairs = pair_mu(args.contact.tools, args.contact.mu)
             m = mu_pairs.shape[0]
-            x_ref = _unknowns(model, state.u, _tool_q(state))
-            x = _unknowns(model, *guess)
+            x_ref = unknowns(model, state.u, tool_positions(state))
+            x = unknowns(model, *guess)
             eqps0 = state.material.eqps
             c = args.contact
             p_step = jnp.stack([jnp.concatenate(c.lam_n), jnp.concatenate(c.lam_t)], -1)
@@ -106,7 +108,7 @@ def main(argv=None) -> None:
                 k += 1
                 x_t = x + alpha * dx
                 it_t, r, scale, merit_t = evaluate(x_t, args, p_new, frames)
-                status_t = exact._status(p_new, mu_pairs)
+                status_t = exact.pair_status(p_new, mu_pairs)
                 plastic_t = np.asarray(it_t.states.eqps > eqps0)
                 tol = opts.atol + opts.rtol * max(float(scale), 1e-6)
                 correction = float(jnp.max(jnp.abs(alpha * dx)))

@@ -27,7 +27,8 @@ import numpy as np  # noqa: E402
 
 from jaxfric.newton import NewtonOptions  # noqa: E402
 from jaxfric.scenes import nine  # noqa: E402
-from jaxfric.simulate import _Context, simulate, solve_step  # noqa: E402
+from jaxfric.simulate import simulate  # noqa: E402
+from jaxfric.step import StepContext, solve_step  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 # Extrapolation weights on the last 2, 3, 4 states (newest last) for equal steps.
@@ -54,7 +55,7 @@ def main(argv=None) -> None:
         raise SystemExit(f"the run to U = {a.u0} mm did not converge (code {int(sim.code)})")
     config = nine.NineConfig()
     model = nine.build(config, a.algorithm, "mu017").model
-    ctx = _Context.build(model)
+    ctx = StepContext.build(model)
     step = eqx.filter_jit(lambda st, t, g: solve_step(model, st, 1, t, NewtonOptions(), ctx, guess=g))
     dt = config.dU / config.U_draw
     # The short run ends at pseudo-time 2 = its U_draw; in the full run that state sits at u0 / U_draw.

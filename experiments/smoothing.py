@@ -21,17 +21,15 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(__file__))
-from benchutil import write_rows  # noqa: E402
-from jaxfric.newton import NewtonOptions  # noqa: E402
-from jaxfric.params import parameterize, path_function  # noqa: E402
+from benchutil import write_rows
+from jaxfric.newton import NewtonOptions
+from jaxfric.params import parameterize, path_function
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 NAMES = ("mu", "R1")

@@ -26,9 +26,10 @@ import numpy as np  # noqa: E402
 
 from jaxfric.contact import pair_nodes  # noqa: E402
 from jaxfric.linalg import linear_solve  # noqa: E402
+from jaxfric.model import tool_positions  # noqa: E402
 from jaxfric.run import run  # noqa: E402
 from jaxfric.scenes import make  # noqa: E402
-from jaxfric.simulate import _Context, _step_args, _tool_q, _unknowns  # noqa: E402
+from jaxfric.step import StepContext, step_args, unknowns  # noqa: E402
 from jaxfric.system import linearize  # noqa: E402
 
 NINE = {"mesh": "30x2", "stroke": 3.0, "dq_clamp": 0.5, "U_draw": 1.0, "dU": 0.25}
@@ -57,10 +58,10 @@ def main(argv=None) -> None:
         return
     state, t = res.simulation.final, float(res.simulation.failed_time)
     model = scene.model
-    args, _, _ = _step_args(model, state, int(state.phase), t, _Context.build(model))
+    args, _, _ = step_args(model, state, int(state.phase), t, StepContext.build(model))
     lin_at = jax.jit(lambda x: linearize(x, args))
     solve = jax.jit(linear_solve)
-    x = _unknowns(model, state.u, _tool_q(state))
+    x = unknowns(model, state.u, tool_positions(state))
     lin = lin_at(x)
     opts = scene.newton
     print(f"step t {t:.9g}; residual tolerance at the start point "

@@ -18,7 +18,7 @@ Nothing is lost when a run fails or the script is interrupted:
   ``converged = False`` and the reason in ``message``;
 - the Nine sensitivity and mesh studies and the algorithm agreement also keep the rows of their
   committed ``table.csv`` whose run directories are absent (a fresh checkout), so a study continues
-  across sessions; the agreement keeps each case's curves and contact states beside it
+  across invocations; the agreement keeps each case's curves and contact states beside it
   (``curves/<case>.npz``, committed), so new cases are compared with old ones without rerunning them.
 
 Wall times are solve times (compilation apart, in ``compile_s``) and are comparable only within one
@@ -40,7 +40,7 @@ import sys
 # taskset gets one thread anyway). Set before NumPy loads OpenBLAS.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
+import numpy as np
 
 from jaxfric import scenes
 from jaxfric.batch import phase_curve, run_case, write_csv
@@ -162,7 +162,7 @@ def _selected(opts, name: str) -> bool:
 def _committed_rows(study: str, opts) -> dict:
     """The rows of the study's committed ``table.csv`` by case name, with their types restored, for the
     cases that have no run directory (run directories are not committed): a study resumed on a fresh
-    checkout keeps the cases an earlier session finished instead of running them again: the Nine
+    checkout keeps the cases an earlier invocation finished instead of running them again: the Nine
     sensitivity and mesh studies (their tables hold everything their sections and figures use) and the
     algorithm agreement (which keeps each case's curves beside its row). ``--rerun`` runs the selected cases
     again instead."""
@@ -209,7 +209,7 @@ def _want(opts, study: str, name: str) -> bool:
 
 def _machine(rows_cases: list[dict]) -> str:
     devices = {c["summary"].get("device") for c in rows_cases if c["summary"].get("device")}
-    return ", ".join(sorted(devices)) or "not in the table (rows kept from an earlier session)"
+    return ", ".join(sorted(devices)) or "not in the table (rows kept from an earlier invocation)"
 
 
 def _header(study: str, cases: list[dict], what: str) -> str:
@@ -545,7 +545,7 @@ def _curves_path(study: str, name: str) -> str:
 
 def _save_curves(study: str, name: str, c: dict) -> None:
     """Keep (committed) what the agreement table and figure read from a run: the history columns of
-    ``CURVE_COLUMNS`` and the contact status at the named instants. A later session then compares a new
+    ``CURVE_COLUMNS`` and the contact status at the named instants. A later invocation then compares a new
     case with this one without running it again (run directories are not committed)."""
     h, contact = c["history"], c["contact"]
     path, summary = _curves_path(study, name), os.path.join(c["dir"], "summary.json")
@@ -560,7 +560,7 @@ def _save_curves(study: str, name: str, c: dict) -> None:
 
 
 def _case_from_curves(study: str, name: str, row: dict) -> dict:
-    """A case of an earlier session from its committed table row and curves (the shape :func:`case`
+    """A case of an earlier invocation from its committed table row and curves (the shape :func:`case`
     returns)."""
     with np.load(_curves_path(study, name), allow_pickle=False) as data:
         arrays = {k: data[k] for k in data.files}
@@ -575,7 +575,7 @@ def _case_from_curves(study: str, name: str, row: dict) -> dict:
 
 def algorithm_agreement(opts) -> None:
     """Each case comes from its run directory, else from its committed row and curves (a case of an
-    earlier session), else it is run if selected. Rows of earlier sessions that have no curves (before
+    earlier invocation), else it is run if selected. Rows of earlier invocations that have no curves (before
     curves were kept) stay as they were committed, with the reference they were compared with (column
     ``reference``), which may differ from the one the group's newer rows are compared with."""
     study = "algorithm_agreement"
@@ -605,7 +605,7 @@ def algorithm_agreement(opts) -> None:
         for algorithm in ALGORITHMS:
             take(algorithm, f"{name}_{variant}_{algorithm}", algorithm, {})
         ref_alg = "lcp_lemke" if runs.get("lcp_lemke", {}).get("summary", {}).get("converged") else None
-        # The AL reference runs only where Lemke has not converged (in this session or an earlier one,
+        # The AL reference runs only where Lemke has not converged (in this invocation or an earlier one,
         # whose row without curves still shows the group has its exact reference); one that ran before
         # stays a row.
         lemke_done = ref_alg is not None or bool(legacy.get("lcp_lemke", {}).get("converged"))
@@ -656,7 +656,7 @@ def algorithm_agreement(opts) -> None:
                                  "directories are on disk (the same cases). Curves compared on 200 points "
                                  "over the common `draw` range (and `theta_deg` over `wind` for the bead). "
                                  "Each case keeps its curves in `curves/<case>.npz` (committed), so a later "
-                                 "session adds cases without rerunning the others; rows finished before "
+                                 "invocation adds cases without rerunning the others; rows finished before "
                                  "curves were kept have none, are not in the figure and keep the "
                                  "reference they were compared with.")
                   + "\n\n" + markdown_table(rows, cols) + "\n\n" + failures(rows, opts.missing)

@@ -35,8 +35,10 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import math
 import os
+from importlib import resources
 
 import numpy as np
 
@@ -136,71 +138,21 @@ class Test:
         return f"reference{self.tag}"
 
 
-# [chosen] The flat die's penetrations are 1e-10 to 1e-6 mm (the clamp load spread over the die), and
-# with the die held in place (const_position) 4e-8 mm already moves the clamping force by 0.8 %: target
-# gaps of 1e-5 or 1e-6 mm would never trigger an augmentation there.
-_FLAT_AUGLAG = ((1e6, 1e-8), (1e6, 1e-9), (1e7, 1e-9), (1e7, 1e-10))
-# [chosen] Nine: the strip is drawn 36 mm (the steady window [20, 35] mm and one more), not 70.
-_NINE_BASE = {"U_draw": 36.0}
-# [chosen] Nine reference gap: 1e-6 mm, a tenth of the smallest target of the sweep (penalties leave
-# 1e-4 mm and more). A penetration d on a tool of radius R moves the bending radius, and with it the
-# force, by about d / R = 2e-7; 1e-8 mm would only multiply the augmentations of a 2000-step run.
-_NINE_REF_GAP = 1e-6
+def _load_tests(kind: str) -> tuple:
+    """The report's tests of ``kind`` ("tests" or "quick") from ``accuracy_tests.json`` (lists read as
+    tuples; fields left out take the :class:`Test` defaults). Why each value was chosen:
+    ``docs/results.md``, accuracy against run time."""
+    def tuples(value):
+        return tuple(tuples(v) for v in value) if isinstance(value, list) else value
 
-_NINE_PENALTIES = (1e2, 1e3, 1e4, 1e5, 1e6)
-# [chosen] Penalty 1e6 filled the default buffer (10x the nominal steps + 200: 4900 rows) at U = 27.7
-# (mu017) and 33.7 mm (mu000) of 36: its stiff penalty cuts the increments far below the nominal ones.
-_NINE_PENALTY_ROWS = ((1e6, 15_000),)
-_NINE_AUGLAG = ((1e4, 1e-3), (1e4, 1e-4), (1e5, 1e-4), (1e5, 1e-5))
-# [chosen] The Nine's total-error reference: exact contact (``lcp_ssn``) on a mesh fine along x, checked by
-# halving the elements along x and through the thickness apart. The steady force converges slowly along
-# x (``mesh_convergence`` study: 1.6 % from 600 to 1200 columns) and little through the thickness (0.6 %
-# from 3 to 6 layers at 1200 columns); an AL reference at 200 x 4 moved by 5.6 % (mu017) at 400 x 8.
-# 1200 x 3 at half the nominal increments costs 6 minutes on one core, its checks (2400 x 3, 1200 x 6, a
-# quarter of the increments) 15 to 30 each (docs/results.md, reference ladder).
-_NINE_REF_MESH = (1200, 3)
-# [chosen] The mesh family (penalty): up to the spec's 300 x 3, no finer than the reference through the
-# thickness (it ended at 200 x 4 while the reference was AL at 200 x 4).
-_NINE_MESHES = ((50, 2), (100, 2), (200, 3), (300, 3))
+    data = json.loads(resources.files(__package__).joinpath("accuracy_tests.json").read_text())
+    return tuple(Test(**{k: tuples(v) for k, v in entry.items()}) for entry in data[kind])
 
 
-def _nine_tests(variant: str) -> tuple:
-    """The Nine variant's two tests: total error against a finer reference (1200 x 3, exact contact),
-    and the contact algorithm's and step size's error on the sweep's own mesh (100 x 2), which shares the
-    first test's runs."""
-    # [chosen] lcp_ssn at a half, a quarter and an eighth of the nominal increments: the step family
-    # (penalty) cannot show the step size's error on the Nine, where the controller's cutbacks set the
-    # increments (x2 and x0.5 give the same steps within 3 %).
-    full = Test("nine", variant, _NINE_BASE, (100, 2), _NINE_REF_MESH, _NINE_MESHES,
-                (2.0, 0.5), _NINE_PENALTIES, _NINE_AUGLAG, "steady", ref_gap=_NINE_REF_GAP,
-                ssn_steps=(0.5, 0.25, 0.125), penalty_rows=_NINE_PENALTY_ROWS,
-                ref_checks=("step", "mesh_x", "mesh_y"), ref_algorithm="lcp_ssn")
-    # [chosen] The same-mesh reference takes a thirty-second of the nominal increments: at half of them
-    # (2026-11-26), halving once more moved its steady force by 5.8e-4 (mu017) and 4.4e-4 (mu000), so no
-    # error under 0.6 % could be resolved; the step error falls about in proportion to the increment.
-    same = dataclasses.replace(full, ref_mesh=full.mesh, meshes=(), ref_checks=("step",), tag="_at_100x2",
-                               runs=full.name, ref_step=1 / 32, ref_algorithm="auglag")
-    return full, same
-
-
-TESTS = (
-    Test("flat_die", "const_force", {}, (120, 1), (240, 2), ((60, 1), (120, 1), (240, 2)),
-         (2.0, 0.5), (1e5, 1e6, 1e7, 1e8, 1e9), _FLAT_AUGLAG, "final",
-         main="err_curve_l2"),
-    Test("flat_die", "const_position", {}, (120, 1), (240, 2), ((60, 1), (120, 1), (240, 2)),
-         (2.0, 0.5), (1e5, 1e6, 1e7, 1e8, 1e9), _FLAT_AUGLAG, "final"),
-    *_nine_tests("mu000"),
-    *_nine_tests("mu017"),
-)
-
+TESTS = _load_tests("tests")
 # --quick: the flat die at force control on small meshes, a short sweep (a few minutes on 2 cores).
-QUICK_TESTS = (
-    Test("flat_die", "const_force", {}, (30, 1), (60, 1), ((15, 1), (30, 1)),
-         (2.0,), (1e6, 1e8), ((1e6, 1e-6),), "final", main="err_curve_l2"),
-)
+QUICK_TESTS = _load_tests("quick")
 
-
-# ---- cases --------------------------------------------------------------------------------------------
 
 def _steps(test: Test, factor: float) -> dict:
     """Overrides for the test's nominal increments (its ``base`` over the scene's defaults) scaled by

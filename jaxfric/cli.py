@@ -21,7 +21,7 @@ import sys
 
 from .formulations import ALGORITHMS
 
-__all__ = ["main", "build_parser", "UsageError"]
+__all__ = ["main", "build_parser", "UsageError", "parse_grid"]
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 
@@ -173,6 +173,8 @@ def _scenes() -> int:
 
 
 def _overrides(pairs) -> dict:
+    """The --set NAME=VALUE pairs as {name: value text} (UsageError for a malformed pair or a name
+    given twice)."""
     out = {}
     for text in pairs:
         name, sep, value = text.partition("=")
@@ -215,22 +217,21 @@ def _build(args):
 
 
 def _scene_overrides(args) -> dict:
-    """The --set and --mesh values as config overrides, each checked against the scene's field types
-    (bad input -> UsageError naming the field or value)."""
+    """The --set and --mesh values parsed once into typed config overrides, as
+    :func:`jaxfric.scenes.make` takes them: field -> value of the field's type, ``mesh`` -> (nx, ny)
+    (:func:`jaxfric.scenes.parse_mesh`, where the mesh size is checked). Bad input -> UsageError
+    naming the field or value."""
     from . import scenes
 
-    overrides = _overrides(args.overrides)
-    if "mesh" in overrides and args.mesh is not None:
+    texts = _overrides(args.overrides)
+    if "mesh" in texts and args.mesh is not None:
         raise UsageError("give the mesh either with --mesh or with --set mesh=..., not both")
     try:
-        if args.mesh is not None:
-            overrides["mesh"] = "x".join(str(v) for v in scenes.parse_mesh(args.mesh))
-        for field, value in overrides.items():
-            if field != "mesh":
-                scenes.parse_override(args.scene, field, value)  # names the bad field / value
+        mesh = None if args.mesh is None else scenes.parse_override(args.scene, "mesh", args.mesh)
+        typed = {field: scenes.parse_override(args.scene, field, text) for field, text in texts.items()}
     except (ValueError, TypeError) as err:
         raise UsageError(str(err)) from None
-    return overrides
+    return typed if mesh is None else {**typed, "mesh": mesh}
 
 
 def _writable_dir(out: str) -> None:
@@ -340,8 +341,10 @@ def _bounds(pairs, names) -> dict:
     return out
 
 
-def _grid(specs, names) -> dict:
-    from .fit import MAX_GRID_POINTS
+def parse_grid(specs, names) -> dict:
+    """``--grid NAME=LOW:HIGH:N`` specs of the fitted parameters ``names`` -> {name: N values evenly
+    spaced from LOW to HIGH}; bad input -> UsageError naming it."""
+    from .fit_global import MAX_GRID_POINTS
 
     out, points = {}, 1
     for text in specs:
@@ -377,7 +380,7 @@ def _fit(args) -> int:
         raise UsageError(f"--param expects NAME[,NAME...], got {args.param!r}")
     overrides = _scene_overrides(args)
     bounds = _bounds(args.bounds, names)
-    grid = _grid(args.grid, names)
+    grid = parse_grid(args.grid, names)
     variant = args.variant or scenes.default_variant(args.scene)
     out = os.path.join("fits", args.scene, variant) if args.out is None else args.out
     if not os.path.isfile(args.data):

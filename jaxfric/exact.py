@@ -3,7 +3,7 @@
 At every Newton iterate x = (u, q_f) the contact conditions of the linearised problem are solved
 exactly; the contact status comes out of that solve. Two ways:
 
-* ``lcp_ssn`` (solver "ssn", :func:`_active_set_step`): semismooth Newton on the Alart-Curnier
+* ``lcp_ssn`` (solver "ssn", :func:`active_set_step`): semismooth Newton on the Alart-Curnier
   equations of every candidate node, written on the block-tridiagonal system itself. The contact
   force of a node is its equilibrium force (internal force; kappa rows, step 1 below, on prescribed
   dofs), so on an active set the node's two rows become a row combination of the tangent plus a 2 x 2
@@ -13,10 +13,10 @@ exactly; the contact status comes out of that solve. Two ways:
   (counted in ``ssn_fallbacks``) and the Newton loop goes on; a step converges only on an iteration
   whose active set settled. (Solving such iterates the condensed way instead was tried: on the
   three-cylinder bench it cost 7.8 s against 4.6 s, for 84 against 88 steps.) The Newton step is
-  line-searched on the semismooth residual (:func:`_merit`: the equilibrium rows with each candidate's
+  line-searched on the semismooth residual (:func:`semismooth_merit`: the equilibrium rows with each candidate's
   rows replaced by its Alart-Curnier residual), quartering a step that raises it, at most twice.
-* ``lcp_lemke`` (solver "lemke") and solver "ssn_condensed": the problem condensed on a band of
-  candidates. Steps of one iteration:
+* ``lcp_lemke`` (solver "lemke"): the problem condensed on a band of candidates. Steps of one
+  iteration:
 
 1. Bulk operators of the sheet alone: K = d f_int / du and b = -f_int on the free dofs. A prescribed
    dof i gets the row ``kappa du_i = kappa (u_presc,i - u_i) + f_c,i - f_c,i^prev`` with
@@ -39,11 +39,10 @@ exactly; the contact status comes out of that solve. Two ways:
    then rotated into each band pair's (n, t) frame.
 4. The linearised contact problem ``K* du_c = r* + p`` with ``g_N = g^i + du_N - (e_q . n) dq``,
    ``s = s^i + du_T - (e_q . t) dq`` and Signorini-Coulomb, plus the force balance of the force-driven
-   tool (:mod:`jaxfric.lcp`): semismooth Newton (``ssn``, jitted; if it does not converge, Lemke for
-   that iterate, counted as a fallback) or Lemke's pivoting (``lemke``, NumPy on the host through
-   ``jax.pure_callback``), whose answer is solved again on its own piece and, where it lies on a piece
-   boundary within its round-off, settled by a few semismooth Newton iterations on the same problem
-   (:func:`jaxfric.lcp.polish`).
+   tool (:mod:`jaxfric.contact_lcp`), by Lemke's pivoting (:mod:`jaxfric.lemke`, NumPy on the host
+   through ``jax.pure_callback``), whose answer is solved again on its own piece and, where it lies on a
+   piece boundary within its round-off, settled by a few semismooth Newton iterations on the same
+   problem (:func:`jaxfric.alart_curnier.polish`).
 5. Back-substitution ``du_f = K_ff^-1 (b_f - K_fc du_c)``; x <- x + (du, dq).
 
 Convergence (spec 1.7 step 7): the bulk residual with the contact forces of the last solve,
@@ -65,25 +64,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .alart_curnier import (
+    OPEN,
+    SLIP_NEG,
+    SLIP_POS,
+    STICK,
+    alart_curnier_residual,
+    keep_tools_touching,
+    piece_jacobian,
+    polish,
+)
 from .assembly import internal_force_and_tangent, shared_trace
 from .contact import ContactStep, pair_mu, pair_nodes, split_pairs
-from .lcp import (
-    _OPEN,
-    _SLIP_NEG,
-    _SLIP_POS,
-    _STICK,
-    ForceDrive,
-    LemkeStatus,
-    _alart_curnier,
-    _keep_tools_touching,
-    _piece,
-    diagonal_parameters,
-    lemke_contact_callback,
-    lemke_start,
-    polish,
-    ssn_contact,
-    ssn_start,
-)
+from .contact_lcp import ForceDrive, lemke_contact_callback, lemke_start
+from .lemke import LemkeStatus
 from .linalg import BlockTridiag, Bordered, block_tridiag_solve, bordered_solve
 from .newton import NewtonOptions, NewtonSolution
 from .results import Result
@@ -91,10 +85,13 @@ from .status import contact_status
 from .system import _constrain_rows
 from .tools import project
 
-__all__ = ["exact_solve"]
+# The pieces of one iteration are public for diagnostics (experiments/bench_contact.py,
+# experiments/nine_newton_trace.py replay the loop on the host).
+__all__ = ["exact_solve", "linearize_iterate", "iterate_residual", "pair_status", "contact_newton_step",
+           "active_set_step", "contact_frames", "semismooth_merit"]
 
 KAPPA = 1e2       # prescribed rows: kappa = KAPPA K_ii (see the module docstring)
-REFINE_ITER = 10  # semismooth Newton iterations refining a Lemke answer on a piece boundary (lcp.polish)
+REFINE_ITER = 10  # semismooth Newton iterations refining a Lemke answer on a piece boundary (polish)
 GAP_FAR = 10.0    # mm: gap given to a band node that projects on no tool (it stays open)
 
 
@@ -153,7 +150,7 @@ def _geometry(step: ContactStep, nodes_ref, u, q):
 
 
 @shared_trace     # the loop's shapes (filter_eval_shape before the loop) and its body: one trace
-def _linearize(x, args) -> _Iterate:
+def linearize_iterate(x, args) -> _Iterate:
     n = args.mesh.n_dofs
     u = x[:n].reshape(-1, 2)
     q = _tool_positions(args, x[n:])
@@ -172,7 +169,7 @@ def _pair_forces(it: _Iterate, p) -> jax.Array:
     return p[:, :1] * it.normal + p[:, 1:] * _tangents(it.normal)
 
 
-def _residual(x, it: _Iterate, p, args):
+def iterate_residual(x, it: _Iterate, p, args):
     """Residual of the step at the iterate with contact forces p (m, 2); and the tool forces."""
     n = args.mesh.n_dofs
     c = args.contact
@@ -283,39 +280,21 @@ class _LCPSolution(NamedTuple):
     solved: jax.Array
 
 
-def _lemke(K, r, gap, slip, mu, drive, hint):
-    """Lemke on the host, warm-started from the basis of the forces ``hint`` (the last iterate's),
-    its active set then solved exactly (:func:`jaxfric.lcp.polish`; an answer on a piece boundary, or
-    the last basis of a pivoting that ended on a ray, is settled by at most ``REFINE_ITER`` semismooth
-    Newton iterations on the same problem, counted with the ``ssn_iters``). Solved: Lemke's answer
-    passed its check, or the refined one is a solution on its own piece."""
+def _lemke(K, r, gap, slip, mu, drive, hint) -> _LCPSolution:
+    """The condensed contact problem of one iteration by Lemke on the host, warm-started from the basis
+    of the forces ``hint`` (the last iterate's), its active set then solved exactly
+    (:func:`jaxfric.alart_curnier.polish`; an answer on a piece boundary, or the last basis of a pivoting
+    that ended on a ray, is settled by at most ``REFINE_ITER`` semismooth Newton iterations on the same
+    problem, counted with the ``ssn_iters``). Solved: Lemke's answer passed its check, or the refined
+    one is a solution on its own piece."""
     du_c, p, dq, pivots, status = lemke_contact_callback(K, r, gap, slip, mu, drive,
                                                          start=lemke_start(hint, slip, mu))
     du_c, p, dq, refined, solved = polish(K, r, gap, slip, mu, du_c, dq, drive, refine_iter=REFINE_ITER)
-    return du_c, p, dq, pivots, refined, (status == LemkeStatus.SOLVED) | solved
+    return _LCPSolution(du_c, p, dq, pivots, refined, jnp.array(0, jnp.int32),
+                        (status == LemkeStatus.SOLVED) | solved)
 
 
-def _solve_contact(law, K, r, gap, slip, mu, drive, hint) -> _LCPSolution:
-    zero = jnp.array(0, jnp.int32)
-    if law.solver == "lemke":
-        du_c, p, dq, pivots, refined, ok = _lemke(K, r, gap, slip, mu, drive, hint)
-        return _LCPSolution(du_c, p, dq, pivots, refined, zero, ok)
-    # Per-candidate Alart-Curnier constants (the diagonal of K*): candidates with prescribed
-    # components (kappa rows) are 1e8 stiffer than the rest, where one mean value misclassifies.
-    c_n, c_t = diagonal_parameters(K)
-    s = ssn_contact(K, r, gap, slip, mu, drive=drive, c_n=c_n, c_t=c_t, max_iter=law.ssn_max_iter,
-                    start=ssn_start(hint, gap, mu))
-
-    def fallback():
-        du_c, p, dq, pivots, refined, ok = _lemke(K, r, gap, slip, mu, drive, hint)
-        return _LCPSolution(du_c, p, dq, pivots, s.iterations + refined, jnp.array(1, jnp.int32), ok)
-
-    return jax.lax.cond(s.converged,
-                        lambda: _LCPSolution(s.du_c, s.p, s.dq, zero, s.iterations, zero, jnp.array(True)),
-                        fallback)
-
-
-def _contact_newton_step(it: _Iterate, args, x, p_prev, law, hint):
+def contact_newton_step(it: _Iterate, args, x, p_prev, law, hint):
     """The increment (du, dq) of one iteration, the new pair forces (m, 2), the band, the solver stats.
 
     ``hint`` (m, 2): forces whose active set starts Lemke or semismooth Newton (the last iterate's,
@@ -340,8 +319,7 @@ def _contact_newton_step(it: _Iterate, args, x, p_prev, law, hint):
             e = c.tools[k].drive
             drive = ForceDrive.single(jnp.where(mine, normal @ e, 0.0), jnp.where(mine, tangent @ e, 0.0),
                                       c.force[k])
-        sol = _solve_contact(law, cond.K_star, cond.r_star, gap, slip, mu, drive,
-                             jnp.where(valid[:, None], hint[band.pairs], 0.0))
+        sol = _lemke(cond.K_star, cond.r_star, gap, slip, mu, drive, jnp.where(valid[:, None], hint[band.pairs], 0.0))
         dq = sol.dq if driven else jnp.zeros(len(args.force_idx))
         return sol._replace(dq=dq)
 
@@ -410,7 +388,7 @@ class _Frames(NamedTuple):
 
 
 @shared_trace
-def _frames(it: _Iterate, args) -> tuple[_Frames, BlockTridiag]:
+def contact_frames(it: _Iterate, args) -> tuple[_Frames, BlockTridiag]:
     """The frames and constants at the iterate, and the tangent with kappa rows on prescribed dofs."""
     c = args.contact
     band = _band(it, c.tools, None)
@@ -453,7 +431,7 @@ def _driven_rows(args, fr: _Frames, x, f_tilde, n):
     return mine, dofs, v, r_q
 
 
-def _merit(x, it: _Iterate, args, hint, fr: _Frames) -> jax.Array:
+def semismooth_merit(x, it: _Iterate, args, hint, fr: _Frames) -> jax.Array:
     """Squared norm of the semismooth residual the in-loop solver drives to zero: f~ on the sheet's
     dofs with every candidate node's two rows replaced by its Alart-Curnier residual (C_N, C_T),
     and the tool's row. The constants and kappa of ``fr`` (the iterate the search started from) are
@@ -467,7 +445,7 @@ def _merit(x, it: _Iterate, args, hint, fr: _Frames) -> jax.Array:
     R_T = jnp.einsum("ui,ui->u", _tangents(normal), f_nodes[band.nodes])
     gap = jnp.where(valid, it.gap[band.pairs], GAP_FAR)
     slip = jnp.where(valid & (fr.mu > 0), it.slip[band.pairs], 0.0)
-    _, C, _ = _alart_curnier(R_N, R_T, gap, slip, fr.mu, fr.c_n, fr.c_t)
+    _, C, _ = alart_curnier_residual(R_N, R_T, gap, slip, fr.mu, fr.c_n, fr.c_t)
     total = jnp.sum(f_nodes.at[band.nodes].set(C) ** 2)
     if args.force_idx:
         now = fr._replace(pairs=band.pairs, valid=valid)
@@ -475,12 +453,12 @@ def _merit(x, it: _Iterate, args, hint, fr: _Frames) -> jax.Array:
     return total
 
 
-def _active_set_step(it: _Iterate, args, x, p_prev, law, hint, frames=None):
+def active_set_step(it: _Iterate, args, x, p_prev, law, hint, frames=None):
     """One iteration of semismooth Newton on the whole step (solver ``"ssn"``): the increment (du, dq),
     the pair forces it predicts (m, 2), the pairs used, the solver stats; same contract as
-    :func:`_contact_newton_step`, at the cost of one bulk solve.
+    :func:`contact_newton_step`, at the cost of one bulk solve.
 
-    The Alart-Curnier equations of :mod:`jaxfric.lcp` are written for every candidate node (with its
+    The Alart-Curnier equations of :mod:`jaxfric.alart_curnier` are written for every candidate node (with its
     nearest pair) with the contact force taken from equilibrium, p_a = (n, t)^T f~_a, where f~ is the
     internal force on free dofs and ``f_c^prev + kappa (u - u_presc)`` on prescribed ones (the kappa rows
     of the module docstring, step 1). On the active set read off the iterate, the node's two equilibrium
@@ -490,14 +468,14 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law, hint, frames=None):
     block-Thomas solve, like a penalty iteration. The force-driven tool's row is sum_a e_q . f~_a = P
     over its candidates. ``hint`` gives f_c^prev and the first active set (the last converged forces at
     a step's first iteration); ``p_prev`` is not used (the signature is the condensed step's).
-    ``frames``: the result of :func:`_frames` at ``it`` when the caller has it already.
+    ``frames``: the result of :func:`contact_frames` at ``it`` when the caller has it already.
     """
     c = args.contact
     n = args.mesh.n_dofs
     n_nodes = n // 2
     m = it.gap.shape[0]
     all_nodes = pair_nodes(c.tools)
-    fr, K = _frames(it, args) if frames is None else frames
+    fr, K = contact_frames(it, args) if frames is None else frames
     nodes, pairs, valid, normal, rotation = fr.nodes, fr.pairs, fr.valid, fr.normal, fr.rotation
     f_tilde = _equilibrium_force(it, args, x, hint, fr.kappa)
     f_nodes = f_tilde.reshape(-1, 2)
@@ -524,14 +502,14 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law, hint, frames=None):
         C_row = jnp.where(force_driven, K.transpose().matvec(v), 0.0)
 
     def classify(R_N, R_T, g, s):
-        state, _, sig_n = _alart_curnier(R_N, R_T, g, s, mu, c_n, c_t)
+        state, _, sig_n = alart_curnier_residual(R_N, R_T, g, s, mu, c_n, c_t)
         if driven:
-            state = jnp.where(force_driven, _keep_tools_touching(state, sig_n, e_dot_n), state)
+            state = jnp.where(force_driven, keep_tools_touching(state, sig_n, e_dot_n), state)
         return state
 
     def solve(state):
         """The increment on the active set ``state``, and the forces, gap and slip it predicts."""
-        w_f, w_k = _piece(state, mu, c_n, c_t)
+        w_f, w_k = piece_jacobian(state, mu, c_n, c_t)
         # Rows of the candidate nodes: C_a = W_F (n, t)^T f~_a + W_K (g, s).
         A = jnp.einsum("uij,ukj->uik", w_f, rotation)                    # W_F R^T
         local = jnp.einsum("uij,ujk->uik", w_f, d_u[pairs, :2]) + jnp.einsum("uij,ujk->uik", w_k, d_u[pairs, 2:])
@@ -578,8 +556,8 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law, hint, frames=None):
         cycles without end (Nine 60 x 2 at half the nominal increments, B's first touch: R_N = -1.5e-4
         N/mm closed, a penetration of 2.7e-5 mm open, every outer iteration of every cut step)."""
         new = classify(p_l[:, 0], p_l[:, 1], g_l, s_l)
-        slip = jnp.where(p_l[:, 1] >= 0.0, _SLIP_POS, _SLIP_NEG)
-        return jnp.where((state == _STICK) & (new == _OPEN) & (gap < 0.0) & (mu > 0.0), slip, new)
+        slip = jnp.where(p_l[:, 1] >= 0.0, SLIP_POS, SLIP_NEG)
+        return jnp.where((state == STICK) & (new == OPEN) & (gap < 0.0) & (mu > 0.0), slip, new)
 
     def more(carry):
         i, state, _, p_l, g_l, s_l = carry
@@ -605,7 +583,7 @@ def _active_set_step(it: _Iterate, args, x, p_prev, law, hint, frames=None):
     return dx, p, in_band, stats, jnp.all(jnp.isfinite(dx))
 
 
-def _status(p, mu_pairs):
+def pair_status(p, mu_pairs):
     return contact_status(p[:, 0], p[:, 1], mu_pairs)
 
 
@@ -651,7 +629,7 @@ def _exact_newton(args, x0, x_ref, options: NewtonOptions, law):
         return code.astype(jnp.int32), r_norm
 
     search = law.solver == "ssn" and options.line_search   # static
-    step = _active_set_step if law.solver == "ssn" else _contact_newton_step
+    step = active_set_step if law.solver == "ssn" else contact_newton_step
     no_stats = jnp.zeros(3, jnp.int32)
 
     # The loop evaluates one point per pass (the initial guess first, then each trial), then takes the
@@ -659,9 +637,9 @@ def _exact_newton(args, x0, x_ref, options: NewtonOptions, law):
     # traced program holds one linearisation and one direction solve (each copy costs compile time).
     def body(carry):
         k, x, it, p, status, x_t, tr, _, r_hist, stats = carry     # k: index of the point x_t
-        it_t = _linearize(x_t, args)
-        R, _ = _residual(x_t, it_t, tr.p_new, args)
-        status_new = _status(tr.p_new, mu_pairs)
+        it_t = linearize_iterate(x_t, args)
+        R, _ = iterate_residual(x_t, it_t, tr.p_new, args)
+        status_new = pair_status(tr.p_new, mu_pairs)
         penetrating = it_t.valid & (it_t.gap < -pen_tol)
         band_ok = ~jnp.any(~tr.in_band & penetrating) | (k == 0)
         # An open pair of the band that penetrates at the new iterate closes at the next one.
@@ -672,7 +650,7 @@ def _exact_newton(args, x0, x_ref, options: NewtonOptions, law):
         code, r_norm = classify(k, x_t, it_t, R, step_norm, settled, band_ok, tr.lcp_ok)
         reject = jnp.array(False)
         if search:
-            # Line search on the semismooth residual (:func:`_merit`): a step that raises it is retried
+            # Line search on the semismooth residual (:func:`semismooth_merit`): a step that raises it is retried
             # at a quarter, then a sixteenth of its length, which is then kept. Where the active set
             # jumps (a node reaching or leaving a tool on a soft, slipping strip) the full step can
             # overshoot: on the Nine test the residual then grew tenfold per iteration until an element
@@ -686,7 +664,7 @@ def _exact_newton(args, x0, x_ref, options: NewtonOptions, law):
             # point rose 5 to 20 times per iteration, so the iterates drifted along the strip's soft
             # draw-in mode (Nine 300 x 3 at 0.4 mm increments: residual 4.6e-3 -> 37 N/mm over 30
             # iterations of a 6.6e-4 mm step, and the run stopped at U = 43.7 mm).
-            worse = ~(_merit(x_t, it_t, args, tr.p_new, tr.frames) <= tr.merit)
+            worse = ~(semismooth_merit(x_t, it_t, args, tr.p_new, tr.frames) <= tr.merit)
             reject = (k > 0) & worse & (tr.alpha > 1.0 / 16.0) & (code != Result.SUCCESS)
             code = jnp.where(reject & (k < options.max_iterations), Result.CONTINUE, code).astype(jnp.int32)
         keep = lambda a, b: jnp.where(reject, a, b)  # noqa: E731
@@ -699,9 +677,9 @@ def _exact_newton(args, x0, x_ref, options: NewtonOptions, law):
                 dx, p_new, in_band, s, lcp_ok = step(it, args, x, p, law, hint)
                 return _Trial(dx, jnp.array(1.0), p_new, in_band, s, lcp_ok, tr.merit, tr.frames), s
             # The frames (nodes, constants, kappa rows) serve the direction and the merit alike.
-            frames = _frames(it, args)
-            dx, p_new, in_band, s, lcp_ok = _active_set_step(it, args, x, p, law, hint, frames=frames)
-            merit = _merit(x, it, args, hint, frames[0])
+            frames = contact_frames(it, args)
+            dx, p_new, in_band, s, lcp_ok = active_set_step(it, args, x, p, law, hint, frames=frames)
+            merit = semismooth_merit(x, it, args, hint, frames[0])
             return _Trial(dx, jnp.array(1.0), p_new, in_band, s, lcp_ok, merit, frames[0]), s
 
         def shorter():
@@ -716,8 +694,8 @@ def _exact_newton(args, x0, x_ref, options: NewtonOptions, law):
                 stats + s)
 
     zeros = lambda tree: jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), tree)  # noqa: E731
-    it_shape = eqx.filter_eval_shape(_linearize, x0, args)
-    frames0 = zeros(eqx.filter_eval_shape(lambda i, a: _frames(i, a)[0], it_shape, args)) if search else None
+    it_shape = eqx.filter_eval_shape(linearize_iterate, x0, args)
+    frames0 = zeros(eqx.filter_eval_shape(lambda i, a: contact_frames(i, a)[0], it_shape, args)) if search else None
     p0 = jnp.zeros((m, 2))
     # The last converged forces (simulate passes them as lam_n, lam_t): the first active set.
     p_step = jnp.stack([jnp.concatenate(c.lam_n), jnp.concatenate(c.lam_t)], -1)
@@ -728,7 +706,7 @@ def _exact_newton(args, x0, x_ref, options: NewtonOptions, law):
              jnp.array(Result.CONTINUE, jnp.int32), r_hist, no_stats)
     k, x, it, p, status, _, _, code, r_hist, stats = jax.lax.while_loop(lambda c: c[7] == Result.CONTINUE, body,
                                                                         carry)
-    _, tool_f = _residual(x, it, p, args)
+    _, tool_f = iterate_residual(x, it, p, args)
     aux = (it.f_int, it.states, _contact_out(it, p, tool_f, status))
     return NewtonSolution(x, aux, k - 1, code, r_hist[k - 1], r_hist), stats
 
@@ -739,9 +717,9 @@ def exact_solve(args, x0, x_ref, *, options: NewtonOptions, law):
     converged state, reference of the increment test).
 
     Returns ``(NewtonSolution, stats)`` with ``stats`` = (Lemke pivots, semismooth Newton iterations
-    (with ``lcp_lemke``: those refining its answers), Lemke fallbacks) summed over the step's
-    iterations; the solution's ``aux`` has the layout of the penalty path: (f_int, material states,
-    contact outputs).
+    (with ``lcp_lemke``: those refining its answers), ``lcp_ssn`` iterations whose active set did not
+    settle) summed over the step's iterations; the solution's ``aux`` has the layout of the penalty
+    path: (f_int, material states, contact outputs).
     """
     return _exact_newton(args, x0, x_ref, options, law)
 

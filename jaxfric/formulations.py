@@ -35,7 +35,7 @@ from .status import STICK
 from .system import StepArgs, linearize, residual
 
 __all__ = ["ALGORITHMS", "DIFFERENTIABLE_ALGORITHMS", "AbstractContactFormulation", "Penalty",
-           "AugmentedLagrangian", "Complementarity", "StepSolution", "formulation", "newton_step"]
+           "AugmentedLagrangian", "Complementarity", "StepSolution", "formulation", "from_newton", "newton_step"]
 
 
 class StepSolution(NamedTuple):
@@ -53,7 +53,7 @@ class StepSolution(NamedTuple):
     #                                    augmentations; None: ``iterations``)
 
 
-def _plain(sol, stats=None) -> StepSolution:
+def from_newton(sol, stats=None) -> StepSolution:
     """A single Newton solve as a step solution (no augmentation)."""
     stats = jnp.zeros(3, jnp.int32) if stats is None else stats
     return StepSolution(sol.x, sol.aux, sol.iterations, sol.code, sol.residual_norm, sol.residual_history,
@@ -63,7 +63,7 @@ def _plain(sol, stats=None) -> StepSolution:
 def newton_step(args: StepArgs, x0, x_ref, newton: NewtonOptions, search=True, stage=False) -> StepSolution:
     """A step attempt that is one Newton solve of :func:`jaxfric.system.linearize` (the penalty law's,
     and a model's without tools)."""
-    return _plain(newton_solve(args, x0, x_ref, linearize=linearize, residual=residual, options=newton,
+    return from_newton(newton_solve(args, x0, x_ref, linearize=linearize, residual=residual, options=newton,
                                search=search, positions=stage))
 
 
@@ -253,7 +253,7 @@ def _constraint_error(contact_out: dict) -> jax.Array:
     return jnp.maximum(max_penetration(contact_out["status"], contact_out["gap"]), jnp.max(stick_slip))
 
 
-SOLVERS = ("ssn", "ssn_condensed", "lemke")
+SOLVERS = ("ssn", "lemke")
 
 
 class Complementarity(AbstractContactFormulation):
@@ -266,15 +266,13 @@ class Complementarity(AbstractContactFormulation):
         solver (static):
             "ssn" (``lcp_ssn``): semismooth Newton on the Alart-Curnier equations of every candidate
             inside the global Newton loop, on the block-tridiagonal system itself.
-            "ssn_condensed": semismooth Newton on the problem condensed on the band (Lemke fallback
-            if it does not converge).
             "lemke" (``lcp_lemke``): Lemke's pivoting on the condensed problem, on the host through
             ``jax.pure_callback``.
         band: static number of candidate nodes in the condensed problem (the proximity band: the
             nodes nearest to a tool). None: every candidate node. Too small a band is detected (a node
             outside it penetrates) and fails the attempt. Not used by "ssn" (every candidate).
         ssn_max_iter: semismooth Newton iterations on one linearised problem (static): "ssn" then
-            takes its last active set, "ssn_condensed" falls back to Lemke.
+            takes its last active set. Not used by "lemke".
     """
 
     solver: str = eqx.field(static=True, default="ssn")
@@ -293,7 +291,7 @@ class Complementarity(AbstractContactFormulation):
 
     def solve_step(self, args, x0, x_ref, newton, search=True, stage=False) -> StepSolution:
         sol, stats = exact_solve(args, x0, x_ref, options=newton, law=self)
-        return _plain(sol, stats)
+        return from_newton(sol, stats)
 
 
 # The algorithm identifiers (outputs spec section 1) and the formulation class of each.

@@ -21,10 +21,11 @@ import re
 
 import numpy as np
 
-__all__ = ["SCHEMA_VERSION", "REQUIRED_COLUMNS", "INT_COLUMNS", "ALGORITHM_EXTRAS", "SCENE_PHASES",
-           "SCENE_INSTANTS", "STEADY_TOL", "GAP_NO_PROJECTION", "OutputError", "select_instants",
-           "steady_rows", "steady_drawing_force", "error_estimate", "steady_window",
-           "history_table", "write_run", "format_title"]
+from . import scenes
+
+__all__ = ["SCHEMA_VERSION", "REQUIRED_COLUMNS", "INT_COLUMNS", "ALGORITHM_EXTRAS", "STEADY_TOL",
+           "GAP_NO_PROJECTION", "OutputError", "select_instants", "steady_rows", "steady_drawing_force",
+           "error_estimate", "steady_window", "history_table", "write_run", "format_title"]
 
 SCHEMA_VERSION = 1
 
@@ -39,20 +40,6 @@ INT_COLUMNS = ("step", "n_active", "n_slip", "newton_iters", "cutbacks", "n_aug"
 #: Algorithm extras, in the order written (after the scene extras).
 ALGORITHM_EXTRAS = ("cutbacks", "n_aug", "lcp_pivots", "ssn_iters", "ssn_fallbacks")
 
-SCENE_PHASES = {
-    "flat_die": ("clamp", "draw"),
-    "bead": ("clamp", "wind", "draw"),
-    "nine": ("clamp", "draw"),
-    "blankholder": ("close", "lock", "draw"),
-}
-
-SCENE_INSTANTS = {
-    "flat_die": ("clamped", "intermediate", "sliding", "final"),
-    "bead": ("clamped", "folded", "drawing", "final"),
-    "nine": ("clamped", "steady", "final"),
-    "blankholder": ("closed", "locked", "drawing", "final"),
-}
-
 STEADY_TOL = 1e-9        # mm; inclusive window tolerance (benchmarks spec section 6)
 GAP_NO_PROJECTION = 1e30  # mm; gap written for a pair with no projection (outputs spec section 4)
 _TIME_TOL = 1e-9         # pseudo-time tolerance for "end of phase k" (time = k)
@@ -61,21 +48,17 @@ _NAME = re.compile(r"[a-z][a-z0-9_]*\Z")
 _RUN_KEYS = ("time", "phase", "phase_name", "newton_iters", "cutbacks", "augmentations", "wall_s",
              "lcp_pivots", "ssn_iters", "ssn_fallbacks", "step")
 
-# Instant rules per scene (benchmarks spec, scene Outputs). Each rule is one of
+# Instant rules (each scene module's INSTANT_RULES; benchmarks spec, scene Outputs). Each rule is one of
 #   ("end", phase)              : the row where `phase` ends (time = its index); omitted if never reached
 #   ("closest", phase, value)   : the `phase` row with drawing_displacement closest to value (mm)
 #   ("first_half_slip",)        : first draw row with n_active > 0 and n_slip >= n_active / 2
 #   ("first_all_slip",)         : first draw row with n_active > 0 and n_slip == n_active
 #   ("final",)                  : the last row
-_INSTANT_RULES: dict[str, dict[str, tuple]] = {
-    "flat_die": {"clamped": ("end", "clamp"), "intermediate": ("first_half_slip",),
-                 "sliding": ("first_all_slip",), "final": ("final",)},
-    "bead": {"clamped": ("end", "clamp"), "folded": ("end", "wind"), "drawing": ("closest", "draw", 4.0),
-             "final": ("final",)},
-    "nine": {"clamped": ("end", "clamp"), "steady": ("closest", "draw", 27.5), "final": ("final",)},
-    "blankholder": {"closed": ("end", "close"), "locked": ("end", "lock"),
-                    "drawing": ("closest", "draw", 27.5), "final": ("final",)},
-}
+
+
+def _scene(name: str):
+    """The scene module of ``name`` (its PHASES and INSTANT_RULES), or None for an unknown name."""
+    return scenes.SCENES.get(name)
 
 
 class OutputError(RuntimeError):
@@ -91,7 +74,7 @@ def _phase_names(scene_name: str, history: dict) -> np.ndarray:
     phase = np.asarray(history["phase"])
     if phase.dtype.kind in "US":
         return phase.astype(str)
-    vocabulary = SCENE_PHASES[scene_name]
+    vocabulary = _scene(scene_name).PHASES
     return np.array([vocabulary[int(k)] for k in phase])
 
 
@@ -117,14 +100,15 @@ def select_instants(scene_name: str, history: dict) -> tuple[list, list, list]:
         phase was never reached (``end`` of a phase that was not completed, ``closest`` in a phase that
         has no row) is omitted; ``final`` (the last row) is always present.
     """
-    if scene_name not in _INSTANT_RULES:
-        raise ValueError(f"unknown scene {scene_name!r}; choose one of {', '.join(_INSTANT_RULES)}")
+    module = _scene(scene_name)
+    if module is None:
+        raise ValueError(f"unknown scene {scene_name!r}; choose one of {', '.join(scenes.scene_names())}")
     phases = _phase_names(scene_name, history)
     time = np.asarray(history["time"], dtype=np.float64)
     last = len(time) - 1
-    vocabulary = SCENE_PHASES[scene_name]
+    vocabulary = module.PHASES
     names, rows, fallback = [], [], []
-    for name, rule in _INSTANT_RULES[scene_name].items():
+    for name, rule in module.INSTANT_RULES.items():
         kind = rule[0]
         row = None
         if kind == "final":
@@ -258,7 +242,7 @@ def history_table(scene, result) -> tuple[list, list, dict]:
     """
     h = result.history
     n = len(np.asarray(h["time"]))
-    phases = _phase_names(scene.name, h) if scene.name in SCENE_PHASES else np.asarray(h["phase_name"])
+    phases = _phase_names(scene.name, h) if _scene(scene.name) is not None else np.asarray(h["phase_name"])
     cols = {"step": np.arange(n), "phase": phases}
     for name in REQUIRED_COLUMNS[2:]:
         cols[name] = _column(h, name)
@@ -555,7 +539,7 @@ def write_run(scene, result, out_dir, tag: str | None = None, figures: bool = Tr
     bad = [c for c in columns if c != "phase" and not all(math.isfinite(v) for v in values[c])]
     if bad:
         notes.append(f"non-finite values in history columns {', '.join(bad)}")
-    if scene.name in _INSTANT_RULES:
+    if _scene(scene.name) is not None:
         names, rows, fallback = select_instants(scene.name, {**values, "phase_name": values["phase"]})
     else:
         names, rows, fallback = ["final"], [len(lines) - 1], []

@@ -11,19 +11,13 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from .controller import StepControl
+from .lru import LRU
+from .model import SimState, StripModel, default_observe, initial_state
 from .newton import NewtonOptions
 from .progress import ProgressMonitor
 from .results import Result, SimulationError, describe
-from .simulate import (
-    SimState,
-    Simulation,
-    StepControl,
-    StripModel,
-    default_observe,
-    initial_state,
-    simulate,
-    simulate_fixed,
-)
+from .simulate import Simulation, simulate, simulate_fixed
 
 __all__ = ["RunResult", "run", "MemoryBudgetError", "available_memory"]
 
@@ -116,7 +110,8 @@ class RunResult:
     snapshots: dict = dataclasses.field(default_factory=dict)
 
 
-_COMPILED: dict = {}
+# Compiled programs by structure (shapes, static fields, options), the most recently used few.
+_COMPILED: LRU = LRU(8)
 
 
 def _compiled(model, newton, control, observe, snapshot, adaptive):
@@ -124,17 +119,19 @@ def _compiled(model, newton, control, observe, snapshot, adaptive):
     leaves, treedef = jax.tree_util.tree_flatten(model)
     key = (treedef, tuple((np.shape(x), str(getattr(x, "dtype", type(x)))) for x in leaves),
            newton, control, observe, snapshot, adaptive)
-    # Every accepted step reports to the host (time stamps for the per-step wall time; the bar is
-    # drawn only when asked for).
-    if key not in _COMPILED:
-        if adaptive:
-            fn = eqx.filter_jit(lambda m: simulate(m, newton=newton, control=control, observe=observe,
-                                                   progress=True, snapshot=snapshot))
-        else:
-            fn = eqx.filter_jit(lambda m: simulate_fixed(m, newton=newton, observe=observe,
-                                                         progress=True, snapshot=snapshot))
-        _COMPILED[key] = fn.lower(model).compile()
-    return _COMPILED[key]
+    return _COMPILED.get(key, lambda: _compile(model, newton, control, observe, snapshot, adaptive))
+
+
+def _compile(model, newton, control, observe, snapshot, adaptive):
+    """The compiled run program of ``model``'s structure. Every accepted step reports to the host (time
+    stamps for the per-step wall time; the bar is drawn only when asked for)."""
+    if adaptive:
+        fn = eqx.filter_jit(lambda m: simulate(m, newton=newton, control=control, observe=observe,
+                                               progress=True, snapshot=snapshot))
+    else:
+        fn = eqx.filter_jit(lambda m: simulate_fixed(m, newton=newton, observe=observe,
+                                                     progress=True, snapshot=snapshot))
+    return fn.lower(model).compile()
 
 
 def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),

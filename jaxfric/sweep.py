@@ -37,9 +37,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .assembly import ELEMENT_CHUNK, element_chunk
+from .controller import StepControl
 from .linalg import on_gpu
+from .model import StripModel, default_observe
 from .newton import NewtonOptions
-from .simulate import Simulation, StepControl, StripModel, default_observe, simulate, simulate_flat
+from .simulate import Simulation, simulate, simulate_flat
 
 __all__ = ["SweepResult", "sweep", "stack_models", "default_chunk"]
 

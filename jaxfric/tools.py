@@ -270,7 +270,7 @@ class Arc(eqx.Module):
         return _Foot(gap, normal, s, walk * self.radius * turned, self.centre + self.radius * radial, inside)
 
 
-def Circle(centre, radius, seam=-0.5 * math.pi) -> Arc:  # noqa: N802 (reads as a primitive)
+def Circle(centre, radius, seam=-0.5 * math.pi) -> Arc:
     """Full convex circle (a roller or cylinder) as an `Arc` from `seam` to `seam` + 2 pi.
 
     Args:

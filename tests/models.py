@@ -27,44 +27,6 @@ def clamped_pull(length=10.0, thickness=1.0, nx=10, ny=2, pull=0.15, unload=True
     return jf.StripModel(mesh, material, tuple(phases), formulation=formulation)
 
 
-def end_rotation(mesh, angle, side):
-    """x-components of an end face follow a rotation by ``angle`` (rad) about the face centre."""
-    nodes = getattr(mesh, side)
-    x_c = float(mesh.nodes[nodes[0], 0])
-    y_c = float(jnp.mean(mesh.nodes[nodes, 1]))
-    return jf.DirichletBC(nodes, components=(0,),
-                          motion=jf.RigidMotion(pivot=(x_c, y_c), angle_start=0.0, angle_end=angle))
-
-
-def pure_bending(length, thickness, nx, ny, angle, material, n_steps=1, formulation="fbar"):
-    """Pure bending: end faces rotated by -angle (left) and +angle (right) about their centres,
-    y fixed at the bottom node of each face only, so the faces contract freely and the exact
-    plane-strain solution of linear elasticity is admissible (both bottom corners have the same
-    exact v, so fixing them removes only rigid motions). Positive angle: the top fibre is compressed."""
-    mesh = jf.strip_mesh(-length / 2, length / 2, -thickness / 2, thickness, nx, ny)
-    bcs = [end_rotation(mesh, -angle, "left"), end_rotation(mesh, angle, "right"),
-           jf.DirichletBC([mesh.left[0], mesh.right[0]], components=(1,))]
-    return jf.StripModel(mesh, material, (jf.Phase("bend", bcs, n_steps=n_steps),), formulation=formulation)
-
-
-def end_moment(result, mesh):
-    """Moment (N mm / mm) of the right-face reactions about the face centre (counter-clockwise > 0)."""
-    nodes = mesh.right
-    y = mesh.nodes[nodes, 1] - jnp.mean(mesh.nodes[nodes, 1])
-    f = result.final.f_int[nodes]
-    return float(-jnp.sum(y * f[:, 0]))
-
-
-def bending_ratio(ny, formulation, nx=40, length=2.0):
-    """M_FE / M_beam for pure bending of an elastic strip (plane strain, nu = 0.3), with
-    M_beam = E/(1-nu^2) t^3/12 kappa, kappa = 2 angle / length."""
-    E, nu, t, angle = 200000.0, 0.3, 1.0, 1e-4
-    model = pure_bending(length, t, nx=nx, ny=ny, angle=angle, material=jf.J2Material.elastic(E, nu),
-                         formulation=formulation)
-    res = jf.run(model, progress=False)
-    return abs(end_moment(res, model.mesh)) / (E / (1 - nu**2) * t**3 / 12 * 2 * angle / length)
-
-
 def flat_die_strip(law, length=6.0, half_thickness=0.395, nx=30, ny=2, force=50.0, mu=0.15,
                    draw=0.03, material=None, clamp_steps=10, increments=((1 / 12, 100), (1.0, 275))):
     """A small version of the benchmark's flat die: a force-driven die (line above the strip) clamps

@@ -26,6 +26,7 @@ import pytest
 import jaxfric as jf
 from jaxfric import cli, output, scenes
 from jaxfric.formulations import AugmentedLagrangian, Complementarity, Penalty
+from jaxfric.lru import LRU
 
 NAN, INF = math.nan, math.inf
 PREFIX = "jaxfric: error: "
@@ -462,3 +463,33 @@ def test_a_run_that_needs_more_memory_than_available_is_refused_before_it_starts
     with pytest.raises(jf.MemoryBudgetError):
         RUN_MODULE.check_memory(compiled, model, available=need - 1)
     RUN_MODULE.check_memory(compiled, model, available=need)
+
+
+def test_compiled_programs_are_bounded_least_recently_used_first(monkeypatch):
+    """The public entry point keeps a few compiled programs, not one per structure ever run: a process
+    running many scene variants must not run out of memory. A stand-in compiler (one compilation per
+    call) and models of several shapes (the key is the structure)."""
+    import numpy as np
+
+    compiled = []
+
+    class _Jitted:
+        def __init__(self, fn):
+            pass
+
+        def lower(self, model):
+            return self
+
+        def compile(self):
+            compiled.append(object())
+            return compiled[-1]
+
+    monkeypatch.setattr(RUN_MODULE, "_COMPILED", LRU(2))
+    monkeypatch.setattr(RUN_MODULE.eqx, "filter_jit", _Jitted)
+    options = (jf.NewtonOptions(), jf.StepControl(), jf.default_observe, None, True)
+    first, second = (RUN_MODULE._compiled(np.zeros(n), *options) for n in (1, 2))
+    assert RUN_MODULE._compiled(np.zeros(1), *options) is first  # a hit: compiled once
+    RUN_MODULE._compiled(np.zeros(3), *options)  # drops the least recently used: shape (2,)
+    assert len(RUN_MODULE._COMPILED) == 2 and len(compiled) == 3
+    assert RUN_MODULE._compiled(np.zeros(1), *options) is first
+    assert RUN_MODULE._compiled(np.zeros(2), *options) is not second and len(compiled) == 4

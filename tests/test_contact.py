@@ -299,8 +299,8 @@ def test_pairs_on_the_coulomb_cone_count_as_slipping_for_newton():
     its slipping pairs take the law's stick branch at an unchanged force."""
     from jaxfric.run import run
     from jaxfric.scenes import make
-    from jaxfric.simulate import linearize_step
     from jaxfric.status import SLIP, STICK
+    from jaxfric.step import linearize_step
 
     config = {"mesh": "12x1", "L": 4.8, "U_draw": 0.006}
     scene = make("flat_die", "const_force", "penalty", config)
@@ -325,14 +325,14 @@ def test_continuation_stages_soften_the_penalty_law_only_and_exactly():
     import equinox as eqx
 
     from jaxfric.scenes import make
-    from jaxfric.simulate import _continuation_stages, _soften
+    from jaxfric.step import continuation_stages, softened_args
 
     small = {"mesh": "10x1", "U_draw": 0.5}
-    assert int(_continuation_stages(make("nine", "mu017", "penalty", {**small, "eps_n": 1e9}).model)) == 4
-    assert int(_continuation_stages(make("nine", "mu017", "penalty", {**small, "eps_n": 1e12}).model)) == 7
-    assert int(_continuation_stages(make("nine", "mu017", "penalty", {**small, "eps_n": 1e5}).model)) == 0
-    assert int(_continuation_stages(make("nine", "mu017", "auglag", {**small, "eps_n": 1e9}).model)) == 0
-    assert int(_continuation_stages(make("nine", "mu017", "lcp_ssn", small).model)) == 0
+    assert int(continuation_stages(make("nine", "mu017", "penalty", {**small, "eps_n": 1e9}).model)) == 4
+    assert int(continuation_stages(make("nine", "mu017", "penalty", {**small, "eps_n": 1e12}).model)) == 7
+    assert int(continuation_stages(make("nine", "mu017", "penalty", {**small, "eps_n": 1e5}).model)) == 0
+    assert int(continuation_stages(make("nine", "mu017", "auglag", {**small, "eps_n": 1e9}).model)) == 0
+    assert int(continuation_stages(make("nine", "mu017", "lcp_ssn", small).model)) == 0
 
     class Step(eqx.Module):
         law: Penalty
@@ -341,8 +341,8 @@ def test_continuation_stages_soften_the_penalty_law_only_and_exactly():
         contact: Step
 
     args = Args(Step(Penalty(1e9, 1.7e8)))
-    same = _soften(args, 0)
+    same = softened_args(args, 0)
     assert float(same.contact.law.eps_n) == 1e9 and float(same.contact.law.eps_t) == 1.7e8
-    soft = _soften(args, jnp.array(4))
+    soft = softened_args(args, jnp.array(4))
     assert float(soft.contact.law.eps_n) == pytest.approx(1e5, rel=1e-15)
     assert float(soft.contact.law.eps_t) == pytest.approx(1.7e4, rel=1e-15)

@@ -9,8 +9,9 @@ import pytest
 
 import jaxfric as jf
 from jaxfric.formulations import AugmentedLagrangian, Complementarity
+from jaxfric.model import initial_state
 from jaxfric.results import Result
-from jaxfric.simulate import initial_state, solve_step
+from jaxfric.step import solve_step
 from models import flat_die_strip
 
 MU, FORCE, DRAW = 0.15, 50.0, 0.01
@@ -68,8 +69,8 @@ def test_exact_contact_balance_penetration_and_coulomb(runs, name):
 
 def test_a_band_smaller_than_the_contact_zone_is_reported():
     """21 die candidates all close at the first clamp step: a band of 10 cannot hold them (the band
-    bounds the condensed problem; the in-loop "ssn" solver works on every candidate)."""
-    model = flat_die_strip(Complementarity("ssn_condensed", band=10), **SMALL)
+    bounds the condensed problem of "lemke"; the in-loop "ssn" solver works on every candidate)."""
+    model = flat_die_strip(Complementarity("lemke", band=10), **SMALL)
     sol, _ = jax.jit(lambda m: solve_step(m, initial_state(m), 0, 0.2))(model)
     assert int(sol.code) == Result.CONTACT_BAND
 
@@ -163,8 +164,8 @@ def test_lemke_runs_the_blankholder_lock_and_agrees_with_semismooth_newton():
     """The blankholder's force-driven lock puts the sheet on its lands at zero gap and zero force and
     leaves stick-slip pairs at |R_T| = mu R_N: Lemke's answers there lay on piece boundaries within
     their round-off (and some failed their check), and its Newton loop stopped at t = 1.2 of 'lock'
-    (iteration limit at the smallest increment). Refined (:func:`jaxfric.lcp.polish`), it runs close,
-    lock and a 2 mm pull, with the tool balanced and the forces of semismooth Newton in the loop."""
+    (iteration limit at the smallest increment). Refined (:func:`jaxfric.alart_curnier.polish`), it runs
+    close, lock and a 2 mm pull, with the tool balanced and the forces of semismooth Newton in the loop."""
     from jaxfric import scenes
 
     out = {}

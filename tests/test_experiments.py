@@ -1,11 +1,7 @@
 """The experiment scripts run at a tiny size (they compute when called, write only under __main__)."""
 
-import os
-import sys
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "experiments"))
-
-import bench_core  # noqa: E402
+import bench_core  # experiments/ is on the tests' import path (pyproject.toml, pytest's pythonpath)
 
 
 def test_bench_core_runs_at_a_tiny_size():

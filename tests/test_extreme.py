@@ -66,10 +66,11 @@ import jaxfric as jf
 from jaxfric.contact import Force, RigidTool
 from jaxfric.formulations import AugmentedLagrangian, Penalty
 from jaxfric.loading import constraint_masks, schedule
+from jaxfric.model import reactions
 from jaxfric.results import Result
 from jaxfric.run import run
 from jaxfric.scenes import make
-from jaxfric.simulate import _continuation_stages, reactions
+from jaxfric.step import continuation_stages
 from jaxfric.tools import Arc, Segment, Tool
 
 # The flat die of the fast cases: spec increments (dU_fine 2.5e-5 mm to 0.0025 mm, then dU 1e-4 mm,
@@ -135,7 +136,7 @@ def _nominal_dt(model, t_prev):
 
 def _stage_attempts(scene, control) -> int:
     """Attempts the penalty continuation of StepControl may add to a step at the smallest increment."""
-    m = int(_continuation_stages(scene.model))
+    m = int(continuation_stages(scene.model))
     return m + 1 if control.continuation and m > 0 else 0
 
 
@@ -421,8 +422,8 @@ def test_last_attempt_without_line_search():
     last attempt, without the line search, converges: the run completes, those steps recording
     max_cuts + 1 cuts. (Before that attempt existed the run stopped at the first of them.) Where they
     fall depends on the step sequence: theta = 9.98 deg when this test was written (a front of clamp
-    pairs switching between stick and slip), 8.22 and 11.11 deg since (2026-11-26, with and without
-    the Coulomb-cone rule of Newton's status test: the same 156 steps and 1741 iterations)."""
+    pairs switching between stick and slip), 8.22 and 11.11 deg with and without
+    the Coulomb-cone rule of Newton's status test (the same 156 steps and 1741 iterations)."""
     scene = make("bead", "th045_mu000", "auglag", {"theta": 12.0, "s_draw": 0.1})
     res = _run("bead auglag to 12 deg (plain Newton at the floor)", scene)
     assert res.converged, res.message
@@ -587,8 +588,8 @@ def test_nine_edges(case):
     sqrt(L1^2 + t^2) - 2 R1 = 1.04 t).
 
     Clean failures: eps_n = 1e9 and 1e12 (1e4 and 1e7 x the spec's 1e5) fill the history buffer (300
-    rows) in the clamp, at t = 0.41 and 0.10: most steps are cut 5 to 10 times. Before the penalty
-    continuation of StepControl (2026-11-27) both stopped with MAX_ITERATIONS at B's first contact (t =
+    rows) in the clamp, at t = 0.41 and 0.10: most steps are cut 5 to 10 times. Without the penalty
+    continuation of StepControl both stop with MAX_ITERATIONS at B's first contact (t =
     0.057, stroke 0.17 mm: the first top node reaches B) even at nominal / 1024 steps: that pair
     2-cycles between open and a spurious force of 1e4 N/mm; from the solution at eps_n / 10^4 the step
     converges.
@@ -664,7 +665,7 @@ def test_blankholder_edges(case):
     at the smallest increment, which brought the other eight cases through): t/R = 0.02 fills its
     history buffer in close (500 rows at t = 0.67), eps_n = 1e9, which stopped at step 214 of close with
     MAX_ITERATIONS, now gets past those steps by the round-off floor of Newton's test and fills its
-    history buffer in close (500 rows at t = 0.216; 2026-11-26), and so does eps_n = 1e12 since the
+    history buffer in close (500 rows at t = 0.216), and so does eps_n = 1e12 since the
     penalty continuation (at t = 0.04; it stopped at its first step with MAX_ITERATIONS before).
     """
     scene = make("blankholder", "shape1", "penalty", {**BLANK, **BLANK_CASES[case]})
@@ -708,9 +709,9 @@ def test_force_driven_tool_loses_and_regains_contact(law):
 
     eps_n = 1e12: one ulp of the top coordinate (5.6e-17 mm at y = 0.395) is 5.6e-5 N/mm of contact
     force there, far above the residual tolerance (~1.6e-8 N/mm). It stopped with MAX_ITERATIONS in the
-    clamp (t = 0.81, last residual 6.5e-8 N/mm, after 11 failed attempts) until Newton's test got its
-    round-off floor (2026-11-26); now it converges, and the die balance is checked to that resolution
-    (largest deviation over the history measured 3.2e-5 and 3.9e-5 N/mm of 50 in two sessions)."""
+    clamp (t = 0.81, last residual 6.5e-8 N/mm, after 11 failed attempts) without the
+    round-off floor of Newton's test; with it, it converges, and the die balance is checked to that resolution
+    (largest deviation over the history measured 3.2e-5 and 3.9e-5 N/mm of 50 in two runs)."""
     L, h, force = 6.0, 0.395, 50.0
     mesh = jf.strip_mesh(0.0, L, 0.0, h, 30, 2)
     die = RigidTool("die", Tool.line((-2.0, h), (L + 2.0, h)), drive=(0.0, -1.0), candidates=mesh.top,

@@ -62,37 +62,37 @@ def test_interpolated_minimum_follows_a_narrow_valley_between_grid_points():
     # Observations linear in (a, b) and nearly compensating (a valley along a = 0.15 b): multilinear
     # interpolation is exact for them, so the polished minimum is the truth, which lies on no grid line
     # and between the evaluation points; a grid-point minimum would miss it by half a cell.
-    from jaxfric.fit import _surrogate_minima
+    from jaxfric.fit_global import surrogate_minima
 
     axes = [np.linspace(0.10, 0.25, 7), np.linspace(5.07, 5.97, 9)]
     A = np.array([[900.0, -130.0], [1000.0, -160.0], [800.0, -100.0]])
     truth = np.array([0.1713, 5.4987])
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
-    (best, cost), = _surrogate_minima(axes, pts @ A.T, A @ truth, 1)
+    (best, cost), = surrogate_minima(axes, pts @ A.T, A @ truth, 1)
     np.testing.assert_allclose(best, truth, atol=1e-6)
     assert cost < 1e-6
     # A failed run (NaN) removes the cells around it, never the whole grid.
     obs = pts @ A.T
     obs[0] = np.nan
-    np.testing.assert_allclose(_surrogate_minima(axes, obs, A @ truth, 1)[0][0], truth, atol=1e-6)
+    np.testing.assert_allclose(surrogate_minima(axes, obs, A @ truth, 1)[0][0], truth, atol=1e-6)
 
 
 def test_interpolated_minima_of_two_basins_lowest_first():
     # Observations with two basins of the misfit in a, at 0.3 (misfit 0) and near 0.74 (the second
     # observation lifts it), both at b = 0.5: lowest first, each polished to its own minimum.
-    from jaxfric.fit import _surrogate_minima
+    from jaxfric.fit_global import surrogate_minima
 
     axes = [np.linspace(0.0, 1.0, 21), np.linspace(0.0, 1.0, 11)]
     a, b = np.meshgrid(*axes, indexing="ij")
     obs = np.stack([(a - 0.3) * (a - 0.75), 0.1 * (a - 0.3) ** 2, b - 0.5], -1).reshape(-1, 3)
-    minima = _surrogate_minima(axes, obs, np.zeros(3), 3)
+    minima = surrogate_minima(axes, obs, np.zeros(3), 3)
     assert len(minima) == 2
     (p1, c1), (p2, c2) = minima
     assert c1 <= c2 and c1 < 1e-8
     np.testing.assert_allclose(p1, [0.3, 0.5], atol=2e-3)
     assert abs(p2[0] - 0.74) < 0.01 and abs(p2[1] - 0.5) < 2e-3 and c2 > 1e-4
     # One start asked for: the lowest only.
-    np.testing.assert_allclose(_surrogate_minima(axes, obs, np.zeros(3), 1)[0][0], p1)
+    np.testing.assert_allclose(surrogate_minima(axes, obs, np.zeros(3), 1)[0][0], p1)
 
 
 def test_several_starts_are_written_and_the_kept_one_is_plotted(tmp_path):
@@ -226,13 +226,33 @@ def test_missing_data_file(tmp_path, capsys):
     assert code == 2 and "is not a file" in capsys.readouterr().err
 
 
+def test_fit_caches_keep_the_most_recently_used_entries():
+    """The caches kept between fits (compiled curves, grid runs) are bounded: a full cache drops its
+    least recently used entry, and a hit makes an entry the most recent."""
+    from jaxfric.fit import CURVES, GRID_RUNS
+    from jaxfric.lru import LRU
+
+    made = []
+
+    def make(key):
+        return lambda: made.append(key) or key
+
+    cache = LRU(2)
+    assert [cache.get(k, make(k)) for k in ("a", "b", "a", "c")] == ["a", "b", "a", "c"]
+    assert made == ["a", "b", "c"] and len(cache) == 2  # "b", the least recently used, was dropped
+    cache.get("a", make("a"))
+    cache.get("b", make("b"))
+    assert made == ["a", "b", "c", "b"]
+    assert CURVES.maxsize <= 8 and GRID_RUNS.maxsize <= 8
+
+
 def test_refined_plan_splits_every_step_and_keeps_phase_ends():
-    from jaxfric.fit import _refined
+    from jaxfric.fit_curve import refined_plan
 
     plan = {"time": np.array([0.0, 0.5, 1.0, 1.25, 2.0]), "phase": np.array([0, 0, 0, 1, 1]),
             "cutbacks": np.array([0, 0, 2, 0, 1])}
-    assert _refined(plan, 1) is plan
-    r = _refined(plan, 2)
+    assert refined_plan(plan, 1) is plan
+    r = refined_plan(plan, 2)
     np.testing.assert_array_equal(r["time"], [0.0, 0.25, 0.5, 0.75, 1.0, 1.125, 1.25, 1.625, 2.0])
     np.testing.assert_array_equal(r["phase"], [0, 0, 0, 0, 0, 1, 1, 1, 1])
     # a retry's mark stays on the first part of its step (it starts from the converged state)

@@ -65,7 +65,7 @@ CASES = {
 # columns differ from their differences at h = 1e-4 |p| by truncation (the force is strongly curved
 # in the geometry), not by a wrong derivative: blankholder R and H (smoothed law) by 0.6 % and 0.14 %
 # of their values at 1e-4, 3e-8 of the row at 1e-5; bead R_r 2.2e-5 of the row at 1e-4, 4.8e-6 at
-# 1e-5 (measured 2026-11-25). The other columns keep 1e-4: at 1e-5 the blankholder's clamping-force
+# 1e-5. The other columns keep 1e-4: at 1e-5 the blankholder's clamping-force
 # round-off (~4e-10 N/mm, its Newton tolerance) over 2h reaches 1.4e-4 of its row in the mu column.
 REL_H = {"nine_smoothed": 1e-6, "blankholder_smoothed": {"R": 1e-5, "H": 1e-5}, "bead_smoothed": {"R_r": 1e-5}}
 # Differences along the adaptive replay (the fixed one fails at p +/- h there; see _check).

@@ -5,7 +5,7 @@ import pytest
 
 import jaxfric as jf
 from jaxfric.assembly import internal_force, internal_force_and_tangent, mesh_geometry
-from jaxfric.simulate import initial_state
+from jaxfric.model import initial_state
 
 
 def test_numbering_follows_the_spec():
@@ -113,7 +113,7 @@ def test_a_step_traces_the_element_tangent_once(monkeypatch):
     trace of their bodies (before, twice and four times)."""
     from jaxfric import assembly, exact, system
     from jaxfric.scenes import make
-    from jaxfric.simulate import solve_step
+    from jaxfric.step import solve_step
 
     calls = []
     original = assembly.internal_force_and_tangent

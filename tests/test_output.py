@@ -368,6 +368,36 @@ def test_cli_bad_input_is_one_line(capsys, argv, words):
     assert err.count("\n") == 1 and words in err and "Traceback" not in err, err
 
 
+def test_cli_parses_every_override_once_and_passes_typed_values(tmp_path, monkeypatch):
+    """--set and --mesh are parsed once, on the command line; the scene gets the typed values (the
+    mesh as (nx, ny), checked by parse_mesh), and the run the scene built from them."""
+    import sys
+
+    from jaxfric import scenes
+
+    class Started(Exception):
+        pass
+
+    parsed, meshes, given = [], [], []
+    parse_override, parse_mesh, make = scenes.parse_override, scenes.parse_mesh, scenes.make
+    monkeypatch.setattr(scenes, "parse_override", lambda *a: parsed.append(a[1:]) or parse_override(*a))
+    monkeypatch.setattr(scenes, "parse_mesh", lambda text: meshes.append(text) or parse_mesh(text))
+    monkeypatch.setattr(scenes, "make", lambda *a: given.append(a[3]) or make(*a))
+
+    def run(model, **kwargs):
+        raise Started(model.mesh.nx, model.mesh.ny)
+
+    monkeypatch.setattr(sys.modules["jaxfric.run"], "run", run)
+    with pytest.raises(Started) as info:
+        cli.main(["run", "flat_die", *SHORT, "--set", "mu=0.1", "--out", str(tmp_path / "o"), "--quiet"])
+    assert info.value.args == (24, 2)
+    sets = [SHORT[i + 1] for i in range(0, len(SHORT), 2) if SHORT[i] == "--set"] + ["mu=0.1"]
+    assert sorted(parsed) == sorted([("mesh", "24x2")] + [tuple(t.split("=", 1)) for t in sets])
+    assert [m for m in meshes if isinstance(m, str)] == ["24x2"]
+    assert given == [{"n_clamp": 2, "U_draw": 0.003, "U_fine": 0.001, "dU_fine": 0.0005, "dU": 0.001,
+                      "steady_window": (0.002, 0.003), "mu": 0.1, "mesh": (24, 2)}]
+
+
 def test_cli_scenes_lists_fields(capsys):
     assert cli.main(["scenes"]) == 0
     text = capsys.readouterr().out

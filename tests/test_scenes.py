@@ -141,9 +141,12 @@ def test_parse_helpers():
     assert parse_override("nine", "nx", "600") == 600
     assert parse_override("nine", "eps_n", "1e4") == 1e4
     assert parse_override("blankholder", "nx", "None") is None
+    assert parse_override("nine", "mesh", "30x2") == (30, 2)  # the command line's --mesh and --set mesh=
     for bad in ("300", "ax3", "0x3", "300x3x2"):
         with pytest.raises(ValueError, match="mesh"):
             parse_mesh(bad)
+        with pytest.raises(ValueError, match="'mesh'"):
+            parse_override("nine", "mesh", bad)
     with pytest.raises(ValueError, match="'eps_n'"):
         parse_override("nine", "eps_n", "stiff")
     with pytest.raises(ValueError, match="'nx'"):

@@ -7,7 +7,8 @@ import pytest
 
 import jaxfric as jf
 from jaxfric.results import Result
-from models import STEEL, bending_ratio, clamped_pull
+from models import STEEL, clamped_pull
+from strips import bending_ratio
 
 ELASTIC = jf.J2Material.elastic(E=1000.0, nu=0.3)
 

@@ -65,7 +65,7 @@ def test_element_chunks_do_not_change_the_assembly():
     import jax.numpy as jnp
 
     from jaxfric.assembly import element_chunk, internal_force, mesh_geometry
-    from jaxfric.simulate import initial_state
+    from jaxfric.model import initial_state
 
     model = scenes.make("flat_die", "const_force", "penalty", OVERRIDES).model
     state = initial_state(model)

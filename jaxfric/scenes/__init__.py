@@ -117,8 +117,12 @@ def parse_override(name: str, field: str, text: str):
     """Convert the string ``text`` to the type of config field ``field`` of scene ``name``.
 
     Floats, ints and strings as such; "none" for an optional field; tuples as comma-separated numbers
-    ("20,35" or "(20, 35)"). A bad value or an unknown field gives a one-line ValueError naming it.
+    ("20,35" or "(20, 35)"); ``mesh`` "NXxNY" as (nx, ny) (:func:`parse_mesh`). A bad value or an
+    unknown field gives a one-line ValueError naming it.
     """
+    if field == "mesh":
+        _module(name)
+        return parse_mesh(text)
     kind, optional = _field_type(name, field)
     raw = str(text).strip()
     if optional and raw.lower() in ("none", "null", ""):
@@ -164,7 +168,8 @@ def _coerce(name: str, field: str, value):
 def make(name: str, variant: str | None = None, algorithm: str = "penalty",
          overrides: dict | None = None) -> Scene:
     """Build scene ``name``: its variant's field values, then ``overrides`` (field -> value or string;
-    ``mesh`` -> "NXxNY" sets nx and ny), for ``algorithm`` (one of :data:`ALGORITHMS`)."""
+    ``mesh`` -> "NXxNY" or (nx, ny) sets nx and ny, checked by :func:`parse_mesh`), for ``algorithm``
+    (one of :data:`ALGORITHMS`)."""
     module = _module(name)
     variant = module.DEFAULT_VARIANT if variant is None else variant
     if not isinstance(variant, str) or variant not in module.VARIANTS:

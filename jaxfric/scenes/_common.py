@@ -15,9 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..contact import max_penetration, split_pairs
+from ..controller import StepControl
 from ..formulations import ALGORITHMS
 from ..loading import Phase, schedule
-from ..simulate import StepControl, reactions
+from ..model import reactions
 from ..status import SLIP
 from ..tools import GAP_OPEN
 

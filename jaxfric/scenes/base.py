@@ -13,8 +13,9 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 
+from ..controller import StepControl
+from ..model import StripModel
 from ..newton import NewtonOptions
-from ..simulate import StepControl, StripModel
 
 __all__ = ["Scene"]
 

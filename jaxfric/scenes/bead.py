@@ -43,7 +43,7 @@ from ..formulations import formulation
 from ..loading import DirichletBC, Phase, RigidMotion
 from ..material import J2Material
 from ..mesh import strip_mesh
-from ..simulate import StripModel
+from ..model import StripModel
 from ..tools import Arc, Segment, Tool
 from . import _common as cm
 from .base import Scene
@@ -57,7 +57,11 @@ STEP_FIELDS = ("n_clamp", "dtheta", "ds")
 STROKE_FIELD = "s_draw"  # the drawing stroke: steady_window lies in [0, s_draw]
 PHASES = ("clamp", "wind", "draw")
 TOOLS = ("die_up", "die_lo", "roller")
-INSTANTS = ("clamped", "folded", "drawing", "final")
+# Named instants (benchmarks spec, scene Outputs), in order, each with its rule
+# (:func:`jaxfric.output.select_instants`).
+INSTANT_RULES = {"clamped": ("end", "clamp"), "folded": ("end", "wind"), "drawing": ("closest", "draw", 4.0),
+                 "final": ("final",)}
+INSTANTS = tuple(INSTANT_RULES)
 ROLLER_SEAM = math.radians(202.5)
 
 

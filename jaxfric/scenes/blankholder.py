@@ -69,8 +69,8 @@ from ..formulations import formulation
 from ..loading import DirichletBC, Phase, Ramp
 from ..material import J2Material
 from ..mesh import strip_mesh
+from ..model import StripModel
 from ..newton import NewtonOptions
-from ..simulate import StripModel
 from ..tools import Arc, Segment, Tool
 from . import _common as cm
 from .base import Scene
@@ -85,7 +85,11 @@ STEP_FIELDS = ("ds_close", "n_lock", "dU")
 STROKE_FIELD = "U_pull"  # the drawing stroke: steady_window lies in [0, U_pull]
 PHASES = ("close", "lock", "draw")
 TOOLS = ("upper", "lower")
-INSTANTS = ("closed", "locked", "drawing", "final")
+# Named instants (benchmarks spec, scene Outputs), in order, each with its rule
+# (:func:`jaxfric.output.select_instants`).
+INSTANT_RULES = {"closed": ("end", "close"), "locked": ("end", "lock"), "drawing": ("closest", "draw", 27.5),
+                 "final": ("final",)}
+INSTANTS = tuple(INSTANT_RULES)
 
 # Table 7 [paper]: H, R, r, R', L (mm).
 TABLE7 = ((6, 6, 3, 7.25, 25), (6, 6, 3, 7.25, 50), (9, 6, 4.5, 10.2, 25), (9, 6, 4.5, 10.2, 50),

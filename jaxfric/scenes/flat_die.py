@@ -31,7 +31,7 @@ from ..formulations import formulation
 from ..loading import DirichletBC, Phase, Ramp
 from ..material import J2Material
 from ..mesh import strip_mesh
-from ..simulate import StripModel
+from ..model import StripModel
 from ..tools import Tool
 from . import _common as cm
 from .base import Scene
@@ -45,7 +45,11 @@ STEP_FIELDS = ("dU_fine", "dU", "n_clamp")
 STROKE_FIELD = "U_draw"  # the drawing stroke: steady_window lies in [0, U_draw]
 PHASES = ("clamp", "draw")
 TOOLS = ("die",)
-INSTANTS = ("clamped", "intermediate", "sliding", "final")
+# Named instants (benchmarks spec, scene Outputs), in order, each with its rule
+# (:func:`jaxfric.output.select_instants`).
+INSTANT_RULES = {"clamped": ("end", "clamp"), "intermediate": ("first_half_slip",),
+                 "sliding": ("first_all_slip",), "final": ("final",)}
+INSTANTS = tuple(INSTANT_RULES)
 
 
 @dataclasses.dataclass(frozen=True)

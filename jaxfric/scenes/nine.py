@@ -51,7 +51,7 @@ from ..formulations import formulation
 from ..loading import DirichletBC, Phase, Ramp
 from ..material import J2Material
 from ..mesh import strip_mesh
-from ..simulate import StripModel
+from ..model import StripModel
 from ..tools import Tool
 from . import _common as cm
 from .base import Scene
@@ -65,7 +65,10 @@ STEP_FIELDS = ("dq_clamp", "dU")
 STROKE_FIELD = "U_draw"  # the drawing stroke: steady_window lies in [0, U_draw]
 PHASES = ("clamp", "draw")
 TOOLS = ("A", "B", "C", "D", "E")
-INSTANTS = ("clamped", "steady", "final")
+# Named instants (benchmarks spec, scene Outputs), in order, each with its rule
+# (:func:`jaxfric.output.select_instants`).
+INSTANT_RULES = {"clamped": ("end", "clamp"), "steady": ("closest", "draw", 27.5), "final": ("final",)}
+INSTANTS = tuple(INSTANT_RULES)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,6 +1,6 @@
-"""Demo of the core solver: ``python -m jaxfric.demo [--out DIR] [--mesh NXxNY]``.
+"""Demo of the core solver: ``python experiments/demo.py [--out DIR] [--mesh NXxNY]``.
 
-Stretches and bends an elasto-plastic strip (:func:`jaxfric.examples.stretch_bend_strip`), with a
+Stretches and bends an elasto-plastic strip (``experiments/strips.py``), with a
 progress bar, then writes ``forces.png`` (end reactions against pseudo-time) and ``mesh.png`` (deformed
 mesh coloured by equivalent plastic strain) into DIR.
 """
@@ -15,7 +15,7 @@ import numpy as np
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m jaxfric.demo", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python experiments/demo.py", description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="demo_out", help="output directory (default: demo_out)")
     parser.add_argument("--mesh", default="300x3", help="NXxNY elements (default: 300x3)")
     args = parser.parse_args(argv)
@@ -26,8 +26,8 @@ def main(argv=None) -> int:
         return 2
 
     import jaxfric as jf
-    from jaxfric.examples import stretch_bend_strip
     from jaxfric.plotting import element_values_mean, figure, plot_mesh
+    from strips import stretch_bend_strip
 
     try:
         model = stretch_bend_strip(nx=nx, ny=ny)

@@ -1,0 +1,165 @@
+"""The step controller's rules (jaxfric.controller), each alone and in sequence, without a finite-element
+model: attempts' outcomes are made up, so each rule is checked at the case it decides."""
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxfric.controller import (
+    ContinuationState,
+    Controller,
+    Outcome,
+    StepControl,
+    continuation_rule,
+    increment_after_acceptance,
+    retry_from_converged,
+    stop_code,
+    unsearched_attempt,
+)
+from jaxfric.loading import Phase
+from jaxfric.results import Result
+
+T, F = jnp.array(True), jnp.array(False)
+
+
+def test_increment_grows_after_easy_steps_up_to_the_nominal_one_and_follows_the_segments():
+    control = StepControl(growth=1.5, easy_iterations=6, easy_steps=2)
+    # The first easy step counts; the second grows the increment, capped at the nominal one.
+    n_easy, grow, dt = increment_after_acceptance(control, T, 0, 3, 0.25, 1.0, 1.0, F)
+    assert int(n_easy) == 1 and not bool(grow) and float(dt) == 0.25
+    n_easy, grow, dt = increment_after_acceptance(control, T, 1, 6, 0.25, 1.0, 1.0, F)
+    assert bool(grow) and float(dt) == 0.375
+    assert float(increment_after_acceptance(control, T, 1, 6, 0.9, 1.0, 1.0, F)[2]) == 1.0
+    # A hard step resets the count; a step that ends its segment takes the next segment's increment.
+    assert int(increment_after_acceptance(control, T, 1, 7, 0.25, 1.0, 1.0, F)[0]) == 0
+    assert float(increment_after_acceptance(control, T, 0, 9, 0.25, 1.0, 0.5, T)[2]) == 0.5
+
+
+def test_retry_from_the_converged_state_only_for_a_first_attempt_at_the_floor():
+    assert bool(retry_from_converged(T, 0))
+    assert not bool(retry_from_converged(T, 3)) and not bool(retry_from_converged(F, 0))
+
+
+@pytest.mark.parametrize("has_line_search", [True, False])
+def test_unsearched_attempt_once_after_the_retry_where_a_line_search_exists(has_line_search):
+    assert bool(unsearched_attempt(T, F, F, has_line_search)) == has_line_search
+    assert not bool(unsearched_attempt(T, T, F, has_line_search))    # the retry comes first
+    assert not bool(unsearched_attempt(T, F, T, has_line_search))    # only once
+    assert not bool(unsearched_attempt(F, F, F, has_line_search))    # above the floor: halve instead
+
+
+def _stages(soft, tried=False, staged=False):
+    return ContinuationState(soft=jnp.array(soft, jnp.int32), tried=jnp.array(tried), u=jnp.zeros((3, 2)),
+                             q=jnp.zeros(1), staged=jnp.array(staged))
+
+
+def test_continuation_starts_at_the_floor_descends_stage_by_stage_and_ends_on_failure():
+    u, q = jnp.ones((3, 2)), jnp.full(1, 2.0)
+    n = jnp.array(3, jnp.int32)
+    # At the floor, after the retry, with stages available: the first stage (penalties / 10^3).
+    new, start, done, held = continuation_rule(_stages(-1), n, T, F, F, F, F, u, q)
+    assert bool(start) and int(new.soft) == 3 and not bool(held)
+    # Not after the unsearched attempt, nor once it has failed for this step, nor without stages.
+    assert not bool(continuation_rule(_stages(-1), n, T, F, T, F, F, u, q)[1])
+    assert not bool(continuation_rule(_stages(-1, tried=True), n, T, F, F, F, F, u, q)[1])
+    assert not bool(continuation_rule(_stages(-1), jnp.array(0, jnp.int32), T, F, F, F, F, u, q)[1])
+    # A converged stage before the last: the next one starts from its solution; it is not a step.
+    new, start, done, held = continuation_rule(_stages(2), n, F, F, F, T, F, u, q)
+    assert bool(done) and int(new.soft) == 1 and bool(new.staged) and bool(held)
+    np.testing.assert_array_equal(new.u, u)
+    np.testing.assert_array_equal(new.q, q)
+    # A failed stage ends the continuation for the step.
+    new, start, done, held = continuation_rule(_stages(2), n, F, F, F, F, F, u, q)
+    assert int(new.soft) == -1 and bool(new.tried) and not bool(done) and bool(held)
+    # The last stage (true penalties) converged: an accepted step, nothing held.
+    new, start, done, held = continuation_rule(_stages(0), n, F, F, F, T, T, u, q)
+    assert int(new.soft) == -1 and not bool(done) and not bool(held) and not bool(new.tried)
+
+
+def test_stop_code_reports_the_last_searched_attempt():
+    it, mx = Result.INVERTED_ELEMENT, Result.MAX_ITERATIONS
+    assert int(stop_code(T, F, F, T, it, mx)) == it     # the unsearched attempt failed: the one before
+    assert int(stop_code(T, F, F, F, it, mx)) == mx
+    assert int(stop_code(F, T, F, F, it, mx)) == Result.SUCCESS
+    assert int(stop_code(F, F, T, F, it, mx)) == Result.MAX_STEPS
+    assert int(stop_code(F, F, F, F, it, mx)) == Result.CONTINUE
+
+
+def _outcome(code, iterations=4):
+    return Outcome(jnp.array(code, jnp.int32), jnp.array(iterations, jnp.int32), None, jnp.zeros(3, jnp.int32),
+                   jnp.array(1.0 if code != Result.SUCCESS else 0.0), jnp.zeros((3, 2)), jnp.zeros(1))
+
+
+def _failing_step(ctrl, cs, t_start=0.0):
+    """Attempts of one step that never converges: their targets and whether each ran unsearched."""
+    targets, plain = [], []
+    while int(cs.code) == Result.CONTINUE and len(targets) < 20:
+        t_try, _ = ctrl.target(cs, t_start)
+        targets.append(float(t_try))
+        plain.append(bool(cs.plain))
+        cs = ctrl.adapt(cs, t_start, t_try, _outcome(Result.MAX_ITERATIONS), 1)
+    return cs, targets, plain
+
+
+@pytest.mark.parametrize("has_line_search", [True, False])
+def test_a_failing_step_is_halved_to_the_floor_then_retried_unsearched_then_stopped(has_line_search):
+    """One phase of 4 nominal steps (0.25), max_cuts 2 (floor 0.0625): halve twice; the floor attempt
+    already started from the converged state (a cut attempt does), so no retry; then (with a line
+    search) once without it; then stop with the failure of the last searched attempt."""
+    ctrl = Controller.build((Phase("load", n_steps=4),), StepControl(max_cuts=2), False, has_line_search,
+                            jnp.array(0, jnp.int32))
+    cs, targets, plain = _failing_step(ctrl, ctrl.init(jnp.zeros((3, 2)), jnp.zeros(1)))
+    assert targets == [0.25, 0.125, 0.0625] + ([0.0625] if has_line_search else [])
+    assert plain == [False] * 3 + ([True] if has_line_search else [])
+    assert int(cs.code) == Result.MAX_ITERATIONS and int(cs.cuts) == len(targets)
+    assert float(cs.failed_t) == 0.0625
+
+
+@pytest.mark.parametrize("has_line_search", [True, False])
+def test_a_first_attempt_failing_at_the_floor_is_retried_from_the_converged_state(has_line_search):
+    """A step whose first attempt (from the secant prediction) is already at the floor increment: the
+    same increment once more (``cuts`` > 0: from the converged state), then unsearched, then stop."""
+    ctrl = Controller.build((Phase("load", n_steps=4),), StepControl(max_cuts=2), False, has_line_search,
+                            jnp.array(0, jnp.int32))
+    cs = eqx.tree_at(lambda c: c.dt, ctrl.init(jnp.zeros((3, 2)), jnp.zeros(1)), jnp.array(0.0625))
+    cs, targets, plain = _failing_step(ctrl, cs)
+    assert targets == [0.0625, 0.0625] + ([0.0625] if has_line_search else [])
+    assert plain == [False, False] + ([True] if has_line_search else [])
+    assert int(cs.code) == Result.MAX_ITERATIONS
+
+
+def test_accepted_steps_reach_the_end_of_the_load_path():
+    ctrl = Controller.build((Phase("a", n_steps=2), Phase("b", n_steps=2)), StepControl(), False, True,
+                            jnp.array(0, jnp.int32))
+    cs = ctrl.init(jnp.zeros((3, 2)), jnp.zeros(1))
+    t, row, times = 0.0, 1, []
+    while int(cs.code) == Result.CONTINUE:
+        t_try, phase = ctrl.target(cs, t)
+        times.append((float(t_try), int(phase)))
+        cs = ctrl.adapt(cs, t, t_try, _outcome(Result.SUCCESS), row)
+        t, row = t_try, row + 1
+    assert times == [(0.5, 0), (1.0, 0), (1.5, 1), (2.0, 1)]
+    assert int(cs.code) == Result.SUCCESS
+
+
+def test_continuation_stages_come_between_the_floor_and_the_unsearched_attempt():
+    """With two continuation stages: the floor attempt fails; stages 2 and 1 converge (not steps: each
+    starts the next); the true-penalty stage fails, which ends the continuation; the unsearched attempt
+    fails; the run stops with the code of the last attempt before the stages."""
+    ctrl = Controller.build((Phase("load", n_steps=4),), StepControl(max_cuts=2), True, True,
+                            jnp.array(2, jnp.int32))
+    cs = ctrl.init(jnp.zeros((3, 2)), jnp.zeros(1))
+    codes = [Result.MAX_ITERATIONS] * 3 + [Result.SUCCESS, Result.SUCCESS, Result.NONFINITE,
+                                           Result.INVERTED_ELEMENT]
+    soft, plain, targets = [], [], []
+    for code in codes:
+        t_try, _ = ctrl.target(cs, 0.0)
+        soft.append(int(cs.stages.soft))
+        plain.append(bool(cs.plain))
+        targets.append(float(t_try))
+        cs = ctrl.adapt(cs, 0.0, t_try, _outcome(code), 1)
+    assert soft == [-1, -1, -1, 2, 1, 0, -1]
+    assert plain == [False] * 6 + [True]
+    assert targets == [0.25, 0.125] + [0.0625] * 5
+    assert int(cs.code) == Result.MAX_ITERATIONS
