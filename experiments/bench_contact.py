@@ -21,7 +21,7 @@ import numpy as np
 
 import jaxfric as jf
 from benchutil import median_time, write_rows
-from jaxfric import exact
+from jaxfric import exact_active_set, exact_condensed, exact_iterate
 from jaxfric.contact import Move, RigidTool
 from jaxfric.formulations import AugmentedLagrangian, Complementarity, Penalty
 from jaxfric.linalg import linear_solve
@@ -56,12 +56,12 @@ def iteration_ms(model: jf.StripModel, state, repeat: int) -> float:
             args, _, _ = step_args(m, s, s.phase, s.time, StepContext.build(m))
             x = unknowns(m, s.u, s.contact.q)
             p = jnp.stack([s.contact.rn, s.contact.rt], -1)
-            it = exact.linearize_iterate(x, args)
+            it = exact_iterate.linearize_iterate(x, args)
             if m.contact.solver != "ssn":
-                return exact.contact_newton_step(it, args, x, p, m.contact, p)[:2]
+                return exact_condensed.contact_newton_step(it, args, x, p, m.contact, p)[:2]
             # The in-loop solver's iteration also evaluates its line search's merit function.
-            merit = exact.semismooth_merit(x, it, args, p, exact.contact_frames(it, args)[0])
-            return exact.active_set_step(it, args, x, p, m.contact, p)[:2], merit
+            merit = exact_active_set.semismooth_merit(x, it, args, p, exact_active_set.contact_frames(it, args)[0])
+            return exact_active_set.active_set_step(it, args, x, p, m.contact, p)[:2], merit
     else:
         def iteration(m, s):
             lin = jf.linearize_step(m, s, s.phase, s.time)

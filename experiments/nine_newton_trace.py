@@ -29,7 +29,7 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxfric import exact  # noqa: E402
+from jaxfric import exact_active_set, exact_iterate  # noqa: E402
 from jaxfric.contact import pair_mu  # noqa: E402
 from jaxfric.model import tool_positions  # noqa: E402
 from jaxfric.newton import NewtonOptions  # noqa: E402
@@ -65,16 +65,16 @@ def main(argv=None) -> None:
     @eqx.filter_jit
     def evaluate(x, args, p_new, frames):
         # The trial's merit takes the forces its direction predicts as hint, as the solver's does.
-        it = exact.linearize_iterate(x, args)
-        R, _ = exact.iterate_residual(x, it, p_new, args)
-        merit = jnp.nan if frames is None else exact.semismooth_merit(x, it, args, p_new, frames)
+        it = exact_iterate.linearize_iterate(x, args)
+        R, _ = exact_iterate.iterate_residual(x, it, p_new, args)
+        merit = jnp.nan if frames is None else exact_active_set.semismooth_merit(x, it, args, p_new, frames)
         return it, jnp.max(jnp.abs(R)), jnp.max(jnp.abs(it.f_int)), merit
 
     @eqx.filter_jit
     def direction(it, args, x, hint):
-        frames = exact.contact_frames(it, args)
-        dx, p_new, _, stats, _ = exact.active_set_step(it, args, x, None, law, hint, frames=frames)
-        return dx, p_new, stats, exact.semismooth_merit(x, it, args, hint, frames[0]), frames[0]
+        frames = exact_active_set.contact_frames(it, args)
+        dx, p_new, _, stats, _ = exact_active_set.active_set_step(it, args, x, None, law, hint, frames=frames)
+        return dx, p_new, stats, exact_active_set.semismooth_merit(x, it, args, hint, frames[0]), frames[0]
 
     step = eqx.filter_jit(lambda st, t, g: solve_step(model, st, 1, t, opts, ctx, guess=g))
     rows, prev = [], None
@@ -108,7 +108,7 @@ def main(argv=None) -> None:
                 k += 1
                 x_t = x + alpha * dx
                 it_t, r, scale, merit_t = evaluate(x_t, args, p_new, frames)
-                status_t = exact.pair_status(p_new, mu_pairs)
+                status_t = exact_iterate.pair_status(p_new, mu_pairs)
                 plastic_t = np.asarray(it_t.states.eqps > eqps0)
                 tol = opts.atol + opts.rtol * max(float(scale), 1e-6)
                 correction = float(jnp.max(jnp.abs(alpha * dx)))

@@ -13,7 +13,7 @@ LAYERS = (
     ("linalg", "newton", "results", "tensor", "lru", "_checks"),
     ("mesh", "element", "material", "assembly", "loading"),
     ("tools", "status", "contact_laws", "contact", "system", "contact_lcp", "lemke", "complementary_basis",
-     "alart_curnier", "exact", "formulations"),
+     "alart_curnier", "exact_iterate", "exact_condensed", "exact_active_set", "exact", "formulations"),
     ("model", "step", "controller", "simulate", "run", "sweep", "progress"),
     ("scenes", "params", "fit", "fit_data", "fit_curve", "fit_global", "fit_result", "accuracy", "batch", "output",
      "contract", "figures", "plotting"),
