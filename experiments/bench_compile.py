@@ -19,7 +19,7 @@ _CHILD = r"""
 import json, sys, time
 import equinox as eqx
 import jaxfric
-from jaxfric import assembly, exact, scenes, system
+from jaxfric import assembly, exact_iterate, scenes, system
 simulate = sys.modules["jaxfric.simulate"].simulate
 scene, variant, algorithm, mesh = sys.argv[1:5]
 traced = []
@@ -27,7 +27,7 @@ original = assembly.internal_force_and_tangent
 def counted(*args, **kwargs):
     traced.append(1)
     return original(*args, **kwargs)
-exact.internal_force_and_tangent = system.internal_force_and_tangent = counted
+exact_iterate.internal_force_and_tangent = system.internal_force_and_tangent = counted
 sc = scenes.make(scene, variant, algorithm, {"mesh": mesh})
 fn = eqx.filter_jit(lambda m: simulate(m, newton=sc.newton, control=sc.control, observe=sc.observe,
                                        progress=True, snapshot=sc.snapshot))
