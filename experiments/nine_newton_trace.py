@@ -4,7 +4,7 @@ at every iterate of the exact-contact solver.
     python experiments/nine_newton_trace.py [--u0 20] [--steps 8] [--mesh 300x3]
 
 Runs Nine mu017 (``lcp_ssn``) to U = u0 mm, then takes ``--steps`` nominal drawing steps from the
-secant predictor, each twice: with :func:`jaxfric.simulate.solve_step` (the iteration count the runs
+secant predictor, each twice: with :func:`jaxfric.step.solve_step` (the iteration count the runs
 report) and with a host-driven copy of the loop of :func:`jaxfric.exact.exact_solve` built from the
 same pieces (linearisation, semismooth direction, merit, status), which records at every evaluated
 point: ||R||_inf against the tolerance, the step length (1, or 1/4 and 1/16 after a rejected trial),

@@ -269,7 +269,7 @@ def step_check(scene, progress: bool = False) -> dict:
     Costs about twice the run (and a compilation). Raises ValueError (one line) when it does not reach
     the end of the load path.
     """
-    from . import output, scenes
+    from . import instants, output, scenes
     from .run import run
 
     config = dataclasses.replace(scene.config, **scenes.scaled_steps(scene.name, scene.config, 0.5))
@@ -279,8 +279,8 @@ def step_check(scene, progress: bool = False) -> dict:
     if not result.converged:
         raise ValueError(f"the step check (half the nominal increments) did not complete: {result.message}")
     _, _, values = output.history_table(half, result)
-    window, _ = output.steady_window(half.name, values, half.steady_window)
-    return {"steady": output.steady_drawing_force({**values, "phase_name": values["phase"]}, window),
+    window, _ = instants.steady_window(half.name, values, half.steady_window)
+    return {"steady": instants.steady_drawing_force({**values, "phase_name": values["phase"]}, window),
             "peak": float(np.max(values["drawing_force"])), "n_steps": len(values["step"]) - 1,
             "converged": True}
 

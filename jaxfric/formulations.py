@@ -74,7 +74,7 @@ class AbstractContactFormulation(eqx.Module):
         warm_start: a step's multipliers (``ContactStep.lam_n``) start from the last converged normal
             forces; otherwise they are zero (the penalty law: lambda_N = 0).
         continuation: a step that fails at the smallest increment may be solved through stages of
-            softened penalties (:class:`jaxfric.simulate.StepControl`); the formulation then
+            softened penalties (:class:`jaxfric.controller.StepControl`); the formulation then
             provides :meth:`continuation_stages` and :meth:`softened`.
         unsearched_retry: the step controller's last attempt at the smallest increment runs Newton
             without its line search (a formulation whose loop has no line search to switch off: no
@@ -146,7 +146,7 @@ class Penalty(_Regularised):
     """Penalty regularisation of contact and friction (spec 1.5, paper eq. 19): each attempt is one
     Newton solve with lambda_N = 0 and lambda_T = R_T,n (the last converged tangential force).
 
-    Its stiff steps may be softened (:class:`jaxfric.simulate.StepControl`, ``continuation``): stage
+    Its stiff steps may be softened (:class:`jaxfric.controller.StepControl`, ``continuation``): stage
     m solves with eps_n and eps_t divided by 10^m, from m = ceil(log10(eps_n / E)) down to 0.
     """
 

@@ -22,7 +22,7 @@ positions X + u rather than from u (the contact gaps), its round-off is relative
 the linearisation then passes as ``magnitude``: a penalty of 1e9 N/mm at a node 13 mm from the origin
 resolves forces to 1e9 x ulp(13 mm) = 1.8e-6 N/mm, however small u is. That floor is used only where
 the caller asks (``positions``: the step controller's continuation stages at the smallest increment,
-:class:`jaxfric.simulate.StepControl`): it can exceed the residual tolerance, and an iteration that
+:class:`jaxfric.controller.StepControl`): it can exceed the residual tolerance, and an iteration that
 merely converges slowly (a stick/slip 2-cycle) also fails to reduce ||R|| tenfold, so as the default
 it would end such iterations early and change the load path of runs that converge without it (the
 flat die at eps_N = 1e9, 24 x 1, mu = 0.04 then stopped in its draw). A quadratically converging iteration

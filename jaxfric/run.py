@@ -85,7 +85,7 @@ class RunResult:
         history: dict of per-row arrays (row 0 = initial state): ``time``, ``phase`` (index),
             ``phase_name``, ``newton_iters``, ``cutbacks`` (attempts before the accepted one),
             ``augmentations`` (AL), ``wall_s``, plus every observation.
-        final: the last converged :class:`~jaxfric.simulate.SimState`.
+        final: the last converged :class:`~jaxfric.model.SimState`.
         simulation: the raw :class:`~jaxfric.simulate.Simulation` (device arrays, full buffers).
         converged: True if the whole load path was completed.
         code: the :class:`~jaxfric.results.Result`.

@@ -194,7 +194,7 @@ def linearize(x, args: StepArgs) -> Linearization:
     # advance is what lets the blankholder's 'close' phase converge at the spec mesh.
     # Round-off of the residual (Newton's floor, where the caller asks for it: jaxfric.newton): the
     # contact gaps are computed from the positions X + u, so with tools it is relative to those. Only
-    # a formulation's continuation stages ask (jaxfric.simulate.StepControl); no other traces it.
+    # a formulation's continuation stages ask (jaxfric.controller.StepControl); no other traces it.
     magnitude = None
     if contact is not None and args.contact is not None and args.contact.law.continuation:
         n = args.mesh.n_dofs

@@ -15,7 +15,7 @@ LAYERS = (
     ("tools", "status", "contact_laws", "contact", "system", "contact_lcp", "lemke", "complementary_basis",
      "alart_curnier", "exact_iterate", "exact_condensed", "exact_active_set", "exact", "formulations"),
     ("model", "step", "controller", "simulate", "run", "sweep", "progress"),
-    ("scenes", "params", "fit", "fit_data", "fit_curve", "fit_global", "fit_result", "accuracy", "batch", "output",
+    ("scenes", "params", "fit", "fit_data", "fit_curve", "fit_global", "fit_result", "accuracy", "batch", "instants", "output",
      "contract", "figures", "plotting"),
     ("cli", "__main__", "__init__"),
 )

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import jaxfric as jf
-from jaxfric import cli, output
+from jaxfric import cli, instants, output
 from jaxfric.contract import check_run_dir
 from jaxfric.status import contact_status
 
@@ -35,14 +35,14 @@ def test_flat_die_instants():
     h = _history(["clamp", "clamp", "clamp", "draw", "draw", "draw", "draw"],
                  [0, 0.5, 1.0, 1.25, 1.5, 1.75, 2.0],
                  active=[0, 9, 9, 9, 9, 9, 9], slip=[0, 9, 9, 2, 5, 9, 9])
-    names, rows, fallback = output.select_instants("flat_die", h)
+    names, rows, fallback = instants.select_instants("flat_die", h)
     assert names == ["clamped", "intermediate", "sliding", "final"]
     assert rows == [2, 4, 5, 6] and fallback == []
 
 
 def test_flat_die_state_instants_fall_back_to_last_row():
     h = _history(["clamp", "clamp", "draw", "draw"], [0, 1, 1.5, 2], active=[0, 9, 9, 0], slip=[0, 9, 1, 0])
-    names, rows, fallback = output.select_instants("flat_die", h)
+    names, rows, fallback = instants.select_instants("flat_die", h)
     assert names == ["clamped", "intermediate", "sliding", "final"]
     assert rows == [1, 3, 3, 3] and fallback == ["intermediate", "sliding"]
 
@@ -50,24 +50,24 @@ def test_flat_die_state_instants_fall_back_to_last_row():
 def test_instants_of_unreached_phases_are_omitted():
     # stopped in the middle of clamp: only `final`
     h = _history(["clamp", "clamp"], [0, 0.5], active=[0, 9], slip=[0, 9])
-    assert output.select_instants("flat_die", h) == (["final"], [1], [])
+    assert instants.select_instants("flat_die", h) == (["final"], [1], [])
     # blankholder stopped during lock: closed and final; no drawing
     h = _history(["close", "close", "lock"], [0, 1.0, 1.5])
-    assert output.select_instants("blankholder", h) == (["closed", "final"], [1, 2], [])
+    assert instants.select_instants("blankholder", h) == (["closed", "final"], [1, 2], [])
 
 
 def test_closest_and_end_of_phase_instants():
     u = [0, 0, 0, 0, 2.0, 3.9, 4.2, 8.0]
     h = _history(["clamp", "clamp", "wind", "wind", "draw", "draw", "draw", "draw"],
                  [0, 1, 1.5, 2, 2.25, 2.5, 2.6, 3], u=u)
-    assert output.select_instants("bead", h) == (["clamped", "folded", "drawing", "final"], [1, 3, 5, 7], [])
+    assert instants.select_instants("bead", h) == (["clamped", "folded", "drawing", "final"], [1, 3, 5, 7], [])
     h = _history(["clamp", "clamp", "draw", "draw", "draw"], [0, 1, 1.3, 1.4, 2], u=[0, 0, 20, 28, 70])
-    assert output.select_instants("nine", h) == (["clamped", "steady", "final"], [1, 3, 4], [])
+    assert instants.select_instants("nine", h) == (["clamped", "steady", "final"], [1, 3, 4], [])
     h = _history(["close", "close", "lock", "draw", "draw"], [0, 1, 2, 2.5, 3], u=[0, 0, 0, 27, 55])
-    assert output.select_instants("blankholder", h)[:2] == (["closed", "locked", "drawing", "final"],
+    assert instants.select_instants("blankholder", h)[:2] == (["closed", "locked", "drawing", "final"],
                                                             [1, 2, 3, 4])
     with pytest.raises(ValueError, match="unknown scene"):
-        output.select_instants("cylinder", h)
+        instants.select_instants("cylinder", h)
 
 
 # ---- steady drawing force -----------------------------------------------------------------------------
@@ -77,35 +77,35 @@ def test_steady_drawing_force_is_the_trapezoid_mean():
     f = 3.0 + 0.1 * u  # linear: the trapezoid rule is exact, mean over [20, 35] = 3 + 0.1 * 27.5
     h = {"phase_name": np.array(["clamp", "clamp"] + ["draw"] * 6), "drawing_displacement": u,
          "drawing_force": f}
-    assert output.steady_drawing_force(h, (20, 35)) == pytest.approx(5.75, rel=1e-14)
+    assert instants.steady_drawing_force(h, (20, 35)) == pytest.approx(5.75, rel=1e-14)
     # the window is inclusive with a tolerance of 1e-9 mm
     h2 = dict(h, drawing_displacement=np.where(u == 35, 35 + 5e-10, u).astype(float))
-    assert output.steady_drawing_force(h2, (20, 35)) == pytest.approx(5.75, rel=1e-9)
+    assert instants.steady_drawing_force(h2, (20, 35)) == pytest.approx(5.75, rel=1e-9)
     h3 = dict(h, drawing_displacement=np.where(u == 35, 35 + 5e-9, u).astype(float))
-    assert output.steady_drawing_force(h3, (20, 35)) == pytest.approx(3 + 0.1 * 25, rel=1e-12)
+    assert instants.steady_drawing_force(h3, (20, 35)) == pytest.approx(3 + 0.1 * 25, rel=1e-12)
 
 
 def test_steady_drawing_force_null_cases():
     h = {"phase_name": np.array(["draw"] * 4), "drawing_displacement": np.array([0.0, 10, 20, 26]),
          "drawing_force": np.ones(4)}
-    assert output.steady_drawing_force(h, (20, 35)) is None           # one row in the window
+    assert instants.steady_drawing_force(h, (20, 35)) is None           # one row in the window
     h["drawing_displacement"] = np.array([0.0, 20, 25, 27])
-    assert output.steady_drawing_force(h, (20, 35)) is None           # covers 7 < 15/2 mm
+    assert instants.steady_drawing_force(h, (20, 35)) is None           # covers 7 < 15/2 mm
     h["drawing_displacement"] = np.array([0.0, 20, 25, 27.5])
-    assert output.steady_drawing_force(h, (20, 35)) == pytest.approx(1.0)  # exactly half: kept
+    assert instants.steady_drawing_force(h, (20, 35)) == pytest.approx(1.0)  # exactly half: kept
     h["phase_name"] = np.array(["clamp"] * 4)                          # no draw rows
-    assert output.steady_drawing_force(h, (20, 35)) is None
+    assert instants.steady_drawing_force(h, (20, 35)) is None
 
 
 def test_nine_window_is_shortened_when_the_free_end_arrives():
     u = np.arange(0.0, 40.0, 5.0)
     tail = -50.0 + 1.5 * u  # reaches -1 mm at U = 32.7 mm
     h = {"phase": np.array(["draw"] * u.size), "drawing_displacement": u, "tail_x": tail}
-    window, note = output.steady_window("nine", h, (20.0, 35.0))
+    window, note = instants.steady_window("nine", h, (20.0, 35.0))
     assert window == (20.0, 30.0) and "shortened" in note
     h["tail_x"] = -50.0 + 0.5 * u
-    assert output.steady_window("nine", h, (20.0, 35.0)) == ((20.0, 35.0), "")
-    assert output.steady_window("bead", h, (4.0, 8.0)) == ((4.0, 8.0), "")
+    assert instants.steady_window("nine", h, (20.0, 35.0)) == ((20.0, 35.0), "")
+    assert instants.steady_window("bead", h, (4.0, 8.0)) == ((4.0, 8.0), "")
 
 
 def test_contact_status_thresholds():
@@ -164,7 +164,7 @@ def test_error_estimate_components(good_dir, flat):
     t = scene.config.h  # the modelled (half) thickness of the flat die
     assert est["components"]["contact"] == pytest.approx(summary["max_penetration"] / t, rel=1e-12)
     hist = result.history
-    rows = output.steady_rows(hist["phase_name"], hist["drawing_displacement"], summary["steady_window"])
+    rows = instants.steady_rows(hist["phase_name"], hist["drawing_displacement"], summary["steady_window"])
     scatter = np.std(hist["drawing_force"][rows]) / summary["steady_drawing_force"]
     assert est["components"]["scatter"] == pytest.approx(scatter, rel=1e-9, abs=1e-15)
     total = np.sqrt(sum(v**2 for v in est["components"].values()))

@@ -58,7 +58,7 @@ STROKE_FIELD = "s_draw"  # the drawing stroke: steady_window lies in [0, s_draw]
 PHASES = ("clamp", "wind", "draw")
 TOOLS = ("die_up", "die_lo", "roller")
 # Named instants (benchmarks spec, scene Outputs), in order, each with its rule
-# (:func:`jaxfric.output.select_instants`).
+# (:func:`jaxfric.instants.select_instants`).
 INSTANT_RULES = {"clamped": ("end", "clamp"), "folded": ("end", "wind"), "drawing": ("closest", "draw", 4.0),
                  "final": ("final",)}
 INSTANTS = tuple(INSTANT_RULES)

@@ -86,7 +86,7 @@ STROKE_FIELD = "U_pull"  # the drawing stroke: steady_window lies in [0, U_pull]
 PHASES = ("close", "lock", "draw")
 TOOLS = ("upper", "lower")
 # Named instants (benchmarks spec, scene Outputs), in order, each with its rule
-# (:func:`jaxfric.output.select_instants`).
+# (:func:`jaxfric.instants.select_instants`).
 INSTANT_RULES = {"closed": ("end", "close"), "locked": ("end", "lock"), "drawing": ("closest", "draw", 27.5),
                  "final": ("final",)}
 INSTANTS = tuple(INSTANT_RULES)

@@ -46,7 +46,7 @@ STROKE_FIELD = "U_draw"  # the drawing stroke: steady_window lies in [0, U_draw]
 PHASES = ("clamp", "draw")
 TOOLS = ("die",)
 # Named instants (benchmarks spec, scene Outputs), in order, each with its rule
-# (:func:`jaxfric.output.select_instants`).
+# (:func:`jaxfric.instants.select_instants`).
 INSTANT_RULES = {"clamped": ("end", "clamp"), "intermediate": ("first_half_slip",),
                  "sliding": ("first_all_slip",), "final": ("final",)}
 INSTANTS = tuple(INSTANT_RULES)

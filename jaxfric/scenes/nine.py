@@ -66,7 +66,7 @@ STROKE_FIELD = "U_draw"  # the drawing stroke: steady_window lies in [0, U_draw]
 PHASES = ("clamp", "draw")
 TOOLS = ("A", "B", "C", "D", "E")
 # Named instants (benchmarks spec, scene Outputs), in order, each with its rule
-# (:func:`jaxfric.output.select_instants`).
+# (:func:`jaxfric.instants.select_instants`).
 INSTANT_RULES = {"clamped": ("end", "clamp"), "steady": ("closest", "draw", 27.5), "final": ("final",)}
 INSTANTS = tuple(INSTANT_RULES)
 
