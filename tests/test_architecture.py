@@ -15,8 +15,8 @@ LAYERS = (
     ("tools", "status", "contact_laws", "contact", "system", "contact_lcp", "lemke", "complementary_basis",
      "alart_curnier", "exact_iterate", "exact_condensed", "exact_active_set", "exact", "formulations"),
     ("model", "step", "controller", "simulate", "run", "sweep", "progress"),
-    ("scenes", "params", "fit", "fit_data", "fit_curve", "fit_global", "fit_result", "accuracy", "batch", "instants", "output",
-     "contract", "figures", "plotting"),
+    ("scenes", "params", "fit", "fit_data", "fit_curve", "fit_global", "fit_result", "accuracy", "batch", "instants",
+     "output", "contract", "figures", "plotting"),
     ("cli", "__main__", "__init__"),
 )
 LAYER = {name: k for k, names in enumerate(LAYERS) for name in names}
