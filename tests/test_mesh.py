@@ -111,7 +111,7 @@ def test_a_step_traces_the_element_tangent_once(monkeypatch):
     """One load step with exact contact, and one with the augmented Lagrangian (whose Newton solve
     sits in the augmentation loop), each trace the element tangent once: the loops' shapes reuse the
     trace of their bodies (before, twice and four times)."""
-    from jaxfric import assembly, exact, system
+    from jaxfric import assembly, exact_iterate, system
     from jaxfric.scenes import make
     from jaxfric.step import solve_step
 
@@ -122,7 +122,7 @@ def test_a_step_traces_the_element_tangent_once(monkeypatch):
         calls.append(1)
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(exact, "internal_force_and_tangent", counted)
+    monkeypatch.setattr(exact_iterate, "internal_force_and_tangent", counted)
     monkeypatch.setattr(system, "internal_force_and_tangent", counted)
     for algorithm in ("lcp_ssn", "auglag"):
         calls.clear()
