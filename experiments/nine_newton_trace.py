@@ -5,13 +5,12 @@ at every iterate of the exact-contact solver.
 
 Runs Nine mu017 (``lcp_ssn``) to U = u0 mm, then takes ``--steps`` nominal drawing steps from the
 secant predictor, each twice: with :func:`jaxfric.step.solve_step` (the iteration count the runs
-report) and with a host-driven copy of the loop of :func:`jaxfric.exact.exact_solve` built from the
-same pieces (linearisation, semismooth direction, merit, status), which records at every evaluated
-point: ||R||_inf against the tolerance, the step length (1, or 1/4 and 1/16 after a rejected trial),
-how many pairs changed contact status, and how many Gauss points changed between elastic and plastic
-(equivalent plastic strain grown since the step's start) since the last accepted iterate (at the first
-iterate the statuses are compared with all-open, the loop's start, as the solver's own test does). The two
-iteration counts are printed side by side: they must agree, or the copy no longer follows the solver.
+report) and pass by pass from the host through the same Newton loop (:func:`jaxfric.newton.newton_pass`
+with :class:`jaxfric.exact.ExactContactProblem`), recording at every evaluated point: ||R||_inf against
+the tolerance, the step length (1, or 1/4 and 1/16 after a rejected trial), how many pairs changed
+contact status, and how many Gauss points changed between elastic and plastic (equivalent plastic
+strain grown since the step's start) since the last accepted iterate. The two iteration counts are
+printed side by side: they must agree.
 Writes ``results/nine_newton_trace.csv`` (one row per evaluated point).
 """
 
@@ -29,10 +28,10 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxfric import exact_active_set, exact_iterate  # noqa: E402
-from jaxfric.contact import pair_mu  # noqa: E402
+from jaxfric.exact import ExactContactProblem  # noqa: E402
 from jaxfric.model import tool_positions  # noqa: E402
-from jaxfric.newton import NewtonOptions  # noqa: E402
+from jaxfric.newton import NewtonOptions, newton_pass, newton_start  # noqa: E402
+from jaxfric.results import Result  # noqa: E402
 from jaxfric.scenes import nine  # noqa: E402
 from jaxfric.simulate import simulate  # noqa: E402
 from jaxfric.step import StepContext, solve_step, step_args, unknowns  # noqa: E402
@@ -62,19 +61,10 @@ def main(argv=None) -> None:
     # The short run ends at pseudo-time 2 = its U_draw; in the full run that state sits at u0 / U_draw.
     state = eqx.tree_at(lambda s: s.time, sim.final, jnp.asarray(1.0 + a.u0 / config.U_draw))
 
-    @eqx.filter_jit
-    def evaluate(x, args, p_new, frames):
-        # The trial's merit takes the forces its direction predicts as hint, as the solver's does.
-        it = exact_iterate.linearize_iterate(x, args)
-        R, _ = exact_iterate.iterate_residual(x, it, p_new, args)
-        merit = jnp.nan if frames is None else exact_active_set.semismooth_merit(x, it, args, p_new, frames)
-        return it, jnp.max(jnp.abs(R)), jnp.max(jnp.abs(it.f_int)), merit
-
-    @eqx.filter_jit
-    def direction(it, args, x, hint):
-        frames = exact_active_set.contact_frames(it, args)
-        dx, p_new, _, stats, _ = exact_active_set.active_set_step(it, args, x, None, law, hint, frames=frames)
-        return dx, p_new, stats, exact_active_set.semismooth_merit(x, it, args, hint, frames[0]), frames[0]
+    problem = ExactContactProblem(law, opts)
+    start = eqx.filter_jit(lambda x0, args: newton_start(problem, x0, args, opts))
+    one_pass = eqx.filter_jit(lambda c, args, x_ref: newton_pass(c, args, x_ref, problem, opts))
+    evaluate = eqx.filter_jit(problem.evaluate)
 
     step = eqx.filter_jit(lambda st, t, g: solve_step(model, st, 1, t, opts, ctx, guess=g))
     rows, prev = [], None
@@ -88,46 +78,31 @@ def main(argv=None) -> None:
             raise SystemExit(f"step {s} did not converge (code {int(sol.code)})")
         if prev is not None:
             args, _, _ = step_args(model, state, 1, t_target, ctx)
-            mu_pairs = pair_mu(args.contact.tools, args.contact.mu)
-            m = mu_pairs.shape[0]
             x_ref = unknowns(model, state.u, tool_positions(state))
-            x = unknowns(model, *guess)
             eqps0 = state.material.eqps
-            c = args.contact
-            p_step = jnp.stack([jnp.concatenate(c.lam_n), jnp.concatenate(c.lam_t)], -1)
-            it, r, _, _ = evaluate(x, args, jnp.zeros((m, 2)), None)
-            p, status = jnp.zeros((m, 2)), jnp.zeros(m, jnp.int8)
-            plastic = np.asarray(it.states.eqps > eqps0)
             U = (t_target - 1.0) * config.U_draw
-            rows.append(dict(step=s, U=U, k=0, alpha="", residual=float(r), tolerance="", status_changes="",
-                             gauss_point_switches="", plastic_points=int(plastic.sum()), ssn_passes="",
-                             correction="", rejected="", converged=""))
-            dx, p_new, stats, merit, frames = direction(it, args, x, p_step)
-            alpha, k = 1.0, 0
-            while k < opts.max_iterations:
-                k += 1
-                x_t = x + alpha * dx
-                it_t, r, scale, merit_t = evaluate(x_t, args, p_new, frames)
-                status_t = exact_iterate.pair_status(p_new, mu_pairs)
-                plastic_t = np.asarray(it_t.states.eqps > eqps0)
-                tol = opts.atol + opts.rtol * max(float(scale), 1e-6)
-                correction = float(jnp.max(jnp.abs(alpha * dx)))
-                changes = int(jnp.sum(status_t != status))
-                dx_ok = correction <= opts.du_atol + opts.du_rtol * float(jnp.max(jnp.abs(x_t - x_ref)))
-                done = float(r) <= tol and dx_ok and changes == 0 and int(stats[2]) == 0 and alpha == 1.0
-                rejected = k > 1 and not (float(merit_t) <= float(merit)) and alpha > 1 / 16 and not done
-                rows.append(dict(step=s, U=U, k=k, alpha=alpha, residual=float(r), tolerance=tol,
-                                 status_changes=changes, gauss_point_switches=int((plastic_t != plastic).sum()),
-                                 plastic_points=int(plastic_t.sum()), ssn_passes=int(stats[1]),
-                                 correction=correction, rejected=rejected, converged=done))
-                if done:
-                    break
-                if rejected:
-                    alpha *= 0.25
-                    continue
-                x, it, p, status, plastic, alpha = x_t, it_t, p_new, status_t, plastic_t, 1.0
-                dx, p_new, stats, merit, frames = direction(it, args, x, p)
-            print(f"step at U = {U:.2f} mm: solve_step {int(sol.iterations)} iterations, this copy {k}; "
+            # The solver's own loop, one pass at a time: each pass evaluates the pending point (the
+            # initial guess first) and decides on it; the point is evaluated once more here to read it.
+            c = start(unknowns(model, *guess), args)
+            plastic = np.zeros(eqps0.shape, bool)
+            while int(c.code) == Result.CONTINUE:
+                before, c = c, one_pass(c, args, x_ref)
+                k = int(before.k)
+                point = evaluate(before.x_t, before.trial, args)
+                plastic_t = np.asarray(point.state.it.states.eqps > eqps0)
+                tol = opts.atol + opts.rtol * max(float(point.scale), 1e-6)
+                rejected = k > 0 and int(c.n_acc) == int(before.n_acc)
+                rows.append(dict(
+                    step=s, U=U, k=k, alpha=float(before.trial.alpha) if k else "", residual=float(c.r_hist[k]),
+                    tolerance=tol,
+                    status_changes=int(jnp.sum(point.state.status != before.point.state.status)) if k else "",
+                    gauss_point_switches=int((plastic_t != plastic).sum()) if k else "",
+                    plastic_points=int(plastic_t.sum()), ssn_passes=int(before.trial.stats[1]) if k else "",
+                    correction=float(jnp.max(jnp.abs(before.trial.alpha * before.trial.dx))) if k else "",
+                    rejected=rejected, converged=int(c.code) == Result.SUCCESS))
+                if not rejected:
+                    plastic = plastic_t
+            print(f"step at U = {U:.2f} mm: solve_step {int(sol.iterations)} iterations, this loop {int(c.k) - 1}; "
                   + " ".join(f"{row['residual']:.2g}" for row in rows if row["step"] == s), flush=True)
         prev, state = state, new
 

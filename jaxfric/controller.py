@@ -30,8 +30,8 @@ from ._checks import check_int, check_nonnegative
 from .loading import schedule
 from .results import Result
 
-__all__ = ["StepControl", "Controller", "ControllerState", "ContinuationState", "increment_after_acceptance",
-           "retry_from_converged", "unsearched_attempt", "continuation_rule", "stop_code"]
+__all__ = ["StepControl", "Controller", "ControllerState", "ContinuationState", "Outcome", "Tally",
+           "increment_after_acceptance", "retry_from_converged", "unsearched_attempt", "continuation_rule", "stop_code"]
 
 
 class StepControl(eqx.Module):
@@ -121,6 +121,14 @@ class Outcome(NamedTuple):
     residual_norm: jax.Array
     u: jax.Array            # the attempt's displacements (a continuation stage's start)
     q: jax.Array            # and tool positions
+
+
+class Tally(NamedTuple):
+    """An attempt as the step's history row counts it (:meth:`Controller.tally`)."""
+
+    accepted: jax.Array
+    iterations: jax.Array   # Newton iterations of the step's attempts so far, this one included
+    stats: jax.Array        # the formulation's solver counts, likewise
 
 
 def increment_after_acceptance(control: StepControl, ok, n_easy, hardest, dt, dt_nominal, dt_next_segment,
@@ -239,11 +247,12 @@ class Controller(eqx.Module):
         st = cs.stages
         return jnp.where(st.staged, st.u, guess[0]), jnp.where(st.staged, st.q, guess[1])
 
-    def accepts(self, cs: ControllerState, code):
-        """Whether an attempt that ended with ``code`` is an accepted step (a continuation stage before
-        the last is not)."""
-        converged = code == Result.SUCCESS
-        return converged & (cs.stages.soft <= 0) if self.continuation else converged
+    def tally(self, cs: ControllerState, out: Outcome) -> Tally:
+        """Whether an attempt with outcome ``out`` is an accepted step (a continuation stage before the
+        last is not), and the step's iterations and solver counts over its attempts so far."""
+        converged = out.code == Result.SUCCESS
+        ok = converged & (cs.stages.soft <= 0) if self.continuation else converged
+        return Tally(ok, cs.iters + out.iterations, cs.stats + out.stats)
 
     def adapt(self, cs: ControllerState, t_start, t_try, out: Outcome, row) -> ControllerState:
         """The state after an attempt from ``t_start`` to ``t_try`` with outcome ``out``; ``row``: the
@@ -251,7 +260,7 @@ class Controller(eqx.Module):
         dt_nom, end = self.seg_dt[cs.seg], self.seg_end[cs.seg]
         n_seg = self.seg_end.shape[0]
         converged = out.code == Result.SUCCESS
-        ok = self.accepts(cs, out.code)
+        ok, iters, stats = self.tally(cs, out)
         seg_done = ok & (t_try == end)
         next_seg = jnp.minimum(cs.seg + seg_done.astype(jnp.int32), n_seg - 1)
         hardest = out.iterations if out.hardest is None else out.hardest
@@ -274,7 +283,6 @@ class Controller(eqx.Module):
         finished = seg_done & (cs.seg == n_seg - 1)
         full = ok & ~finished & (row + 1 >= self.n_buffer + 1)
         keep_r = (too_small & cs.plain) | held
-        iters, stats = cs.iters + out.iterations, cs.stats + out.stats
         return ControllerState(
             dt=jnp.where(ok, dt_ok, jnp.where(repeat, t_try - t_start, dt_cut)), seg=next_seg,
             n_easy=jnp.where(grow, 0, n_easy), cuts=jnp.where(ok, 0, cs.cuts + 1),

@@ -14,7 +14,13 @@ exactly; the contact status comes out of that solve. Two ways:
   whose active set settled. (Solving such iterates the condensed way instead was tried: on the
   three-cylinder bench it cost 7.8 s against 4.6 s, for 84 against 88 steps.) The Newton step is
   line-searched on the semismooth residual (:func:`semismooth_merit`: the equilibrium rows with each candidate's
-  rows replaced by its Alart-Curnier residual), quartering a step that raises it, at most twice.
+  rows replaced by its Alart-Curnier residual), quartering a step that raises it, at most twice. The
+  trial is measured with the forces its direction predicts, which are the hint the next direction's
+  merit starts from, so the merits of accepted iterates form one non-increasing sequence (with each
+  direction's own hint, a candidate node with a prescribed dof, such as the Nine's entry-guided tail,
+  re-based the merit at every iteration and the iterates drifted along the strip's soft draw-in mode:
+  ``test_exact.py``). The step that reaches a node to a tool or lifts it off can overshoot on a soft,
+  slipping strip; the line search keeps the residual from growing until an element inverts.
 * ``lcp_lemke`` (solver "lemke"): the problem condensed on a band of candidates. Steps of one
   iteration:
 
@@ -45,6 +51,10 @@ exactly; the contact status comes out of that solve. Two ways:
    problem (:func:`jaxfric.alart_curnier.polish`).
 5. Back-substitution ``du_f = K_ff^-1 (b_f - K_fc du_c)``; x <- x + (du, dq).
 
+The iterations are those of the one Newton loop (:func:`jaxfric.newton.newton_pass`): this module
+provides the problem it solves, :class:`ExactContactProblem` (the point's evaluation, the semismooth
+or condensed direction, the status test).
+
 Convergence (spec 1.7 step 7): the bulk residual with the contact forces of the last solve,
 ``f_int - f_c(p)`` at the new iterate, passes the Newton test of :mod:`jaxfric.newton` (residual and
 increment), and no pair changed its status (open / stick / slip from the forces, spec section 0).
@@ -57,7 +67,7 @@ the penalty or augmented Lagrangian laws (with their optional smoothing); differ
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
@@ -67,10 +77,9 @@ from .contact import pair_mu
 from .exact_active_set import active_set_step, contact_frames, semismooth_merit
 from .exact_condensed import contact_newton_step
 from .exact_iterate import Iterate, iterate_residual, linearize_iterate, pair_status
-from .newton import NewtonOptions, NewtonSolution
-from .results import Result
+from .newton import AbstractNewtonProblem, Evaluation, NewtonOptions, NewtonSolution, Trial, newton_loop, newton_result
 
-__all__ = ["exact_solve"]
+__all__ = ["ExactContactProblem", "exact_solve"]
 
 
 def _contact_out(it: Iterate, p, tool_f, status):
@@ -78,123 +87,88 @@ def _contact_out(it: Iterate, p, tool_f, status):
                 status=status, slip=it.slip)
 
 
-class _Trial(NamedTuple):
-    """A Newton direction and the step length tried along it (the in-loop solver's line search)."""
+class Prediction(NamedTuple):
+    """What an exact-contact direction predicts besides the step (:attr:`jaxfric.newton.Trial.data`)."""
 
-    dx: jax.Array
-    alpha: jax.Array     # () step length of the trial (1, 1/4 or 1/16 of dx)
-    p_new: jax.Array     # (m, 2) forces the direction predicts (the hint of the trials' merit)
-    in_band: jax.Array
-    stats: jax.Array     # (3,) of the direction's solve
-    lcp_ok: jax.Array
-    merit: jax.Array     # () the merit at the point the direction starts from (with the direction's hint)
-    frames: object       # Frames there (constants of the merit), or None without a search
+    p: jax.Array         # (m, 2) the pairs' forces (R_N, R_T): the hint of the trial's merit
+    in_band: jax.Array   # (m,) bool: the pair's node was in the solved problem
+    frames: Any          # Frames at the direction's start (constants of the merit), or None without a search
 
 
-def _exact_newton(args, x0, x_ref, options: NewtonOptions, law):
-    c = args.contact
-    mu_pairs = pair_mu(c.tools, c.mu)
-    m = mu_pairs.shape[0]
-    pen_tol = 10.0 * options.du_atol
+class Point(NamedTuple):
+    """An exact-contact iterate (:attr:`jaxfric.newton.Evaluation.state`)."""
 
-    def classify(k, x, it, R, dx_norm, same, band_ok, lcp_ok):
-        r_norm = jnp.max(jnp.abs(R))
-        leaves = (R, it.f_int, it.K.diag, it.gap)
-        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in leaves]))
-        scale = jnp.max(jnp.abs(it.f_int))
-        res_ok = r_norm <= options.atol + options.rtol * jnp.maximum(scale, 1e-6)
-        dx_ok = dx_norm <= options.du_atol + options.du_rtol * jnp.max(jnp.abs(x - x_ref))
-        done = (k >= 1) & res_ok & dx_ok & same
-        # A band too small shows as a converged state with a penetrating outsider, or as a Newton loop
-        # that cannot settle because the outsiders enter and leave the band: both are reported as such.
-        out_of_iterations = k >= options.max_iterations
-        code = jnp.select(
-            [~finite, ~lcp_ok, it.det_min <= 0.0, (done | out_of_iterations) & ~band_ok, done, out_of_iterations],
-            [Result.NONFINITE, Result.LCP_FAILED, Result.INVERTED_ELEMENT, Result.CONTACT_BAND, Result.SUCCESS,
-             Result.MAX_ITERATIONS], Result.CONTINUE)
-        return code.astype(jnp.int32), r_norm
+    it: Iterate
+    p: jax.Array             # (m, 2) the forces of the direction that reached it
+    status: jax.Array        # (m,) their status (open / stick / slip)
+    penetrating: jax.Array   # (m,) bool: the pair's node lies inside its tool beyond the tolerance
 
-    search = law.solver == "ssn" and options.line_search   # static
-    step = active_set_step if law.solver == "ssn" else contact_newton_step
-    no_stats = jnp.zeros(3, jnp.int32)
 
-    # The loop evaluates one point per pass (the initial guess first, then each trial), then takes the
-    # next trial: a new direction, the same one shortened, or none once the step is decided. So the
-    # traced program holds one linearisation and one direction solve (each copy costs compile time).
-    def body(carry):
-        k, x, it, p, status, x_t, tr, _, r_hist, stats = carry     # k: index of the point x_t
-        it_t = linearize_iterate(x_t, args)
-        R, _ = iterate_residual(x_t, it_t, tr.p_new, args)
-        status_new = pair_status(tr.p_new, mu_pairs)
-        penetrating = it_t.valid & (it_t.gap < -pen_tol)
-        band_ok = ~jnp.any(~tr.in_band & penetrating) | (k == 0)
-        # An open pair of the band that penetrates at the new iterate closes at the next one.
-        settled = jnp.all(status_new == status) & ~jnp.any(tr.in_band & penetrating & (tr.p_new[:, 0] <= 0.0))
-        if law.solver == "ssn":  # static: no step converges on an active set that did not settle,
-            settled = settled & (tr.stats[2] == 0) & (tr.alpha == 1.0)   # nor on a shortened step
-        step_norm = jnp.max(jnp.abs(tr.alpha * tr.dx))
-        code, r_norm = classify(k, x_t, it_t, R, step_norm, settled, band_ok, tr.lcp_ok)
-        reject = jnp.array(False)
-        if search:
-            # Line search on the semismooth residual (:func:`semismooth_merit`): a step that raises it is retried
-            # at a quarter, then a sixteenth of its length, which is then kept. Where the active set
-            # jumps (a node reaching or leaving a tool on a soft, slipping strip) the full step can
-            # overshoot: on the Nine test the residual then grew tenfold per iteration until an element
-            # inverted, and the step was cut three times (about 75 iterations lost per event, one event
-            # per node spacing drawn).
-            # The trial is measured with the forces the direction predicts (tr.p_new), which are the
-            # hint the next direction's merit starts from, so the merits of accepted iterates form one
-            # non-increasing sequence. Measured with the direction's own hint instead, each new
-            # direction re-based the merit: where a candidate node has a prescribed dof (the Nine's
-            # entry-guided tail reaching A), f~ there is hint-driven and the re-based merit of the same
-            # point rose 5 to 20 times per iteration, so the iterates drifted along the strip's soft
-            # draw-in mode (Nine 300 x 3 at 0.4 mm increments: residual 4.6e-3 -> 37 N/mm over 30
-            # iterations of a 6.6e-4 mm step, and the run stopped at U = 43.7 mm).
-            worse = ~(semismooth_merit(x_t, it_t, args, tr.p_new, tr.frames) <= tr.merit)
-            reject = (k > 0) & worse & (tr.alpha > 1.0 / 16.0) & (code != Result.SUCCESS)
-            code = jnp.where(reject & (k < options.max_iterations), Result.CONTINUE, code).astype(jnp.int32)
-        keep = lambda a, b: jnp.where(reject, a, b)  # noqa: E731
-        x, it = keep(x, x_t), jax.tree_util.tree_map(keep, it, it_t)
-        p, status = keep(p, tr.p_new), keep(status, status_new)
+class ExactContactProblem(AbstractNewtonProblem):
+    """One load step with exact contact as a Newton problem (module doc): the direction solves the
+    linearised complementarity problem (``law.solver``), and a step converges only where no pair changed
+    its status, no open pair of the solve penetrates, and (solver "ssn") the active set settled on a full
+    step."""
 
-        def fresh():
-            hint = jnp.where(k == 0, p_step, p)
-            if not search:
-                dx, p_new, in_band, s, lcp_ok = step(it, args, x, p, law, hint)
-                return _Trial(dx, jnp.array(1.0), p_new, in_band, s, lcp_ok, tr.merit, tr.frames), s
-            # The frames (nodes, constants, kappa rows) serve the direction and the merit alike.
-            frames = contact_frames(it, args)
-            dx, p_new, in_band, s, lcp_ok = active_set_step(it, args, x, p, law, hint, frames=frames)
-            merit = semismooth_merit(x, it, args, hint, frames[0])
-            return _Trial(dx, jnp.array(1.0), p_new, in_band, s, lcp_ok, merit, frames[0]), s
+    law: Any                                   # the Complementarity formulation (static fields only)
+    options: NewtonOptions
+    searches_first_step: ClassVar[bool] = True
 
-        def shorter():
-            return tr._replace(alpha=0.25 * tr.alpha), no_stats
+    @property
+    def searched(self) -> bool:   # static: the condensed solve (Lemke) has no merit to search on
+        return self.law.solver == "ssn" and self.options.line_search
 
-        def stop():
-            return tr, no_stats
+    def start(self, x0, args) -> Trial:
+        m = pair_mu(args.contact.tools, args.contact.mu).shape[0]
+        frames = None
+        if self.searched:
+            it_shape = eqx.filter_eval_shape(linearize_iterate, x0, args)
+            shapes = eqx.filter_eval_shape(lambda i, a: contact_frames(i, a)[0], it_shape, args)
+            frames = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
+        return Trial(jnp.zeros_like(x0), jnp.array(1.0), jnp.array(jnp.inf), jnp.array(True), jnp.zeros(3, jnp.int32),
+                     Prediction(jnp.zeros((m, 2)), jnp.zeros(m, bool), frames))
 
-        branch = jnp.where(code != Result.CONTINUE, 2, jnp.where(reject, 1, 0))
-        tr, s = jax.lax.switch(branch, [fresh, shorter, stop])
-        return (k + 1, x, it, p, status, x + tr.alpha * tr.dx, tr, code, r_hist.at[k].set(r_norm),
-                stats + s)
+    def evaluate(self, x, trial, args) -> Evaluation:
+        pred = trial.data
+        it = linearize_iterate(x, args)
+        R, _ = iterate_residual(x, it, pred.p, args)
+        status = pair_status(pred.p, pair_mu(args.contact.tools, args.contact.mu))
+        penetrating = it.valid & (it.gap < -10.0 * self.options.du_atol)
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in (R, it.f_int, it.K.diag, it.gap)]))
+        merit = semismooth_merit(x, it, args, pred.p, pred.frames) if self.searched else None
+        return Evaluation(R, jnp.max(jnp.abs(it.f_int)), finite, ~(it.det_min <= 0.0),
+                          Point(it, pred.p, status, penetrating), merit=merit,
+                          in_band=~jnp.any(~pred.in_band & penetrating))
 
-    zeros = lambda tree: jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), tree)  # noqa: E731
-    it_shape = eqx.filter_eval_shape(linearize_iterate, x0, args)
-    frames0 = zeros(eqx.filter_eval_shape(lambda i, a: contact_frames(i, a)[0], it_shape, args)) if search else None
-    p0 = jnp.zeros((m, 2))
-    # The last converged forces (simulate passes them as lam_n, lam_t): the first active set.
-    p_step = jnp.stack([jnp.concatenate(c.lam_n), jnp.concatenate(c.lam_t)], -1)
-    tr0 = _Trial(jnp.zeros_like(x0), jnp.array(1.0), p0, jnp.zeros(m, bool), no_stats, jnp.array(True),
-                 jnp.array(jnp.inf), frames0)
-    r_hist = jnp.full(options.max_iterations + 1, jnp.nan)
-    carry = (jnp.array(0, jnp.int32), x0, zeros(it_shape), p0, jnp.zeros(m, jnp.int8), x0, tr0,
-             jnp.array(Result.CONTINUE, jnp.int32), r_hist, no_stats)
-    k, x, it, p, status, _, _, code, r_hist, stats = jax.lax.while_loop(lambda c: c[7] == Result.CONTINUE, body,
-                                                                        carry)
-    _, tool_f = iterate_residual(x, it, p, args)
-    aux = (it.f_int, it.states, _contact_out(it, p, tool_f, status))
-    return NewtonSolution(x, aux, k - 1, code, r_hist[k - 1], r_hist), stats
+    def settled(self, new, old, trial) -> jax.Array:
+        pred = trial.data
+        # An open pair of the solve that penetrates at the new iterate closes at the next one.
+        settled = (jnp.all(new.state.status == old.state.status)
+                   & ~jnp.any(pred.in_band & new.state.penetrating & (pred.p[:, 0] <= 0.0)))
+        if self.law.solver == "ssn":   # static: not on an active set that did not settle, nor a shortened step
+            settled = settled & (trial.stats[2] == 0) & (trial.alpha == 1.0)
+        return settled
+
+    def direction(self, x, point, args, first) -> Trial:
+        it, p = point.state.it, point.state.p
+        c = args.contact
+        # The first direction's active set: the last converged forces (the step passes them as lam_n, lam_t).
+        p_step = jnp.stack([jnp.concatenate(c.lam_n), jnp.concatenate(c.lam_t)], -1)
+        hint = jnp.where(first, p_step, p)
+        if not self.searched:
+            step = active_set_step if self.law.solver == "ssn" else contact_newton_step
+            dx, p_new, in_band, stats, solved = step(it, args, x, p, self.law, hint)
+            return Trial(dx, jnp.array(1.0), jnp.array(jnp.inf), solved, stats, Prediction(p_new, in_band, None))
+        # The frames (nodes, constants, kappa rows) serve the direction and the merit alike.
+        frames = contact_frames(it, args)
+        dx, p_new, in_band, stats, solved = active_set_step(it, args, x, p, self.law, hint, frames=frames)
+        merit = semismooth_merit(x, it, args, hint, frames[0])
+        return Trial(dx, jnp.array(1.0), merit, solved, stats, Prediction(p_new, in_band, frames[0]))
+
+    def aux(self, x, point, args):
+        it, p = point.state.it, point.state.p
+        _, tool_f = iterate_residual(x, it, p, args)
+        return it.f_int, it.states, _contact_out(it, p, tool_f, point.state.status)
 
 
 @eqx.filter_custom_jvp
@@ -207,7 +181,10 @@ def exact_solve(args, x0, x_ref, *, options: NewtonOptions, law):
     settle) summed over the step's iterations; the solution's ``aux`` has the layout of the penalty
     path: (f_int, material states, contact outputs).
     """
-    return _exact_newton(args, x0, x_ref, options, law)
+    problem = ExactContactProblem(law, options)
+    c = newton_loop(problem, args, x0, x_ref, options)
+    solution: NewtonSolution = newton_result(c, problem, args)
+    return solution, c.stats
 
 
 @exact_solve.def_jvp

@@ -30,7 +30,7 @@ from .controller import Controller, ControllerState, Outcome, StepControl
 from .formulations import StepSolution, from_newton
 from .loading import schedule
 from .model import SimState, StripModel, default_observe, initial_state, tool_positions
-from .newton import SOLUTION_NAME, NewtonOptions, newton_pass, newton_result, newton_start
+from .newton import SOLUTION_NAME, LinearizedProblem, NewtonOptions, newton_pass, newton_result, newton_start
 from .progress import report
 from .results import Result
 from .step import (
@@ -180,16 +180,15 @@ def _next_attempt(ctrl: Controller, c: _Loop):
 def _after_attempt(model: StripModel, ctrl: Controller, c: _Loop, sol: StepSolution, new_state: SimState, t_try,
                    observe: Callable, progress: bool, snapshot: Callable | None) -> _Loop:
     """The loop after an attempt: the step recorded (and reported) if accepted, the controller adapted."""
-    ok = ctrl.accepts(c.ctrl, sol.code)
+    out = Outcome(sol.code, sol.iterations, sol.hardest, sol.stats, sol.residual_norm, new_state.u,
+                  tool_positions(new_state))
+    ok, iters, stats = ctrl.tally(c.ctrl, out)
     row = c.history.n_rows
-    iters = c.ctrl.iters + sol.iterations
-    history = _record(c.history, row, ok, new_state, iters, c.ctrl.cuts, sol.augmentations,
-                      c.ctrl.stats + sol.stats, observe(model, new_state))
+    history = _record(c.history, row, ok, new_state, iters, c.ctrl.cuts, sol.augmentations, stats,
+                      observe(model, new_state))
     if progress or snapshot is not None:
         jax.lax.cond(ok, lambda: _report(row, t_try, iters, c.ctrl.cuts, snapshot, model, new_state),
                      lambda: None)
-    out = Outcome(sol.code, sol.iterations, sol.hardest, sol.stats, sol.residual_norm, new_state.u,
-                  tool_positions(new_state))
     return _Loop(state=_select(ok, new_state, c.state), predictor=c.predictor.after(ok, c.state, new_state),
                  ctrl=ctrl.adapt(c.ctrl, c.state.time, t_try, out, row), history=history)
 
@@ -247,7 +246,7 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     def attempt(c: _Loop):
         """The next attempt of ``c``: its target time, phase and Newton start."""
         t_try, phase, guess = _next_attempt(ctrl, c)
-        return t_try, phase, newton_start(unknowns(model, *guess), lin_shape, newton)
+        return t_try, phase, newton_start(problem0, unknowns(model, *guess), args0, newton)   # args0: shapes only
 
     def body(carry):
         c, t_try, phase, nc = carry
@@ -256,19 +255,18 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
         if ctrl.continuation:
             args = softened_args(args, jnp.maximum(soft, 0))
         x_ref = unknowns(model, c.state.u, tool_positions(c.state))
-        nc = newton_pass(nc, args, x_ref, linearize, newton, search=~c.ctrl.plain,
-                         positions=(soft >= 0) if ctrl.continuation else False)
+        problem = LinearizedProblem(linearize, positions=(soft >= 0) if ctrl.continuation else False)
+        nc = newton_pass(nc, args, x_ref, problem, newton, search=~c.ctrl.plain)
         done = nc.code != Result.CONTINUE
-        sol = from_newton(newton_result(nc))
+        sol = from_newton(newton_result(nc, problem, args))
         new_state = step_state(model, args, sol, t_try, phase, q_start, f_start)
         c = _select(done, _after_attempt(model, ctrl, c, sol, new_state, t_try, observe, False, None), c)
         return _select(done, (c,) + attempt(c), (c, t_try, phase, nc))
 
     t0, phase0, guess0 = _next_attempt(ctrl, init)
     args0, _, _ = step_args(model, init.state, phase0, t0, ctx)
-    x0 = unknowns(model, *guess0)
-    lin_shape = eqx.filter_eval_shape(linearize, x0, args0)     # the same for every attempt
-    carry = (init, t0, phase0, newton_start(x0, lin_shape, newton))
+    problem0 = LinearizedProblem(linearize)
+    carry = (init, t0, phase0, newton_start(problem0, unknowns(model, *guess0), args0, newton))
     out = jax.lax.while_loop(lambda carry: carry[0].ctrl.code == Result.CONTINUE, body, carry)[0]
     return _simulation(out)
 

@@ -98,7 +98,7 @@ def test_penalty_converges_to_the_exact_solution_and_the_augmented_lagrangian_re
     exact = runs["lcp_ssn"]
     errors = []
     for eps_n in (1e5, 1e6, 1e7):
-        pen = jf.run(flat_die_strip(jf.contact.Penalty(eps_n, MU * eps_n), **SMALL), progress=False)
+        pen = jf.run(flat_die_strip(jf.Penalty(eps_n, MU * eps_n), **SMALL), progress=False)
         common, q_pen, q_ref = _at_common_times(pen, exact, "tool_position")
         _, f_pen, f_ref = _at_common_times(pen, exact, "reaction_right")
         assert common.size > 30
