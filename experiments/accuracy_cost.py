@@ -1,6 +1,6 @@
 """Error against run time (issue 5): ``python experiments/accuracy_cost.py [--quick] [--test NAME ...]``.
 
-Runs :func:`jaxfric.accuracy.accuracy_cost` (the same as ``jaxfric report accuracy-cost``) into
+Runs :func:`jaxfric.identification.accuracy_report.accuracy_cost` (the same as ``jaxfric report accuracy-cost``) into
 ``experiments/results/accuracy_cost/`` (run directories under ``runs/``, not committed; a run already on
 disk is read back, so an interrupted sweep resumes) and writes its section of ``docs/results.md``
 (between ``<!-- BEGIN study:accuracy_cost -->`` and ``<!-- END study:accuracy_cost -->``).
@@ -12,7 +12,7 @@ import argparse
 import os
 import sys
 
-from jaxfric import accuracy
+from jaxfric.identification import accuracy, accuracy_report
 from studies import write_section
 
 OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "accuracy_cost")
@@ -28,10 +28,10 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     out = OUT + ("_quick" if a.quick else "")
     if a.collect:
-        accuracy.write_report(out, a.quick)
+        accuracy_report.write_report(out, a.quick)
     else:
-        accuracy.accuracy_cost(out, quick=a.quick, tests=a.test, rerun=a.rerun,
-                               log=lambda m: print(m, flush=True))
+        accuracy_report.accuracy_cost(out, quick=a.quick, tests=a.test, rerun=a.rerun,
+                                      log=lambda m: print(m, flush=True))
     # The section covers every test on disk, not only this invocation's.
     rows = accuracy.collect(out, quick=a.quick)
     # Links relative to docs/results.md, where the section is written.
@@ -41,7 +41,8 @@ def main(argv=None) -> int:
                   f"### Error against run time{' (quick)' if a.quick else ''}\n\nRegenerate: `python "
                   f"experiments/accuracy_cost.py{' --quick' if a.quick else ''}` (or `jaxfric report "
                   f"accuracy-cost{' --quick' if a.quick else ''}`). Table: `{rel}/accuracy_cost.csv`.\n\n"
-                  + accuracy.report_markdown(rows, accuracy.reference_checks(rows), a.quick) + "\n" + figures,
+                  + accuracy_report.report_markdown(rows, accuracy_report.reference_checks(rows), a.quick)
+                  + "\n" + figures,
                   command=f"python experiments/accuracy_cost.py{' --quick' if a.quick else ''}")
     return 0
 

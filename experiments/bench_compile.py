@@ -5,7 +5,8 @@
 For each algorithm, in a fresh process each (JAX keeps traces and executables for the life of a
 process), prints the seconds spent tracing and lowering the program that :func:`jaxfric.run` compiles
 (``lower``) and in XLA's compilation (``compile``), and how many times the element tangent was traced
-(one per program since ``jaxfric.assembly.shared_trace``; docs/results.md, run time of the Nine test). Writes nothing.
+(one per program since ``jaxfric.fem.assembly.shared_trace``; docs/results.md, run time of the Nine test). Writes
+nothing.
 """
 
 from __future__ import annotations
@@ -19,8 +20,10 @@ _CHILD = r"""
 import json, sys, time
 import equinox as eqx
 import jaxfric
-from jaxfric import assembly, exact_iterate, scenes, system
-simulate = sys.modules["jaxfric.simulate"].simulate
+from jaxfric.fem import assembly
+from jaxfric.contact import exact_iterate, system
+from jaxfric import scenes
+simulate = sys.modules["jaxfric.loadpath.simulate"].simulate
 scene, variant, algorithm, mesh = sys.argv[1:5]
 traced = []
 original = assembly.internal_force_and_tangent

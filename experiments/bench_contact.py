@@ -21,12 +21,12 @@ import numpy as np
 
 import jaxfric as jf
 from benchutil import median_time, write_rows
-from jaxfric import exact_active_set, exact_condensed, exact_iterate
-from jaxfric.contact import Move, RigidTool
-from jaxfric.formulations import AugmentedLagrangian, Complementarity, Penalty
-from jaxfric.linalg import linear_solve
-from jaxfric.step import StepContext, step_args, unknowns
-from jaxfric.tools import Tool
+from jaxfric.contact import exact_active_set, exact_condensed, exact_iterate
+from jaxfric.contact.formulations import AugmentedLagrangian, Complementarity, Penalty
+from jaxfric.contact.rigid import Move, RigidTool
+from jaxfric.contact.tools import Tool
+from jaxfric.loadpath.step import StepContext, step_args, unknowns
+from jaxfric.numerics.linalg import linear_solve
 
 R1, PITCH, E_SHEET = 5.5, 11.97, 0.97
 

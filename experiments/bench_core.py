@@ -19,7 +19,7 @@ import jax.numpy as jnp
 
 import jaxfric as jf
 from benchutil import median_time, write_rows
-from jaxfric.assembly import internal_force_and_tangent, mesh_geometry
+from jaxfric.fem.assembly import internal_force_and_tangent, mesh_geometry
 from strips import stretch_bend_strip
 
 

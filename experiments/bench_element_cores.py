@@ -1,7 +1,7 @@
 """Does the element loop use both cores? ``python experiments/bench_element_cores.py [--mesh 300x3]``.
 
 Times the Nine scene's element forces and tangents (jitted alone, at a small random displacement from the
-initial state) three ways: as the run assembles them (:func:`jaxfric.assembly.internal_force_and_tangent`,
+initial state) three ways: as the run assembles them (:func:`jaxfric.fem.assembly.internal_force_and_tangent`,
 with the scatter into the block-tridiagonal tangent), as one ``vmap`` over all elements, and as two
 independent ``vmap`` over the two halves of the elements (which XLA could run side by side). Run it once
 as it is and once under ``taskset -c 0``: times no shorter with two cores than with one mean the second
@@ -18,9 +18,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfric import assembly, scenes
-from jaxfric.element import element_force_and_tangent, element_geometry
-from jaxfric.model import initial_state
+from jaxfric import scenes
+from jaxfric.fem import assembly
+from jaxfric.fem.element import element_force_and_tangent, element_geometry
+from jaxfric.loadpath.model import initial_state
 
 
 def main(argv=None) -> int:

@@ -21,9 +21,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchutil import write_rows
-from jaxfric.loading import schedule
-from jaxfric.params import parameterize
-from jaxfric.simulate import simulate_fixed
+from jaxfric.fem.loading import schedule
+from jaxfric.identification.params import parameterize
+from jaxfric.loadpath.simulate import simulate_fixed
 
 
 def _timed(fn, p, repeat=3):

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 
 from benchutil import write_rows
 from jaxfric import scenes
-from jaxfric.simulate import simulate, simulate_fixed
+from jaxfric.loadpath.simulate import simulate, simulate_fixed
 
 
 def main(argv=None) -> None:

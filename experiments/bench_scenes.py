@@ -21,7 +21,7 @@ import numpy as np
 import jaxfric as jf
 from benchutil import median_time, write_rows
 from jaxfric import scenes
-from jaxfric.contact import Move, pair_nodes
+from jaxfric.contact.rigid import Move, pair_nodes
 
 CASES = [("flat_die", "const_force"), ("bead", None), ("nine", "mu000"), ("nine", "mu017"), ("blankholder", None)]
 

@@ -5,13 +5,13 @@
                                       [--singles K] [--csv PATH] [--solver thomas|cyclic]
 
 Runs ``members`` friction coefficients evenly spaced in [0.05, 0.3] as one compiled vmapped simulation
-(:func:`jaxfric.sweep.sweep`) and as single runs (:func:`jaxfric.run.run`, compiled once), checks that
+(:func:`jaxfric.loadpath.sweep.sweep`) and as single runs (:func:`jaxfric.loadpath.run.run`, compiled once), checks that
 the histories agree to 1e-10 of each column's scale, and writes
 ``experiments/results/bench_sweep_<scene>.csv`` (or ``--csv PATH``) with compile and solve times, their
 ratios and the device. ``--chunk N``: the sweep's element chunk per member (default: the sweep's, sized
 for a CPU cache). ``--singles K``: time only K evenly spaced members as single runs (the mean and the
 agreement check over those; for a device where single runs are slow). ``--solver``: the
-block-tridiagonal solve every program here traces (:func:`jaxfric.linalg.block_solver`; default
+block-tridiagonal solve every program here traces (:func:`jaxfric.numerics.linalg.block_solver`; default
 ``auto``: ``cyclic`` on a GPU, ``thomas`` on a CPU).
 
 ``--iteration``: instead, time one Newton iteration (linearisation and solve) of all members at once
@@ -34,9 +34,9 @@ import numpy as np
 import jaxfric as jf
 from benchutil import median_time, write_rows
 from jaxfric import scenes
-from jaxfric.assembly import element_chunk
-from jaxfric.linalg import BLOCK_SOLVERS, block_solver, linear_solve, resolved_block_solver
-from jaxfric.sweep import default_chunk, stack_models, sweep
+from jaxfric.fem.assembly import element_chunk
+from jaxfric.loadpath.sweep import default_chunk, stack_models, sweep
+from jaxfric.numerics.linalg import BLOCK_SOLVERS, block_solver, linear_solve, resolved_block_solver
 
 
 def main(argv=None) -> None:
@@ -114,7 +114,7 @@ def iteration_cost(built, chunk=None) -> None:
     v0 = [v if ax is None else v[0] for v, ax in zip(values, axes)]
     states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n,) + a.shape) + 0, state)
     one = median_time(jax.jit(iteration), v0, state, repeat=20)
-    chunk = default_chunk(n) if chunk is None else chunk   # as jaxfric.sweep.sweep traces its members
+    chunk = default_chunk(n) if chunk is None else chunk   # as jaxfric.loadpath.sweep.sweep traces its members
     with element_chunk(chunk):
         own = median_time(jax.jit(jax.vmap(iteration, in_axes=(axes, 0))), values, states, repeat=10)
     shared = median_time(jax.jit(jax.vmap(iteration, in_axes=(axes, None))), values, state, repeat=10)

@@ -26,7 +26,7 @@ def main(argv=None) -> int:
         return 2
 
     import jaxfric as jf
-    from jaxfric.plotting import element_values_mean, figure, plot_mesh
+    from jaxfric.io.plotting import element_values_mean, figure, plot_mesh
     from strips import stretch_bend_strip
 
     try:

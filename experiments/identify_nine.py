@@ -15,7 +15,7 @@
 **Global stage for mu + R1** (``--grid``, default ``mu=0.101:0.251:7,R1=5.07:5.97:9``, chosen so that the
 truth lies on no grid line): the two parameters compensate each other, and the windowed misfit has local
 minima along the valley they leave (``scan_joint_misfit.py``), so the joint fits start from the minimum
-of the misfit interpolated between adaptive runs on a grid (``jaxfric.fit.fit(..., grid=...)``; the truth
+of the misfit interpolated between adaptive runs on a grid (``jaxfric.identification.fit.fit(..., grid=...)``; the truth
 is not a grid point). The grid's runs do not depend on the data: the noise draws reuse them.
 ``--params mu,R1`` runs one parameter set and keeps the CSV rows of the others.
 
@@ -41,10 +41,10 @@ import jaxfric
 from benchutil import write_rows
 from jaxfric import scenes
 from jaxfric.cli import parse_grid
-from jaxfric.fit import bin_means, fit
-from jaxfric.fit_curve import Curve
-from jaxfric.fit_data import window_edges
-from jaxfric.params import parameterize
+from jaxfric.identification.fit import bin_means, fit
+from jaxfric.identification.fit_curve import Curve
+from jaxfric.identification.fit_data import window_edges
+from jaxfric.identification.params import parameterize
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 TRUE = {"mu": 0.17, "R1": 5.5}

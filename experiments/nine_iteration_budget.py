@@ -26,8 +26,8 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from jaxfric.newton import NewtonOptions  # noqa: E402
-from jaxfric.run import run  # noqa: E402
+from jaxfric.loadpath.run import run  # noqa: E402
+from jaxfric.numerics.newton import NewtonOptions  # noqa: E402
 from jaxfric.scenes import make  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))

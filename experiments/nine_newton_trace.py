@@ -4,9 +4,9 @@ at every iterate of the exact-contact solver.
     python experiments/nine_newton_trace.py [--u0 20] [--steps 8] [--mesh 300x3]
 
 Runs Nine mu017 (``lcp_ssn``) to U = u0 mm, then takes ``--steps`` nominal drawing steps from the
-secant predictor, each twice: with :func:`jaxfric.step.solve_step` (the iteration count the runs
-report) and pass by pass from the host through the same Newton loop (:func:`jaxfric.newton.newton_pass`
-with :class:`jaxfric.exact.ExactContactProblem`), recording at every evaluated point: ||R||_inf against
+secant predictor, each twice: with :func:`jaxfric.loadpath.step.solve_step` (the iteration count the runs
+report) and pass by pass from the host through the same Newton loop (:func:`jaxfric.numerics.newton.newton_pass`
+with :class:`jaxfric.contact.exact.ExactContactProblem`), recording at every evaluated point: ||R||_inf against
 the tolerance, the step length (1, or 1/4 and 1/16 after a rejected trial), how many pairs changed
 contact status, and how many Gauss points changed between elastic and plastic (equivalent plastic
 strain grown since the step's start) since the last accepted iterate. The two iteration counts are
@@ -28,13 +28,13 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxfric.exact import ExactContactProblem  # noqa: E402
-from jaxfric.model import tool_positions  # noqa: E402
-from jaxfric.newton import NewtonOptions, newton_pass, newton_start  # noqa: E402
-from jaxfric.results import Result  # noqa: E402
+from jaxfric.contact.exact import ExactContactProblem  # noqa: E402
+from jaxfric.loadpath.model import tool_positions  # noqa: E402
+from jaxfric.loadpath.simulate import simulate  # noqa: E402
+from jaxfric.loadpath.step import StepContext, solve_step, step_args, unknowns  # noqa: E402
+from jaxfric.numerics.newton import NewtonOptions, newton_pass, newton_start  # noqa: E402
+from jaxfric.numerics.results import Result  # noqa: E402
 from jaxfric.scenes import nine  # noqa: E402
-from jaxfric.simulate import simulate  # noqa: E402
-from jaxfric.step import StepContext, solve_step, step_args, unknowns  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 FIELDS = ("step", "U", "k", "alpha", "residual", "tolerance", "status_changes", "gauss_point_switches",

@@ -2,7 +2,7 @@
 
     python experiments/nine_predictor.py [--u0 20] [--steps 15] [--algorithm lcp_ssn]
 
-Runs Nine mu017 (300 x 3) to U = u0 mm with the load loop of ``jaxfric.simulate``, takes three more
+Runs Nine mu017 (300 x 3) to U = u0 mm with the load loop of ``jaxfric.loadpath.simulate``, takes three more
 nominal steps (0.1 mm) with the secant predictor, and then, from that same state, ``--steps`` nominal
 steps three times: with the initial guess extrapolated linearly (the secant predictor of the load
 loop), quadratically and cubically from the last converged states. Each step is solved by
@@ -25,10 +25,10 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxfric.newton import NewtonOptions  # noqa: E402
+from jaxfric.loadpath.simulate import simulate  # noqa: E402
+from jaxfric.loadpath.step import StepContext, solve_step  # noqa: E402
+from jaxfric.numerics.newton import NewtonOptions  # noqa: E402
 from jaxfric.scenes import nine  # noqa: E402
-from jaxfric.simulate import simulate  # noqa: E402
-from jaxfric.step import StepContext, solve_step  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 # Extrapolation weights on the last 2, 3, 4 states (newest last) for equal steps.

@@ -2,12 +2,13 @@
 
     python experiments/reference_candidate.py TEST --mesh NXxNY [--step F] --root DIR [--chunk N] [--progress]
 
-Runs :func:`jaxfric.accuracy.reference_overrides` of ``TEST`` (a name of ``jaxfric.accuracy.TESTS``:
-its reference algorithm, base overrides and target gap) on ``--mesh`` with ``--step`` times the nominal
-increments, into ``DIR/<test's run directory>/ref_<algorithm>_<mesh>_x<step>/`` (the run directory of
-:func:`jaxfric.batch.run_case`, no figures), and prints one line with its steps, iterations, times and
+Runs :func:`jaxfric.identification.accuracy.reference_overrides` of ``TEST`` (a name of
+``jaxfric.identification.accuracy.TESTS``: its reference algorithm, base overrides and target gap) on ``--mesh`` with
+``--step`` times the nominal increments, into ``DIR/<test's run directory>/ref_<algorithm>_<mesh>_x<step>/`` (the run
+directory of
+:func:`jaxfric.io.batch.run_case`, no figures), and prints one line with its steps, iterations, times and
 forces. Used to choose a reference's mesh (a ladder of meshes, docs/results.md); a run's directory can then
-be copied to the label the test gives its reference or a check (:func:`jaxfric.accuracy.cases`), whose
+be copied to the label the test gives its reference or a check (:func:`jaxfric.identification.accuracy.cases`), whose
 overrides are the same. ``experiments/device_reference.sh`` runs a ladder of them side by side on a lent
 GPU.
 """
@@ -20,9 +21,9 @@ import json
 import os
 import sys
 
-from jaxfric import accuracy
-from jaxfric.assembly import element_chunk
-from jaxfric.batch import run_case
+from jaxfric.fem.assembly import element_chunk
+from jaxfric.identification import accuracy
+from jaxfric.io.batch import run_case
 from jaxfric.scenes import parse_mesh
 
 

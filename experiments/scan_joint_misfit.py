@@ -2,14 +2,14 @@
 point where the fits stalled, (0.1496, 5.366), to the truth (0.17, 5.5): ``python
 experiments/scan_joint_misfit.py``. Each point is an ordinary adaptive run (penalty, 100 x 2, U_draw
 10 mm); the misfit is half the sum of squares of the 1 mm window means against the run at the truth,
-as in ``jaxfric.fit``. Prints one line per point (t = 0: the stall point, t = 1: the truth).
+as in ``jaxfric.identification.fit``. Prints one line per point (t = 0: the stall point, t = 1: the truth).
 """
 
 import numpy as np
 
 import jaxfric as jf
 from jaxfric import scenes
-from jaxfric.fit import bin_means
+from jaxfric.identification.fit import bin_means
 
 base = {"mesh": "100x2", "U_draw": 10.0}
 def curve(mu, R1):

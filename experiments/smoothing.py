@@ -1,7 +1,7 @@
 """Forces and derivatives of the Nine test with the exact and the smoothed contact laws:
 ``python experiments/smoothing.py [--mesh 40x2] [--stroke 1] [--smoothing 0,0.1,1,10]``.
 
-What derivative does a run return where the exact law has kinks? The pair law (``jaxfric.contact_laws``)
+What derivative does a run return where the exact law has kinks? The pair law (``jaxfric.contact.laws``)
 takes its branches with explicit ``where``: closed or open, stick or slip. Differentiating a converged
 step by the implicit function theorem then differentiates the branch each pair is on at that step, i.e.
 the one-sided derivative in the direction that keeps every pair's status. That is the exact derivative
@@ -28,8 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchutil import write_rows
-from jaxfric.newton import NewtonOptions
-from jaxfric.params import parameterize, path_function
+from jaxfric.identification.params import parameterize, path_function
+from jaxfric.numerics.newton import NewtonOptions
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 NAMES = ("mu", "R1")

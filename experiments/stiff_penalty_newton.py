@@ -6,7 +6,7 @@
 Runs the Nine test of ``tests/test_extreme.py`` (30 x 2, B pushed 3 mm in 6 steps, drawn 1 mm in 4), or
 with ``--spec`` the spec's load path (the penalty study's case with the second command), with the
 penalty law at ``--eps-n`` until it stops, then repeats the failed attempt by hand from the last
-converged state: Newton steps on ``jaxfric.system.linearize`` with the solver's line search (the full
+converged state: Newton steps on ``jaxfric.contact.system.linearize`` with the solver's line search (the full
 step, a quarter, a sixteenth, which is kept). Prints, per iteration, the step length taken, the residual
 before and after (max norm, N/mm), the linear solve's own residual |J dx + R|, every pair whose status
 (open 0 / stick 1 / slip 2) changed, with its gap and forces before and after, and the residual tolerance
@@ -24,13 +24,13 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxfric.contact import pair_nodes  # noqa: E402
-from jaxfric.linalg import linear_solve  # noqa: E402
-from jaxfric.model import tool_positions  # noqa: E402
-from jaxfric.run import run  # noqa: E402
+from jaxfric.contact.rigid import pair_nodes  # noqa: E402
+from jaxfric.contact.system import linearize  # noqa: E402
+from jaxfric.loadpath.model import tool_positions  # noqa: E402
+from jaxfric.loadpath.run import run  # noqa: E402
+from jaxfric.loadpath.step import StepContext, step_args, unknowns  # noqa: E402
+from jaxfric.numerics.linalg import linear_solve  # noqa: E402
 from jaxfric.scenes import make  # noqa: E402
-from jaxfric.step import StepContext, step_args, unknowns  # noqa: E402
-from jaxfric.system import linearize  # noqa: E402
 
 NINE = {"mesh": "30x2", "stroke": 3.0, "dq_clamp": 0.5, "U_draw": 1.0, "dU": 0.25}
 

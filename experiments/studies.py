@@ -43,8 +43,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np
 
 from jaxfric import scenes
-from jaxfric.batch import phase_curve, run_case, write_csv
-from jaxfric.formulations import ALGORITHMS
+from jaxfric.contact.formulations import ALGORITHMS
+from jaxfric.io.batch import phase_curve, run_case, write_csv
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.join(HERE, "results", "studies")
@@ -73,7 +73,7 @@ GRID = 200
 # --------------------------------------------------------------------------------------------- runs
 def case(study: str, name: str, scene_name: str, variant: str, algorithm: str, overrides: dict,
          opts) -> dict:
-    """Run one case into ``runs/<name>`` of the study (or read it back): :func:`jaxfric.batch.run_case`."""
+    """Run one case into ``runs/<name>`` of the study (or read it back): :func:`jaxfric.io.batch.run_case`."""
     return run_case(os.path.join(ROOT, study, "runs", name), scene_name, variant, algorithm, overrides,
                     rerun=opts.rerun and _selected(opts, name), progress=opts.progress,
                     figures=opts.run_figures, tag=study, log=lambda m: print(f"[{study}] {m}", flush=True))

@@ -7,9 +7,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from .contact import Force, Move, RigidTool  # noqa: E402
-from .controller import StepControl  # noqa: E402
-from .formulations import (  # noqa: E402
+from .contact.formulations import (  # noqa: E402
     ALGORITHMS,
     AbstractContactFormulation,
     AugmentedLagrangian,
@@ -17,18 +15,20 @@ from .formulations import (  # noqa: E402
     Penalty,
     formulation,
 )
-from .linalg import BlockTridiag, Bordered, block_tridiag_solve, bordered_solve, dense_solve, linear_solve  # noqa: E402
-from .loading import Affine, DirichletBC, Motion, Phase, Ramp, RigidMotion  # noqa: E402
-from .material import J2Material, MaterialState, von_mises  # noqa: E402
-from .mesh import StripMesh, graded_coordinates, strip_mesh  # noqa: E402
-from .model import SimState, StripModel, default_observe, initial_state, reactions, stresses  # noqa: E402
-from .newton import NewtonOptions  # noqa: E402
-from .results import Result, SimulationError  # noqa: E402
-from .run import MemoryBudgetError, RunResult, run  # noqa: E402
-from .simulate import Simulation, simulate, simulate_fixed, simulate_flat  # noqa: E402
-from .status import OPEN, SLIP, STICK, contact_status  # noqa: E402
-from .step import linearize_step, solve_step  # noqa: E402
-from .tools import Tool  # noqa: E402
+from .contact.rigid import Force, Move, RigidTool  # noqa: E402
+from .contact.status import OPEN, SLIP, STICK, contact_status  # noqa: E402
+from .contact.tools import Tool  # noqa: E402
+from .fem.loading import Affine, DirichletBC, Motion, Phase, Ramp, RigidMotion  # noqa: E402
+from .fem.material import J2Material, MaterialState, von_mises  # noqa: E402
+from .fem.mesh import StripMesh, graded_coordinates, strip_mesh  # noqa: E402
+from .loadpath.controller import StepControl  # noqa: E402
+from .loadpath.model import SimState, StripModel, default_observe, initial_state, reactions, stresses  # noqa: E402
+from .loadpath.run import MemoryBudgetError, RunResult, run  # noqa: E402
+from .loadpath.simulate import Simulation, simulate, simulate_fixed, simulate_flat  # noqa: E402
+from .loadpath.step import linearize_step, solve_step  # noqa: E402
+from .numerics.linalg import BlockTridiag, Bordered, block_tridiag_solve, bordered_solve, dense_solve, linear_solve  # noqa: E402
+from .numerics.newton import NewtonOptions  # noqa: E402
+from .numerics.results import Result, SimulationError  # noqa: E402
 
 __version__ = "0.1.0"
 

@@ -1,12 +1,12 @@
 """Command line: ``jaxfric scenes``, ``jaxfric run SCENE ...`` (outputs spec section 1) and
-``jaxfric fit SCENE --data CSV --param NAMES ...`` (:mod:`jaxfric.fit`).
+``jaxfric fit SCENE --data CSV --param NAMES ...`` (:mod:`jaxfric.identification.fit`).
 
     jaxfric scenes
     jaxfric run nine --variant mu017 --algorithm auglag --mesh 150x3 --set U_draw=40 --out runs/x
     jaxfric fit nine --data runs/x/history.csv --param mu --mesh 100x2 --set U_draw=10 --set mu=0.12
 
 ``run`` builds the scene (:func:`jaxfric.scenes.make`), runs it with a progress bar, writes the run
-directory (:func:`jaxfric.output.write_run`) and prints where the files are, the steady drawing force,
+directory (:func:`jaxfric.io.output.write_run`) and prints where the files are, the steady drawing force,
 and the solve and compile times. Exit status: 0 on success, 1 when the run stopped early or its files
 could not all be written (what converged is still written), 2 for bad input. Errors are one line on
 stderr, without traceback.
@@ -19,7 +19,7 @@ import os
 import shutil
 import sys
 
-from .formulations import ALGORITHMS
+from .contact.formulations import ALGORITHMS
 
 __all__ = ["main", "build_parser", "UsageError", "parse_grid"]
 
@@ -107,7 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     report = sub.add_parser("report", help="studies across many runs (accuracy-cost)",
                             description="Error against run time: references, the sweep of algorithms, "
                                         "penalties, meshes and steps, Pareto plots and what to pick for "
-                                        "10 %, 1 % and 0.1 % accuracy (jaxfric.accuracy).")
+                                        "10 %, 1 % and 0.1 % accuracy (jaxfric.identification.accuracy).")
     report.add_argument("which", choices=["accuracy-cost"], help="the report")
     report.add_argument("--quick", action="store_true", help="the small sweep (a few minutes)")
     report.add_argument("--test", action="append", default=None, metavar="NAME",
@@ -263,8 +263,8 @@ def _first_missing(path: str) -> str | None:
 
 def _run(args) -> int:
     scene = _build(args)
-    from . import output
-    from .run import MemoryBudgetError, run
+    from .io import output
+    from .loadpath.run import MemoryBudgetError, run
 
     if args.error_estimate == "sensitivity" and scene.algorithm != "penalty":
         raise UsageError(f"--error-estimate sensitivity applies to algorithm penalty, not {scene.algorithm}")
@@ -283,7 +283,7 @@ def _run(args) -> int:
         raise UsageError(str(err)) from None
     tangent = None
     if args.error_estimate == "sensitivity" and result.converged:
-        from .accuracy import penalty_tangent
+        from .identification.accuracy import penalty_tangent
 
         try:
             tangent = penalty_tangent(scene, result)
@@ -291,7 +291,7 @@ def _run(args) -> int:
             print(f"note: {err}")
     check = None
     if args.error_estimate == "step" and result.converged:
-        from .accuracy import step_check
+        from .identification.accuracy import step_check
 
         try:
             check = step_check(scene, progress=not args.quiet)
@@ -344,7 +344,7 @@ def _bounds(pairs, names) -> dict:
 def parse_grid(specs, names) -> dict:
     """``--grid NAME=LOW:HIGH:N`` specs of the fitted parameters ``names`` -> {name: N values evenly
     spaced from LOW to HIGH}; bad input -> UsageError naming it."""
-    from .fit_global import MAX_GRID_POINTS
+    from .identification.fit_global import MAX_GRID_POINTS
 
     out, points = {}, 1
     for text in specs:
@@ -373,7 +373,7 @@ def parse_grid(specs, names) -> dict:
 def _fit(args) -> int:
     _check_scene_args(args)
     from . import scenes
-    from .fit import FitError, fit, write_fit
+    from .identification.fit import FitError, fit, write_fit
 
     names = tuple(n.strip() for n in args.param.split(","))
     if not all(names):
@@ -409,7 +409,7 @@ def _fit(args) -> int:
 
 
 def _report(args) -> int:
-    from . import accuracy
+    from .identification import accuracy, accuracy_report
 
     # The quick report has its own default folder: its test shares a name with the full report's.
     default = os.path.join("runs", "report", "accuracy_cost_quick" if args.quick else "accuracy_cost")
@@ -422,8 +422,8 @@ def _report(args) -> int:
             raise UsageError(f"--test {name!r} given twice")
     _writable_dir(out)
     log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
-    rows = accuracy.accuracy_cost(out, quick=args.quick, tests=args.test, rerun=args.rerun,
-                                  progress=not args.quiet, log=log)
+    rows = accuracy_report.accuracy_cost(out, quick=args.quick, tests=args.test, rerun=args.rerun,
+                                         progress=not args.quiet, log=log)
     print(f"report: {os.path.join(out, 'accuracy_cost.md')}; table: {os.path.join(out, 'accuracy_cost.csv')}; "
           f"plots: {os.path.join(out, 'pareto_*.png')}")
     failed = [r for r in rows if not r["converged"]]

@@ -32,8 +32,8 @@ def flat_die_strip(law, length=6.0, half_thickness=0.395, nx=30, ny=2, force=50.
     """A small version of the benchmark's flat die: a force-driven die (line above the strip) clamps
     it with `force` N/mm frictionlessly, then the right end is drawn by `draw` mm with friction `mu`
     (the spec's increments: 100 steps to draw/12, then 275). v = 0 on the bottom (symmetry plane)."""
-    from jaxfric.contact import Force, RigidTool
-    from jaxfric.tools import Tool
+    from jaxfric.contact.rigid import Force, RigidTool
+    from jaxfric.contact.tools import Tool
 
     mesh = jf.strip_mesh(0.0, length, 0.0, half_thickness, nx, ny)
     if material is None:

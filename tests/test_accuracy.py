@@ -1,4 +1,4 @@
-"""The accuracy-cost report (jaxfric.accuracy): error measures, the Pareto front, the sweep's plan, and
+"""The accuracy-cost report (jaxfric.identification.accuracy): error measures, the Pareto front, the sweep's plan, and
 (slow) the quick report end to end."""
 
 from __future__ import annotations
@@ -9,8 +9,9 @@ import os
 import numpy as np
 import pytest
 
-from jaxfric import accuracy, scenes
+from jaxfric import scenes
 from jaxfric.cli import main
+from jaxfric.identification import accuracy, accuracy_report
 
 
 def _run(u, force, converged=True, contact=None, **summary):
@@ -29,7 +30,7 @@ def _contact(x, rn, instant="final"):
 
 def test_pareto_front_keeps_the_points_nothing_beats():
     pts = [(1.0, 0.5, "a"), (2.0, 0.1, "b"), (3.0, 0.2, "c"), (0.5, 1.0, "d"), (2.5, 0.1, "e")]
-    assert [p[2] for p in accuracy.pareto_front(pts)] == ["d", "a", "b"]
+    assert [p[2] for p in accuracy_report.pareto_front(pts)] == ["d", "a", "b"]
 
 
 def test_error_measures_against_the_reference():
@@ -67,7 +68,7 @@ def _check_rows(check_change, sweep_errors):
     rows = [{"test": "t", "family": "ref_check", "converged": True, **{m: check_change for m in accuracy.MEASURES}}]
     rows += [{"test": "t", "family": "penalty", "converged": True, **{m: e for m in accuracy.MEASURES}}
              for e in sweep_errors]
-    return accuracy.reference_checks(rows)["t"]["err_steady"]
+    return accuracy_report.reference_checks(rows)["t"]["err_steady"]
 
 
 def test_reference_check_needs_a_resolved_error_or_round_off():
@@ -132,7 +133,7 @@ def test_the_same_mesh_test_shares_its_parents_sweep_runs():
 
 
 def _fake_run_case(path, scene, variant, algorithm, ov, **_):
-    """A stand-in for :func:`jaxfric.batch.run_case`: writes a summary so the run is "on disk" and
+    """A stand-in for :func:`jaxfric.io.batch.run_case`: writes a summary so the run is "on disk" and
     returns a run whose steady force depends on the penalty."""
     import json
 
@@ -155,15 +156,15 @@ def test_a_report_keeps_the_rows_of_tests_whose_runs_are_gone(tmp_path, monkeypa
     other = accuracy.Test(**{**{f: getattr(base, f) for f in base.__dataclass_fields__}, "tag": "_b"})
     monkeypatch.setattr(accuracy, "QUICK_TESTS", (base, other))
     monkeypatch.setattr(accuracy, "run_case", _fake_run_case)
-    monkeypatch.setattr(accuracy, "_pareto_figure", lambda *a, **k: None)
+    monkeypatch.setattr(accuracy_report, "_pareto_figure", lambda *a, **k: None)
     out = str(tmp_path)
-    first = accuracy.accuracy_cost(out, quick=True, tests=[base.name])
+    first = accuracy_report.accuracy_cost(out, quick=True, tests=[base.name])
     shutil.rmtree(os.path.join(out, "runs", base.name))
     seen = []
-    real_write = accuracy.write_csv
-    monkeypatch.setattr(accuracy, "write_csv",
+    real_write = accuracy_report.write_csv
+    monkeypatch.setattr(accuracy_report, "write_csv",
                         lambda path, rows: seen.append({r["test"] for r in rows}) or real_write(path, rows))
-    rows = accuracy.accuracy_cost(out, quick=True, tests=[other.name])
+    rows = accuracy_report.accuracy_cost(out, quick=True, tests=[other.name])
     assert [r for r in rows if r["test"] == base.name] == first
     assert {r["test"] for r in rows} == {base.name, other.name}
     assert seen and all(base.name in names for names in seen)
@@ -173,7 +174,7 @@ def test_a_report_keeps_the_rows_of_tests_whose_runs_are_gone(tmp_path, monkeypa
     # earlier rows.
     shutil.rmtree(os.path.join(out, "runs"))
     seen.clear()
-    accuracy.accuracy_cost(out, quick=True)
+    accuracy_report.accuracy_cost(out, quick=True)
     assert seen and all(names == {base.name, other.name} for names in seen)
 
 
@@ -241,7 +242,7 @@ def test_a_run_on_disk_made_with_other_parameters_is_not_read_back(tmp_path, mon
     changed reference step, for example, must not silently reuse the old run)."""
     import json
 
-    from jaxfric import batch
+    from jaxfric.io import batch
 
     path = tmp_path / "summary.json"
     config = {"nx": 100, "ny": 2, "dU": 0.05, "eps_n": 1e5, "eps_t": None}
@@ -258,7 +259,7 @@ def test_a_run_on_disk_made_with_other_parameters_is_not_read_back(tmp_path, mon
     assert batch.stale(str(path), {"unknown_field": 1}) is None
     import importlib
 
-    run_module = importlib.import_module("jaxfric.run")
+    run_module = importlib.import_module("jaxfric.loadpath.run")
 
     class Reached(BaseException):  # not caught by run_case's handler of failed cases
         pass
@@ -285,7 +286,7 @@ def test_collect_runs_nothing_and_skips_runs_made_with_other_parameters(tmp_path
     import importlib
     import json
 
-    monkeypatch.setattr(importlib.import_module("jaxfric.run"), "run",
+    monkeypatch.setattr(importlib.import_module("jaxfric.loadpath.run"), "run",
                         lambda *a, **k: pytest.fail("collect ran a simulation"))
     test = accuracy.QUICK_TESTS[0]
     plan = {p[0]: p[3] for p in accuracy.cases(test)}
@@ -318,7 +319,7 @@ def test_collect_runs_nothing_and_skips_runs_made_with_other_parameters(tmp_path
 def test_stale_compares_values_as_summary_json_records_them(tmp_path, recorded, requested, same):
     import json
 
-    from jaxfric import batch
+    from jaxfric.io import batch
 
     path = tmp_path / "summary.json"
     path.write_text(json.dumps({"variant": "mu017", "algorithm": "auglag", "parameters": {"config": recorded}}))
@@ -329,7 +330,7 @@ def test_stale_compares_values_as_summary_json_records_them(tmp_path, recorded, 
 
 def test_a_failed_case_records_its_overrides(tmp_path):
     """A case that could not be built records its overrides, so a request with others runs it again."""
-    from jaxfric import batch
+    from jaxfric.io import batch
 
     out = tmp_path / "case"
     run = batch.run_case(str(out), "nine", "mu017", "penalty", {"mesh": "10x1", "eps_n": -1.0}, log=lambda m: None)
@@ -353,7 +354,7 @@ def test_the_report_names_each_reference_law_and_check():
     """The reference table says which law each reference uses (AL with its gap, or exact contact) and
     every check with its mesh, so that a reader knows what the uncertainty was measured against."""
     rows = [{"test": name} for name in ("flat_die_const_force", "nine_mu017")]
-    table = "\n".join(accuracy._reference_lines(rows, quick=False))
+    table = "\n".join(accuracy_report.reference_lines(rows, quick=False))
     assert "| flat_die_const_force | auglag, target gap 1e-08 mm | 240x2 |" in table
     assert "| nine_mu017 | lcp_ssn (exact contact) | 1200x3 | nominal / 2 | increments nominal / 4, mesh 2400x3, " \
            "mesh 1200x6 |" in table
@@ -370,7 +371,7 @@ def test_the_curve_error_starts_from_the_state_the_draw_starts_from():
     ref, run = _run(fine, ramp(fine)), _run(coarse, ramp(coarse))
     assert accuracy.error_measures(run, ref, "final")["err_curve_l2"] < 1e-3
     # Without the starting state the coarse curve would be held at 100 N/mm from U = 0.005 to 0.05.
-    from jaxfric.batch import phase_curve
+    from jaxfric.io.batch import phase_curve
 
     assert phase_curve(run["history"], "drawing_displacement", "drawing_force", "draw")[0][0] == 0.05
     assert phase_curve(run["history"], "drawing_displacement", "drawing_force", "draw", start=True)[0][0] == 0.0
@@ -379,7 +380,7 @@ def test_the_curve_error_starts_from_the_state_the_draw_starts_from():
 def test_step_component_is_twice_the_change_with_half_the_increments():
     """``error_estimate`` with a step check: 2 |F - F_half| / F on the main output (the steady force,
     else the peak), recorded with the check's value and steps."""
-    from jaxfric import output
+    from jaxfric.io import output
     from jaxfric.scenes import make
 
     scene = make("flat_die", "const_force", overrides={"mesh": "24x1"})

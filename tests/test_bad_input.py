@@ -24,15 +24,16 @@ import math
 import pytest
 
 import jaxfric as jf
-from jaxfric import cli, output, scenes
-from jaxfric.formulations import AugmentedLagrangian, Complementarity, Penalty
-from jaxfric.lru import LRU
+from jaxfric import cli, scenes
+from jaxfric.contact.formulations import AugmentedLagrangian, Complementarity, Penalty
+from jaxfric.io import output
+from jaxfric.numerics.lru import LRU
 
 NAN, INF = math.nan, math.inf
 PREFIX = "jaxfric: error: "
 TINY = ["--mesh", "4x1"]  # keeps a case that wrongly gets through cheap even without the stub
-# The module `jaxfric.run` (the package attribute `jaxfric.run` is the function).
-RUN_MODULE = importlib.import_module("jaxfric.run")
+# The module `jaxfric.loadpath.run` (the package attribute `jaxfric.run` is the function).
+RUN_MODULE = importlib.import_module("jaxfric.loadpath.run")
 
 
 class SimulationStarted(Exception):

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import jaxfric as jf
-from jaxfric.contact import Force, Move, RigidTool
-from jaxfric.formulations import AugmentedLagrangian, Complementarity, Penalty
-from jaxfric.tools import Tool
+from jaxfric.contact.formulations import AugmentedLagrangian, Complementarity, Penalty
+from jaxfric.contact.rigid import Force, Move, RigidTool
+from jaxfric.contact.tools import Tool
 from models import STEEL, flat_die_strip, wrapped_strip
 
 MU, FORCE = 0.15, 50.0
@@ -297,10 +297,10 @@ def test_pairs_on_the_coulomb_cone_count_as_slipping_for_newton():
     2.4e-8 N/mm against a tolerance of 1.7e-6, some 20 pairs flipping at every iteration). Here: the
     flat die's converged, sliding end state re-linearised with mu 1e-12 (relative) larger, so that
     its slipping pairs take the law's stick branch at an unchanged force."""
-    from jaxfric.run import run
+    from jaxfric.contact.status import SLIP, STICK
+    from jaxfric.loadpath.run import run
+    from jaxfric.loadpath.step import linearize_step
     from jaxfric.scenes import make
-    from jaxfric.status import SLIP, STICK
-    from jaxfric.step import linearize_step
 
     config = {"mesh": "12x1", "L": 4.8, "U_draw": 0.006}
     scene = make("flat_die", "const_force", "penalty", config)
@@ -324,8 +324,8 @@ def test_continuation_stages_soften_the_penalty_law_only_and_exactly():
     the last stage (m = 0) is the model's own law bit for bit."""
     import equinox as eqx
 
+    from jaxfric.loadpath.step import continuation_stages, softened_args
     from jaxfric.scenes import make
-    from jaxfric.step import continuation_stages, softened_args
 
     small = {"mesh": "10x1", "U_draw": 0.5}
     assert int(continuation_stages(make("nine", "mu017", "penalty", {**small, "eps_n": 1e9}).model)) == 4

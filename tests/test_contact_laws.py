@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfric.contact_laws import augmented_pair
-from jaxfric.status import OPEN, SLIP, STICK, contact_status
+from jaxfric.contact.laws import augmented_pair
+from jaxfric.contact.status import OPEN, SLIP, STICK, contact_status
 
 EPS_N, EPS_T, MU = 1e5, 1.5e4, 0.2
 
@@ -81,9 +81,9 @@ def test_smoothed_law_has_finite_tangents_on_invalid_pairs_with_a_traced_scale()
 
 def test_static_flags_follow_the_given_values_inside_jit():
     """Built inside jit from plain numbers, a penalty is not smoothed and a mu = 0 tool is frictionless."""
-    from jaxfric.contact import Move, RigidTool
-    from jaxfric.formulations import Penalty
-    from jaxfric.tools import Tool
+    from jaxfric.contact.formulations import Penalty
+    from jaxfric.contact.rigid import Move, RigidTool
+    from jaxfric.contact.tools import Tool
 
     @jax.jit
     def flags(eps):

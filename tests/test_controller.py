@@ -1,4 +1,4 @@
-"""The step controller's rules (jaxfric.controller), each alone and in sequence, without a finite-element
+"""The step controller's rules (jaxfric.loadpath.controller), each alone and in sequence, without a finite-element
 model: attempts' outcomes are made up, so each rule is checked at the case it decides."""
 
 import equinox as eqx
@@ -6,7 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfric.controller import (
+from jaxfric.fem.loading import Phase
+from jaxfric.loadpath.controller import (
     ContinuationState,
     Controller,
     Outcome,
@@ -17,8 +18,7 @@ from jaxfric.controller import (
     stop_code,
     unsearched_attempt,
 )
-from jaxfric.loading import Phase
-from jaxfric.results import Result
+from jaxfric.numerics.results import Result
 
 T, F = jnp.array(True), jnp.array(False)
 

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 import jaxfric as jf
-from jaxfric.formulations import AugmentedLagrangian, Complementarity
-from jaxfric.model import initial_state
-from jaxfric.results import Result
-from jaxfric.step import solve_step
+from jaxfric.contact.formulations import AugmentedLagrangian, Complementarity
+from jaxfric.loadpath.model import initial_state
+from jaxfric.loadpath.step import solve_step
+from jaxfric.numerics.results import Result
 from models import flat_die_strip
 
 MU, FORCE, DRAW = 0.15, 50.0, 0.01
@@ -125,8 +125,8 @@ def test_lemke_and_in_loop_semismooth_newton_agree_on_curved_tools():
     its rows): one frictional draw step over three cylinders, from the same clamped state, gives
     Lemke's displacements, forces and statuses."""
 
-    from jaxfric.contact import Move, RigidTool
-    from jaxfric.tools import Tool
+    from jaxfric.contact.rigid import Move, RigidTool
+    from jaxfric.contact.tools import Tool
 
     R, pitch, t = 5.5, 11.97, 0.97
     mesh = jf.strip_mesh(-20.0, 40.0, 0.0, t, 60, 2)
@@ -164,7 +164,7 @@ def test_lemke_runs_the_blankholder_lock_and_agrees_with_semismooth_newton():
     """The blankholder's force-driven lock puts the sheet on its lands at zero gap and zero force and
     leaves stick-slip pairs at |R_T| = mu R_N: Lemke's answers there lay on piece boundaries within
     their round-off (and some failed their check), and its Newton loop stopped at t = 1.2 of 'lock'
-    (iteration limit at the smallest increment). Refined (:func:`jaxfric.alart_curnier.polish`), it runs
+    (iteration limit at the smallest increment). Refined (:func:`jaxfric.contact.alart_curnier.polish`), it runs
     close, lock and a 2 mm pull, with the tool balanced and the forces of semismooth Newton in the loop."""
     from jaxfric import scenes
 

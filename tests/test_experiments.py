@@ -15,7 +15,7 @@ def test_bench_contact_iteration_timing_runs_for_exact_contact():
     iteration gained an argument)."""
     import bench_contact
     import jaxfric as jf
-    from jaxfric.formulations import Complementarity
+    from jaxfric.contact.formulations import Complementarity
 
     model = bench_contact.three_cylinders(Complementarity("ssn", 16), nx=40, ny=1)
     assert bench_contact.iteration_ms(model, jf.initial_state(model), 1) > 0

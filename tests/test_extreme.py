@@ -63,15 +63,15 @@ import numpy as np
 import pytest
 
 import jaxfric as jf
-from jaxfric.contact import Force, RigidTool
-from jaxfric.formulations import AugmentedLagrangian, Penalty
-from jaxfric.loading import constraint_masks, schedule
-from jaxfric.model import reactions
-from jaxfric.results import Result
-from jaxfric.run import run
+from jaxfric.contact.formulations import AugmentedLagrangian, Penalty
+from jaxfric.contact.rigid import Force, RigidTool
+from jaxfric.contact.tools import Arc, Segment, Tool
+from jaxfric.fem.loading import constraint_masks, schedule
+from jaxfric.loadpath.model import reactions
+from jaxfric.loadpath.run import run
+from jaxfric.loadpath.step import continuation_stages
+from jaxfric.numerics.results import Result
 from jaxfric.scenes import make
-from jaxfric.step import continuation_stages
-from jaxfric.tools import Arc, Segment, Tool
 
 # The flat die of the fast cases: spec increments (dU_fine 2.5e-5 mm to 0.0025 mm, then dU 1e-4 mm,
 # 10 clamp steps) on a short strip drawn until it slides globally.
@@ -219,7 +219,7 @@ def _penalty_resolution(law, n_pairs, extent):
     """Round-off resolution of a tool's penalty force (N/mm): each pair's force is resolved to eps_n x
     one ulp of its position along the drive (``extent``, mm) only (eps_n = 1e12: 5.6e-5 N/mm at 0.395
     mm), summed over the tool's ``n_pairs`` pairs; Newton may stop at that floor
-    (jaxfric.newton, NewtonOptions.roundoff)."""
+    (jaxfric.numerics.newton, NewtonOptions.roundoff)."""
     return np.finfo(float).eps * float(getattr(law, "eps_n", 0.0)) * n_pairs * extent
 
 
@@ -375,8 +375,7 @@ def test_cut_limit_stops_the_run_cleanly():
     """F_clamp = 1e6 N/mm (nominal clamp steps of 1e5 N/mm, a pressure of 2e5 MPa at the end): near
     7150 N/mm even nominal / 2**10 = 98 N/mm steps do not converge (Newton with the line search inverts
     an element, plain Newton fails too): the run stops with INVERTED_ELEMENT after cutting its last step
-    down to nominal / 2**max_cuts, every earlier step converged and kept. (Before the controller's last
-    attempt without the line search, it stopped near 4300 N/mm with MAX_ITERATIONS.)"""
+    down to nominal / 2**max_cuts, every earlier step converged and kept."""
     scene = _flat_die(F_clamp=1e6)
     res = _run("flat_die F_clamp = 1e6 (cut limit)", scene)
     assert not res.converged and res.code == Result.INVERTED_ELEMENT
@@ -420,10 +419,8 @@ def test_last_attempt_without_line_search():
     steps every full Newton step raises the residual a little, so the line search backtracks and Newton
     does not converge in 25 iterations at any length down to nominal / 2**max_cuts. The controller's
     last attempt, without the line search, converges: the run completes, those steps recording
-    max_cuts + 1 cuts. (Before that attempt existed the run stopped at the first of them.) Where they
-    fall depends on the step sequence: theta = 9.98 deg when this test was written (a front of clamp
-    pairs switching between stick and slip), 8.22 and 11.11 deg with and without
-    the Coulomb-cone rule of Newton's status test (the same 156 steps and 1741 iterations)."""
+    max_cuts + 1 cuts. Where they fall depends on the step sequence (a front of clamp pairs switching
+    between stick and slip), so the test asserts that they exist, not where."""
     scene = make("bead", "th045_mu000", "auglag", {"theta": 12.0, "s_draw": 0.1})
     res = _run("bead auglag to 12 deg (plain Newton at the floor)", scene)
     assert res.converged, res.message
@@ -627,11 +624,9 @@ def test_bead_edges(case):
 
     Clean failures: t = 0.1 mm (t/R_r = 0.02) needs many cut steps that do not grow back (more than 6
     Newton iterations each) and fills the history buffer (10 x nominal + 200 = 280 rows) at theta =
-    9 deg: MAX_STEPS. eps_n = 1e9 (1e4 x the spec) fills the buffer too, in wind at theta = 1.6 deg
-    (since the controller retries a failed attempt at the smallest increment from the converged
-    state; it stopped with MAX_ITERATIONS at 1.2 deg before), and so does 1e12, in wind, since the
-    penalty continuation (it stopped with MAX_ITERATIONS at the start of wind before, after 227 clamp
-    rows for 2 nominal steps).
+    9 deg: MAX_STEPS. eps_n = 1e9 (1e4 x the spec) fills the buffer too, in wind at theta = 1.6 deg,
+    and so does 1e12, in wind. (The controller's retry from the converged state and the penalty
+    continuation carry both past the first stiff steps; the reliability issue's goal is that they finish.)
     """
     scene = make("bead", "th090_mu017", "penalty", {**BEAD, **BEAD_CASES[case]})
     res = _run(f"bead {case}", scene)
@@ -663,10 +658,9 @@ def test_blankholder_edges(case):
 
     Clean failures (reported; measured with the scene's 60 Newton iterations and the controller's retry
     at the smallest increment, which brought the other eight cases through): t/R = 0.02 fills its
-    history buffer in close (500 rows at t = 0.67), eps_n = 1e9, which stopped at step 214 of close with
-    MAX_ITERATIONS, now gets past those steps by the round-off floor of Newton's test and fills its
-    history buffer in close (500 rows at t = 0.216), and so does eps_n = 1e12 since the
-    penalty continuation (at t = 0.04; it stopped at its first step with MAX_ITERATIONS before).
+    history buffer in close (500 rows at t = 0.67); eps_n = 1e9 passes its stiff steps by the round-off
+    floor of Newton's test and fills its history buffer in close (500 rows at t = 0.216), and so does
+    eps_n = 1e12, carried by the penalty continuation (at t = 0.04).
     """
     scene = make("blankholder", "shape1", "penalty", {**BLANK, **BLANK_CASES[case]})
     res = _run(f"blankholder {case}", scene)
@@ -708,10 +702,10 @@ def test_force_driven_tool_loses_and_regains_contact(law):
     converges and balances the die force; the die ends where the strip went; all pairs close again.
 
     eps_n = 1e12: one ulp of the top coordinate (5.6e-17 mm at y = 0.395) is 5.6e-5 N/mm of contact
-    force there, far above the residual tolerance (~1.6e-8 N/mm). It stopped with MAX_ITERATIONS in the
-    clamp (t = 0.81, last residual 6.5e-8 N/mm, after 11 failed attempts) without the
-    round-off floor of Newton's test; with it, it converges, and the die balance is checked to that resolution
-    (largest deviation over the history measured 3.2e-5 and 3.9e-5 N/mm of 50 in two runs)."""
+    force there, far above the residual tolerance (~1.6e-8 N/mm): Newton's residual test converges there
+    only by its round-off floor (NewtonOptions.roundoff; without it the clamp stops with MAX_ITERATIONS),
+    and the die balance is checked to that resolution (largest deviation over the history measured 3.2e-5
+    and 3.9e-5 N/mm of 50 in two runs)."""
     L, h, force = 6.0, 0.395, 50.0
     mesh = jf.strip_mesh(0.0, L, 0.0, h, 30, 2)
     die = RigidTool("die", Tool.line((-2.0, h), (L + 2.0, h)), drive=(0.0, -1.0), candidates=mesh.top,

@@ -1,4 +1,4 @@
-"""Identification (``jaxfric fit`` and :func:`jaxfric.fit.fit`) and differentiable scene parameters.
+"""Identification (``jaxfric fit`` and :func:`jaxfric.identification.fit.fit`) and differentiable scene parameters.
 
 The fast case is the flat die at 24 x 1 (0.7 s a run): drawing the clamped sheet, the force rises
 through the elastic stick range (slope set by E) to the sliding plateau mu F_clamp. The measurement is
@@ -16,8 +16,8 @@ import pytest
 
 from jaxfric import scenes
 from jaxfric.cli import main
-from jaxfric.fit import bin_means, fit, read_measurement
-from jaxfric.params import parameterize
+from jaxfric.identification.fit import bin_means, fit, read_measurement
+from jaxfric.identification.params import parameterize
 
 FLAT = ["flat_die", "--variant", "const_force", "--mesh", "24x1"]
 
@@ -62,7 +62,7 @@ def test_interpolated_minimum_follows_a_narrow_valley_between_grid_points():
     # Observations linear in (a, b) and nearly compensating (a valley along a = 0.15 b): multilinear
     # interpolation is exact for them, so the polished minimum is the truth, which lies on no grid line
     # and between the evaluation points; a grid-point minimum would miss it by half a cell.
-    from jaxfric.fit_global import surrogate_minima
+    from jaxfric.identification.fit_global import surrogate_minima
 
     axes = [np.linspace(0.10, 0.25, 7), np.linspace(5.07, 5.97, 9)]
     A = np.array([[900.0, -130.0], [1000.0, -160.0], [800.0, -100.0]])
@@ -80,7 +80,7 @@ def test_interpolated_minimum_follows_a_narrow_valley_between_grid_points():
 def test_interpolated_minima_of_two_basins_lowest_first():
     # Observations with two basins of the misfit in a, at 0.3 (misfit 0) and near 0.74 (the second
     # observation lifts it), both at b = 0.5: lowest first, each polished to its own minimum.
-    from jaxfric.fit_global import surrogate_minima
+    from jaxfric.identification.fit_global import surrogate_minima
 
     axes = [np.linspace(0.0, 1.0, 21), np.linspace(0.0, 1.0, 11)]
     a, b = np.meshgrid(*axes, indexing="ij")
@@ -97,7 +97,7 @@ def test_interpolated_minima_of_two_basins_lowest_first():
 
 def test_several_starts_are_written_and_the_kept_one_is_plotted(tmp_path):
     # write_fit on a result of two local fits (built by hand: a real one costs two planned fits).
-    from jaxfric.fit import FitResult, Measurement, write_fit
+    from jaxfric.identification.fit import FitResult, Measurement, write_fit
 
     x = np.linspace(0.1, 1.0, 10)
     rows = [{"iteration": i, "accepted": True, "cost": c, "damping": 1e-3, "mu": m, "start": n}
@@ -229,8 +229,8 @@ def test_missing_data_file(tmp_path, capsys):
 def test_fit_caches_keep_the_most_recently_used_entries():
     """The caches kept between fits (compiled curves, grid runs) are bounded: a full cache drops its
     least recently used entry, and a hit makes an entry the most recent."""
-    from jaxfric.fit import CURVES, GRID_RUNS
-    from jaxfric.lru import LRU
+    from jaxfric.identification.fit import CURVES, GRID_RUNS
+    from jaxfric.numerics.lru import LRU
 
     made = []
 
@@ -247,7 +247,7 @@ def test_fit_caches_keep_the_most_recently_used_entries():
 
 
 def test_refined_plan_splits_every_step_and_keeps_phase_ends():
-    from jaxfric.fit_curve import refined_plan
+    from jaxfric.identification.fit_curve import refined_plan
 
     plan = {"time": np.array([0.0, 0.5, 1.0, 1.25, 2.0]), "phase": np.array([0, 0, 0, 1, 1]),
             "cutbacks": np.array([0, 0, 2, 0, 1])}
@@ -272,7 +272,7 @@ class _Started(Exception):
 
 @pytest.fixture
 def no_simulation(monkeypatch):
-    import jaxfric.fit as fit_module
+    import jaxfric.identification.fit as fit_module
 
     def refuse(*args, **kwargs):
         raise _Started("the input reached the simulation")

@@ -1,5 +1,5 @@
 """Derivatives of scene outputs with respect to every differentiable parameter of every scene, through
-the whole loading path (:func:`jaxfric.params.path_function`): forward mode (``jax.jacfwd`` through
+the whole loading path (:func:`jaxfric.identification.params.path_function`): forward mode (``jax.jacfwd`` through
 the adaptive replay of the frozen steps), reverse mode (``jax.jacrev`` through the checkpointed
 fixed-step replay) and central finite differences, in float64.
 
@@ -15,7 +15,7 @@ small enough that no contact pair changes status (stick/slip, open/closed) betwe
 these paths.
 
 Where a pair sits on a switch of the exact law at the start values, the derivative returned is the
-one-sided derivative of the branch the law takes there (``jaxfric.contact_laws``), and a central
+one-sided derivative of the branch the law takes there (``jaxfric.contact.laws``), and a central
 difference averages the two sides: on the Nine test a tool-geometry column (R1) then differs by 2 to 3 %
 for any h down to 1e-6 |p|. The smoothed law (config field ``smoothing``) removes the switch: with
 S = 10 N/mm and h = 1e-6 |p| (the Newton tolerances of the curved tools leave ~1e-9 N/mm, 1e-4 of the
@@ -33,8 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfric.newton import NewtonOptions
-from jaxfric.params import parameterize, path_function
+from jaxfric.identification.params import parameterize, path_function
+from jaxfric.numerics.newton import NewtonOptions
 
 TIGHT = NewtonOptions(rtol=1e-12, atol=1e-10)
 # The curved tools of nine, bead and blankholder leave ~1e-10 N/mm of residual that Newton cannot

@@ -14,7 +14,7 @@ v = D^1/2 du the left side is >= 0.8 |v|^2 and the right side <= 0.7 mu |v|^2, s
 (du_c, p, dq) is unique for every mu <= 1 whatever the scales: any valid answer is the answer. The
 LCP multipliers are never compared: they are not unique (open candidates leave lambda+ - lambda- free).
 
-Lemke runs as the package calls it, :func:`jaxfric.contact_lcp.lemke_contact_callback` under ``jit``
+Lemke runs as the package calls it, :func:`jaxfric.contact.lcp.lemke_contact_callback` under ``jit``
 (``lemke_jit``): compiled once per shape, the pivoting on the host.
 """
 
@@ -26,10 +26,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfric.alart_curnier import polish
-from jaxfric.contact_lcp import ForceDrive, contact_lcp, lemke_contact_callback, lemke_start, recover_solution
-from jaxfric.lemke import LemkeStatus, lemke
-from jaxfric.status import OPEN, SLIP, STICK, contact_status
+from jaxfric.contact.alart_curnier import polish
+from jaxfric.contact.lcp import ForceDrive, contact_lcp, lemke_contact_callback, lemke_start, recover_solution
+from jaxfric.contact.lemke import LemkeStatus, lemke
+from jaxfric.contact.status import OPEN, SLIP, STICK, contact_status
 
 AGREE = 1e-8        # relative agreement of two solves of the same problem (spec 1.7: "to solver tolerance")
 LAW = 1e-9          # relative violation allowed in the Signorini-Coulomb conditions
@@ -207,7 +207,7 @@ def test_lemke_checks_its_answer_and_pivots_again_on_the_scaled_problem(monkeypa
     problem is pivoted again with D M D, D q (D = |diag M|^-1/2), and if that fails too the status is
     INACCURATE. The inaccurate first run is simulated (a real one needs the blankholder's 768-unknown
     LCP)."""
-    import jaxfric.lemke as lemke_module
+    import jaxfric.contact.lemke as lemke_module
 
     M = np.array([[2.0, 1.0], [1.0, 2.0]]) * np.array([1.0, 1e4])[None, :]
     q = np.array([-5.0, -6.0])
@@ -612,7 +612,7 @@ def test_force_driven_single_candidate_by_hand():
 
 
 def packed_status(p, mu):
-    """The status rule (jaxfric.status) of forces packed as (R_N, R_T) per candidate."""
+    """The status rule (jaxfric.contact.status) of forces packed as (R_N, R_T) per candidate."""
     p = np.asarray(p).reshape(-1, 2)
     return contact_status(p[:, 0], p[:, 1], mu)
 

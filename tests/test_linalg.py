@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfric.linalg import (
+from jaxfric.numerics.linalg import (
     BlockTridiag,
     Bordered,
     block_cyclic_solve,

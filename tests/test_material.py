@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfric.material import J2Material, MaterialState, von_mises
+from jaxfric.fem.material import J2Material, MaterialState, von_mises
 
 # Sheet materials of the benchmark scenes (spec tables 1 and 2): a very steep initial hardening
 # (A = 1e4) and a moderate one.
@@ -84,7 +84,7 @@ def take(tree, k):
 
 
 def hencky_reference(material, F, state):
-    """tau from b^e = F C_p^-1 F^T by numpy's eigendecomposition (independent of jaxfric.tensor)."""
+    """tau from b^e = F C_p^-1 F^T by numpy's eigendecomposition (independent of jaxfric.numerics.tensor)."""
     kappa, G = float(material.bulk_modulus), float(material.shear_modulus)
     be = F @ np.asarray(state.cp_inv) @ F.T
     lam, Q = np.linalg.eigh(be)

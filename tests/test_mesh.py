@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 import jaxfric as jf
-from jaxfric.assembly import internal_force, internal_force_and_tangent, mesh_geometry
-from jaxfric.model import initial_state
+from jaxfric.fem.assembly import internal_force, internal_force_and_tangent, mesh_geometry
+from jaxfric.loadpath.model import initial_state
 
 
 def test_numbering_follows_the_spec():
@@ -54,7 +54,7 @@ def test_element_chunks_hold_one_copy_of_the_element_code_and_give_the_same_valu
     """11 elements in chunks of 11 // c (padded to equal chunks): the values of one vmap over all of
     them, and one element evaluation in the traced program (``lax.map`` would evaluate a remainder
     that is not a whole chunk with a second copy: two return-mapping loops instead of one)."""
-    from jaxfric import assembly
+    from jaxfric.fem import assembly
 
     mesh = jf.strip_mesh(0.0, 11.0, 0.0, 1.0, nx=11, ny=1)
     material = jf.J2Material(E=1000.0, nu=0.3, sigma_y=1.0, A=10.0, n=0.5)
@@ -82,7 +82,7 @@ def test_shared_trace_traces_once_per_chunk_setting():
     """A ``shared_trace`` function called twice with the same argument structure inside one traced
     program (a loop's eval_shape and its body) is traced once; under another element-chunk setting it
     is traced again, so a sweep's smaller chunks are never replaced by a single run's trace."""
-    from jaxfric import assembly
+    from jaxfric.fem import assembly
 
     seen = []
 
@@ -111,9 +111,10 @@ def test_a_step_traces_the_element_tangent_once(monkeypatch):
     """One load step with exact contact, and one with the augmented Lagrangian (whose Newton solve
     sits in the augmentation loop), each trace the element tangent once: the loops' shapes reuse the
     trace of their bodies (before, twice and four times)."""
-    from jaxfric import assembly, exact_iterate, system
+    from jaxfric.contact import exact_iterate, system
+    from jaxfric.fem import assembly
+    from jaxfric.loadpath.step import solve_step
     from jaxfric.scenes import make
-    from jaxfric.step import solve_step
 
     calls = []
     original = assembly.internal_force_and_tangent

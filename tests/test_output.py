@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 import jaxfric as jf
-from jaxfric import cli, instants, output
-from jaxfric.contract import check_run_dir
-from jaxfric.status import contact_status
+from jaxfric import cli
+from jaxfric.contact.status import contact_status
+from jaxfric.io import instants, output
+from jaxfric.io.contract import check_run_dir
 
 # A few-second flat die: 24 x 2 mesh, 2 clamp steps, 3 draw steps to U = 3 um (cf. spec section 2).
 SHORT = ["--mesh", "24x2", "--set", "n_clamp=2", "--set", "U_draw=0.003", "--set", "U_fine=0.001",
@@ -218,7 +219,7 @@ def test_algorithm_extra_columns(flat, tmp_path):
 
 
 def test_plot_failure_keeps_the_data_files(flat, tmp_path, monkeypatch):
-    from jaxfric import figures
+    from jaxfric.io import figures
 
     def broken(*args, **kwargs):
         raise RuntimeError("no display")
@@ -387,7 +388,7 @@ def test_cli_parses_every_override_once_and_passes_typed_values(tmp_path, monkey
     def run(model, **kwargs):
         raise Started(model.mesh.nx, model.mesh.ny)
 
-    monkeypatch.setattr(sys.modules["jaxfric.run"], "run", run)
+    monkeypatch.setattr(sys.modules["jaxfric.loadpath.run"], "run", run)
     with pytest.raises(Started) as info:
         cli.main(["run", "flat_die", *SHORT, "--set", "mu=0.1", "--out", str(tmp_path / "o"), "--quiet"])
     assert info.value.args == (24, 2)
@@ -423,7 +424,7 @@ def test_cli_run_end_to_end(flat, tmp_path, capsys):
 def test_cli_failed_run_exits_non_zero(flat, tmp_path, capsys, monkeypatch):
     import sys
 
-    run_module = sys.modules["jaxfric.run"]  # the package attribute `jaxfric.run` is the function
+    run_module = sys.modules["jaxfric.loadpath.run"]  # the package attribute `jaxfric.run` is the function
     scene, result = flat
     partial = dataclasses.replace(
         result, history={k: v[:2] for k, v in result.history.items()},

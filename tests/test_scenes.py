@@ -9,10 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfric.contact import pair_nodes
-from jaxfric.loading import schedule
-from jaxfric.results import Result
-from jaxfric.run import run
+from jaxfric.contact.rigid import pair_nodes
+from jaxfric.contact.tools import project
+from jaxfric.fem.loading import schedule
+from jaxfric.loadpath.run import run
+from jaxfric.numerics.results import Result
 from jaxfric.scenes import (
     ALGORITHMS,
     bead,
@@ -26,7 +27,6 @@ from jaxfric.scenes import (
     scene_names,
     variants,
 )
-from jaxfric.tools import project
 
 SPEC_VARIANTS = {
     "flat_die": ("const_force", "const_position"),
@@ -468,7 +468,7 @@ def test_blankholder_short_run():
 def test_blankholder_starts_closing_at_the_spec_mesh():
     """Shape 1 at its spec mesh (309 x 2): the first 40 steps of 'close' converge, and the run then ends
     on its 40-row history buffer (MAX_STEPS), not on a Newton failure. Guards the first-step line
-    search (jaxfric.system.linearize, the prescribed-values test): counting the lower tool's row
+    search (jaxfric.contact.system.linearize, the prescribed-values test): counting the lower tool's row
     q - q_presc in that test stopped this run at step 4 of 'close'."""
     scene = make("blankholder", "shape1")
     control = dataclasses.replace(scene.control, max_steps=40)

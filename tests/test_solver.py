@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import jaxfric as jf
-from jaxfric.results import Result
+from jaxfric.numerics.results import Result
 from models import STEEL, clamped_pull
 from strips import bending_ratio
 
@@ -119,8 +119,8 @@ def test_enhanced_strain_element_derivatives():
     enhanced parameters re-solved at every perturbation, by central differences), and the derivative
     of its force with respect to the yield stress through the implicit local solve (custom_root)
     equals central differences."""
-    from jaxfric.assembly import mesh_geometry
-    from jaxfric.element import element_force, element_force_and_tangent
+    from jaxfric.fem.assembly import mesh_geometry
+    from jaxfric.fem.element import element_force, element_force_and_tangent
 
     mesh = jf.strip_mesh(0.0, 1.0, 0.0, 0.5, 1, 1)
     geo = jax.tree_util.tree_map(lambda a: a[0], mesh_geometry(mesh))
@@ -248,7 +248,7 @@ def test_adaptive_steps_cut_and_grow_back():
 
 def _stiff_linearize(x, args):
     K, b = args
-    from jaxfric.newton import Linearization
+    from jaxfric.numerics.newton import Linearization
 
     return Linearization(residual=K.matvec(x) - b, jacobian=K, scale=jnp.array(1.0),
                             valid=jnp.array(True), aux=())
@@ -264,8 +264,8 @@ def test_newton_stops_at_the_round_off_floor_and_only_there():
     about eps |K| |a| ~ 1e-3 (evaluated from products of 1e12), far above the tolerance of 1e-8. Without
     the floor Newton stagnates there until its iteration limit; with it, it stops once an iteration no
     longer reduces R tenfold, at a's neighbours. A well-scaled problem converges as before."""
-    from jaxfric.linalg import BlockTridiag
-    from jaxfric.newton import newton_solve, roundoff_floor
+    from jaxfric.numerics.linalg import BlockTridiag
+    from jaxfric.numerics.newton import newton_solve, roundoff_floor
 
     rng = np.random.default_rng(3)
     nb, m = 12, 4
@@ -299,7 +299,7 @@ def test_newton_stops_at_the_round_off_floor_and_only_there():
 
 def _offset_linearize(x, args):
     K, b, X = args
-    from jaxfric.newton import Linearization
+    from jaxfric.numerics.newton import Linearization
 
     return Linearization(residual=K.matvec(X + x) - b, jacobian=K, scale=jnp.array(1.0), valid=jnp.array(True),
                          aux=(), magnitude=jnp.abs(X + x))
@@ -317,8 +317,8 @@ def test_the_round_off_floor_is_relative_to_the_positions_the_residual_is_comput
     the displacements as the floor's measure (the default), Newton stagnates above it to its iteration
     limit; asked to use the positions the linearisation passes (``positions``: the step controller's
     continuation stages), it stops at a's neighbours."""
-    from jaxfric.linalg import BlockTridiag
-    from jaxfric.newton import newton_solve
+    from jaxfric.numerics.linalg import BlockTridiag
+    from jaxfric.numerics.newton import newton_solve
 
     rng = np.random.default_rng(5)
     nb, m = 12, 4

@@ -1,11 +1,11 @@
-"""Batched sweeps (jaxfric.sweep): one vmapped simulation equals the looped single runs."""
+"""Batched sweeps (jaxfric.loadpath.sweep): one vmapped simulation equals the looped single runs."""
 
 import numpy as np
 import pytest
 
 import jaxfric as jf
 from jaxfric import scenes
-from jaxfric.sweep import stack_models, sweep
+from jaxfric.loadpath.sweep import stack_models, sweep
 
 # The structure of test_output's flat-die run, so that the single runs reuse its compilation.
 OVERRIDES = {"mesh": "24x2", "n_clamp": "2", "U_draw": "0.003", "U_fine": "0.001", "dU_fine": "0.0005",
@@ -58,14 +58,14 @@ def test_flat_loop_runs_the_penalty_law_only():
 
 
 def test_element_chunks_do_not_change_the_assembly():
-    """The sweep traces its members with smaller element chunks (jaxfric.assembly.element_chunk): the
+    """The sweep traces its members with smaller element chunks (jaxfric.fem.assembly.element_chunk): the
     forces and material states are those of the default chunking, whatever the chunk size (48 elements
     in chunks of 5: ten chunks, the last one partial; the tangent goes through the same element map)."""
     import jax
     import jax.numpy as jnp
 
-    from jaxfric.assembly import element_chunk, internal_force, mesh_geometry
-    from jaxfric.model import initial_state
+    from jaxfric.fem.assembly import element_chunk, internal_force, mesh_geometry
+    from jaxfric.loadpath.model import initial_state
 
     model = scenes.make("flat_die", "const_force", "penalty", OVERRIDES).model
     state = initial_state(model)
@@ -90,8 +90,8 @@ def test_sweep_with_the_cyclic_solve_equals_the_thomas_runs():
     """The GPU's path on the CPU: a sweep traced with the cyclic-reduction solve (and a GPU's chunk)
     follows the single runs' Thomas path: same steps and iterations, forces to 1e-10 of their scale
     as in the test above (measured 3.5e-12: two solvers round differently)."""
-    from jaxfric.assembly import ELEMENT_CHUNK
-    from jaxfric.linalg import block_solver
+    from jaxfric.fem.assembly import ELEMENT_CHUNK
+    from jaxfric.numerics.linalg import block_solver
 
     built = [scenes.make("flat_die", "const_force", "penalty", {**OVERRIDES, "mu": m}) for m in MUS[1:]]
     with block_solver("cyclic"):

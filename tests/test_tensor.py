@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfric.tensor import safe_norm, sym2_exp, sym2_log
+from jaxfric.numerics.tensor import safe_norm, sym2_exp, sym2_log
 
 RNG_SEED = 20240611
 

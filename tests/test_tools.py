@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfric.tools import GAP_OPEN, Arc, Circle, Segment, Tool, chain_length, project, tool_outline
+from jaxfric.contact.tools import GAP_OPEN, Arc, Circle, Segment, Tool, chain_length, project, tool_outline
 
 RNG_SEED = 20240613
 ZERO2 = np.zeros(2)

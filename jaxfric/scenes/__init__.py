@@ -18,8 +18,8 @@ import math
 import types
 import typing
 
-from ..formulations import ALGORITHMS
-from ..mesh import MAX_ELEMENTS
+from ..contact.formulations import ALGORITHMS
+from ..fem.mesh import MAX_ELEMENTS
 from . import bead, blankholder, flat_die, nine
 from ._common import check_steady_window
 from .base import Scene

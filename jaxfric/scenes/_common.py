@@ -14,13 +14,13 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..contact import max_penetration, split_pairs
-from ..controller import StepControl
-from ..formulations import ALGORITHMS
-from ..loading import Phase, schedule
-from ..model import reactions
-from ..status import SLIP
-from ..tools import GAP_OPEN
+from ..contact.formulations import ALGORITHMS
+from ..contact.rigid import max_penetration, split_pairs
+from ..contact.status import SLIP
+from ..contact.tools import GAP_OPEN
+from ..fem.loading import Phase, schedule
+from ..loadpath.controller import StepControl
+from ..loadpath.model import reactions
 
 __all__ = ["spec_field", "check_config", "check_steady_window", "check_variant", "check_algorithm", "pair_forces",
            "tool_resultants", "contact_columns", "phase_progress", "ContactSnapshot", "n_steps",

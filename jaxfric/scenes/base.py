@@ -13,9 +13,9 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 
-from ..controller import StepControl
-from ..model import StripModel
-from ..newton import NewtonOptions
+from ..loadpath.controller import StepControl
+from ..loadpath.model import StripModel
+from ..numerics.newton import NewtonOptions
 
 __all__ = ["Scene"]
 
@@ -26,7 +26,7 @@ class Scene:
     Attributes:
         name, variant, algorithm: identifiers (outputs spec section 1).
         config: the resolved config dataclass (every spec value of the run).
-        model: the :class:`~jaxfric.model.StripModel` (tools in the spec's tool order).
+        model: the :class:`~jaxfric.loadpath.model.StripModel` (tools in the spec's tool order).
         observe: static ``observe(model, state) -> dict`` of per-step scalars: at least
             ``drawing_displacement, drawing_force, clamping_force, tool_position, max_penetration,
             n_active, n_slip`` and the scene's extra columns (benchmarks spec, scene Outputs).

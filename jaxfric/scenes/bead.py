@@ -38,13 +38,13 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..contact import Force, Move, RigidTool
-from ..formulations import formulation
-from ..loading import DirichletBC, Phase, RigidMotion
-from ..material import J2Material
-from ..mesh import strip_mesh
-from ..model import StripModel
-from ..tools import Arc, Segment, Tool
+from ..contact.formulations import formulation
+from ..contact.rigid import Force, Move, RigidTool
+from ..contact.tools import Arc, Segment, Tool
+from ..fem.loading import DirichletBC, Phase, RigidMotion
+from ..fem.material import J2Material
+from ..fem.mesh import strip_mesh
+from ..loadpath.model import StripModel
 from . import _common as cm
 from .base import Scene
 
@@ -58,7 +58,7 @@ STROKE_FIELD = "s_draw"  # the drawing stroke: steady_window lies in [0, s_draw]
 PHASES = ("clamp", "wind", "draw")
 TOOLS = ("die_up", "die_lo", "roller")
 # Named instants (benchmarks spec, scene Outputs), in order, each with its rule
-# (:func:`jaxfric.instants.select_instants`).
+# (:func:`jaxfric.io.instants.select_instants`).
 INSTANT_RULES = {"clamped": ("end", "clamp"), "folded": ("end", "wind"), "drawing": ("closest", "draw", 4.0),
                  "final": ("final",)}
 INSTANTS = tuple(INSTANT_RULES)

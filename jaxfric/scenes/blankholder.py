@@ -64,14 +64,14 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..contact import Force, Move, RigidTool
-from ..formulations import formulation
-from ..loading import DirichletBC, Phase, Ramp
-from ..material import J2Material
-from ..mesh import strip_mesh
-from ..model import StripModel
-from ..newton import NewtonOptions
-from ..tools import Arc, Segment, Tool
+from ..contact.formulations import formulation
+from ..contact.rigid import Force, Move, RigidTool
+from ..contact.tools import Arc, Segment, Tool
+from ..fem.loading import DirichletBC, Phase, Ramp
+from ..fem.material import J2Material
+from ..fem.mesh import strip_mesh
+from ..loadpath.model import StripModel
+from ..numerics.newton import NewtonOptions
 from . import _common as cm
 from .base import Scene
 
@@ -86,7 +86,7 @@ STROKE_FIELD = "U_pull"  # the drawing stroke: steady_window lies in [0, U_pull]
 PHASES = ("close", "lock", "draw")
 TOOLS = ("upper", "lower")
 # Named instants (benchmarks spec, scene Outputs), in order, each with its rule
-# (:func:`jaxfric.instants.select_instants`).
+# (:func:`jaxfric.io.instants.select_instants`).
 INSTANT_RULES = {"closed": ("end", "close"), "locked": ("end", "lock"), "drawing": ("closest", "draw", 27.5),
                  "final": ("final",)}
 INSTANTS = tuple(INSTANT_RULES)

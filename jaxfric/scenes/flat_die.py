@@ -26,13 +26,13 @@ import dataclasses
 import equinox as eqx
 import jax.numpy as jnp
 
-from ..contact import Force, Move, RigidTool
-from ..formulations import formulation
-from ..loading import DirichletBC, Phase, Ramp
-from ..material import J2Material
-from ..mesh import strip_mesh
-from ..model import StripModel
-from ..tools import Tool
+from ..contact.formulations import formulation
+from ..contact.rigid import Force, Move, RigidTool
+from ..contact.tools import Tool
+from ..fem.loading import DirichletBC, Phase, Ramp
+from ..fem.material import J2Material
+from ..fem.mesh import strip_mesh
+from ..loadpath.model import StripModel
 from . import _common as cm
 from .base import Scene
 
@@ -46,7 +46,7 @@ STROKE_FIELD = "U_draw"  # the drawing stroke: steady_window lies in [0, U_draw]
 PHASES = ("clamp", "draw")
 TOOLS = ("die",)
 # Named instants (benchmarks spec, scene Outputs), in order, each with its rule
-# (:func:`jaxfric.instants.select_instants`).
+# (:func:`jaxfric.io.instants.select_instants`).
 INSTANT_RULES = {"clamped": ("end", "clamp"), "intermediate": ("first_half_slip",),
                  "sliding": ("first_all_slip",), "final": ("final",)}
 INSTANTS = tuple(INSTANT_RULES)

@@ -46,13 +46,13 @@ import math
 
 import equinox as eqx
 
-from ..contact import Move, RigidTool
-from ..formulations import formulation
-from ..loading import DirichletBC, Phase, Ramp
-from ..material import J2Material
-from ..mesh import strip_mesh
-from ..model import StripModel
-from ..tools import Tool
+from ..contact.formulations import formulation
+from ..contact.rigid import Move, RigidTool
+from ..contact.tools import Tool
+from ..fem.loading import DirichletBC, Phase, Ramp
+from ..fem.material import J2Material
+from ..fem.mesh import strip_mesh
+from ..loadpath.model import StripModel
 from . import _common as cm
 from .base import Scene
 
@@ -66,7 +66,7 @@ STROKE_FIELD = "U_draw"  # the drawing stroke: steady_window lies in [0, U_draw]
 PHASES = ("clamp", "draw")
 TOOLS = ("A", "B", "C", "D", "E")
 # Named instants (benchmarks spec, scene Outputs), in order, each with its rule
-# (:func:`jaxfric.instants.select_instants`).
+# (:func:`jaxfric.io.instants.select_instants`).
 INSTANT_RULES = {"clamped": ("end", "clamp"), "steady": ("closest", "draw", 27.5), "final": ("final",)}
 INSTANTS = tuple(INSTANT_RULES)
 

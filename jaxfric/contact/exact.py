@@ -1,0 +1,202 @@
+"""Exact contact inside the global Newton loop (benchmarks spec 1.7 and 1.8): ``lcp_ssn``, ``lcp_lemke``.
+
+At every Newton iterate x = (u, q_f) the contact conditions of the linearised problem are solved
+exactly; the contact status comes out of that solve. Two ways:
+
+* ``lcp_ssn`` (solver "ssn", :func:`active_set_step`): semismooth Newton on the Alart-Curnier
+  equations of every candidate node, written on the block-tridiagonal system itself. The contact
+  force of a node is its equilibrium force (internal force; kappa rows, step 1 below, on prescribed
+  dofs), so on an active set the node's two rows become a row combination of the tangent plus a 2 x 2
+  block of its own kinematics: one block-Thomas solve per active set, no condensation. The active set
+  is re-read from the forces and gaps that solve predicts until it repeats (the linearised problem
+  solved exactly). If it cycles for ``ssn_max_iter`` passes, the last pass's increment is taken
+  (counted in ``ssn_fallbacks``) and the Newton loop goes on; a step converges only on an iteration
+  whose active set settled. (Solving such iterates the condensed way instead was tried: on the
+  three-cylinder bench it cost 7.8 s against 4.6 s, for 84 against 88 steps.) The Newton step is
+  line-searched on the semismooth residual (:func:`semismooth_merit`: the equilibrium rows with each candidate's
+  rows replaced by its Alart-Curnier residual), quartering a step that raises it, at most twice. The
+  trial is measured with the forces its direction predicts, which are the hint the next direction's
+  merit starts from, so the merits of accepted iterates form one non-increasing sequence (with each
+  direction's own hint, a candidate node with a prescribed dof, such as the Nine's entry-guided tail,
+  re-based the merit at every iteration and the iterates drifted along the strip's soft draw-in mode:
+  ``test_exact.py``). The step that reaches a node to a tool or lifts it off can overshoot on a soft,
+  slipping strip; the line search keeps the residual from growing until an element inverts.
+* ``lcp_lemke`` (solver "lemke"): the problem condensed on a band of candidates. Steps of one
+  iteration:
+
+1. Bulk operators of the sheet alone: K = d f_int / du and b = -f_int on the free dofs. A prescribed
+   dof i gets the row ``kappa du_i = kappa (u_presc,i - u_i) + f_c,i - f_c,i^prev`` with
+   kappa = 100 K_ii and f_c^prev the contact force of the previous iterate (the reaction's
+   estimate). A candidate node with one prescribed component (the flat die's corner D) thus keeps
+   its contact force in the condensed problem, as the LCP needs, while the prescribed value is met
+   exactly once the forces settle (the error is the change of force over kappa). An identity row
+   would drop the force from the LCP (R_T of a sticking D undetermined), and a huge kappa would cost
+   Lemke its pivoting accuracy.
+2. The proximity band: per candidate node the pair of smallest gap; of those, the ``band`` nodes
+   nearest to a tool (all of them by default). Only the band enters the complementarity problem, so
+   its size follows the contact zone. A node outside the band that penetrates a tool at the converged
+   state fails the attempt (:attr:`~jaxfric.numerics.results.Result.CONTACT_BAND`).
+3. Condensation on the band dofs c (spec 1.7 step 2), with the block-tridiagonal structure kept:
+   ``K_ff^-1`` is the block-Thomas solve of K with the band dofs decoupled (their rows and columns
+   replaced by a scaled identity), applied to the 2 n_c + 1 columns ``[K_fc | b_f]`` in one sweep:
+
+       K* = K_cc - K_cf K_ff^-1 K_fc,     r* = b_c - K_cf K_ff^-1 b_f,
+
+   then rotated into each band pair's (n, t) frame.
+4. The linearised contact problem ``K* du_c = r* + p`` with ``g_N = g^i + du_N - (e_q . n) dq``,
+   ``s = s^i + du_T - (e_q . t) dq`` and Signorini-Coulomb, plus the force balance of the force-driven
+   tool (:mod:`jaxfric.contact.lcp`), by Lemke's pivoting (:mod:`jaxfric.contact.lemke`, NumPy on the host
+   through ``jax.pure_callback``), whose answer is solved again on its own piece and, where it lies on a
+   piece boundary within its round-off, settled by a few semismooth Newton iterations on the same
+   problem (:func:`jaxfric.contact.alart_curnier.polish`).
+5. Back-substitution ``du_f = K_ff^-1 (b_f - K_fc du_c)``; x <- x + (du, dq).
+
+The iterations are those of the one Newton loop (:func:`jaxfric.numerics.newton.newton_pass`): this module
+provides the problem it solves, :class:`ExactContactProblem` (the point's evaluation, the semismooth
+or condensed direction, the status test).
+
+Convergence (spec 1.7 step 7): the bulk residual with the contact forces of the last solve,
+``f_int - f_c(p)`` at the new iterate, passes the Newton test of :mod:`jaxfric.numerics.newton` (residual and
+increment), and no pair changed its status (open / stick / slip from the forces, spec section 0).
+
+Not differentiable: exact complementarity has no derivative where a pair changes status, and the
+derivative of the converged step on a fixed status would need the active-set Jacobian. Gradients use
+the penalty or augmented Lagrangian laws (with their optional smoothing); differentiating a run with
+:class:`~jaxfric.contact.rigid.Complementarity` raises.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..numerics.newton import (
+    AbstractNewtonProblem,
+    Evaluation,
+    NewtonOptions,
+    NewtonSolution,
+    Trial,
+    newton_loop,
+    newton_result,
+)
+from .exact_active_set import active_set_step, contact_frames, semismooth_merit
+from .exact_condensed import contact_newton_step
+from .exact_iterate import Iterate, iterate_residual, linearize_iterate, pair_status
+from .rigid import pair_mu
+
+__all__ = ["ExactContactProblem", "exact_solve"]
+
+
+def _contact_out(it: Iterate, p, tool_f, status):
+    return dict(q=it.q, force=tool_f, rn=p[:, 0], rt=p[:, 1], zeta=it.zeta, gap=it.gap, normal=it.normal,
+                status=status, slip=it.slip)
+
+
+class Prediction(NamedTuple):
+    """What an exact-contact direction predicts besides the step (:attr:`jaxfric.numerics.newton.Trial.data`)."""
+
+    p: jax.Array         # (m, 2) the pairs' forces (R_N, R_T): the hint of the trial's merit
+    in_band: jax.Array   # (m,) bool: the pair's node was in the solved problem
+    frames: Any          # Frames at the direction's start (constants of the merit), or None without a search
+
+
+class Point(NamedTuple):
+    """An exact-contact iterate (:attr:`jaxfric.numerics.newton.Evaluation.state`)."""
+
+    it: Iterate
+    p: jax.Array             # (m, 2) the forces of the direction that reached it
+    status: jax.Array        # (m,) their status (open / stick / slip)
+    penetrating: jax.Array   # (m,) bool: the pair's node lies inside its tool beyond the tolerance
+
+
+class ExactContactProblem(AbstractNewtonProblem):
+    """One load step with exact contact as a Newton problem (module doc): the direction solves the
+    linearised complementarity problem (``law.solver``), and a step converges only where no pair changed
+    its status, no open pair of the solve penetrates, and (solver "ssn") the active set settled on a full
+    step."""
+
+    law: Any                                   # the Complementarity formulation (static fields only)
+    options: NewtonOptions
+    searches_first_step: ClassVar[bool] = True
+
+    @property
+    def searched(self) -> bool:   # static: the condensed solve (Lemke) has no merit to search on
+        return self.law.solver == "ssn" and self.options.line_search
+
+    def start(self, x0, args) -> Trial:
+        m = pair_mu(args.contact.tools, args.contact.mu).shape[0]
+        frames = None
+        if self.searched:
+            it_shape = eqx.filter_eval_shape(linearize_iterate, x0, args)
+            shapes = eqx.filter_eval_shape(lambda i, a: contact_frames(i, a)[0], it_shape, args)
+            frames = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
+        return Trial(jnp.zeros_like(x0), jnp.array(1.0), jnp.array(jnp.inf), jnp.array(True), jnp.zeros(3, jnp.int32),
+                     Prediction(jnp.zeros((m, 2)), jnp.zeros(m, bool), frames))
+
+    def evaluate(self, x, trial, args) -> Evaluation:
+        pred = trial.data
+        it = linearize_iterate(x, args)
+        R, _ = iterate_residual(x, it, pred.p, args)
+        status = pair_status(pred.p, pair_mu(args.contact.tools, args.contact.mu))
+        penetrating = it.valid & (it.gap < -10.0 * self.options.du_atol)
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in (R, it.f_int, it.K.diag, it.gap)]))
+        merit = semismooth_merit(x, it, args, pred.p, pred.frames) if self.searched else None
+        return Evaluation(R, jnp.max(jnp.abs(it.f_int)), finite, ~(it.det_min <= 0.0),
+                          Point(it, pred.p, status, penetrating), merit=merit,
+                          in_band=~jnp.any(~pred.in_band & penetrating))
+
+    def settled(self, new, old, trial) -> jax.Array:
+        pred = trial.data
+        # An open pair of the solve that penetrates at the new iterate closes at the next one.
+        settled = (jnp.all(new.state.status == old.state.status)
+                   & ~jnp.any(pred.in_band & new.state.penetrating & (pred.p[:, 0] <= 0.0)))
+        if self.law.solver == "ssn":   # static: not on an active set that did not settle, nor a shortened step
+            settled = settled & (trial.stats[2] == 0) & (trial.alpha == 1.0)
+        return settled
+
+    def direction(self, x, point, args, first) -> Trial:
+        it, p = point.state.it, point.state.p
+        c = args.contact
+        # The first direction's active set: the last converged forces (the step passes them as lam_n, lam_t).
+        p_step = jnp.stack([jnp.concatenate(c.lam_n), jnp.concatenate(c.lam_t)], -1)
+        hint = jnp.where(first, p_step, p)
+        if not self.searched:
+            step = active_set_step if self.law.solver == "ssn" else contact_newton_step
+            dx, p_new, in_band, stats, solved = step(it, args, x, p, self.law, hint)
+            return Trial(dx, jnp.array(1.0), jnp.array(jnp.inf), solved, stats, Prediction(p_new, in_band, None))
+        # The frames (nodes, constants, kappa rows) serve the direction and the merit alike.
+        frames = contact_frames(it, args)
+        dx, p_new, in_band, stats, solved = active_set_step(it, args, x, p, self.law, hint, frames=frames)
+        merit = semismooth_merit(x, it, args, hint, frames[0])
+        return Trial(dx, jnp.array(1.0), merit, solved, stats, Prediction(p_new, in_band, frames[0]))
+
+    def aux(self, x, point, args):
+        it, p = point.state.it, point.state.p
+        _, tool_f = iterate_residual(x, it, p, args)
+        return it.f_int, it.states, _contact_out(it, p, tool_f, point.state.status)
+
+
+@eqx.filter_custom_jvp
+def exact_solve(args, x0, x_ref, *, options: NewtonOptions, law):
+    """Solve one load step with exact contact from the initial guess ``x0`` (``x_ref``: the last
+    converged state, reference of the increment test).
+
+    Returns ``(NewtonSolution, stats)`` with ``stats`` = (Lemke pivots, semismooth Newton iterations
+    (with ``lcp_lemke``: those refining its answers), ``lcp_ssn`` iterations whose active set did not
+    settle) summed over the step's iterations; the solution's ``aux`` has the layout of the penalty
+    path: (f_int, material states, contact outputs).
+    """
+    problem = ExactContactProblem(law, options)
+    c = newton_loop(problem, args, x0, x_ref, options)
+    solution: NewtonSolution = newton_result(c, problem, args)
+    return solution, c.stats
+
+
+@exact_solve.def_jvp
+def _exact_solve_jvp(primals, tangents, *, options, law):
+    raise NotImplementedError(
+        "derivatives of a run with exact contact (Complementarity, algorithms lcp_lemke / lcp_ssn) are not "
+        "defined; differentiate with Penalty or AugmentedLagrangian (optionally with smoothing) instead")

@@ -1,0 +1,155 @@
+"""Exact contact, one Newton iterate: the bulk operators and the pair geometry at x = (u, q_f), the
+step residual with given contact forces, and the status those forces give (:mod:`jaxfric.contact.exact`)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..fem.assembly import internal_force_and_tangent, shared_trace
+from ..numerics.linalg import BlockTridiag
+from .rigid import ContactStep, pair_nodes, split_pairs
+from .status import contact_status
+from .tools import project
+
+__all__ = ["KAPPA", "REFINE_ITER", "GAP_FAR", "Iterate", "linearize_iterate", "iterate_residual", "pair_status",
+           "pair_forces", "pair_tools", "tangents", "iterate_tool_positions", "Band", "proximity_band",
+           "band_normals"]
+
+
+KAPPA = 1e2       # prescribed rows: kappa = KAPPA K_ii (see the module docstring)
+REFINE_ITER = 10  # semismooth Newton iterations refining a Lemke answer on a piece boundary (polish)
+GAP_FAR = 10.0    # mm: gap given to a band node that projects on no tool (it stays open)
+
+
+class Iterate(NamedTuple):
+    """Bulk operators and pair geometry at one Newton iterate."""
+
+    f_int: jax.Array      # (n_nodes, 2)
+    K: BlockTridiag       # d f_int / du
+    states: object
+    det_min: jax.Array
+    q: jax.Array          # (n_t,) tool positions
+    gap: jax.Array        # (m,) GAP_OPEN where the pair projects on no primitive
+    normal: jax.Array     # (m, 2)
+    zeta: jax.Array       # (m,)
+    slip: jax.Array       # (m,) slip since the start of the step
+    valid: jax.Array      # (m,) bool
+    jac: jax.Array        # (m, 4, 3) d(n_x, n_y, gap, slip) / d(u_a, q_k) of each pair (node, tool)
+
+
+def pair_tools(tools) -> np.ndarray:
+    """Static: the index of each pair's tool (m,)."""
+    return np.concatenate([np.full(len(t.candidates), k) for k, t in enumerate(tools)])
+
+
+def iterate_tool_positions(args, qf) -> jax.Array:
+    """All tool positions: prescribed, or the unknown where the tool is force-driven in this phase."""
+    c = args.contact
+    if not args.force_idx:
+        return c.q_presc
+    idx = np.asarray(args.force_idx)
+    return c.q_presc.at[idx].set(jnp.where(c.force_mask[idx], qf, c.q_presc[idx]))
+
+
+def _geometry(step: ContactStep, nodes_ref, u, q):
+    """Projection of every pair at (u, q): gap, normal, zeta, the slip since the step start, validity,
+    and the derivatives of (normal, gap, slip) with respect to the pair's node displacement and its
+    tool's position, all from one forward-mode pass per pair."""
+    out, jac = [], []
+    for k, tool in enumerate(step.tools):  # static: tools differ in structure
+        idx = np.asarray(tool.candidates)
+
+        def one(X, u_a, u_ref, tool=tool, k=k):
+            def local(z):   # z = (u_a, q_k)
+                increment = (z[:2] - u_ref) - (z[2] - step.q_ref[k]) * tool.drive
+                pr = project(tool.geometry, X, step.q_ref[k] * tool.drive, displacement=u_ref,
+                             increment=increment)
+                return jnp.concatenate([pr.normal, pr.gap[None], pr.zeta_increment[None]]), pr
+
+            return jax.jacfwd(local, has_aux=True)(jnp.concatenate([u_a, q[k][None]]))
+
+        J, pr = jax.vmap(one)(nodes_ref[idx], u[idx], step.u_ref[k])
+        out.append(pr)
+        jac.append(J)
+    cat = lambda name: jnp.concatenate([getattr(p, name) for p in out])  # noqa: E731
+    return cat("gap"), cat("normal"), cat("zeta"), cat("zeta_increment"), cat("valid"), jnp.concatenate(jac)
+
+
+@shared_trace     # the loop's shapes (filter_eval_shape before the loop) and its body: one trace
+def linearize_iterate(x, args) -> Iterate:
+    n = args.mesh.n_dofs
+    u = x[:n].reshape(-1, 2)
+    q = iterate_tool_positions(args, x[n:])
+    a = internal_force_and_tangent(args.mesh, args.material, args.formulation, args.geo, u, args.states)
+    assert a.tangent is not None
+    gap, normal, zeta, slip, valid, jac = _geometry(args.contact, args.mesh.nodes, u, q)
+    return Iterate(a.f_int, a.tangent, a.states, a.det_min, q, gap, normal, zeta, slip, valid, jac)
+
+
+def tangents(normal):
+    return jnp.stack([-normal[..., 1], normal[..., 0]], axis=-1)
+
+
+def pair_forces(it: Iterate, p) -> jax.Array:
+    """(m, 2) force on the sheet of every pair, R_N n + R_T t."""
+    return p[:, :1] * it.normal + p[:, 1:] * tangents(it.normal)
+
+
+def iterate_residual(x, it: Iterate, p, args):
+    """Residual of the step at the iterate with contact forces p (m, 2); and the tool forces."""
+    n = args.mesh.n_dofs
+    c = args.contact
+    f_pairs = pair_forces(it, p)
+    f_c = jnp.zeros_like(it.f_int).at[pair_nodes(c.tools)].add(f_pairs)
+    R = jnp.where(args.mask, x[:n] - args.values, (it.f_int - f_c).reshape(-1))
+    tool_f = jnp.stack([jnp.sum(f @ t.drive) for f, t in zip(split_pairs(c.tools, f_pairs), c.tools)])
+    rows = [jnp.where(c.force_mask[k], tool_f[k] - c.force[k], x[n + j] - c.q_presc[k])
+            for j, k in enumerate(args.force_idx)]
+    if rows:
+        R = jnp.concatenate([R, jnp.stack(rows)])
+    return R, tool_f
+
+
+def pair_status(p, mu_pairs):
+    return contact_status(p[:, 0], p[:, 1], mu_pairs)
+
+
+# ---- the proximity band -----------------------------------------------------------------------------
+
+class Band(NamedTuple):
+    nodes: jax.Array   # (n_c,) sheet nodes
+    pairs: jax.Array   # (n_c,) the pair of each band node (index into the m pairs)
+
+
+def node_pairs(tools) -> tuple[np.ndarray, np.ndarray]:
+    """Static: the distinct candidate nodes (n_u,) and their pairs (n_u, w), padded with m."""
+    nodes = pair_nodes(tools)
+    unique = np.unique(nodes)
+    width = max(int(np.sum(nodes == a)) for a in unique)
+    table = np.full((unique.size, width), nodes.size, dtype=np.int64)
+    for i, a in enumerate(unique):
+        mine = np.flatnonzero(nodes == a)
+        table[i, : mine.size] = mine
+    return unique, table
+
+
+def proximity_band(it: Iterate, tools, size: int | None) -> Band:
+    unique, table = node_pairs(tools)
+    gap = jnp.concatenate([jnp.where(it.valid, it.gap, jnp.inf), jnp.array([jnp.inf])])
+    g = gap[table]
+    best = jnp.argmin(g, axis=1)
+    pairs = jnp.asarray(table)[jnp.arange(unique.size), best]
+    if size is None or size >= unique.size:
+        return Band(jnp.asarray(unique), pairs)
+    _, sel = jax.lax.top_k(-jnp.min(g, axis=1), size)
+    return Band(jnp.asarray(unique)[sel], pairs[sel])
+
+
+def band_normals(it: Iterate, band: Band) -> tuple[jax.Array, jax.Array]:
+    """Whether each band node's pair projects on its tool, and its normal ((0, 1) where it does not)."""
+    valid = it.valid[band.pairs]
+    return valid, jnp.where(valid[:, None], it.normal[band.pairs], jnp.array([0.0, 1.0]))

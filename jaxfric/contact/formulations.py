@@ -1,0 +1,320 @@
+"""Contact formulations: how a load step enforces the contact conditions (benchmarks spec 1.5 to 1.7).
+
+One abstract interface, :class:`AbstractContactFormulation`, and three final strategies:
+
+- :class:`Penalty` (``penalty``, spec 1.5): the regularised law, one Newton solve per step attempt;
+- :class:`AugmentedLagrangian` (``auglag``, spec 1.6): the same law with multipliers, a Uzawa loop of
+  Newton solves per attempt;
+- :class:`Complementarity` (``lcp_lemke``, ``lcp_ssn``, spec 1.7): exact contact solved inside the
+  Newton loop (:mod:`jaxfric.contact.exact`).
+
+The load loop (:mod:`jaxfric.simulate`) never asks which one it holds: it asks the formulation to
+solve a step attempt (:meth:`~AbstractContactFormulation.solve_step`) and reads the class's
+declarations (whether the step's multipliers start from the last converged forces, whether a stiff
+step may be softened by the continuation, whether an attempt without line search exists, which solver
+counters are recorded). Adding a formulation is a subclass that answers the same questions.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import ClassVar, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..fem.assembly import shared_trace
+from ..numerics._checks import check_int, check_nonnegative, is_concrete
+from ..numerics.newton import NewtonOptions, newton_solve
+from ..numerics.results import Result
+from .exact import exact_solve
+from .rigid import max_penetration, split_pairs
+from .status import STICK
+from .system import StepArgs, linearize, residual
+
+__all__ = ["ALGORITHMS", "DIFFERENTIABLE_ALGORITHMS", "AbstractContactFormulation", "Penalty",
+           "AugmentedLagrangian", "Complementarity", "StepSolution", "formulation", "from_newton", "newton_step"]
+
+
+class StepSolution(NamedTuple):
+    """Outcome of one load-step attempt: the Newton solution(s) summed over AL augmentations."""
+
+    x: jax.Array
+    aux: object
+    iterations: jax.Array       # () Newton iterations, all augmentations included
+    code: jax.Array             # () Result
+    residual_norm: jax.Array
+    residual_history: jax.Array  # of the last Newton solve
+    augmentations: jax.Array    # () AL augmentations (0 for the penalty method)
+    stats: jax.Array            # (3,) exact contact: Lemke pivots, SSN iterations, fallbacks
+    hardest: jax.Array | None = None  # () the most iterations one Newton solve took (AL: of all the
+    #                                    augmentations; None: ``iterations``)
+
+
+def from_newton(sol, stats=None) -> StepSolution:
+    """A single Newton solve as a step solution (no augmentation)."""
+    stats = jnp.zeros(3, jnp.int32) if stats is None else stats
+    return StepSolution(sol.x, sol.aux, sol.iterations, sol.code, sol.residual_norm, sol.residual_history,
+                        augmentations=jnp.array(0, jnp.int32), stats=stats)
+
+
+def newton_step(args: StepArgs, x0, x_ref, newton: NewtonOptions, search=True, stage=False) -> StepSolution:
+    """A step attempt that is one Newton solve of :func:`jaxfric.contact.system.linearize` (the penalty law's,
+    and a model's without tools)."""
+    return from_newton(newton_solve(args, x0, x_ref, linearize=linearize, residual=residual, options=newton,
+                               search=search, positions=stage))
+
+
+class AbstractContactFormulation(eqx.Module):
+    """What the load loop asks of a contact formulation.
+
+    Class declarations (static):
+        warm_start: a step's multipliers (``ContactStep.lam_n``) start from the last converged normal
+            forces; otherwise they are zero (the penalty law: lambda_N = 0).
+        continuation: a step that fails at the smallest increment may be solved through stages of
+            softened penalties (:class:`jaxfric.loadpath.controller.StepControl`); the formulation then
+            provides :meth:`continuation_stages` and :meth:`softened`.
+        unsearched_retry: the step controller's last attempt at the smallest increment runs Newton
+            without its line search (a formulation whose loop has no line search to switch off: no
+            such attempt).
+        one_newton_solve: an attempt is one Newton solve of :func:`jaxfric.contact.system.linearize`, so a
+            driver may advance it one iteration at a time (:func:`jaxfric.loadpath.simulate.simulate_flat`).
+        solver_stats: names of the history columns of ``History.solver_stats`` (empty: none kept).
+        differentiable: steps carry derivatives (implicit function theorem).
+    """
+
+    warm_start: ClassVar[bool] = False
+    continuation: ClassVar[bool] = False
+    unsearched_retry: ClassVar[bool] = True
+    one_newton_solve: ClassVar[bool] = False
+    solver_stats: ClassVar[tuple] = ()
+    differentiable: ClassVar[bool] = True
+
+    @abc.abstractmethod
+    def solve_step(self, args: StepArgs, x0, x_ref, newton: NewtonOptions, search=True,
+                   stage=False) -> StepSolution:
+        """Solve one load-step attempt from the initial guess ``x0``.
+
+        ``x_ref``: the last converged unknowns (reference of Newton's increment test); ``search`` (may
+        be traced) False switches Newton's line search off; ``stage`` (may be traced) True marks a
+        continuation stage (Newton's round-off floor relative to the positions, :mod:`jaxfric.numerics.newton`).
+        """
+
+    def continuation_stages(self, modulus) -> jax.Array:
+        """() int32: the number m of softened stages for a sheet of modulus ``modulus`` (0: none)."""
+        return jnp.array(0, jnp.int32)
+
+    def softened(self, m) -> AbstractContactFormulation:
+        """The formulation of continuation stage ``m`` (penalties / 10^m)."""
+        raise NotImplementedError(f"{type(self).__name__} has no continuation")
+
+
+class _Regularised(AbstractContactFormulation):
+    """The penalty-regularised pair law (:mod:`jaxfric.contact.laws`) shared by :class:`Penalty` and
+    :class:`AugmentedLagrangian`: eps_n, eps_t in N/mm per mm; ``smoothing`` (N/mm, 0: the exact
+    law) smooths the normal and stick/slip kinks over a force band of that width, for gradient-based
+    work. Whether the law is smoothed (``smooth``) is static: declared, or when not given, True
+    unless ``smoothing`` is a concrete 0."""
+
+    eps_n: jax.Array
+    eps_t: jax.Array
+    smoothing: jax.Array
+    smooth: bool = eqx.field(static=True)
+
+    def _set_penalties(self, eps_n, eps_t, smoothing, smooth):
+        for name, v in (("eps_n", eps_n), ("eps_t", eps_t), ("smoothing", smoothing)):
+            check_nonnegative(name, v)
+        self.eps_n = jnp.asarray(eps_n, jnp.float64)
+        self.eps_t = jnp.asarray(eps_t, jnp.float64)
+        self.smoothing = jnp.asarray(smoothing, jnp.float64)
+        # Undeclared: decided from the argument as given (inside jit, even a converted constant is a
+        # tracer, and a traced smoothing must keep the smoothed law).
+        if smooth is None:
+            smooth = (not is_concrete(smoothing)) or float(np.asarray(smoothing)) > 0
+        if not isinstance(smooth, bool):
+            raise ValueError(f"field 'smooth' must be True, False or None, got {smooth!r}")
+        self.smooth = smooth
+
+    def __check_init__(self):
+        if is_concrete(self.eps_n) and not float(self.eps_n) > 0:
+            raise ValueError(f"field 'eps_n' must be > 0, got {float(self.eps_n)}")
+
+
+class Penalty(_Regularised):
+    """Penalty regularisation of contact and friction (spec 1.5, paper eq. 19): each attempt is one
+    Newton solve with lambda_N = 0 and lambda_T = R_T,n (the last converged tangential force).
+
+    Its stiff steps may be softened (:class:`jaxfric.loadpath.controller.StepControl`, ``continuation``): stage
+    m solves with eps_n and eps_t divided by 10^m, from m = ceil(log10(eps_n / E)) down to 0.
+    """
+
+    continuation: ClassVar[bool] = True
+    one_newton_solve: ClassVar[bool] = True
+
+    def __init__(self, eps_n, eps_t, smoothing=0.0, smooth: bool | None = None):
+        self._set_penalties(eps_n, eps_t, smoothing, smooth)
+
+    def solve_step(self, args, x0, x_ref, newton, search=True, stage=False) -> StepSolution:
+        return newton_step(args, x0, x_ref, newton, search, stage)
+
+    def continuation_stages(self, modulus) -> jax.Array:
+        """m = ceil(log10(eps_n / E)) clipped to [0, 12]: the first stage's penalty is of the order of
+        the sheet's modulus E (none when eps_n <= E)."""
+        m = jnp.ceil(jnp.log10(self.eps_n / modulus))
+        return jnp.clip(jnp.nan_to_num(m), 0, 12).astype(jnp.int32)
+
+    def softened(self, m) -> Penalty:
+        """eps_n and eps_t divided by 10^m (m = 0: unchanged, bit for bit)."""
+        scale = 10.0 ** (-jnp.asarray(m, jnp.float64))
+        return eqx.tree_at(lambda law: (law.eps_n, law.eps_t), self, (self.eps_n * scale, self.eps_t * scale))
+
+
+class AugmentedLagrangian(_Regularised):
+    """Augmented Lagrangian (spec 1.6, paper eq. 20): the penalty law with multipliers, updated
+    between converged Newton solves (lambda <- R, an Uzawa iteration) until the largest penetration
+    AND the largest slip of a sticking pair over the step (the tangential stick error, which the
+    tangential penalty alone leaves at R_T / eps_t) are at most ``target_gap`` (mm), at most
+    ``max_augmentations`` times per step. The spec's test checks the normal gap only; without the
+    tangential part, eps_t = mu eps_n = 1.5e4 N/mm leaves elastic slips of 1e-5 mm where the flat die's
+    early stroke is 2.5e-5 mm per step, and its drawing curve is 3 % (of mu P) off the exact one.
+
+    Multipliers start each step from the converged forces of the last one (warm start), so a step that
+    already meets the target needs no augmentation.
+    """
+
+    target_gap: jax.Array
+    max_augmentations: int = eqx.field(static=True)
+    warm_start: ClassVar[bool] = True
+
+    def __init__(self, eps_n, eps_t, target_gap=1e-5, max_augmentations: int = 20, smoothing=0.0,
+                 smooth: bool | None = None):
+        self._set_penalties(eps_n, eps_t, smoothing, smooth)
+        check_nonnegative("target_gap", target_gap)
+        if is_concrete(target_gap) and not float(target_gap) > 0:
+            raise ValueError(f"field 'target_gap' must be > 0, got {float(target_gap)}")
+        self.target_gap = jnp.asarray(target_gap, jnp.float64)
+        checked = check_int("max_augmentations", max_augmentations, 1, 10_000)
+        assert checked is not None
+        self.max_augmentations = checked
+
+    def solve_step(self, args, x0, x_ref, newton, search=True, stage=False) -> StepSolution:
+        """Uzawa iteration: solve with the step's multipliers, then, while the step's largest
+        penetration or stick slip exceeds the target, set lambda <- R and solve again. The first solve
+        is the loop's first pass, so that the traced program holds one Newton solve (each copy costs
+        compile time).
+
+        The slip reference stays at the start of the step. Resetting it at each augmentation, as the
+        spec words it, makes the tangential update telescope: R_T^(K) = lambda_T^(0) - eps_T (sum of
+        the slips of all augmentations) = R_T,n - eps_T (slip since the step start), which is the
+        penalty law itself, so the stick error could never fall below R_T / eps_t. With a fixed
+        reference, a converged sticking pair has exactly zero slip over the step and the multiplier
+        carries the whole stick force.
+        """
+        tools = args.contact.tools
+
+        @shared_trace     # one trace for the loop's shapes (below) and its body
+        def solve(a, lam_n, lam_t, x_start):
+            step = eqx.tree_at(lambda c: (c.lam_n, c.lam_t), a.contact, (lam_n, lam_t))
+            return newton_solve(eqx.tree_at(lambda b: b.contact, a, step), x_start, x_ref,
+                                linearize=linearize, residual=residual, options=newton, search=search)
+
+        def pending(c):
+            sol, n_aug = c[:2]
+            return (n_aug < 0) | ((sol.code == Result.SUCCESS) & (_constraint_error(sol.aux[2]) > self.target_gap))
+
+        def body(c):
+            sol, n_aug, iters, hardest = c
+            out = sol.aux[2]
+            first = n_aug < 0     # the step's own multipliers (the last converged forces) and start
+            pick = lambda a, b: jnp.where(first, a, b)  # noqa: E731
+            lam_n = jax.tree_util.tree_map(pick, args.contact.lam_n, split_pairs(tools, out["rn"]))
+            lam_t = jax.tree_util.tree_map(pick, args.contact.lam_t, split_pairs(tools, out["rt"]))
+            new = solve(args, lam_n, lam_t, pick(x0, sol.x))
+            # After the last allowed augmentation the target must be met, or the attempt fails.
+            exhausted = (n_aug + 1 >= self.max_augmentations) & (new.code == Result.SUCCESS) & (
+                _constraint_error(new.aux[2]) > self.target_gap)
+            code = jnp.where(exhausted, Result.AUGMENTATIONS, new.code).astype(jnp.int32)
+            return new._replace(code=code), n_aug + 1, iters + new.iterations, jnp.maximum(hardest, new.iterations)
+
+        shape = eqx.filter_eval_shape(solve, args, args.contact.lam_n, args.contact.lam_t, x0)
+        sol0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shape)
+        int0 = jnp.array(0, jnp.int32)
+        sol, n_aug, iters, hardest = jax.lax.while_loop(pending, body,
+                                                        (sol0, jnp.array(-1, jnp.int32), int0, int0))
+        return StepSolution(sol.x, sol.aux, iters, sol.code, sol.residual_norm, sol.residual_history, n_aug,
+                            jnp.zeros(3, jnp.int32), hardest)
+
+
+def _constraint_error(contact_out: dict) -> jax.Array:
+    """AL acceptance measure: largest penetration, and largest slip of a sticking pair (mm)."""
+    stick_slip = jnp.where(contact_out["status"] == STICK, jnp.abs(contact_out["slip"]), 0.0)
+    return jnp.maximum(max_penetration(contact_out["status"], contact_out["gap"]), jnp.max(stick_slip))
+
+
+SOLVERS = ("ssn", "lemke")
+
+
+class Complementarity(AbstractContactFormulation):
+    """Exact contact (spec 1.7, algorithms ``lcp_lemke`` and ``lcp_ssn``): at every Newton iterate the
+    contact conditions of the linearised problem are solved exactly; no penalty, no penetration beyond
+    the Newton tolerance (:mod:`jaxfric.contact.exact`). Its multipliers (the last converged forces) only
+    guess the first active set; it is not differentiable.
+
+    Attributes:
+        solver (static):
+            "ssn" (``lcp_ssn``): semismooth Newton on the Alart-Curnier equations of every candidate
+            inside the global Newton loop, on the block-tridiagonal system itself.
+            "lemke" (``lcp_lemke``): Lemke's pivoting on the condensed problem, on the host through
+            ``jax.pure_callback``.
+        band: static number of candidate nodes in the condensed problem (the proximity band: the
+            nodes nearest to a tool). None: every candidate node. Too small a band is detected (a node
+            outside it penetrates) and fails the attempt. Not used by "ssn" (every candidate).
+        ssn_max_iter: semismooth Newton iterations on one linearised problem (static): "ssn" then
+            takes its last active set. Not used by "lemke".
+    """
+
+    solver: str = eqx.field(static=True, default="ssn")
+    band: int | None = eqx.field(static=True, default=None)
+    ssn_max_iter: int = eqx.field(static=True, default=50)
+    warm_start: ClassVar[bool] = True
+    unsearched_retry: ClassVar[bool] = False
+    solver_stats: ClassVar[tuple] = ("lcp_pivots", "ssn_iters", "ssn_fallbacks")
+    differentiable: ClassVar[bool] = False
+
+    def __check_init__(self):
+        if self.solver not in SOLVERS:
+            raise ValueError(f"field 'solver' must be one of {', '.join(map(repr, SOLVERS))}, got {self.solver!r}")
+        check_int("band", self.band, optional=True)
+        check_int("ssn_max_iter", self.ssn_max_iter, 1, 10_000)
+
+    def solve_step(self, args, x0, x_ref, newton, search=True, stage=False) -> StepSolution:
+        sol, stats = exact_solve(args, x0, x_ref, options=newton, law=self)
+        return from_newton(sol, stats)
+
+
+# The algorithm identifiers (outputs spec section 1) and the formulation class of each.
+_CLASSES: dict[str, type[AbstractContactFormulation]] = {
+    "penalty": Penalty, "auglag": AugmentedLagrangian, "lcp_lemke": Complementarity, "lcp_ssn": Complementarity}
+ALGORITHMS = tuple(_CLASSES)
+DIFFERENTIABLE_ALGORITHMS = tuple(name for name, cls in _CLASSES.items() if cls.differentiable)
+
+
+def formulation(algorithm: str, eps_n, eps_t, target_gap, band: int | None = None, smoothing=0.0,
+                max_augmentations: int = 20) -> AbstractContactFormulation:
+    """The contact formulation of an algorithm identifier (outputs spec section 1); ``smoothing`` > 0
+    (N/mm) smooths the penalty and AL laws (:mod:`jaxfric.contact.laws`); exact contact has none.
+    ``max_augmentations`` is the AL's limit per step attempt (spec 1.6: 20)."""
+    if algorithm in ("lcp_lemke", "lcp_ssn") and smoothing != 0:
+        raise ValueError(f"field 'smoothing' = {smoothing!r} applies to algorithms penalty and auglag only; "
+                         f"exact contact ({algorithm}) has no smoothed law")
+    if algorithm == "penalty":
+        return Penalty(eps_n, eps_t, smoothing)
+    if algorithm == "auglag":
+        return AugmentedLagrangian(eps_n, eps_t, target_gap, max_augmentations, smoothing=smoothing)
+    if algorithm == "lcp_lemke":
+        return Complementarity("lemke", band)
+    if algorithm == "lcp_ssn":
+        return Complementarity("ssn", band)
+    raise ValueError(f"unknown algorithm {algorithm!r}; choose one of {', '.join(ALGORITHMS)}")

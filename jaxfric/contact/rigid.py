@@ -1,0 +1,290 @@
+"""Node-to-rigid-surface contact of the sheet with rigid tools, inside the global Newton system.
+
+A scene declares, per tool, its geometry (:class:`jaxfric.contact.tools.Tool`), its closing direction e_q,
+its candidate sheet nodes, its friction coefficient per phase, and per phase how it moves:
+
+- :class:`Move` (displacement-driven): q = q_start + a + tau (b - a), relative to its position at the
+  start of the phase (``Move(0, 0)`` holds it where it is);
+- :class:`Force` (force-driven, spec 1.8): its position q is an extra unknown, balanced by the
+  prescribed closing force P(tau) = P_0 + tau (P_end - P_0), with P_0 the tool's clamping force at
+  the start of the phase unless given.
+
+Global system (unknowns x = (u, q_f), q_f the positions of the tools that are force-driven in some
+phase; a scene with none has no extra unknown):
+
+    R_u = f_int(u) - f_c(u, q)                        (free dofs; prescribed dofs: u - u_presc)
+    R_q = sum_{pairs of the tool} e_q . f_c,a - P     (force-driven phase; otherwise q - q_presc)
+
+with f_c,a = R_N n + R_T t the force on the sheet at pair a (spec 1.4). The contact forces depend on
+each pair's node and tool only, so dR_u/du keeps the block-tridiagonal structure (a 2x2 block per
+pair on the diagonal) and the tools add a border (:class:`jaxfric.numerics.linalg.Bordered`). The Jacobian of
+every pair force, including the derivatives of n, t and zeta with respect to the node position and
+the tool position, comes from ``jax.jacfwd`` of the pair law.
+
+A force-driven tool that has lost every contact cannot balance its force, and its balance row no
+longer depends on its position (a singular Newton matrix). Its row then asks it to close the nearest
+gap (see :func:`jaxfric.contact.system._tool_rows`), so one Newton step puts it back on the sheet, where the
+balance row takes over; with P = 0 it rests touching the sheet with zero force.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..numerics._checks import check_nonnegative, is_concrete
+from .laws import augmented_pair
+from .status import OPEN
+from .tools import Tool, project
+
+__all__ = ["Move", "Force", "RigidTool", "ContactState", "ContactStep", "PairResult", "initial_contact_state",
+           "evaluate_pairs", "tool_forces", "split_pairs", "pair_nodes", "pair_mu", "max_penetration"]
+
+
+class Move(eqx.Module):
+    """Displacement-driven phase: q = q_start + start + tau (end - start) (mm, along e_q)."""
+
+    start: jax.Array
+    end: jax.Array
+
+    def __init__(self, start=0.0, end=0.0):
+        self.start = jnp.asarray(start, jnp.float64)
+        self.end = jnp.asarray(end, jnp.float64)
+
+    def position(self, q_start, tau):
+        return q_start + self.start + tau * (self.end - self.start)
+
+
+class Force(eqx.Module):
+    """Force-driven phase: closing force P = P_0 + tau (end - P_0) (N/mm); P_0 = ``start``, or the
+    tool's clamping force at the start of the phase when ``start`` is None."""
+
+    end: jax.Array
+    start: jax.Array | None
+
+    def __init__(self, end, start=None):
+        check_nonnegative("force end", end)
+        if start is not None:
+            check_nonnegative("force start", start)
+        self.end = jnp.asarray(end, jnp.float64)
+        self.start = None if start is None else jnp.asarray(start, jnp.float64)
+
+    def force(self, f_start, tau):
+        p0 = f_start if self.start is None else self.start
+        return p0 + tau * (self.end - p0)
+
+
+class RigidTool(eqx.Module):
+    """A rigid tool in a scene.
+
+    Attributes:
+        name: static name (outputs).
+        geometry: the tool at rest.
+        drive: (2,) unit closing direction e_q (towards the sheet).
+        candidates: static tuple of candidate sheet-node indices.
+        controls: one :class:`Move` or :class:`Force` per phase.
+        mu: (n_phases,) friction coefficient per phase.
+        frictional: static; whether the tool's pairs carry a friction term. Declared, or when not
+            given, False only for a concrete mu of 0 in every phase (a traced mu keeps the term). A tool
+            declared frictional with mu = 0 builds the same program as with any other mu, so a
+            derivative or a fit can start from mu = 0.
+    """
+
+    name: str = eqx.field(static=True)
+    geometry: Tool
+    drive: jax.Array
+    candidates: tuple = eqx.field(static=True)
+    controls: tuple
+    mu: jax.Array
+    frictional: bool = eqx.field(static=True)
+
+    def __init__(self, name, geometry: Tool, drive, candidates, controls, mu, frictional: bool | None = None):
+        self.name = str(name)
+        self.geometry = geometry
+        self.drive = jnp.asarray(drive, jnp.float64)
+        self.candidates = tuple(int(a) for a in np.asarray(candidates).ravel())
+        self.controls = tuple(controls)
+        # Undeclared: decided from the argument as given (inside jit, even a converted constant is a tracer).
+        if frictional is None:
+            frictional = (not is_concrete(mu)) or bool(np.any(np.asarray(mu) > 0))
+        if isinstance(frictional, np.bool_):
+            frictional = bool(frictional)
+        if not isinstance(frictional, bool):
+            raise ValueError(f"tool {self.name!r}: field 'frictional' must be True, False or None, got {frictional!r}")
+        self.frictional = frictional
+        mu = jnp.asarray(mu, jnp.float64)
+        self.mu = jnp.broadcast_to(mu, (len(self.controls),)) if mu.ndim == 0 else mu
+
+    def __check_init__(self):
+        if self.drive.shape != (2,):
+            raise ValueError(f"tool {self.name!r}: field 'drive' must be a 2-vector")
+        if is_concrete(self.drive) and abs(float(jnp.linalg.norm(self.drive)) - 1.0) > 1e-12:
+            raise ValueError(f"tool {self.name!r}: field 'drive' must be a unit vector, got {self.drive}")
+        if not self.candidates:
+            raise ValueError(f"tool {self.name!r}: field 'candidates' is empty")
+        if not all(isinstance(c, (Move, Force)) for c in self.controls):
+            raise ValueError(f"tool {self.name!r}: field 'controls' must hold one Move or Force per phase")
+        if self.mu.shape != (len(self.controls),):
+            raise ValueError(f"tool {self.name!r}: field 'mu' must be a scalar or one value per phase")
+        if is_concrete(self.mu) and not np.all(np.isfinite(self.mu) & (np.asarray(self.mu) >= 0)):
+            raise ValueError(f"tool {self.name!r}: field 'mu' must be finite and >= 0, got {self.mu}")
+        if not self.frictional and is_concrete(self.mu) and np.any(np.asarray(self.mu) > 0):
+            raise ValueError(f"tool {self.name!r}: field 'mu' = {self.mu} on a tool declared frictionless "
+                             f"(frictional=False); declare it frictional or give mu = 0")
+
+    @property
+    def force_driven(self) -> bool:
+        """Static: whether any phase drives this tool by a force (it then owns an extra unknown)."""
+        return any(isinstance(c, Force) for c in self.controls)
+
+
+class ContactState(eqx.Module):
+    """Contact history and outputs after a converged step (m pairs, n_t tools).
+
+    Attributes:
+        q: (n_t,) tool positions along e_q from rest (mm).
+        q_start, f_start: (n_t,) position and clamping force at the start of the current phase.
+        force: (n_t,) clamping force sum_a e_q . f_c,a (N/mm).
+        rn, rt: (m,) normal and tangential forces (N/mm); rt is R_T,n of the next step.
+        zeta: (m,) arc-length coordinate of each node's projection (tool frame, mm).
+        gap: (m,) normal gap (mm; GAP_OPEN when the node projects on no primitive).
+        normal: (m, 2) tool normal at the projection.
+        status: (m,) int8 0 open, 1 stick, 2 slip.
+    """
+
+    q: jax.Array
+    q_start: jax.Array
+    f_start: jax.Array
+    force: jax.Array
+    rn: jax.Array
+    rt: jax.Array
+    zeta: jax.Array
+    gap: jax.Array
+    normal: jax.Array
+    status: jax.Array
+
+
+class ContactStep(eqx.Module):
+    """Everything the contact terms of one load step depend on (differentiable data)."""
+
+    tools: tuple
+    law: Any             # the contact formulation (jaxfric.contact.formulations); pair laws read its penalties
+    mu: tuple            # per tool, () coefficient of this phase
+    lam_n: tuple         # per tool, (n_k,) frozen normal multipliers (0 for the penalty method; exact
+                         # contact: the last converged R_N, which only guesses Lemke's starting basis)
+    lam_t: tuple         # per tool, (n_k,) frozen tangential multipliers (R_T,n for the penalty method)
+    u_ref: tuple         # per tool, (n_k, 2) candidate displacements at the slip reference configuration
+    q_ref: jax.Array     # (n_t,) tool positions at the slip reference configuration
+    q_presc: jax.Array   # (n_t,) prescribed positions (used where not force-driven)
+    force: jax.Array     # (n_t,) prescribed forces (used where force-driven)
+    force_mask: jax.Array  # (n_t,) bool: force-driven in this phase
+
+
+class PairResult(NamedTuple):
+    """Per tool: forces on the sheet and their derivatives at every candidate pair."""
+
+    f: jax.Array          # (n_k, 2) force on the sheet
+    df_dx: jax.Array      # (n_k, 2, 2) d f / d x_node
+    df_dq: jax.Array      # (n_k, 2) d f / d q
+    rn: jax.Array
+    rt: jax.Array
+    status: jax.Array
+    gap: jax.Array
+    zeta: jax.Array
+    normal: jax.Array
+    slip: jax.Array       # slip since the reference configuration (mm)
+
+
+def _pair(tool: RigidTool, law, frictional: bool, X, u, q, mu, lam_n, lam_t, u_ref, q_ref):
+    # Relative motion of node and tool since the reference configuration; the slip is the change of zeta
+    # it causes, computed from the increment itself (round-off, see jaxfric.contact.tools.project).
+    increment = (u - u_ref) - (q - q_ref) * tool.drive
+    proj = project(tool.geometry, X, q_ref * tool.drive, displacement=u_ref, increment=increment)
+    smoothing = law.smoothing if law.smooth else None
+    if frictional:
+        force = augmented_pair(proj.gap, proj.zeta_increment, lam_n, lam_t, mu, law.eps_n, law.eps_t,
+                               proj.valid, smoothing)
+    else:  # static: a frictionless tool builds no tangential term at all
+        force = augmented_pair(proj.gap, 0.0, lam_n, 0.0, 0.0, law.eps_n, 0.0, proj.valid, smoothing)
+    f = force.normal * proj.normal + force.tangential * proj.tangent
+    return f, (force.normal, force.tangential, force.status, proj.gap, proj.zeta, proj.normal,
+               proj.zeta_increment)
+
+
+def evaluate_pairs(step: ContactStep, nodes_ref: jax.Array, u: jax.Array, q: jax.Array,
+                   jacobian: bool) -> list:
+    """Forces (and with ``jacobian`` their derivatives) of every pair, tool by tool.
+
+    Args:
+        step: the contact data of this step.
+        nodes_ref, u: (n_nodes, 2) reference node positions and displacements (mm), kept apart for an
+            accurate gap (see :func:`jaxfric.contact.tools.project`).
+        q: (n_t,) current tool positions (mm).
+    """
+    out = []
+    for k, tool in enumerate(step.tools):  # static loop: tools differ in structure
+        idx = np.asarray(tool.candidates)
+
+        def one(u_a, qk, X_a, lam_n, lam_t, u_ref, tool=tool, k=k):
+            f, aux = _pair(tool, step.law, tool.frictional, X_a, u_a, qk, step.mu[k], lam_n, lam_t, u_ref,
+                           step.q_ref[k])
+            return f, (f, aux)
+
+        args = (u[idx], q[k], nodes_ref[idx], step.lam_n[k], step.lam_t[k], step.u_ref[k])
+        axes = (0, None, 0, 0, 0, 0)
+        if jacobian:  # d f / d x_node = d f / d u_node
+            (dfdx, dfdq), (f, aux) = jax.vmap(jax.jacfwd(one, argnums=(0, 1), has_aux=True), axes)(*args)
+        else:
+            f, aux = jax.vmap(lambda *a: one(*a)[1], axes)(*args)
+            dfdx = dfdq = None
+        out.append(PairResult(f, dfdx, dfdq, *aux))
+    return out
+
+
+def tool_forces(step: ContactStep, pairs: list) -> jax.Array:
+    """(n_t,) clamping force of every tool: sum over its pairs of e_q . f_c (N/mm)."""
+    return jnp.stack([jnp.sum(p.f @ tool.drive) for tool, p in zip(step.tools, pairs)])
+
+
+def initial_contact_state(tools, nodes: jax.Array) -> ContactState:
+    """Tools at rest, no force; zeta of every candidate's projection in the reference configuration."""
+    n_t = len(tools)
+    zeros_t = jnp.zeros(n_t)
+    zetas, gaps, normals = [], [], []
+    for tool in tools:
+        proj = jax.vmap(project, in_axes=(None, 0, None))(tool.geometry, nodes[np.asarray(tool.candidates)],
+                                                          jnp.zeros(2))
+        zetas.append(proj.zeta)
+        gaps.append(proj.gap)
+        normals.append(proj.normal)
+    zeta = jnp.concatenate(zetas)
+    m = zeta.shape[0]
+    return ContactState(q=zeros_t, q_start=zeros_t, f_start=zeros_t, force=zeros_t, rn=jnp.zeros(m),
+                        rt=jnp.zeros(m), zeta=zeta, gap=jnp.concatenate(gaps),
+                        normal=jnp.concatenate(normals), status=jnp.full(m, OPEN, jnp.int8))
+
+
+def pair_nodes(tools) -> np.ndarray:
+    """(m,) sheet node of every candidate pair, tool after tool (static)."""
+    return np.concatenate([np.asarray(t.candidates) for t in tools])
+
+
+def pair_mu(tools, mu) -> jax.Array:
+    """(m,) friction coefficient of every candidate pair, from ``mu`` per tool (tool after tool)."""
+    return jnp.concatenate([jnp.full(len(t.candidates), mu[k]) for k, t in enumerate(tools)])
+
+
+def max_penetration(status, gap) -> jax.Array:
+    """Largest penetration max(0, -g_N) over the closed pairs (mm)."""
+    return jnp.max(jnp.where(status > 0, jnp.maximum(-gap, 0.0), 0.0))
+
+
+def split_pairs(tools, values):
+    """Split a per-pair array (m, ...) into per-tool pieces."""
+    sizes = np.cumsum([len(t.candidates) for t in tools])[:-1]
+    return tuple(jnp.split(values, sizes))
+

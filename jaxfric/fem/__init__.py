@@ -1,0 +1,2 @@
+"""Layer 2, the finite-element discretisation of the strip: mesh (:mod:`.mesh`), element (:mod:`.element`),
+material (:mod:`.material`), global assembly (:mod:`.assembly`) and prescribed loading (:mod:`.loading`)."""

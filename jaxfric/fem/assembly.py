@@ -1,0 +1,170 @@
+"""Global assembly of internal forces and of the block-tridiagonal tangent of a strip.
+
+The element loops are ``vmap``s; gathering and scattering use static index arrays computed once per
+mesh size with NumPy. The tangent is scattered directly into the blocks of a
+:class:`~jaxfric.numerics.linalg.BlockTridiag` (one block per column of nodes), so no global sparse or dense
+matrix is ever formed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import functools
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..numerics.linalg import BlockTridiag
+from .element import ElementGeometry, element_force, element_force_and_tangent, element_geometry
+from .mesh import StripMesh
+
+__all__ = ["Assembled", "mesh_geometry", "internal_force", "internal_force_and_tangent",
+           "tangent_scatter_index", "element_chunk", "ELEMENT_CHUNK", "shared_trace"]
+
+
+class Assembled(NamedTuple):
+    """Result of one assembly at a displacement field.
+
+    Attributes:
+        f_int: (n_nodes, 2) internal nodal forces (N/mm).
+        tangent: d f_int / d u as a BlockTridiag over the flattened dofs (node-major), or None.
+        states: trial material states at every Gauss point (leading axes (n_el, 4)).
+        tau: (n_el, 4, 3, 3) Kirchhoff stress (MPa).
+        det_min: () smallest det F over all Gauss points and centroids (<= 0: inverted element).
+    """
+
+    f_int: jax.Array
+    tangent: BlockTridiag | None
+    states: object
+    tau: jax.Array
+    det_min: jax.Array
+
+
+def mesh_geometry(mesh: StripMesh) -> ElementGeometry:
+    """Reference shape-function gradients and weights of every element of ``mesh``."""
+    return element_geometry(mesh.nodes[mesh.elements])
+
+
+@functools.cache
+def tangent_scatter_index(nx: int, ny: int) -> np.ndarray:
+    """(n_el*64,) positions of the entries of every (8, 8) element tangent in the flat storage
+    ``concat(diag.ravel(), lower.ravel(), upper.ravel())`` of a BlockTridiag with nx+1 blocks."""
+    m = 2 * (ny + 1)
+    nb = nx + 1
+    i_grid, j_grid = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    i, j = i_grid.ravel(), j_grid.ravel()
+    # Block column and in-block dof of each of the 8 element dofs (node-major, x then y).
+    col = i[:, None] + np.repeat([0, 1, 1, 0], 2)[None, :]
+    row = 2 * (j[:, None] + np.repeat([0, 0, 1, 1], 2)[None, :]) + np.tile([0, 1], 4)[None, :]
+    bi, bj = col[:, :, None], col[:, None, :]
+    ri, rj = row[:, :, None], row[:, None, :]
+    in_block = ri * m + rj
+    off_lower = nb * m * m
+    off_upper = off_lower + (nb - 1) * m * m
+    index = np.where(
+        bi == bj, bi * m * m + in_block,
+        np.where(bi > bj, off_lower + bj * m * m + in_block, off_upper + bi * m * m + in_block))
+    return index.reshape(-1).astype(np.int64)
+
+
+def _scatter_tangent(K_el: jax.Array, nx: int, ny: int) -> BlockTridiag:
+    m, nb = 2 * (ny + 1), nx + 1
+    size = (3 * nb - 2) * m * m
+    flat = jnp.zeros(size, K_el.dtype).at[tangent_scatter_index(nx, ny)].add(K_el.reshape(-1))
+    diag = flat[: nb * m * m].reshape(nb, m, m)
+    lower = flat[nb * m * m: (2 * nb - 1) * m * m].reshape(nb - 1, m, m)
+    upper = flat[(2 * nb - 1) * m * m:].reshape(nb - 1, m, m)
+    return BlockTridiag(lower=lower, diag=diag, upper=upper)
+
+
+# Elements are processed in chunks of this many (up to twice as many: `_element_map`), vmapped inside a
+# chunk: the per-element working set of the material derivatives then stays in cache. Measured on the
+# 2-core CPU: one vmap over all 7200 elements of a 1200 x 6 strip costs 10.7 us per element, chunks of
+# 128-600 cost 6.0-6.4, the same as a 300 x 3 strip, so the assembly cost grows linearly with the number
+# of elements.
+ELEMENT_CHUNK = 512
+_CHUNK = contextvars.ContextVar("element_chunk", default=ELEMENT_CHUNK)
+
+
+@contextlib.contextmanager
+def element_chunk(size: int):
+    """Trace the element loops with chunks of ``size`` elements (default :data:`ELEMENT_CHUNK`).
+
+    A setting read when a program is traced, not when it runs. Under ``vmap`` over n members a chunk
+    holds chunk x n element evaluations, so a batched sweep traces with chunks n times smaller to
+    keep the working set of one chunk (:func:`jaxfric.loadpath.sweep.sweep`)."""
+    token = _CHUNK.set(max(int(size), 1))
+    try:
+        yield
+    finally:
+        _CHUNK.reset(token)
+
+
+def shared_trace(fn):
+    """``fn`` jitted, so that its calls with the same argument structure within one traced program share
+    a single trace: a loop's ``filter_eval_shape`` (the shapes of its carry) and the loop body that
+    calls ``fn`` again (the element tangent was traced twice per run program, four times with the
+    augmented Lagrangian; ``experiments/bench_compile.py``). XLA inlines the call: the runs compared
+    before and after were bit-identical. The :func:`element_chunk` setting is part of the key, so a
+    trace made under one setting is never reused under another.
+    """
+    @eqx.filter_jit
+    def jitted(chunk, *args):
+        with element_chunk(chunk):
+            return fn(*args)
+
+    @functools.wraps(fn)
+    def wrapper(*args):
+        return jitted(_CHUNK.get(), *args)
+
+    return wrapper
+
+
+def _element_map(fn, material, formulation, geo, u_el, states):
+    """``fn`` over the elements in n // c equal chunks (c = :data:`ELEMENT_CHUNK` or the traced setting;
+    at least one chunk), so a chunk holds fewer than 2c elements (all of them when there are fewer than c).
+
+    The elements are padded (repeats of the last one, results dropped) to a whole number of equal chunks:
+    ``lax.map`` evaluates a remainder that is not a whole chunk with a second copy of ``fn``, which
+    doubled the element code in the compiled program (the Nine's 900 elements in chunks of 512: one
+    chunk and a remainder of 388; now one chunk of 900). Rounding the number of chunks down, not up,
+    matters too: two chunks of 450 made the Nine's run 13 % slower (a two-trip loop in the Newton loop,
+    76 s against 67 s of solve on the 2-core CPU), one chunk of 900 runs as fast as before.
+    """
+    def one(args):
+        return fn(material, formulation, *args)
+
+    n = u_el.shape[0]
+    n_chunks = max(1, n // _CHUNK.get())
+    size = -(-n // n_chunks)
+    pad = n_chunks * size - n
+    xs = (geo.dN_dX, geo.dN_dX_center, geo.weight, u_el, states)
+    if pad:
+        xs = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]), xs)
+    ys = jax.lax.map(one, xs, batch_size=size)
+    return jax.tree_util.tree_map(lambda a: a[:n], ys) if pad else ys
+
+
+def internal_force(mesh: StripMesh, material, formulation: str, geo: ElementGeometry,
+                   u: jax.Array, states) -> Assembled:
+    """Internal forces at displacement ``u`` (n_nodes, 2) from the converged ``states`` of the last step."""
+    elements = mesh.elements
+    f_el, (new_states, tau, det_min) = _element_map(
+        element_force, material, formulation, geo, u[elements], states)
+    f_int = jnp.zeros_like(u).at[elements].add(f_el)
+    return Assembled(f_int, None, new_states, tau, jnp.min(det_min))
+
+
+def internal_force_and_tangent(mesh: StripMesh, material, formulation: str, geo: ElementGeometry,
+                               u: jax.Array, states) -> Assembled:
+    """As :func:`internal_force`, plus the consistent tangent d f_int / d u (block-tridiagonal)."""
+    elements = mesh.elements
+    f_el, K_el, (new_states, tau, det_min) = _element_map(
+        element_force_and_tangent, material, formulation, geo, u[elements], states)
+    f_int = jnp.zeros_like(u).at[elements].add(f_el.reshape(-1, 4, 2))
+    K = _scatter_tangent(K_el, mesh.nx, mesh.ny)
+    return Assembled(f_int, K, new_states, tau, jnp.min(det_min))

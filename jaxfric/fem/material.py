@@ -1,0 +1,275 @@
+"""Finite-strain J2 plasticity at one quadrature point (benchmarks spec section 1.2).
+
+Multiplicative split F = F^e F^p, Hencky energy in the logarithmic elastic strain
+eps^e = 1/2 ln b^e, von Mises yield with isotropic power-law hardening, and the exponential-map
+return, which for Hencky's energy is an exact radial return in log strains:
+Simo & Hughes, *Computational Inelasticity* (1998), ch. 9; de Souza Neto, Peric & Owen,
+*Computational Methods for Plasticity* (2008), ch. 14.
+
+Units: stresses (E, sigma_y, tau) in MPa; strains, A, n and eqps dimensionless.
+Plane strain: F = [[F_2D, 0], [0, 1]]; every 3x3 tensor is block diagonal (in-plane 2x2 block + zz).
+The law acts on one point; the element code vmaps it and differentiates it (consistent tangent by
+jacfwd, parameter sensitivities forward and reverse).
+"""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxfric.numerics.tensor import inv2, safe_norm, sym2_exp, sym2_log
+
+__all__ = ["MaterialState", "J2Material", "von_mises"]
+
+_SQRT_3_2 = math.sqrt(1.5)
+_NEWTON_RTOL = 1e-12  # |R| <= 1e-12 sigma_y, spec section 1.2
+_NEWTON_MAX_ITER = 50
+_YIELD_TOL = 1e-10  # relative round-off guard of the yield check
+_STAGNATION = 2.0**-50  # |step| <= 4 ulp of dg: roundoff, no further progress possible
+
+
+class MaterialState(eqx.Module):
+    """Plastic history of ONE quadrature point.
+
+    The spec stores (b^e_n, eqps_n, F_n) and builds the trial state b^e_tr = f b^e_n f^T with
+    f = F_{n+1} F_n^-1. Storing instead the inverse plastic right Cauchy-Green tensor
+    C_p^-1 = F_p^-1 F_p^-T = F^-1 b^e F^-T is exactly equivalent, since
+    f b^e_n f^T = F_{n+1} F_n^-1 b^e_n F_n^-T F_{n+1}^T = F_{n+1} C_p,n^-1 F_{n+1}^T,
+    and it needs no F_n. Plane strain keeps C_p^-1 block diagonal.
+
+    Attributes:
+        cp_inv: (2, 2) in-plane block of C_p^-1 (identity initially).
+        cp_inv_zz: () its zz component (1 initially).
+        eqps: () equivalent plastic strain (0 initially).
+    """
+
+    cp_inv: jax.Array
+    cp_inv_zz: jax.Array
+    eqps: jax.Array
+
+
+def von_mises(tau: jax.Array) -> jax.Array:
+    """Von Mises equivalent stress q = sqrt(3/2) |dev tau| of a (3, 3) stress (MPa); kink-safe at 0."""
+    dev = tau - (jnp.trace(tau) / 3.0) * jnp.eye(3, dtype=tau.dtype)
+    return _SQRT_3_2 * safe_norm(dev)
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _number_like(name: str, value) -> None:
+    """A material constant must be a real number (or an array / tracer of them): name it otherwise."""
+    if value is None or isinstance(value, (str, bytes, bool)) or np.iscomplexobj(value):
+        raise ValueError(f"J2Material: {name} = {value!r} is invalid: it must be a real number.")
+
+
+class J2Material(eqx.Module):
+    """Plane-strain finite-strain J2 plasticity, Hencky energy in log elastic strains,
+    sigma_Y = sigma_y (1 + A eqps)^n.
+
+        psi(eps^e) = 1/2 kappa (tr eps^e)^2 + G |dev eps^e|^2
+        kappa      = E / (3(1 - 2 nu)),   G = E / (2(1 + nu))
+        tau        = kappa (tr eps^e) I + 2G dev eps^e                       (Kirchhoff stress)
+        Phi        = sqrt(3/2) |dev tau| - sigma_Y(eqps),   sigma_Y(eqps) = sigma_y (1 + A eqps)^n
+
+    Attributes (float64 array leaves, so new values neither retrace nor block `jax.grad`):
+        E: Young's modulus (MPa), > 0 and finite.
+        nu: Poisson's ratio, in (-1, 0.5).
+        sigma_y: initial yield stress (MPa), > 0; +inf means purely elastic.
+        A: hardening coefficient, >= 0 and finite (A = 0: perfectly plastic).
+        n: hardening exponent, >= 0 and finite (n = 0: perfectly plastic; n < 0 would soften).
+    """
+
+    E: jax.Array
+    nu: jax.Array
+    sigma_y: jax.Array
+    A: jax.Array
+    n: jax.Array
+
+    def __init__(self, E, nu, sigma_y, A, n):
+        for name, value in (("E", E), ("nu", nu), ("sigma_y", sigma_y), ("A", A), ("n", n)):
+            _number_like(name, value)
+        self.E = jnp.asarray(E, jnp.float64)
+        self.nu = jnp.asarray(nu, jnp.float64)
+        self.sigma_y = jnp.asarray(sigma_y, jnp.float64)
+        self.A = jnp.asarray(A, jnp.float64)
+        self.n = jnp.asarray(n, jnp.float64)
+
+    def __check_init__(self):
+        # Only concrete values can be checked; inside jit/grad the leaves are tracers.
+        def bad(name, value, ok, why):
+            if _is_concrete(value) and not np.all(ok(np.asarray(value))):
+                raise ValueError(f"J2Material: {name} = {np.asarray(value)} is invalid: {why}.")
+
+        bad("E", self.E, lambda v: np.isfinite(v) & (v > 0), "it must be finite and > 0")
+        bad("nu", self.nu, lambda v: np.isfinite(v) & (v > -1) & (v < 0.5), "it must lie in (-1, 0.5)")
+        bad("sigma_y", self.sigma_y, lambda v: ~np.isnan(v) & (v > 0), "it must be > 0 (+inf: elastic)")
+        bad("A", self.A, lambda v: np.isfinite(v) & (v >= 0), "it must be finite and >= 0")
+        bad("n", self.n, lambda v: np.isfinite(v) & (v >= 0), "it must be finite and >= 0 (n < 0 softens)")
+
+    @classmethod
+    def elastic(cls, E, nu) -> "J2Material":
+        """Purely elastic Hencky material: sigma_y = +inf, A = 0, n = 0 (never yields)."""
+        return cls(E=E, nu=nu, sigma_y=jnp.inf, A=0.0, n=0.0)
+
+    @property
+    def bulk_modulus(self) -> jax.Array:
+        """kappa = E / (3 (1 - 2 nu)), MPa."""
+        return self.E / (3.0 * (1.0 - 2.0 * self.nu))
+
+    @property
+    def shear_modulus(self) -> jax.Array:
+        """G = E / (2 (1 + nu)), MPa."""
+        return self.E / (2.0 * (1.0 + self.nu))
+
+    def _sigma_y_finite(self) -> tuple[jax.Array, jax.Array]:
+        # Double where for sigma_y = +inf: products like inf * 0 would turn a zero cotangent into NaN.
+        finite = jnp.isfinite(self.sigma_y)
+        return finite, jnp.where(finite, self.sigma_y, jnp.ones_like(self.sigma_y))
+
+    def _hardening_factor(self, eqps: jax.Array, power: jax.Array) -> jax.Array:
+        # (1 + A eqps)^power; the base is >= 1 for A, eqps >= 0, so no 0^negative even when n < 1.
+        return (1.0 + self.A * eqps) ** power
+
+    def yield_stress(self, eqps: jax.Array) -> jax.Array:
+        """sigma_Y(eqps) = sigma_y (1 + A eqps)^n, MPa (+inf for the elastic material). eqps: any shape."""
+        finite, sigma_y = self._sigma_y_finite()
+        value = sigma_y * self._hardening_factor(eqps, self.n)
+        return jnp.where(finite, value, jnp.full_like(value, jnp.inf))
+
+    def hardening_slope(self, eqps: jax.Array) -> jax.Array:
+        """sigma_Y'(eqps) = sigma_y n A (1 + A eqps)^(n - 1), MPa; 0 for the elastic material (0 * inf := 0)."""
+        finite, sigma_y = self._sigma_y_finite()
+        value = sigma_y * self.n * self.A * self._hardening_factor(eqps, self.n - 1.0)
+        return jnp.where(finite, value, jnp.zeros_like(value))
+
+    def init_state(self) -> MaterialState:
+        """Virgin state: C_p^-1 = I (so b^e = I at F = I), eqps = 0; stress-free."""
+        return MaterialState(
+            cp_inv=jnp.eye(2, dtype=jnp.float64),
+            cp_inv_zz=jnp.asarray(1.0, jnp.float64),
+            eqps=jnp.asarray(0.0, jnp.float64),
+        )
+
+    def _return_residual(self, dg, q_trial, eqps_n):
+        """R(dg) = q_tr - 3G dg - sigma_Y(eqps_n + dg) and R'(dg); an infinite sigma_y is replaced by 1."""
+        _, sigma_y = self._sigma_y_finite()
+        eqps = eqps_n + dg
+        three_g = 3.0 * self.shear_modulus
+        residual = q_trial - three_g * dg - sigma_y * self._hardening_factor(eqps, self.n)
+        slope = -three_g - sigma_y * self.n * self.A * self._hardening_factor(eqps, self.n - 1.0)
+        return residual, slope
+
+    def update(self, F: jax.Array, state: MaterialState) -> tuple[jax.Array, MaterialState]:
+        """Stress update n -> n+1 at one point: exponential-map radial return (Simo & Hughes 1998, ch. 9).
+
+        Args:
+            F: (2, 2) in-plane deformation gradient F_{n+1} (F_zz = 1, plane strain; the element passes
+                F-bar), det F > 0.
+            state: history at t_n.
+
+        Returns:
+            tau: (3, 3) Kirchhoff stress (MPa), block diagonal (in-plane block + zz).
+            new_state: history at t_{n+1}.
+
+        Algorithm (spec section 1.2):
+            b^e_tr = F C_p,n^-1 F^T,  eps_tr = 1/2 ln b^e_tr,  tau_tr = kappa tr(eps_tr) I + 2G dev(eps_tr),
+            q_tr = sqrt(3/2) |dev tau_tr|.  Elastic if q_tr - sigma_Y(eqps_n) <= 1e-10 sigma_Y (round-off guard);
+            otherwise solve R(dg) = q_tr - 3G dg - sigma_Y(eqps_n + dg) = 0 by Newton from dg = 0 and set
+            eps^e = eps_tr - sqrt(3/2) dg N = eps_tr - (3G dg / q_tr) dev eps_tr,  eqps_{n+1} = eqps_n + dg,
+            b^e_{n+1} = exp(2 eps^e),  C_p,n+1^-1 = F^-1 b^e_{n+1} F^-T.
+
+        Differentiation: the Newton loop runs on stop-gradient'ed inputs; one more Newton step
+        dg = dg* - R(dg*) / R'(dg*) taken with gradients on gives, at convergence (R(dg*) = 0), the
+        implicit-function derivative d(dg) = -dR / R' for F and for the material parameters, in both
+        forward and reverse mode (first derivatives; higher ones are not exact). A run past the
+        iteration cap returns its last iterate.
+        """
+        kappa, G = self.bulk_modulus, self.shear_modulus
+
+        # Trial elastic state (eq. b^e_tr = f b^e_n f^T, written with C_p^-1).
+        be_trial = F @ state.cp_inv @ F.T
+        eps_trial = 0.5 * sym2_log(be_trial)
+        eps_trial_zz = 0.5 * jnp.log(state.cp_inv_zz)
+        trace = jnp.trace(eps_trial) + eps_trial_zz
+        dev_trial = eps_trial - (trace / 3.0) * jnp.eye(2, dtype=F.dtype)
+        dev_trial_zz = eps_trial_zz - trace / 3.0
+        # |dev eps| is 0 at F = I, where the tangent is first taken: safe_norm keeps it NaN-free.
+        dev_norm = safe_norm(jnp.concatenate([dev_trial.ravel(), dev_trial_zz[None]]))
+        q_trial = _SQRT_3_2 * 2.0 * G * dev_norm
+
+        # Round-off guard: re-evaluating a converged plastic point (as every load step's first Newton
+        # iteration does) puts q_tr on the yield surface up to ~1e-14 relative. Without a tolerance the
+        # branch, and with it the tangent (elastic or elasto-plastic), is decided by round-off, and an
+        # elastic unloading step starting from the elasto-plastic tangent needs many iterations.
+        # Overshoots below 1e-10 sigma_Y are taken as elastic; the stress error is below that.
+        plastic = q_trial - self.yield_stress(state.eqps) > _YIELD_TOL * self.yield_stress(state.eqps)
+
+        # Double where: the elastic case hands the return a trial stress already on the yield surface
+        # (R(0) = 0 exactly, zero iterations, dg = 0 with zero derivative) and divides by 1, not q_tr.
+        _, sigma_y = self._sigma_y_finite()
+        q_on_surface = sigma_y * self._hardening_factor(state.eqps, self.n)
+        q_return = jnp.where(plastic, q_trial, q_on_surface)
+        q_divisor = jnp.where(plastic, q_trial, jnp.ones_like(q_trial))
+
+        dg_star = _newton_return(
+            jax.lax.stop_gradient(self), jax.lax.stop_gradient(q_return), jax.lax.stop_gradient(state.eqps)
+        )
+        residual, slope = self._return_residual(dg_star, q_return, state.eqps)
+        dg = dg_star - residual / slope
+        # R(0) = 0 already gives dg = 0 when elastic; the where makes it exact whatever XLA's fusion does.
+        dg = jnp.where(plastic, dg, jnp.zeros_like(dg))
+
+        # Radial return: only the deviator shrinks, by the factor q_{n+1} / q_tr (1 when elastic).
+        shrink = 1.0 - 3.0 * G * dg / q_divisor
+        dev = shrink * dev_trial
+        dev_zz = shrink * dev_trial_zz
+        tau_2d = kappa * trace * jnp.eye(2, dtype=F.dtype) + 2.0 * G * dev
+        tau_zz = kappa * trace + 2.0 * G * dev_zz
+        tau = jnp.zeros((3, 3), F.dtype).at[:2, :2].set(tau_2d).at[2, 2].set(tau_zz)
+
+        # New plastic metric C_p^-1 = F^-1 b^e F^-T; an elastic step leaves it exactly unchanged.
+        eps_2d = dev + (trace / 3.0) * jnp.eye(2, dtype=F.dtype)
+        eps_zz = dev_zz + trace / 3.0
+        F_inv = inv2(F)
+        cp_inv_plastic = F_inv @ sym2_exp(2.0 * eps_2d) @ F_inv.T
+        cp_inv_plastic = 0.5 * (cp_inv_plastic + cp_inv_plastic.T)
+        new_state = MaterialState(
+            cp_inv=jnp.where(plastic, cp_inv_plastic, state.cp_inv),
+            cp_inv_zz=jnp.where(plastic, jnp.exp(2.0 * eps_zz), state.cp_inv_zz),
+            eqps=state.eqps + dg,
+        )
+        return tau, new_state
+
+
+def _newton_return(material: J2Material, q_trial: jax.Array, eqps_n: jax.Array) -> jax.Array:
+    """Solve q_tr - 3G dg - sigma_Y(eqps_n + dg) = 0 for dg by Newton from dg = 0 (no gradients).
+
+    R is decreasing; for n <= 1 it is convex, so the iterates increase monotonically to the root.
+    Stops at |R| <= 1e-12 sigma_y, or when the step no longer changes dg (roundoff floor), or after
+    _NEWTON_MAX_ITER iterations.
+    """
+    _, sigma_y = material._sigma_y_finite()
+    tol = _NEWTON_RTOL * sigma_y
+    zero = jnp.zeros_like(q_trial)
+    residual0, _ = material._return_residual(zero, q_trial, eqps_n)
+
+    def not_done(carry):
+        it, dg, residual, step = carry
+        # The stagnation test matters under vmap, where one stuck point would keep the batch looping.
+        moving = jnp.abs(step) > _STAGNATION * jnp.abs(dg)
+        return (jnp.abs(residual) > tol) & moving & (it < _NEWTON_MAX_ITER)
+
+    def newton_step(carry):
+        it, dg, residual, _ = carry
+        _, slope = material._return_residual(dg, q_trial, eqps_n)
+        step = -residual / slope
+        residual, _ = material._return_residual(dg + step, q_trial, eqps_n)
+        return it + 1, dg + step, residual, step
+
+    init = (jnp.asarray(0, jnp.int32), zero, residual0, jnp.full_like(q_trial, jnp.inf))
+    _, dg, _, _ = jax.lax.while_loop(not_done, newton_step, init)
+    return dg

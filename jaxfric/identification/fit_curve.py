@@ -1,0 +1,77 @@
+"""The simulated curve that an identification (:mod:`jaxfric.identification.fit`) fits: the drawing force along a
+frozen step sequence, at the measured displacements or averaged over windows, with its Jacobian in the
+parameters by forward-mode differentiation through the whole loading path.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..numerics.newton import NewtonOptions
+from .fit_data import bin_means
+from .params import Parameterization, path_function
+
+__all__ = ["Curve", "refined_plan", "REPLAY_ITERATIONS"]
+
+REPLAY_ITERATIONS = 60  # Newton iterations per step allowed in the frozen-sequence replays
+
+
+class Curve:
+    """The fitted observations (the simulated force at the measured displacements, or its means over
+    the windows ``edges``) along one frozen step sequence, with their Jacobian; compiled once per
+    sequence.
+
+    Args:
+        par: the parameterised scene.
+        plan_history: the step sequence (``time``, ``phase``, ``cutbacks`` columns of an adaptive run).
+        x: (m,) measured displacements (mm); edges: window edges (mm), or None (pointwise).
+        newton: Newton's options (None: the scene's), with at least :data:`REPLAY_ITERATIONS` iterations.
+
+    ``curve(p)`` returns (observations, Jacobian (m, n), pointwise force, result code, cutbacks).
+    """
+
+    def __init__(self, par: Parameterization, plan_history: dict, x: np.ndarray, edges, newton: NewtonOptions | None):
+        self.times = np.asarray(plan_history["time"][1:])
+        newton = par.scene.newton if newton is None else newton
+        newton = dataclasses.replace(newton, max_iterations=max(newton.max_iterations, REPLAY_ITERATIONS))
+        path = path_function(par, newton=newton, plan=plan_history)
+
+        def curve(p):
+            h, code = path(p)
+            rows = jnp.arange(h.time.shape[0], dtype=h.n_rows.dtype)
+            # Unfilled rows get displacements beyond every measured one (interp needs increasing x).
+            xr = jnp.where(rows < h.n_rows, h.observed["drawing_displacement"], 1e30 * (1.0 + rows.astype(float)))
+            fr = jnp.where(rows < h.n_rows, h.observed["drawing_force"], 0.0)
+            pointwise = jnp.interp(jnp.asarray(x), xr, fr)
+            obs = pointwise if edges is None else bin_means(xr, fr, jnp.asarray(edges))
+            return obs, (obs, pointwise, code, jnp.sum(h.cutbacks))
+
+        self._fn = jax.jit(jax.jacfwd(curve, has_aux=True))
+
+    def same_plan(self, other: Curve) -> bool:
+        """Whether ``other`` replays the same step sequence (step end times equal to 1e-12)."""
+        return self.times.shape == other.times.shape and np.allclose(self.times, other.times, rtol=0, atol=1e-12)
+
+    def __call__(self, p):
+        jac, (obs, pointwise, code, cuts) = self._fn(jnp.asarray(p, jnp.float64))
+        return np.asarray(obs), np.asarray(jac), np.asarray(pointwise), int(code), int(cuts)
+
+
+def refined_plan(history: dict, substeps: int) -> dict:
+    """The step sequence of ``history`` with every accepted step split into ``substeps`` equal steps
+    (the time, phase and cutback columns that :func:`jaxfric.identification.params.path_function` replays; a step
+    accepted as a retry keeps that mark on its first part)."""
+    if substeps == 1:
+        return history
+    t, phase, cuts = (np.asarray(history[k]) for k in ("time", "phase", "cutbacks"))
+    times, phases, retry = [t[0]], [phase[0]], [cuts[0]]
+    for k in range(1, len(t)):
+        for j in range(1, substeps + 1):
+            times.append(t[k] if j == substeps else t[k - 1] + (t[k] - t[k - 1]) * j / substeps)
+            phases.append(phase[k])
+            retry.append(cuts[k] if j == 1 else 0)
+    return {"time": np.array(times), "phase": np.array(phases), "cutbacks": np.array(retry)}

@@ -1,0 +1,161 @@
+"""Running many cases into run directories, resumably (the studies and the accuracy-cost report).
+
+A case is an ordinary :func:`jaxfric.loadpath.run.run` written by :func:`jaxfric.io.output.write_run` into its own
+directory. A directory that already holds a ``summary.json`` is read back instead of recomputed (unless
+``rerun``), so an interrupted study resumes where it stopped, and a case that fails keeps its partial
+run directory with the reason in ``summary.json`` ``message``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import time
+
+import numpy as np
+
+__all__ = ["read_history", "phase_curve", "run_case", "stale", "write_csv"]
+
+
+def read_history(path: str) -> dict:
+    """``history.csv`` as a dict of NumPy columns (``phase`` as strings); {} for an empty file."""
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        return {}
+    return {k: (np.array([r[k] for r in rows]) if k == "phase" else np.array([float(r[k]) for r in rows]))
+            for k in rows[0]}
+
+
+def phase_curve(history: dict, x_name: str, y_name: str, phase: str, start: bool = False):
+    """(x, y) of the rows of ``phase``, sorted by x, or None if the phase has fewer than two rows. With
+    ``start``, the row before the phase (the state it starts from) comes first: two runs with different
+    first increments then share the phase's starting point instead of one curve being extrapolated."""
+    sel = np.asarray(history["phase"] == phase)
+    if sel.sum() < 2:
+        return None
+    first = int(np.argmax(sel))
+    if start and first > 0:
+        sel = sel.copy()
+        sel[first - 1] = True
+    x, y = history[x_name][sel], history[y_name][sel]
+    order = np.argsort(x, kind="stable")
+    return x[order], y[order]
+
+
+def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, overrides: dict, *,
+             rerun: bool = False, progress: bool = False, figures: bool = False, tag: str | None = None,
+             log=print, rerun_stale: bool = True) -> dict:
+    """Run one case into ``out`` (or read it back) and return ``{"summary", "history", "contact", "dir"}``.
+
+    ``summary`` always has ``converged`` and ``message``: a case that could not even be built or run
+    enters with ``converged`` False and the reason (one failed case never stops a batch). A run on
+    disk made with another variant, algorithm or overrides (:func:`stale`) is run again, unless
+    ``rerun_stale`` is False (read-only callers), which reads it back as it is.
+    """
+    from .. import scenes
+    from ..loadpath.run import run
+    from . import output
+
+    path = os.path.join(out, "summary.json")
+    changed = None if rerun or not os.path.exists(path) else stale(path, overrides, variant, algorithm)
+    if changed:
+        log(f"{out}: the run on disk has {changed}" + (": rerun" if rerun_stale else " (read back as it is)"))
+    if rerun or (changed and rerun_stale) or not os.path.exists(path):
+        t0 = time.perf_counter()
+        log(f"{out}: {scene_name}/{variant}/{algorithm} {overrides}")
+        try:
+            scene = scenes.make(scene_name, variant, algorithm, dict(overrides))
+            result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                         snapshot=scene.snapshot,
+                         progress=progress, raise_on_failure=False, label=f"{os.path.basename(out)} ")
+            output.write_run(scene, result, out, tag=tag, figures=figures)
+        except output.OutputError as err:  # partial run directory; the reason is in summary.json
+            log(f"{out}: {err}")
+        except Exception as err:  # noqa: BLE001 - recorded as a failed case
+            os.makedirs(out, exist_ok=True)
+            message = f"{type(err).__name__}: {err}"
+            with open(path, "w") as fh:
+                json.dump({"converged": False, "message": message, "scene": scene_name, "variant": variant,
+                           "algorithm": algorithm, "overrides": output._json_ready(overrides)},
+                          fh, indent=2)
+            log(f"{out}: failed: {message}")
+        log(f"{out}: done in {time.perf_counter() - t0:.1f} s")
+    with open(path) as fh:
+        summary = json.load(fh)
+    hist = os.path.join(out, "history.csv")
+    npz = os.path.join(out, "contact.npz")
+    return {"summary": summary, "history": read_history(hist) if os.path.exists(hist) else {},
+            "contact": dict(np.load(npz, allow_pickle=False)) if os.path.exists(npz) else {}, "dir": out}
+
+
+def _same(have, want) -> bool:
+    """Whether a recorded value ``have`` (as summary.json stores it) is the requested ``want``."""
+    if isinstance(want, (tuple, list)):
+        return isinstance(have, list) and len(have) == len(want) and all(map(_same, have, want))
+    if isinstance(have, bool) or isinstance(want, bool):
+        return str(have).lower() == str(want).lower()
+    if isinstance(have, (int, float)) and isinstance(want, str):
+        try:
+            want = float(want)
+        except ValueError:
+            return False
+    if isinstance(want, float) and not math.isfinite(want):
+        return have is None or have == want  # summary.json stores non-finite numbers as null
+    if isinstance(have, (int, float)) and isinstance(want, (int, float)):
+        return math.isclose(float(have), float(want), rel_tol=1e-12, abs_tol=0.0)
+    return have == want
+
+
+def stale(path: str, overrides: dict, variant: str | None = None, algorithm: str | None = None) -> str | None:
+    """How the run recorded in ``path`` (a summary.json) differs from the requested ``variant``,
+    ``algorithm`` (None: not compared) and ``overrides`` (``"mesh"`` as ``NXxNY`` or a pair, other keys
+    config fields; a key that is no field of the scene's config is not compared, and a field the
+    recorded config lacks, added since the run, is compared with its default, with which the run was
+    made), or None when it does not. A failed case's summary records its overrides, which must then be
+    the same keys and values."""
+    from ..scenes import config_fields, parse_mesh, scene_names
+
+    with open(path) as fh:
+        summary = json.load(fh)
+    for key, want in (("variant", variant), ("algorithm", algorithm)):
+        if want is not None and summary.get(key) is not None and summary[key] != want:
+            return f"{key} {summary[key]!r}, not {want!r}"
+    wanted = dict(overrides)
+    config = (summary.get("parameters") or {}).get("config")
+    if config is None and "overrides" in summary:  # a failed case
+        recorded = summary["overrides"]
+        if set(recorded) != set(wanted):
+            return f"overrides {sorted(recorded)}, not {sorted(wanted)}"
+        config = recorded
+    elif "mesh" in wanted:
+        try:
+            nx, ny = parse_mesh(wanted.pop("mesh"))
+        except ValueError:
+            return "another mesh"  # the request cannot be the run's
+        wanted.update(nx=nx, ny=ny)
+    scene = summary.get("scene")
+    defaults = {f[0]: f[1] for f in config_fields(scene)} if scene in scene_names() else {}
+    for key, value in wanted.items():
+        if config is None or (key not in config and key not in defaults):
+            continue
+        have = config[key] if key in config else defaults[key]
+        if not _same(have, value):
+            return f"{key} = {have!r}, not {value!r}"
+    return None
+
+
+def write_csv(path: str, rows: list[dict]) -> str:
+    """Rows (dicts, union of their keys as header, None as an empty field) to ``path``."""
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+    # Written aside and moved into place: a reader (another process's report) never sees half a file.
+    tmp = f"{path}.{os.getpid()}.tmp"
+    with open(tmp, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fields, restval="")
+        writer.writeheader()
+        writer.writerows([{k: ("" if v is None else v) for k, v in r.items()} for r in rows])
+    os.replace(tmp, path)
+    return path

@@ -1,0 +1,293 @@
+"""The adaptive step controller of the load loop (benchmarks spec section 1.9).
+
+The controller decides, from the outcome of each step attempt, the next attempt's increment and how it
+is made. :class:`StepControl` holds its settings; :class:`Controller` is built once per run from the
+model's schedule and applies them: :meth:`Controller.init` gives the first :class:`ControllerState`,
+:meth:`Controller.target` the next attempt's pseudo-time and phase, :meth:`Controller.adapt` the state
+after an attempt. The rules it applies, in order, each a function below:
+
+- an accepted step keeps its increment, grows it by ``growth`` after ``easy_steps`` easy steps, or
+  takes the next schedule segment's (:func:`increment_after_acceptance`);
+- a failed attempt halves the increment, down to nominal / 2**max_cuts;
+- at that floor, a first attempt (started from the secant prediction) is tried once more from the
+  converged state (:func:`retry_from_converged`);
+- then, for a formulation that has one, the continuation's stages of softened penalties
+  (:func:`continuation_rule`);
+- then one last attempt with Newton's line search off, for a formulation whose Newton loop has one
+  (:func:`unsearched_attempt`);
+- then the run stops with the code of the last attempt made with the line search (:func:`stop_code`).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..fem.loading import schedule
+from ..numerics._checks import check_int, check_nonnegative
+from ..numerics.results import Result
+
+__all__ = ["StepControl", "Controller", "ControllerState", "ContinuationState", "Outcome", "Tally",
+           "increment_after_acceptance", "retry_from_converged", "unsearched_attempt", "continuation_rule", "stop_code"]
+
+
+class StepControl(eqx.Module):
+    """Step controller settings (static).
+
+    Attributes:
+        max_cuts: an attempt below nominal / 2**max_cuts stops the run. (At the smallest increment a
+            failed first attempt, started from the secant prediction, is retried once from the
+            converged state; then the increment gets one last attempt with Newton's line search off,
+            before the run stops.)
+        growth: increment growth factor after ``easy_steps`` consecutive easy steps.
+        easy_iterations: a step is easy when each of its Newton solves (one per AL augmentation)
+            needed at most this many iterations.
+        max_steps: size of the history buffer (accepted steps); default 10x the nominal count + 100.
+        continuation: for a formulation that has one (the penalty law: ``continuation_stages``,
+            ``softened``). At the smallest increment, after the retry from the converged state and
+            before the attempt without line search, the step is solved first with the penalties
+            divided by 10^m, then by 10^(m-1), ..., each stage from the last one's solution, the last
+            one at the true penalties (m = ceil(log10(eps_n / E)): the first stage's penalty is of
+            the order of the sheet's modulus E; no stage when eps_n <= E). A stage's solution is only
+            a starting point: the step is accepted when Newton converges at the true penalties. In
+            the stages Newton's round-off floor is relative to the positions X + u, from which the
+            gaps are computed (:mod:`jaxfric.numerics.newton`): a looser test, used only where the step would
+            otherwise stop the run. The stages count as attempts in the step's ``cutbacks``.
+            Reason: at a stiff penalty a pair touching a curved tool can 2-cycle between open (the
+            free node driven into the tool) and closed at a spurious force whose geometric stiffness
+            throws it out again; from the softer problem's solution it arrives closed with about its
+            true force (``tests/test_extreme.py::test_nine_edges``, eps_n 1e9). The derivative of a step is
+            that of its converged solution; a fixed-step replay (:func:`jaxfric.loadpath.simulate.simulate_fixed`)
+            has no stages, so it fails at a step the adaptive run accepted only after them.
+    """
+
+    max_cuts: int = eqx.field(static=True, default=10)
+    growth: float = eqx.field(static=True, default=1.5)
+    easy_iterations: int = eqx.field(static=True, default=6)
+    easy_steps: int = eqx.field(static=True, default=2)
+    max_steps: int | None = eqx.field(static=True, default=None)
+    continuation: bool = eqx.field(static=True, default=True)
+
+    def __check_init__(self):
+        check_int("max_cuts", self.max_cuts, 0, 60)
+        if not isinstance(self.continuation, bool):
+            raise ValueError(f"field 'continuation' must be True or False, got {self.continuation!r}")
+        check_int("easy_iterations", self.easy_iterations, 1)
+        check_int("easy_steps", self.easy_steps, 1)
+        check_int("max_steps", self.max_steps, 1, 10_000_000, optional=True)
+        check_nonnegative("growth", self.growth)
+        if not self.growth >= 1.0:
+            raise ValueError(f"field 'growth' must be a finite number >= 1, got {self.growth!r}")
+
+
+class ContinuationState(eqx.Module):
+    """The continuation's progress on the pending step (placeholders when the run has none)."""
+
+    soft: jax.Array    # () int32: continuation stage of the next attempt (penalties / 10^soft); -1: none
+    tried: jax.Array   # () the continuation has failed for the pending step
+    u: jax.Array       # (n_nodes, 2) the last stage's solution: the next stage's start ...
+    q: jax.Array       # (n_tools,) ... with these tool positions
+    staged: jax.Array  # () u / q hold a stage's solution
+
+
+class ControllerState(eqx.Module):
+    """What the controller carries between attempts."""
+
+    dt: jax.Array          # () current increment (pseudo-time)
+    seg: jax.Array         # () current schedule segment
+    n_easy: jax.Array      # () consecutive easy steps
+    cuts: jax.Array        # () failed attempts since the last accepted step
+    iters: jax.Array       # () Newton iterations since the last accepted step
+    stats: jax.Array       # (3,) exact-contact solver counts since the last accepted step
+    code: jax.Array        # () Result: CONTINUE while the run goes on
+    failed_t: jax.Array    # () target time of the last failed attempt
+    r_norm: jax.Array      # () residual norm of the last attempt
+    plain: jax.Array       # () the next attempt runs Newton without the line search
+    last_code: jax.Array   # () result code of the last attempt
+    stages: ContinuationState
+
+
+class Outcome(NamedTuple):
+    """What the controller reads of a step attempt (a :class:`jaxfric.contact.formulations.StepSolution` and
+    the state it stands for)."""
+
+    code: jax.Array
+    iterations: jax.Array
+    hardest: jax.Array | None
+    stats: jax.Array
+    residual_norm: jax.Array
+    u: jax.Array            # the attempt's displacements (a continuation stage's start)
+    q: jax.Array            # and tool positions
+
+
+class Tally(NamedTuple):
+    """An attempt as the step's history row counts it (:meth:`Controller.tally`)."""
+
+    accepted: jax.Array
+    iterations: jax.Array   # Newton iterations of the step's attempts so far, this one included
+    stats: jax.Array        # the formulation's solver counts, likewise
+
+
+def increment_after_acceptance(control: StepControl, ok, n_easy, hardest, dt, dt_nominal, dt_next_segment,
+                               segment_done):
+    """Rule: an accepted step's successor keeps its increment, grows it by ``growth`` (at most to the
+    nominal one) after ``easy_steps`` consecutive easy steps, or takes the next segment's nominal
+    increment when the step ended its segment. "Easy" counts the iterations of one Newton solve, as
+    the iteration limit does (``hardest``: an AL step of several augmentations is easy when each of its
+    solves is; with the step's total, the increment would never grow back after a cut).
+
+    Returns (n_easy, grow, dt) of the successor."""
+    n_easy = jnp.where(ok & (hardest <= control.easy_iterations), n_easy + 1, 0)
+    grow = n_easy >= control.easy_steps
+    dt_ok = jnp.where(segment_done, dt_next_segment,
+                      jnp.where(grow, jnp.minimum(control.growth * dt, dt_nominal), dt))
+    return n_easy, grow, dt_ok
+
+
+def retry_from_converged(at_floor, cuts):
+    """Rule: a first attempt that fails at the smallest increment started from the secant prediction;
+    the same increment is tried once more from the converged state (the prediction can be what fails)."""
+    return at_floor & (cuts == 0)
+
+
+def unsearched_attempt(at_floor, again, plain, has_line_search: bool):
+    """Rule: after the retry, the increment gets one last attempt with Newton's line search off. The
+    line search rejects every step that raises the residual norm; where a front of pairs switches
+    between stick and slip each full step raises it a little on the way to convergence, and the
+    backtracked steps crawl. A formulation without a line search to switch off has no such attempt."""
+    return at_floor & ~again & ~plain & has_line_search
+
+
+def continuation_rule(stages: ContinuationState, n_stages, at_floor, again, plain, converged, ok, u, q):
+    """Rule: before the unsearched attempt, the continuation's stages (:class:`StepControl`), each from
+    the last one's solution; a converged stage before the last gives the next stage's start, not a step;
+    a stage that fails ends the continuation for this step.
+
+    Returns (the next attempt's stages, start (a first stage begins), stage_done, held: the attempt was
+    a stage that does not end the step, whose residual and code are not reported)."""
+    stage_done = converged & (stages.soft > 0)
+    start = at_floor & ~again & ~plain & (stages.soft < 0) & ~stages.tried & (n_stages > 0)
+    failed = (stages.soft >= 0) & ~converged
+    held = (stages.soft >= 0) & ~ok
+    soft = jnp.where(start, n_stages, jnp.where(stage_done, stages.soft - 1, -1)).astype(jnp.int32)
+    new = ContinuationState(soft=soft, tried=~ok & (stages.tried | failed),
+                            u=jnp.where(stage_done, u, stages.u), q=jnp.where(stage_done, q, stages.q),
+                            staged=stage_done)
+    return new, start, stage_done, held
+
+
+def stop_code(too_small, finished, full, plain, last_code, code):
+    """The run's code after an attempt: the failure when no rule gives another attempt (that of the
+    last attempt made with the line search, when the unsearched one failed too: a plain Newton that
+    strays ends in whatever it met first), SUCCESS at the end of the load path, MAX_STEPS when the
+    history buffer is full, CONTINUE otherwise."""
+    return jnp.select([too_small, finished, full], [jnp.where(plain, last_code, code), Result.SUCCESS,
+                                                    Result.MAX_STEPS], Result.CONTINUE).astype(jnp.int32)
+
+
+class Controller(eqx.Module):
+    """The adaptive step controller of one run: its schedule (segments of nominal increments ending on
+    the phases' breakpoints) and its static choices.
+
+    Attributes:
+        control: the settings.
+        seg_end, seg_dt, seg_phase: per schedule segment, its end (pseudo-time), nominal increment
+            and phase.
+        n_buffer: history rows of accepted steps (static).
+        continuation: the run carries the continuation's stages (static: asked for, and a
+            formulation that has them).
+        has_line_search: a last attempt without line search exists (static).
+        n_stages: () int32 number of continuation stages (0: none).
+    """
+
+    control: StepControl = eqx.field(static=True)
+    seg_end: jax.Array
+    seg_dt: jax.Array
+    seg_phase: jax.Array
+    n_buffer: int = eqx.field(static=True)
+    continuation: bool = eqx.field(static=True)
+    has_line_search: bool = eqx.field(static=True)
+    n_stages: jax.Array
+
+    @classmethod
+    def build(cls, phases, control: StepControl, continuation: bool, has_line_search: bool,
+              n_stages) -> Controller:
+        sched = schedule(phases)
+        return cls(control, jnp.asarray(sched.seg_end), jnp.asarray(sched.seg_dt),
+                   jnp.asarray(sched.seg_phase, jnp.int32), control.max_steps or 10 * sched.n_nominal_steps + 100,
+                   continuation, has_line_search, n_stages)
+
+    def init(self, u, q) -> ControllerState:
+        """The state before the first step (``u``, ``q``: shapes of the displacements and tool
+        positions, for the continuation's stage solution)."""
+        int0 = jnp.array(0, jnp.int32)
+        stages = ContinuationState(soft=jnp.array(-1, jnp.int32), tried=jnp.array(False),
+                                   u=jnp.zeros_like(u) if self.continuation else jnp.zeros((0, 2)),
+                                   q=jnp.zeros_like(q) if self.continuation else jnp.zeros(0),
+                                   staged=jnp.array(False))
+        return ControllerState(dt=self.seg_dt[0], seg=int0, n_easy=int0, cuts=int0, iters=int0,
+                               stats=jnp.zeros(3, jnp.int32), code=jnp.array(Result.CONTINUE, jnp.int32),
+                               failed_t=jnp.array(jnp.nan), r_norm=jnp.array(0.0), plain=jnp.array(False),
+                               last_code=int0, stages=stages)
+
+    def target(self, cs: ControllerState, t_start):
+        """The next attempt's pseudo-time (snapped to the segment's end when within round-off of it:
+        steps end exactly on breakpoints) and phase."""
+        dt_nom, end = self.seg_dt[cs.seg], self.seg_end[cs.seg]
+        t_try = jnp.where(t_start + cs.dt >= end - 1e-9 * dt_nom, end, t_start + cs.dt)
+        return t_try, self.seg_phase[cs.seg]
+
+    def start(self, cs: ControllerState, guess):
+        """Newton's starting point: ``guess`` (u, q), or the last continuation stage's solution."""
+        if not self.continuation:
+            return guess
+        st = cs.stages
+        return jnp.where(st.staged, st.u, guess[0]), jnp.where(st.staged, st.q, guess[1])
+
+    def tally(self, cs: ControllerState, out: Outcome) -> Tally:
+        """Whether an attempt with outcome ``out`` is an accepted step (a continuation stage before the
+        last is not), and the step's iterations and solver counts over its attempts so far."""
+        converged = out.code == Result.SUCCESS
+        ok = converged & (cs.stages.soft <= 0) if self.continuation else converged
+        return Tally(ok, cs.iters + out.iterations, cs.stats + out.stats)
+
+    def adapt(self, cs: ControllerState, t_start, t_try, out: Outcome, row) -> ControllerState:
+        """The state after an attempt from ``t_start`` to ``t_try`` with outcome ``out``; ``row``: the
+        history rows filled before it."""
+        dt_nom, end = self.seg_dt[cs.seg], self.seg_end[cs.seg]
+        n_seg = self.seg_end.shape[0]
+        converged = out.code == Result.SUCCESS
+        ok, iters, stats = self.tally(cs, out)
+        seg_done = ok & (t_try == end)
+        next_seg = jnp.minimum(cs.seg + seg_done.astype(jnp.int32), n_seg - 1)
+        hardest = out.iterations if out.hardest is None else out.hardest
+        n_easy, grow, dt_ok = increment_after_acceptance(self.control, ok, cs.n_easy, hardest, cs.dt, dt_nom,
+                                                         self.seg_dt[next_seg], seg_done)
+        dt_cut = 0.5 * (t_try - t_start)
+        at_floor = ~ok & (dt_cut < dt_nom / 2.0**self.control.max_cuts * (1.0 - 1e-9))
+        again = retry_from_converged(at_floor, cs.cuts)
+        plain = unsearched_attempt(at_floor, again, cs.plain, self.has_line_search)
+        stages, held = cs.stages, jnp.array(False)
+        if self.continuation:
+            stages, start, stage_done, held = continuation_rule(cs.stages, self.n_stages, at_floor, again,
+                                                                cs.plain, converged, ok, out.u, out.q)
+            plain = plain & ~start & ~stage_done
+            too_small = at_floor & ~again & ~plain & ~start & ~stage_done
+            repeat = again | plain | start | stage_done
+        else:
+            too_small = at_floor & ~again & ~plain
+            repeat = again | plain
+        finished = seg_done & (cs.seg == n_seg - 1)
+        full = ok & ~finished & (row + 1 >= self.n_buffer + 1)
+        keep_r = (too_small & cs.plain) | held
+        return ControllerState(
+            dt=jnp.where(ok, dt_ok, jnp.where(repeat, t_try - t_start, dt_cut)), seg=next_seg,
+            n_easy=jnp.where(grow, 0, n_easy), cuts=jnp.where(ok, 0, cs.cuts + 1),
+            iters=jnp.where(ok, 0, iters), stats=jnp.where(ok, 0, stats),
+            code=stop_code(too_small, finished, full, cs.plain, cs.last_code, out.code),
+            failed_t=jnp.where(ok, cs.failed_t, t_try), r_norm=jnp.where(keep_r, cs.r_norm, out.residual_norm),
+            plain=~ok & (cs.plain | plain),
+            last_code=jnp.where(held, cs.last_code, out.code).astype(jnp.int32), stages=stages)

@@ -1,0 +1,195 @@
+"""The strip model and its converged state.
+
+A :class:`StripModel` is fixed data (mesh, material, phases, tools, contact formulation); a
+:class:`SimState` is the state after a converged step (displacements, plastic history, internal forces,
+pseudo-time, phase, contact history), threaded through the load steps explicitly. The functions below
+read a converged state: the observations recorded per step, the reactions and the stresses.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..contact.formulations import AbstractContactFormulation
+from ..contact.rigid import ContactState, initial_contact_state, max_penetration, pair_nodes
+from ..contact.status import SLIP
+from ..contact.tools import project
+from ..fem.assembly import internal_force, mesh_geometry
+from ..fem.element import FORMULATIONS
+from ..fem.loading import Phase, constraint_masks
+from ..fem.material import J2Material
+from ..fem.mesh import StripMesh
+from ..numerics._checks import is_concrete
+
+__all__ = ["StripModel", "SimState", "initial_state", "default_observe", "contact_force_field", "reactions",
+           "stresses", "tool_positions"]
+
+
+class StripModel(eqx.Module):
+    """A strip of elasto-plastic material under a sequence of phases of prescribed displacements,
+    optionally in contact with rigid tools.
+
+    Attributes:
+        mesh: the strip mesh.
+        material: the material law (one quadrature point).
+        phases: the load path, one :class:`~jaxfric.fem.loading.Phase` per phase.
+        formulation: "fbar" (default), "eas" (enhanced strain Q1/E4) or "q4" (plain Q4, for elastic
+            checks only); static. See :mod:`jaxfric.fem.element`.
+        tools: rigid tools (:class:`~jaxfric.contact.rigid.RigidTool`), one control per phase each.
+        contact: the contact formulation, needed with tools
+            (:class:`~jaxfric.contact.formulations.AbstractContactFormulation`:
+            :class:`~jaxfric.contact.formulations.Penalty`,
+            :class:`~jaxfric.contact.formulations.AugmentedLagrangian` or
+            :class:`~jaxfric.contact.formulations.Complementarity`).
+    """
+
+    mesh: StripMesh
+    material: J2Material
+    phases: tuple
+    formulation: str = eqx.field(static=True, default="fbar")
+    tools: tuple = ()
+    contact: AbstractContactFormulation | None = None
+
+    def __check_init__(self):
+        if not isinstance(self.mesh, StripMesh):
+            raise ValueError(f"field 'mesh' must be a StripMesh (jaxfric.strip_mesh), got {self.mesh!r}")
+        if not (hasattr(self.material, "update") and hasattr(self.material, "init_state")):
+            raise ValueError(f"field 'material' must be a material law such as J2Material, got {self.material!r}")
+        if self.formulation not in FORMULATIONS:
+            raise ValueError(f"field 'formulation' must be one of {FORMULATIONS}, got {self.formulation!r}")
+        if len(self.phases) == 0 or not all(isinstance(p, Phase) for p in self.phases):
+            raise ValueError("field 'phases' must be a non-empty tuple of Phase")
+        names = [p.name for p in self.phases]
+        if len(set(names)) != len(names):
+            raise ValueError(f"field 'phases' has repeated phase names: {names}")
+        constraint_masks(self.mesh.n_nodes, self.phases)  # validates node indices
+        if self.tools and not isinstance(self.contact, AbstractContactFormulation):
+            raise ValueError(f"field 'contact' must be a contact formulation (e.g. Penalty(eps_n, eps_t)) when "
+                             f"there are tools, got {self.contact!r}")
+        names = [t.name for t in self.tools]
+        if len(set(names)) != len(names):
+            raise ValueError(f"field 'tools' has repeated tool names: {names}")
+        for tool in self.tools:
+            if len(tool.controls) != len(self.phases):
+                raise ValueError(f"tool {tool.name!r} has {len(tool.controls)} controls for "
+                                 f"{len(self.phases)} phases")
+            if max(tool.candidates) >= self.mesh.n_nodes or min(tool.candidates) < 0:
+                raise ValueError(f"tool {tool.name!r}: field 'candidates' names nodes outside the mesh")
+            if is_concrete((self.mesh.nodes, tool.geometry)):
+                _check_tool_placement(tool, self.mesh.nodes)
+
+    @property
+    def n_phases(self) -> int:
+        return len(self.phases)
+
+    @property
+    def force_tools(self) -> tuple:
+        """Static indices of the tools that are force-driven in some phase (one unknown each)."""
+        return tuple(k for k, t in enumerate(self.tools) if t.force_driven)
+
+
+@eqx.filter_jit
+def _project_all(geometry, points):
+    # Compiled once per tool structure and size: building many scenes does not re-dispatch op by op.
+    return jax.vmap(project, in_axes=(None, 0, None))(geometry, points, jnp.zeros(2))
+
+
+def _check_tool_placement(tool, nodes) -> None:
+    """Before any computation: a tool must not cut into the sheet at rest, and a force-driven tool
+    must have a candidate node that projects on it (otherwise no force can ever balance it)."""
+    idx = np.asarray(tool.candidates)
+    proj = _project_all(tool.geometry, nodes[idx])
+    gap, valid = np.asarray(proj.gap), np.asarray(proj.valid)
+    scale = 1e-9 * max(1.0, float(np.max(np.abs(np.asarray(nodes)))))
+    inside = valid & (gap < -scale)
+    if inside.any():
+        worst = int(np.argmin(np.where(inside, gap, np.inf)))
+        raise ValueError(f"tool {tool.name!r} intersects the sheet at the start: node {int(idx[worst])} is "
+                         f"{-gap[worst]:.3g} mm inside it; move the tool or the sheet so they at most touch")
+    if tool.force_driven and not valid.any():
+        raise ValueError(f"tool {tool.name!r} is force-driven but none of its candidate nodes projects on it, "
+                         f"so it can never touch the sheet; check its geometry, 'candidates' and 'drive'")
+
+
+class SimState(eqx.Module):
+    """State after a converged step.
+
+    Attributes:
+        u: (n_nodes, 2) displacements (mm).
+        material: material states at every Gauss point (leading axes (n_el, 4)).
+        f_int: (n_nodes, 2) internal forces (N/mm); at prescribed dofs these are the reactions.
+        time: () pseudo-time.
+        phase: () int32 index of the phase of the last step.
+        contact: contact history and outputs (:class:`~jaxfric.contact.rigid.ContactState`), or None.
+    """
+
+    u: jax.Array
+    material: Any
+    f_int: jax.Array
+    time: jax.Array
+    phase: jax.Array
+    contact: ContactState | None = None
+
+
+def initial_state(model: StripModel) -> SimState:
+    """The state before the first step: zero displacements, virgin material at every Gauss point, the
+    tools at their initial positions (with no force), pseudo-time 0 in phase 0."""
+    n_el = model.mesh.n_elements
+    one = model.material.init_state()
+    states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n_el, 4) + a.shape), one)
+    zeros = jnp.zeros((model.mesh.n_nodes, 2))
+    contact = initial_contact_state(model.tools, model.mesh.nodes) if model.tools else None
+    return SimState(u=zeros, material=states, f_int=zeros, time=jnp.array(0.0),
+                    phase=jnp.array(0, jnp.int32), contact=contact)
+
+
+def default_observe(model: StripModel, state: SimState) -> dict:
+    """Reactions on the left and right ends (sums of f_int - f_c over their nodes), the largest eqps,
+    and with tools: their positions and clamping forces, the largest penetration and the numbers of
+    active (closed) and slipping pairs."""
+    reaction = reactions(model, state)
+    out = {
+        "reaction_left": jnp.sum(reaction[model.mesh.left], axis=0),
+        "reaction_right": jnp.sum(reaction[model.mesh.right], axis=0),
+        "max_eqps": jnp.max(state.material.eqps),
+    }
+    if state.contact is not None:
+        c = state.contact
+        out.update(tool_position=c.q, tool_force=c.force,
+                   max_penetration=max_penetration(c.status, c.gap),
+                   n_active=jnp.sum(c.status > 0), n_slip=jnp.sum(c.status == SLIP))
+    return out
+
+
+def contact_force_field(model: StripModel, state: SimState) -> jax.Array:
+    """(n_nodes, 2) contact forces on the sheet, f_c = R_N n + R_T t summed per node (N/mm)."""
+    f_c = jnp.zeros_like(state.u)
+    if state.contact is None:
+        return f_c
+    c = state.contact
+    pair_f = c.rn[:, None] * c.normal + c.rt[:, None] * jnp.stack([-c.normal[:, 1], c.normal[:, 0]], 1)
+    return f_c.at[pair_nodes(model.tools)].add(pair_f)
+
+
+def reactions(model: StripModel, state: SimState) -> jax.Array:
+    """(n_nodes, 2) reactions f_int - f_c: non-zero at prescribed dofs only, at convergence (N/mm)."""
+    return state.f_int - contact_force_field(model, state)
+
+
+def stresses(model: StripModel, state: SimState) -> jax.Array:
+    """Kirchhoff stress (n_el, 4, 3, 3) (MPa) at every Gauss point of a converged state.
+
+    Re-evaluating the update at the converged deformation from the converged history is exact: the
+    trial state then lies on (or inside) the yield surface, so the return map is the identity.
+    """
+    return internal_force(model.mesh, model.material, model.formulation, mesh_geometry(model.mesh),
+                          state.u, state.material).tau
+
+
+def tool_positions(state: SimState) -> jax.Array:
+    return jnp.zeros(0) if state.contact is None else state.contact.q

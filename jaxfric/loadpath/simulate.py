@@ -1,0 +1,345 @@
+"""The drivers of the load path, run entirely inside JAX.
+
+A load path is a sequence of step attempts (:mod:`jaxfric.loadpath.step`) from the model's initial state
+(:mod:`jaxfric.loadpath.model`), each converged step recorded in the history buffers. Three drivers:
+
+- :func:`simulate` (adaptive): a ``lax.while_loop`` over attempts, the step controller of the
+  benchmark spec (section 1.9, :mod:`jaxfric.loadpath.controller`) choosing each increment. Differentiable in
+  forward mode (``jax.jvp``).
+- :func:`simulate_flat`: the same attempts and controller, one Newton iteration per loop pass (for
+  vmapped sweeps; penalty formulation).
+- :func:`simulate_fixed`: a ``lax.scan`` over the nominal steps without cutting: a fixed-length loop,
+  so reverse mode (``jax.grad``/``jax.vjp``) works too.
+
+Each step is a Newton solve differentiated by the implicit function theorem, and the converged plastic
+history is carried to the next step, so derivatives follow the loading path. Failures are result
+codes; :func:`jaxfric.loadpath.run.run` turns them into exceptions.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..contact.formulations import StepSolution, from_newton
+from ..contact.system import linearize
+from ..fem.loading import schedule
+from ..numerics.newton import SOLUTION_NAME, LinearizedProblem, NewtonOptions, newton_pass, newton_result, newton_start
+from ..numerics.results import Result
+from .controller import Controller, ControllerState, Outcome, StepControl
+from .model import SimState, StripModel, default_observe, initial_state, tool_positions
+from .progress import report
+from .step import (
+    StepContext,
+    continuation_on,
+    continuation_stages,
+    softened_args,
+    solve_step,
+    step_args,
+    step_state,
+    unknowns,
+)
+
+__all__ = ["History", "Simulation", "simulate", "simulate_flat", "simulate_fixed"]
+
+
+class History(eqx.Module):
+    """Per-step records in preallocated buffers; rows 0..n_rows-1 are filled (row 0: initial state).
+
+    Attributes:
+        time, phase, newton_iters, cutbacks, augmentations: (S,) per row.
+        solver_stats: (S, 3) exact contact: Lemke pivots, semismooth Newton iterations (active-set
+            passes), fallbacks (condensed solver: Lemke after SSN; "ssn": iterations whose active set
+            did not settle), summed over the step's attempts (zero for the other laws).
+        observed: pytree of per-row observations, leading axis S.
+        n_rows: () number of filled rows.
+    """
+
+    time: jax.Array
+    phase: jax.Array
+    newton_iters: jax.Array
+    cutbacks: jax.Array
+    augmentations: jax.Array
+    solver_stats: jax.Array
+    observed: Any
+    n_rows: jax.Array
+
+
+class Simulation(eqx.Module):
+    """Outcome of a simulation: its history, final converged state and result code.
+
+    ``failed_time`` is the pseudo-time the last failed attempt was aiming at (nan if none failed).
+    ``pending_cuts`` counts the failed attempts after the last accepted step: the cutbacks of the step
+    that stopped the run, which no history row records (0 when the run completed).
+    """
+
+    history: History
+    final: SimState
+    code: jax.Array
+    failed_time: jax.Array
+    residual_norm: jax.Array
+    pending_cuts: jax.Array | int = 0
+
+
+def _select(pred, on_true, on_false):
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
+
+
+def _empty_history(n: int, row0: dict) -> History:
+    def buffer(a):
+        a = jnp.asarray(a)
+        return jnp.zeros((n,) + a.shape, a.dtype).at[0].set(a)
+
+    return History(time=jnp.zeros(n), phase=jnp.zeros(n, jnp.int32),
+                   newton_iters=jnp.zeros(n, jnp.int32), cutbacks=jnp.zeros(n, jnp.int32),
+                   augmentations=jnp.zeros(n, jnp.int32), solver_stats=jnp.zeros((n, 3), jnp.int32),
+                   observed=jax.tree_util.tree_map(buffer, row0), n_rows=jnp.array(1, jnp.int32))
+
+
+def _record(h: History, row, pred, state: SimState, iters, cuts, augmentations, stats, observed) -> History:
+    """Write row ``row`` when ``pred``; leave the buffers unchanged otherwise."""
+    def put(buf, value):
+        return buf.at[row].set(jnp.where(pred, value, buf[row]))
+
+    return History(time=put(h.time, state.time), phase=put(h.phase, state.phase),
+                   newton_iters=put(h.newton_iters, iters), cutbacks=put(h.cutbacks, cuts),
+                   augmentations=put(h.augmentations, augmentations), solver_stats=put(h.solver_stats, stats),
+                   observed=jax.tree_util.tree_map(put, h.observed, observed),
+                   n_rows=jnp.where(pred, row + 1, h.n_rows))
+
+
+def _report(row, t, iters, cuts, snapshot, model, state) -> None:
+    extra = () if snapshot is None else (snapshot(model, state),)
+    jax.debug.callback(report, row, t, iters, cuts, *extra)
+
+
+# ---- drivers --------------------------------------------------------------------------------------
+
+class _Predictor(eqx.Module):
+    """Secant predictor: the last accepted increment of displacements and tool positions together
+    (so that gaps are extrapolated consistently), scaled to the next step. Not used after a phase
+    change, where the loading direction may reverse, nor on a retry after a failed attempt. It only
+    moves Newton's starting point, never the solution."""
+
+    du: jax.Array   # (n_nodes, 2) displacement increment of the last accepted step
+    dq: jax.Array   # (n_tools,) tool position increment of the last accepted step
+    dt: jax.Array   # () its pseudo-time increment (0: no prediction)
+
+    @classmethod
+    def empty(cls, state: SimState) -> _Predictor:
+        return cls(jnp.zeros_like(state.u), jnp.zeros_like(tool_positions(state)), jnp.array(0.0))
+
+    def guess(self, state: SimState, dt_next, phase_next, retry=False):
+        use = (self.dt > 0) & (phase_next == state.phase) & ~jnp.asarray(retry, bool)
+        scale = jnp.where(use, dt_next / jnp.where(use, self.dt, 1.0), 0.0)
+        return state.u + scale * self.du, tool_positions(state) + scale * self.dq
+
+    def after(self, ok, old: SimState, new: SimState) -> _Predictor:
+        return _Predictor(du=jnp.where(ok, new.u - old.u, self.du),
+                          dq=jnp.where(ok, tool_positions(new) - tool_positions(old), self.dq),
+                          dt=jnp.where(ok, new.time - old.time, self.dt))
+
+
+class _Loop(eqx.Module):
+    """Carry of the adaptive load loop: the converged state, the predictor, the controller's state and
+    the history buffers."""
+
+    state: SimState
+    predictor: _Predictor
+    ctrl: ControllerState
+    history: History
+
+
+def _controller(model: StripModel, control: StepControl) -> Controller:
+    """The step controller of ``model``'s load path, with the continuation where the formulation has
+    one and ``control`` asks for it."""
+    on = continuation_on(model, control)
+    has_line_search = model.contact is None or not model.tools or model.contact.unsearched_retry
+    n_stages = continuation_stages(model) if on else jnp.array(0, jnp.int32)
+    return Controller.build(model.phases, control, on, has_line_search, n_stages)
+
+
+def _init_loop(model: StripModel, ctrl: Controller, observe: Callable) -> _Loop:
+    state0 = initial_state(model)
+    return _Loop(state=state0, predictor=_Predictor.empty(state0), ctrl=ctrl.init(state0.u, tool_positions(state0)),
+                 history=_empty_history(ctrl.n_buffer + 1, observe(model, state0)))
+
+
+def _next_attempt(ctrl: Controller, c: _Loop):
+    """The next attempt's target time, phase and Newton starting point (u, q)."""
+    t_try, phase = ctrl.target(c.ctrl, c.state.time)
+    guess = c.predictor.guess(c.state, t_try - c.state.time, phase, retry=c.ctrl.cuts > 0)
+    return t_try, phase, ctrl.start(c.ctrl, guess)
+
+
+def _after_attempt(model: StripModel, ctrl: Controller, c: _Loop, sol: StepSolution, new_state: SimState, t_try,
+                   observe: Callable, progress: bool, snapshot: Callable | None) -> _Loop:
+    """The loop after an attempt: the step recorded (and reported) if accepted, the controller adapted."""
+    out = Outcome(sol.code, sol.iterations, sol.hardest, sol.stats, sol.residual_norm, new_state.u,
+                  tool_positions(new_state))
+    ok, iters, stats = ctrl.tally(c.ctrl, out)
+    row = c.history.n_rows
+    history = _record(c.history, row, ok, new_state, iters, c.ctrl.cuts, sol.augmentations, stats,
+                      observe(model, new_state))
+    if progress or snapshot is not None:
+        jax.lax.cond(ok, lambda: _report(row, t_try, iters, c.ctrl.cuts, snapshot, model, new_state),
+                     lambda: None)
+    return _Loop(state=_select(ok, new_state, c.state), predictor=c.predictor.after(ok, c.state, new_state),
+                 ctrl=ctrl.adapt(c.ctrl, c.state.time, t_try, out, row), history=history)
+
+
+def _simulation(out: _Loop) -> Simulation:
+    return Simulation(history=out.history, final=out.state, code=out.ctrl.code, failed_time=out.ctrl.failed_t,
+                      residual_norm=out.ctrl.r_norm, pending_cuts=out.ctrl.cuts)
+
+
+def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
+             control: StepControl = StepControl(), observe: Callable = default_observe,
+             progress: bool = False, snapshot: Callable | None = None) -> Simulation:
+    """Run the whole load path with adaptive steps, inside one ``lax.while_loop``.
+
+    Pure and jit-able (wrap with ``eqx.filter_jit``; :func:`jaxfric.loadpath.run.run` does); ``observe(model,
+    state) -> pytree`` is recorded at every accepted step and must be a static (hashable) function.
+    With ``progress`` a host callback reports every accepted step (see :mod:`jaxfric.loadpath.progress`);
+    with ``snapshot(model, state) -> pytree`` (static) that pytree travels with the report, so the host
+    can keep full states of chosen steps without a device buffer per step.
+    """
+    ctx = StepContext.build(model)
+    ctrl = _controller(model, control)
+
+    def body(c: _Loop) -> _Loop:
+        t_try, phase, guess = _next_attempt(ctrl, c)
+        sol, new_state = solve_step(model, c.state, phase, t_try, newton, ctx, guess=guess, search=~c.ctrl.plain,
+                                    soften=c.ctrl.stages.soft if ctrl.continuation else None)
+        return _after_attempt(model, ctrl, c, sol, new_state, t_try, observe, progress, snapshot)
+
+    out = jax.lax.while_loop(lambda c: c.ctrl.code == Result.CONTINUE, body, _init_loop(model, ctrl, observe))
+    return _simulation(out)
+
+
+def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
+                  control: StepControl = StepControl(), observe: Callable = default_observe) -> Simulation:
+    """:func:`simulate` with one Newton iteration per pass of a single loop (penalty law only).
+
+    The results are those of :func:`simulate` (the same attempts, iterations and step controller);
+    only the loop structure differs: instead of a loop of attempts, each a Newton loop, one loop
+    advances the current attempt by one Newton iteration and, when the attempt ends, runs the step
+    controller and starts the next attempt. Under ``vmap`` (:func:`jaxfric.loadpath.sweep.sweep`) a member then
+    waits for no other member's attempt: the sweep takes as many passes as its largest member's total
+    of Newton iterations and attempts, against the sum over attempts of the slowest member's
+    iterations with the nested loops (a batched pass itself still costs more than a single one:
+    ``docs/results.md``, batched sweeps). Forward only (derivatives: :func:`simulate`,
+    whose steps are differentiated by the implicit function theorem); no progress reports.
+    """
+    if model.tools and model.contact is not None and not model.contact.one_newton_solve:
+        raise ValueError(f"field 'contact': simulate_flat runs formulations whose step is one Newton solve "
+                         f"(the penalty law), not {type(model.contact).__name__} (a loop of its own inside a step)")
+    ctx = StepContext.build(model)
+    ctrl = _controller(model, control)
+    init = _init_loop(model, ctrl, observe)
+
+    def attempt(c: _Loop):
+        """The next attempt of ``c``: its target time, phase and Newton start."""
+        t_try, phase, guess = _next_attempt(ctrl, c)
+        return t_try, phase, newton_start(problem0, unknowns(model, *guess), args0, newton)   # args0: shapes only
+
+    def body(carry):
+        c, t_try, phase, nc = carry
+        args, q_start, f_start = step_args(model, c.state, phase, t_try, ctx)
+        soft = c.ctrl.stages.soft
+        if ctrl.continuation:
+            args = softened_args(args, jnp.maximum(soft, 0))
+        x_ref = unknowns(model, c.state.u, tool_positions(c.state))
+        problem = LinearizedProblem(linearize, positions=(soft >= 0) if ctrl.continuation else False)
+        nc = newton_pass(nc, args, x_ref, problem, newton, search=~c.ctrl.plain)
+        done = nc.code != Result.CONTINUE
+        sol = from_newton(newton_result(nc, problem, args))
+        new_state = step_state(model, args, sol, t_try, phase, q_start, f_start)
+        c = _select(done, _after_attempt(model, ctrl, c, sol, new_state, t_try, observe, False, None), c)
+        return _select(done, (c,) + attempt(c), (c, t_try, phase, nc))
+
+    t0, phase0, guess0 = _next_attempt(ctrl, init)
+    args0, _, _ = step_args(model, init.state, phase0, t0, ctx)
+    problem0 = LinearizedProblem(linearize)
+    carry = (init, t0, phase0, newton_start(problem0, unknowns(model, *guess0), args0, newton))
+    out = jax.lax.while_loop(lambda carry: carry[0].ctrl.code == Result.CONTINUE, body, carry)[0]
+    return _simulation(out)
+
+
+def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
+                   observe: Callable = default_observe, progress: bool = False,
+                   snapshot: Callable | None = None, checkpoint: bool = True, fresh=None) -> Simulation:
+    """Run the nominal steps of the load path in a fixed-length ``lax.scan`` (no step cutting).
+
+    Reverse-mode differentiable. If a step fails the state stays at the last converged step, the
+    remaining rows are not filled and ``code`` holds the failure.
+
+    ``fresh``: optional (n_steps,) booleans, known at trace time: the steps whose Newton iterations
+    start from the last converged state instead of the secant prediction. Replaying the accepted steps
+    of an adaptive run (:func:`jaxfric.fem.loading.with_steps`), the steps accepted after a cutback were
+    retries, which start so; marking them reproduces the adaptive run's iterations exactly.
+
+    Memory of reverse mode: the history rows are scan outputs, not a carried buffer, so a step's carry
+    is the converged state alone (displacements, tool positions, material and contact state). With
+    ``checkpoint`` (default) every step is rematerialised in the backward pass (``jax.checkpoint``):
+    the forward pass keeps only the carry at each step and its converged solution (named
+    ``SOLUTION_NAME``), and the backward pass rebuilds one step at a time from them by one
+    linearisation, without re-running Newton, so the memory grows as n_steps x state size, whatever
+    the cost of a step's linearisation and factorisation. Without it every step's Newton residuals and factors are
+    kept (n_steps x step intermediates), several times more; the factor is measured by
+    ``experiments/bench_grad_memory.py``. Forward mode (``jax.jvp``) is unaffected.
+    """
+    times, phases = schedule(model.phases).nominal_steps()
+    ctx = StepContext.build(model)
+    state0 = initial_state(model)
+    row0 = observe(model, state0)
+
+    fresh = np.zeros(len(times), bool) if fresh is None else np.asarray(fresh, bool)
+    if fresh.shape != times.shape:
+        raise ValueError(f"field 'fresh' must have one entry per step ({len(times)}), got shape {fresh.shape}")
+
+    def body(c, xs):
+        state, predictor, code, failed_t, r_norm = c
+        t, p, retry = xs
+        sol, new_state = solve_step(model, state, p, t, newton, ctx,
+                                    guess=predictor.guess(state, t - state.time, p, retry=retry))
+        alive = code == Result.CONTINUE
+        ok = alive & (sol.code == Result.SUCCESS)
+        if progress or snapshot is not None:
+            jax.lax.cond(ok, lambda: _report(jnp.sum(times <= t), t, sol.iterations, 0, snapshot, model,
+                                             new_state), lambda: None)
+        code = jnp.where(alive & ~ok, sol.code, code).astype(jnp.int32)
+        failed_t = jnp.where(alive & ~ok, t, failed_t)
+        row = (ok, new_state.time, new_state.phase, sol.iterations, sol.augmentations, sol.stats,
+               observe(model, new_state))
+        return (_select(ok, new_state, state), predictor.after(ok, state, new_state), code, failed_t,
+                jnp.where(alive, sol.residual_norm, r_norm)), row
+
+    policy = jax.checkpoint_policies.save_only_these_names(SOLUTION_NAME)
+    step = jax.checkpoint(body, policy=policy) if checkpoint else body
+    init = (state0, _Predictor.empty(state0), jnp.array(Result.CONTINUE, jnp.int32), jnp.array(jnp.nan),
+            jnp.array(0.0))
+    (state, _, code, failed_t, r_norm), rows = jax.lax.scan(
+        step, init, (jnp.asarray(times), jnp.asarray(phases, jnp.int32), jnp.asarray(fresh)))
+    ok, t, ph, iters, augs, stats, observed = rows
+    n_ok = jnp.sum(ok).astype(jnp.int32)   # a failed step stops the run: the ok steps come first
+
+    def column(first, values):
+        first = jnp.asarray(first, values.dtype)
+        filled = jnp.where(ok.reshape(ok.shape + (1,) * (values.ndim - 1)), values, jnp.zeros_like(values))
+        return jnp.concatenate([first[None], filled])
+
+    hist = History(time=column(0.0, t), phase=column(0, ph.astype(jnp.int32)),
+                   newton_iters=column(0, iters.astype(jnp.int32)),
+                   cutbacks=column(0, jnp.zeros_like(iters, jnp.int32)),
+                   augmentations=column(0, augs.astype(jnp.int32)),
+                   solver_stats=column(jnp.zeros(3, jnp.int32), stats.astype(jnp.int32)),
+                   observed=jax.tree_util.tree_map(column, row0, observed), n_rows=1 + n_ok)
+    code = jnp.where(code == Result.CONTINUE, Result.SUCCESS, code).astype(jnp.int32)
+    return Simulation(history=hist, final=state, code=code, failed_time=failed_t, residual_norm=r_norm,
+                      pending_cuts=jnp.where(code == Result.SUCCESS, 0, 1).astype(jnp.int32))

@@ -1,0 +1,152 @@
+"""Batched parameter sweeps: many models of one structure as a single vmapped, compiled simulation.
+
+    >>> models = [scenes.make("nine", "mu017", "penalty", {"mu": m}).model for m in mus]
+    >>> out = sweep(models)                  # one compiled run, the members side by side
+    >>> out.history(3)["drawing_force"]      # member 3, as the rows of RunResult.history
+
+The members must share their structure (mesh size, phases, tools, which tools have friction, static
+options): only array values may differ. Leaves that differ are batched; the others stay shared, so a
+sweep over mu does not batch the mesh. Every member runs the adaptive load loop of
+:func:`jaxfric.loadpath.simulate.simulate` with its own step sizes and cutbacks; under ``vmap`` the loop runs
+until the last member has finished, and a finished member's state no longer changes.
+
+Cost: every loop pass computes all members, and both branches of every ``lax.cond`` run. With the
+nested loops of :func:`~jaxfric.loadpath.simulate.simulate` (a loop of attempts, each a Newton loop) a batched
+attempt lasts as long as its slowest member's, and with 16 friction coefficients on the flat die
+nearly every attempt paid some member's iteration limit: 31x one run. The penalty law therefore
+sweeps with :func:`~jaxfric.loadpath.simulate.simulate_flat` (one Newton iteration per pass, each member's
+step controller advancing on its own), whose number of passes is the largest member's total of
+Newton iterations and attempts. That halved the flat-die sweep, but on the 2-core CPU a batched pass
+still costs nearly one single pass per member (16 members: 18x one run; ``docs/results.md``, batched sweeps):
+each member has its own state, so the element arithmetic, which a single run already evaluates as
+one vectorised batch, is done 16 times over. The members are traced with element chunks n times
+smaller (:func:`jaxfric.fem.assembly.element_chunk`) so that one chunk's working set stays in cache
+(20 % off the 16-member sweep).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..fem.assembly import ELEMENT_CHUNK, element_chunk
+from ..numerics.linalg import on_gpu
+from ..numerics.newton import NewtonOptions
+from .controller import StepControl
+from .model import StripModel, default_observe
+from .simulate import Simulation, simulate, simulate_flat
+
+__all__ = ["SweepResult", "sweep", "stack_models", "default_chunk"]
+
+
+def stack_models(models: Sequence[StripModel]):
+    """The batched leaves of ``models``, their ``vmap`` axes and the shared structure: leaves that
+    differ between members are stacked (axis 0), equal leaves are kept once (axis None). Raises
+    ValueError naming the first member whose structure differs from the first one."""
+    if len(models) == 0:
+        raise ValueError("field 'models' must hold at least one model")
+    dyn0, static0 = eqx.partition(models[0], eqx.is_array)
+    treedef: Any = jax.tree_util.tree_structure(dyn0)
+    dyns = [dyn0]
+    for i, model in enumerate(models[1:], start=1):
+        dyn, static = eqx.partition(model, eqx.is_array)
+        if jax.tree_util.tree_structure(dyn) != treedef or not eqx.tree_equal(static, static0):
+            raise ValueError(f"field 'models': member {i} differs in structure from member 0 (mesh size, "
+                             f"phases, tools, friction on/off or static options); only values may differ")
+        shapes = [(np.shape(a), np.asarray(a).dtype) for a in jax.tree_util.tree_leaves(dyn)]
+        if shapes != [(np.shape(a), np.asarray(a).dtype) for a in jax.tree_util.tree_leaves(dyn0)]:
+            raise ValueError(f"field 'models': member {i} has arrays of other shapes than member 0")
+        dyns.append(dyn)
+
+    # Flat lists of leaves: vmap's in_axes then need no knowledge of the model's classes.
+    leaves = [jax.tree_util.tree_leaves(d) for d in dyns]
+    values: list = []
+    axes: list[int | None] = []
+    for column in zip(*leaves):
+        first = np.asarray(column[0])
+        if all(np.array_equal(first, np.asarray(x), equal_nan=True) for x in column[1:]):
+            values.append(column[0])
+            axes.append(None)
+        else:
+            values.append(jnp.stack(column))
+            axes.append(0)
+    return values, axes, (treedef, static0)
+
+
+@dataclasses.dataclass
+class SweepResult:
+    """Outcome of :func:`sweep`.
+
+    Attributes:
+        simulation: the batched :class:`~jaxfric.loadpath.simulate.Simulation` (leading axis: member).
+        n_members: number of members.
+        compile_s, wall_s: compilation and solve time of the whole sweep (s).
+    """
+
+    simulation: Simulation
+    n_members: int
+    compile_s: float
+    wall_s: float
+
+    def converged(self, i: int) -> bool:
+        return int(self.simulation.code[i]) == 0
+
+    def history(self, i: int) -> dict:
+        """Member ``i``'s filled history rows: ``time``, ``phase``, ``newton_iters``, ``cutbacks`` and
+        every observation, as NumPy arrays (the columns of :attr:`jaxfric.loadpath.run.RunResult.history`)."""
+        h = self.simulation.history
+        n = int(h.n_rows[i])
+        out = {"time": np.asarray(h.time[i, :n]), "phase": np.asarray(h.phase[i, :n]),
+               "newton_iters": np.asarray(h.newton_iters[i, :n]), "cutbacks": np.asarray(h.cutbacks[i, :n])}
+        for name, value in h.observed.items():
+            out[name] = np.asarray(value[i, :n])
+        return out
+
+
+def default_chunk(n_members: int) -> int:
+    """The element chunk per member a sweep of ``n_members`` traces with by default: on a CPU
+    ``ELEMENT_CHUNK // n`` (at least 16), the same working set per batched chunk as a single run's; on
+    a GPU ``ELEMENT_CHUNK``, more work per launch (docs/results.md, batched sweeps)."""
+    return ELEMENT_CHUNK if on_gpu() else max(ELEMENT_CHUNK // n_members, 16)
+
+
+def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions(),
+          control: StepControl = StepControl(), observe: Callable = default_observe,
+          flat: bool | None = None, chunk: int | None = None) -> SweepResult:
+    """Run ``models`` (one structure, different values) as one vmapped adaptive simulation.
+
+    ``observe`` must be a static (hashable) function, as for :func:`jaxfric.loadpath.run.run`. No progress bar
+    (the members advance at different paces). ``flat``: one Newton iteration per loop pass
+    (:func:`jaxfric.loadpath.simulate.simulate_flat`), so that no member waits for another's attempt; the
+    default where the law allows it (penalty, or no tools). The results are the same either way.
+    ``chunk``: elements per chunk of the element loop, per member (default :func:`default_chunk`).
+    """
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
+        raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
+    values, axes, (treedef, static) = stack_models(models)
+    first = models[0]
+    if flat is None:
+        flat = first.contact is None or not first.tools or first.contact.one_newton_solve
+    loop = simulate_flat if flat else simulate
+
+    def one(v):
+        model = eqx.combine(jax.tree_util.tree_unflatten(treedef, v), static)
+        return loop(model, newton=newton, control=control, observe=observe)
+
+    t0 = time.perf_counter()
+    # On a CPU, chunks n times smaller under vmap over n members (16 flat-die members: one batched
+    # iteration 2x cheaper, docs/results.md).
+    with element_chunk(default_chunk(len(models)) if chunk is None else chunk):
+        compiled = jax.jit(jax.vmap(one, in_axes=(axes,))).lower(values).compile()
+    compile_s = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    sim = jax.block_until_ready(compiled(values))
+    return SweepResult(simulation=sim, n_members=len(models), compile_s=compile_s,
+                       wall_s=time.perf_counter() - t1)
