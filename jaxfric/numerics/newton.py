@@ -1,6 +1,12 @@
 """Newton-Raphson for one load step, differentiated by the implicit function theorem.
 
-The problem is given as two pure functions of the unknowns x and of a pytree ``args`` of data
+One loop serves every contact formulation: :func:`newton_pass` owns the convergence test, the line
+search, the result codes and the iteration count, and asks an :class:`AbstractNewtonProblem` to evaluate
+a point and to give a direction from it. :class:`LinearizedProblem` is Newton on a linearisation (the
+penalty and augmented-Lagrangian laws, and models without tools); exact contact plugs in its own
+evaluation and direction (:class:`jaxfric.contact.exact.ExactContactProblem`).
+
+A linearised problem is given as two pure functions of the unknowns x and of a pytree ``args`` of data
 (parameters, converged history, prescribed values):
 
     linearize(x, args) -> Linearization(residual R, jacobian dR/dx, scale, valid, aux)
