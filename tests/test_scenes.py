@@ -385,7 +385,7 @@ def test_max_steps_field_sizes_the_history_buffer(scene):
 
 @pytest.mark.slow  # a flat-die run of its own compilation (12 s)
 def test_smoothed_contact_law_through_the_scene_config():
-    """``smoothing`` = S selects the smoothed penalty law (contact_laws): the die still balances
+    """``smoothing`` = S selects the smoothed penalty law (contact.laws): the die still balances
     F_clamp, and at full sliding the drawing force stays within the law's bound of mu F_clamp,
     n_pairs (1 + mu) S log 2 (the smooth clip approaches the Coulomb limit from below; the lower end
     allows the Newton tolerance)."""
