@@ -16,11 +16,12 @@ exactly; the contact status comes out of that solve. Two ways:
   line-searched on the semismooth residual (:func:`semismooth_merit`: the equilibrium rows with each candidate's
   rows replaced by its Alart-Curnier residual), quartering a step that raises it, at most twice. The
   trial is measured with the forces its direction predicts, which are the hint the next direction's
-  merit starts from, so the merits of accepted iterates form one non-increasing sequence (with each
+  merit starts from, so the merits of accepted iterates form one non-increasing sequence. (With each
   direction's own hint, a candidate node with a prescribed dof, such as the Nine's entry-guided tail,
-  re-based the merit at every iteration and the iterates drifted along the strip's soft draw-in mode:
-  ``test_exact.py``). The step that reaches a node to a tool or lifts it off can overshoot on a soft,
-  slipping strip; the line search keeps the residual from growing until an element inverts.
+  re-bases the merit at every iteration and the iterates drift along the strip's soft draw-in mode:
+  ``test_line_search_merit_of_accepted_iterates_does_not_jump_up_between_directions``.) The step that
+  brings a node to a tool or lifts it off can overshoot on a soft, slipping strip; the line search keeps
+  the residual from growing until an element inverts.
 * ``lcp_lemke`` (solver "lemke"): the problem condensed on a band of candidates. Steps of one
   iteration:
 

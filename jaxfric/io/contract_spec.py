@@ -1,6 +1,7 @@
 """The outputs spec's vocabulary as the run-directory checker states it (:mod:`jaxfric.io.contract`): files,
 required columns, scenes with their phases, instants and tools, tolerances, and the checks' number tests.
-Restated from the benchmarks and outputs specs on purpose, not imported from the code that writes runs."""
+Restated from the benchmarks and outputs specs on purpose, not imported from the code that writes runs; only
+the algorithm identifiers come from the package (:data:`jaxfric.contact.formulations.ALGORITHMS`)."""
 
 from __future__ import annotations
 
