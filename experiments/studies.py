@@ -67,6 +67,9 @@ MAX_AUGMENTATIONS = {(1e4, 1e-6): 60}
 # whole stroke.
 MAX_STEPS = {1e6: 30_000}
 MESHES = [(nx, ny) for ny in (3, 6) for nx in (150, 300, 600, 1200)]
+# The element of every study case: the studies' tables in docs/results.md are F-bar's (the scenes' default
+# is ``ans``; the Nine's discretisation error with each element: experiments/nine_error_sources.py).
+STUDY_ELEMENT = {"element": "fbar"}
 GRID = 200
 
 
@@ -74,8 +77,8 @@ GRID = 200
 def case(study: str, name: str, scene_name: str, variant: str, algorithm: str, overrides: dict,
          opts) -> dict:
     """Run one case into ``runs/<name>`` of the study (or read it back): :func:`jaxfric.io.batch.run_case`."""
-    return run_case(os.path.join(ROOT, study, "runs", name), scene_name, variant, algorithm, overrides,
-                    rerun=opts.rerun and _selected(opts, name), progress=opts.progress,
+    return run_case(os.path.join(ROOT, study, "runs", name), scene_name, variant, algorithm,
+                    {**STUDY_ELEMENT, **overrides}, rerun=opts.rerun and _selected(opts, name), progress=opts.progress,
                     figures=opts.run_figures, tag=study, log=lambda m: print(f"[{study}] {m}", flush=True))
 
 
@@ -532,7 +535,8 @@ def _shared_run(name: str, variant: str, algorithm: str):
     directory = os.path.join(ROOT, "blankholder_shapes", "runs", variant)
     if not os.path.exists(os.path.join(directory, "summary.json")):
         return None
-    return run_case(directory, name, variant, algorithm, {}, rerun=False, progress=False, figures=False,
+    return run_case(directory, name, variant, algorithm, dict(STUDY_ELEMENT), rerun=False, progress=False,
+                    figures=False,
                     tag="blankholder_shapes", log=lambda m: None)
 
 
@@ -596,7 +600,8 @@ def algorithm_agreement(opts) -> None:
                 legacy[algorithm] = kept[label]
             elif on_disk and not run:
                 runs[algorithm] = run_case(os.path.join(ROOT, study, "runs", label), name, variant,
-                                           run_algorithm, overrides, log=lambda m: None, rerun_stale=False)
+                                           run_algorithm, {**STUDY_ELEMENT, **overrides}, log=lambda m: None,
+                                           rerun_stale=False)
             elif run and _want(opts, study, label):
                 runs[algorithm] = case(study, label, name, variant, run_algorithm, overrides, opts)
             if runs.get(algorithm, {}).get("dir"):

@@ -72,11 +72,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--tag", action=_Once,
                      help="study tag recorded in summary.json (regex [A-Za-z0-9][A-Za-z0-9._+-]*)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
-    run.add_argument("--error-estimate", action=_Once, choices=["basic", "sensitivity", "step"], default="basic",
-                     help="basic: from the run's penetration, force scatter and Newton tolerance; "
-                          "sensitivity (penalty only): also eps_N dF/d eps_N by forward mode along the run "
-                          "(about one more run and its compilation); step: also the change when the "
-                          "nominal increments are halved (a second run of about twice the cost)")
+    run.add_argument("--error-estimate", action=_Once, choices=["basic", "sensitivity", "step", "mesh"],
+                     default="basic",
+                     help="basic: from the run's penetration, force scatter and Newton tolerance (not the "
+                          "discretisation's error); sensitivity (penalty only): also eps_N dF/d eps_N by "
+                          "forward mode along the run (about one more run and its compilation); step: also "
+                          "the change when the nominal increments are halved (a second run of about twice "
+                          "the cost); mesh: also the change on half the elements along the strip (a second "
+                          "run of about half the cost)")
     fit = sub.add_parser("fit", help="identify parameters from a measured drawing-force curve",
                          description="Fit scene config values (e.g. mu, R1) to a measured drawing-force curve "
                                      "(CSV with drawing_displacement and drawing_force; a history.csv of "
@@ -297,8 +300,17 @@ def _run(args) -> int:
             check = step_check(scene, progress=not args.quiet)
         except ValueError as err:
             print(f"note: {err}")
+    coarse = None
+    if args.error_estimate == "mesh" and result.converged:
+        from .identification.accuracy import mesh_check
+
+        try:
+            coarse = mesh_check(scene, progress=not args.quiet)
+        except ValueError as err:
+            print(f"note: {err}")
     try:
-        summary = output.write_run(scene, result, out, tag=args.tag, penalty_tangent=tangent, step_check=check)
+        summary = output.write_run(scene, result, out, tag=args.tag, penalty_tangent=tangent, step_check=check,
+                                   mesh_check=coarse)
     except output.OutputError as err:
         return _error(err, EXIT_FAILED)
     steady = summary["steady_drawing_force"]
@@ -313,7 +325,9 @@ def _run(args) -> int:
     est = summary["error_estimate"]
     print(f"wall time {summary['wall_s'] + summary['compile_s']:.2f} s; error estimate of the "
           f"{est['quantity'].replace('_', ' ')}: +/- {est['absolute']:.3g} N/mm ({100 * est['relative']:.2g} %; "
-          + ", ".join(f"{k} {100 * v:.2g} %" for k, v in est["components"].items()) + ")")
+          + ", ".join(f"{k} {100 * v:.2g} %" for k, v in est["components"].items()) + ")"
+          + (f"; not estimated: {' and '.join(est['not_estimated'])} discretisation "
+             f"(--error-estimate {' or '.join(est['not_estimated'])})" if est.get("not_estimated") else ""))
     if not summary["converged"]:
         return _error(f"run did not complete (partial results written to {out}): {summary['message']}",
                       EXIT_FAILED)

@@ -396,6 +396,36 @@ def test_step_component_is_twice_the_change_with_half_the_increments():
     assert "step" not in output.error_estimate(scene, values, (0.02, 0.03), 10.0)["components"]
 
 
+def test_mesh_component_is_richardsons_first_order_estimate():
+    """``error_estimate`` with a mesh check on r times fewer elements along the strip: |F - F_coarse| /
+    (r - 1) / F, recorded with the check; the components not estimated are named."""
+    from jaxfric.io import output
+    from jaxfric.scenes import make
+
+    scene = make("flat_die", "const_force", overrides={"mesh": "24x1"})
+    values = {"drawing_force": [0.0, 10.0, 10.0, 10.0], "max_penetration": [0.0] * 4,
+              "phase": ["clamp", "draw", "draw", "draw"], "drawing_displacement": [0.0, 0.02, 0.025, 0.03]}
+    check = {"steady": 10.4, "peak": 12.0, "n_steps": 6, "mesh": (12, 1), "ratio": 2.0, "converged": True}
+    est = output.error_estimate(scene, values, (0.02, 0.03), 10.0, mesh_check=check)
+    assert est["components"]["mesh"] == pytest.approx(0.04, rel=1e-12)
+    assert est["mesh_check"] == {"value": 10.4, "n_steps": 6, "mesh": [12, 1], "ratio": 2.0}
+    assert est["not_estimated"] == ["step"]
+    third = output.error_estimate(scene, values, (0.02, 0.03), 10.0, mesh_check={**check, "ratio": 3.0})
+    assert third["components"]["mesh"] == pytest.approx(0.02, rel=1e-12)
+    assert output.error_estimate(scene, values, (0.02, 0.03), 10.0)["not_estimated"] == ["mesh", "step"]
+
+
+@pytest.mark.parametrize("scene, field, value", [("nine", "nx", 150), ("bead", "nx", 362), ("flat_die", "nx", 120),
+                                                 ("blankholder", "element_length", 1.0)])
+def test_coarser_along_halves_the_elements_along_the_strip(scene, field, value):
+    """The mesh check's companion: half the elements along the strip (nx // 2, or the blankholder's
+    element length doubled where nx is derived from it), the layers unchanged."""
+    from jaxfric import scenes
+
+    config = scenes.make(scene).config
+    assert scenes.coarser_along(scene, config) == {field: value}
+
+
 @pytest.mark.parametrize("scene", ["flat_die", "bead", "nine", "blankholder"])
 def test_scaled_steps_halves_increments_and_doubles_step_counts(scene):
     from jaxfric import scenes

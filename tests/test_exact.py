@@ -217,3 +217,48 @@ def test_line_search_merit_of_accepted_iterates_does_not_jump_up_between_directi
                     observe=scene.observe, progress=False, raise_on_failure=False)
     assert result.converged, result.message
     assert result.history["drawing_displacement"][-1] == pytest.approx(70.0)
+
+
+# Small curved-tool cases: the Nine's clamp and 1 mm of draw, the bead's wrap and 0.5 mm of draw, the
+# blankholder's close, lock and 0.5 mm of pull (coarse meshes; one Lemke band holding every candidate
+# near a tool).
+COMMON_STEPS = {
+    "nine": ("mu017", {"mesh": "60x2", "stroke": 3.0, "dq_clamp": 0.2, "U_draw": 1.0, "dU": 0.1}),
+    "bead": ("th090_mu017", {"mesh": "120x2", "s_draw": 0.5, "ds": 0.1, "dtheta": 2.0}),
+    "blankholder": ("shape1", {"element_length": 1.0, "U_pull": 0.5, "band": 256}),
+}
+
+
+@pytest.mark.slow  # three scenes, two algorithms each: about four minutes of runs and compilations
+@pytest.mark.parametrize("scene_name", list(COMMON_STEPS))
+def test_semismooth_newton_equals_lemke_on_a_common_step_sequence(scene_name):
+    """Spec 1.7 on whole paths: Lemke replays the accepted steps of the semismooth Newton run (their
+    times become its nominal steps, :func:`jaxfric.fem.loading.with_steps`). It takes every step without a
+    cut (its proximity band never saturates: a pair outside it that closes fails the attempt with
+    CONTACT_BAND), and on every step the forces, the tool positions and the number of closed and slipping
+    pairs equal semismooth Newton's to the solver tolerance. The steps where Lemke's answer needed the
+    semismooth refinement (:func:`jaxfric.contact.alart_curnier.polish`) are counted in its ``ssn_iters``."""
+    import equinox as eqx
+
+    from jaxfric import scenes
+    from jaxfric.fem.loading import with_steps
+
+    variant, overrides = COMMON_STEPS[scene_name]
+    ssn = scenes.make(scene_name, variant, "lcp_ssn", overrides)
+    a = jf.run(ssn.model, newton=ssn.newton, control=ssn.control, observe=ssn.observe, progress=False)
+    lemke = scenes.make(scene_name, variant, "lcp_lemke", overrides)
+    h = a.history
+    model = eqx.tree_at(lambda m: m.phases, lemke.model,
+                        with_steps(lemke.model.phases, np.asarray(h["time"][1:]), np.asarray(h["phase"][1:])))
+    b = jf.run(model, newton=lemke.newton, control=lemke.control, observe=lemke.observe, progress=False)
+    g = b.history
+    assert g["cutbacks"].sum() == 0 and np.array_equal(g["time"], h["time"])
+    scale = float(np.max(np.abs(h["drawing_force"]))) + float(np.max(np.abs(h["clamping_force"])))
+    for column in ("drawing_force", "clamping_force"):
+        np.testing.assert_allclose(g[column], h[column], rtol=0, atol=1e-6 * scale, err_msg=column)
+    np.testing.assert_allclose(g["tool_position"], h["tool_position"], rtol=0, atol=1e-8)
+    np.testing.assert_array_equal(g["n_active"], h["n_active"])
+    np.testing.assert_array_equal(g["n_slip"], h["n_slip"])
+    assert g["lcp_pivots"].sum() > 0 and h["ssn_iters"].sum() > 0
+    print(f"{scene_name}: {len(h['time']) - 1} common steps; Lemke refined its answer on "
+          f"{int(np.sum(g['ssn_iters'] > 0))} of them")

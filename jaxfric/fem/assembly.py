@@ -142,7 +142,7 @@ def _element_map(fn, material, formulation, geo, u_el, states):
     n_chunks = max(1, n // _CHUNK.get())
     size = -(-n // n_chunks)
     pad = n_chunks * size - n
-    xs = (geo.dN_dX, geo.dN_dX_center, geo.weight, u_el, states)
+    xs = (geo.gradients(formulation), geo.dN_dX_center, geo.weight, u_el, states)
     if pad:
         xs = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]), xs)
     ys = jax.lax.map(one, xs, batch_size=size)

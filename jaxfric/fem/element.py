@@ -1,4 +1,4 @@
-"""Q4 plane-strain element with the F-bar treatment of volumetric locking.
+"""Q4 plane-strain elements: F-bar against volumetric locking, assumed natural strain against parasitic shear.
 
 Formulation (de Souza Neto, Peric, Dutko, Owen, Int. J. Solids Struct. 33, 1996; de Souza Neto et al.,
 *Computational Methods for Plasticity*, 2008, sec. 15.2). At each of the 2x2 Gauss points the in-plane
@@ -17,6 +17,31 @@ Internal force: the virtual work ``sum_gp w_gp P_bar : dF_bar/du`` with P_bar = 
 by pulling P_bar back through the map u -> F_bar with a JAX VJP. The element tangent is the forward-mode
 Jacobian of that force, which makes it consistent with the return mapping by construction.
 
+``formulation="ans"`` (the default): F-bar on assumed natural strains through the thickness. A bilinear element
+x(xi, eta) = x_0 + a_1 xi + a_2 eta + h xi eta bent along xi (the strip's length) has
+dx/deta = a_2 + h xi: its through-thickness fibres turn along the element, a shear that a bent strip
+does not have (Q4's parasitic shear, about kappa dx / 2 at the element's ends). In plastic bending that
+shear yields, so the element dissipates more than the strip it models by an amount first order in the
+element length dx. Here dx/deta at each Gauss point is sampled at the element's centre line xi = 0,
+as the assumed-natural-strain elements of shells do with their transverse shear (Dvorkin & Bathe,
+Eng. Comput. 1, 1984), in the deformed and the reference configuration alike:
+
+    F_ans = [dx/dxi (g), dx/deta (0)] [dX/dxi (g), dX/deta (0)]^-1,
+
+which is I + sum_a u_a (x) B_a with constant gradients B_a (``ElementGeometry.dN_dX_assumed``), so a
+homogeneous deformation stays exact (patch test) and the element stays displacement-only; the
+covariant components C_xixi, C_etaeta and C_xieta at the points are those of the bilinear field sampled
+on the centre line, so the element is objective. The hourglass vector h still strains it at the two
+Gauss rows (bending through C_xixi, the other component through C_xieta), so no zero-energy mode
+appears. F-bar is then applied as above (one volumetric constraint per element). The second parent axis
+eta must be the strip's thickness direction, as in :func:`jaxfric.fem.mesh.strip_mesh`. Its cost is
+F-bar's (the same operations on other constant gradients). Measured (``tests/test_element_ans.py``,
+``experiments/nine_error_sources.py``, docs/results.md): elastic bending independent of the aspect ratio
+(F-bar's moment grows 1.6 times from aspect ratio 1 to 4); plastic bending at aspect ratio 1 within
+0.01 % of a 4 times finer mesh along the strip (F-bar 3.7 %); the Nine's steady force on its 300 x 3
+mesh 1.4 % (``mu000``) and 3.4 % (``mu017``) above the mesh limit, against 6.9 % and 9.2 % with F-bar.
+It keeps F-bar's through-thickness error (below).
+
 ``formulation="q4"`` (plain displacement Q4, F_bar = F) is kept for the elastic verification checks.
 
 ``formulation="eas"``: the enhanced-assumed-strain element Q1/E4 at finite strain (Simo & Armero,
@@ -33,8 +58,9 @@ function theorem through ``jax.lax.custom_root``), and the tangent is the conden
 a bent strip that F-bar and Q4 miss (pure bending is exact with three elements through the thickness,
 where F-bar is 7 % too soft and Q4 2.6 % too stiff), and relax the incompressibility constraint as
 well. Its cost is the local Newton (each iteration one material update and its derivative at the 4
-points); F-bar stays the default of the scenes: the finite-strain enhanced elements are known to
-develop hourglass modes under strong compression, which the clamped sheets of the benchmarks see.
+points); it is not the default: the finite-strain enhanced elements are known to develop hourglass
+modes under strong compression, which the clamped sheets of the benchmarks see (it inverts an element
+at 20 % compression of the block of ``tests/test_element_ans.py``, and during the Nine's clamping).
 """
 
 from __future__ import annotations
@@ -49,7 +75,7 @@ from ..numerics.tensor import det2, inv2
 __all__ = ["FORMULATIONS", "ElementGeometry", "element_geometry", "deformation_gradients",
            "element_force", "element_force_and_tangent"]
 
-FORMULATIONS = ("fbar", "q4", "eas")
+FORMULATIONS = ("fbar", "ans", "q4", "eas")
 EAS_MAX_ITER = 25      # local Newton iterations for the enhanced parameters (while_loop bound)
 EAS_RTOL = 1e-12       # relative to sum_g w_g |P_g| |dF_g/dalpha|
 
@@ -68,6 +94,9 @@ def _parent_gradients(xi: float, eta: float) -> np.ndarray:
 
 _DN_GAUSS = np.stack([_parent_gradients(*p) for p in GAUSS_POINTS])  # (4 gp, 4 nodes, 2)
 _DN_CENTER = _parent_gradients(0.0, 0.0)  # (4, 2)
+# The assumed parent gradients: d/dxi at the Gauss point, d/deta at the centre line xi = 0.
+_DN_ASSUMED = np.stack([np.stack([_DN_GAUSS[g, :, 0], _parent_gradients(0.0, p[1])[:, 1]], axis=1)
+                        for g, p in enumerate(GAUSS_POINTS)])  # (4 gp, 4 nodes, 2)
 # Enhanced modes: A_ik = alpha_(2i+k) * (xi, eta)_k at each Gauss point, as (4 gp, 2, 2, 4).
 _MODES = np.zeros((4, 2, 2, 4))
 for _i in range(2):
@@ -81,13 +110,20 @@ class ElementGeometry(eqx.Module):
     Attributes:
         dN_dX: (n_el, 4 gp, 4 nodes, 2) shape-function gradients at the Gauss points (1/mm).
         dN_dX_center: (n_el, 4 nodes, 2) shape-function gradients at the centroid (1/mm).
+        dN_dX_assumed: (n_el, 4 gp, 4 nodes, 2) the gradients of ``formulation="ans"`` at the Gauss
+            points: the eta-derivatives taken at the element's centre line xi = 0 (1/mm).
         weight: (n_el, 4 gp) Gauss weight times det(dX/dxi): reference area per point (mm^2,
             per unit out-of-plane width).
     """
 
     dN_dX: jax.Array
     dN_dX_center: jax.Array
+    dN_dX_assumed: jax.Array
     weight: jax.Array
+
+    def gradients(self, formulation: str) -> jax.Array:
+        """The Gauss-point gradients ``formulation`` builds its deformation gradients from."""
+        return self.dN_dX_assumed if formulation == "ans" else self.dN_dX
 
 
 def element_geometry(X_el: jax.Array) -> ElementGeometry:
@@ -100,18 +136,19 @@ def element_geometry(X_el: jax.Array) -> ElementGeometry:
     def one(X):
         dN, det = jax.vmap(gradients, (0, None))(jnp.asarray(_DN_GAUSS), X)
         dN0, _ = gradients(jnp.asarray(_DN_CENTER), X)
-        return dN, dN0, det * GAUSS_WEIGHTS
+        dN_ans, _ = jax.vmap(gradients, (0, None))(jnp.asarray(_DN_ASSUMED), X)
+        return dN, dN0, dN_ans, det * GAUSS_WEIGHTS
 
-    dN, dN0, w = jax.vmap(one)(X_el)
-    return ElementGeometry(dN_dX=dN, dN_dX_center=dN0, weight=w)
+    dN, dN0, dN_ans, w = jax.vmap(one)(X_el)
+    return ElementGeometry(dN_dX=dN, dN_dX_center=dN0, dN_dX_assumed=dN_ans, weight=w)
 
 
 def deformation_gradients(dN_dX, dN_dX_center, u_e, formulation: str):
     """In-plane deformation gradients at the 4 Gauss points, (4, 2, 2), and det F there and at the centroid.
 
-    F = I + sum_a u_a (x) dN_a/dX. With ``formulation="fbar"`` the returned gradients are
-    F_bar = (J_0/J)^(1/2) F. Also returns the smallest of det F at the Gauss points and the centroid,
-    which is <= 0 for an inverted element.
+    F = I + sum_a u_a (x) dN_a/dX (``dN_dX``: :meth:`ElementGeometry.gradients` of the formulation). With
+    ``formulation="fbar"`` or ``"ans"`` the returned gradients are F_bar = (J_0/J)^(1/2) F. Also returns
+    the smallest of det F at the Gauss points and the centroid, which is <= 0 for an inverted element.
     """
     eye = jnp.eye(2)
     F = eye + jnp.einsum("ai,gaj->gij", u_e, dN_dX)
@@ -198,8 +235,9 @@ def element_force(material, formulation, dN_dX, dN_dX_center, weight, u_e, state
 
     Args:
         material: the material law, ``material.update(F (2,2), state) -> (tau (3,3), state)``.
-        formulation: "fbar" or "q4" (static).
-        dN_dX, dN_dX_center, weight: this element's rows of :class:`ElementGeometry`.
+        formulation: one of :data:`FORMULATIONS` (static).
+        dN_dX, dN_dX_center, weight: this element's rows of :class:`ElementGeometry` (``dN_dX``: those of
+            :meth:`ElementGeometry.gradients`).
         u_e: (4, 2) nodal displacements (mm).
         states: material states at the 4 Gauss points (batched pytree, leading axis 4).
 
@@ -256,7 +294,7 @@ def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight
         K_ua = jnp.einsum("g,gija,gijkl,gklm->am", weight, dF_du, dP_dF, G)
         K_aa = jnp.einsum("g,gijm,gijkl,gkln->mn", weight, G, dP_dF, G)
         K_e = K_e - K_ua @ jnp.linalg.solve(K_aa, jnp.einsum("g,gijm,gijkl,gklb->mb", weight, G, dP_dF, dF_du))
-    if formulation == "fbar":
+    if formulation in ("fbar", "ans"):
         # Forward over grad (not jax.hessian, i.e. forward over jacrev): same matrix, measured 2.3x faster.
         K_e = K_e + jax.jacfwd(jax.grad(lambda v: jnp.sum(jax.lax.stop_gradient(wP) * kinematics(v))))(u)
     return f_e.reshape(4, 2), K_e, (new_states, tau, det_min)

@@ -46,7 +46,8 @@ import numpy as np
 from ..io.batch import phase_curve, run_case, stale
 
 __all__ = ["TESTS", "QUICK_TESTS", "Test", "cases", "error_measures", "collect", "test_rows", "read_rows",
-           "mesh_label", "MEASURES", "LEVELS", "penalty_tangent", "step_check", "reference_overrides"]
+           "mesh_label", "MEASURES", "LEVELS", "penalty_tangent", "step_check", "mesh_check",
+           "reference_overrides"]
 
 REF_GAP = 1e-8          # mm, target gap of the reference's augmented Lagrangian
 LEVELS = (0.1, 0.01, 0.001)
@@ -263,6 +264,27 @@ def penalty_tangent(scene, result) -> np.ndarray:
 
 # ---- the step size's share of a run's error -------------------------------------------------------------
 
+def _companion(scene, overrides: dict, what: str, progress: bool) -> dict:
+    """``scene`` run again with config ``overrides``, reduced to what :func:`jaxfric.io.output.error_estimate`
+    needs: ``{"steady", "peak", "n_steps", "mesh", "converged"}``. Raises ValueError (one line) when it does
+    not reach the end of the load path."""
+    from .. import scenes
+    from ..io import instants, output
+    from ..loadpath.run import run
+
+    config = dataclasses.replace(scene.config, **overrides)
+    other = scenes.SCENES[scene.name].build(config, scene.algorithm, scene.variant)
+    result = run(other.model, newton=other.newton, control=other.control, observe=other.observe,
+                 progress=progress, raise_on_failure=False, label=f"{what} ")
+    if not result.converged:
+        raise ValueError(f"the {what} did not complete: {result.message}")
+    _, _, values = output.history_table(other, result)
+    window, _ = instants.steady_window(other.name, values, other.steady_window)
+    return {"steady": instants.steady_drawing_force({**values, "phase_name": values["phase"]}, window),
+            "peak": float(np.max(values["drawing_force"])), "n_steps": len(values["step"]) - 1,
+            "mesh": (int(other.model.mesh.nx), int(other.model.mesh.ny)), "converged": True}
+
+
 def step_check(scene, progress: bool = False) -> dict:
     """The run of ``scene`` again with every nominal increment halved (:func:`jaxfric.scenes.scaled_steps`),
     reduced to what :func:`jaxfric.io.output.error_estimate` needs for its ``step`` component:
@@ -271,20 +293,24 @@ def step_check(scene, progress: bool = False) -> dict:
     the end of the load path.
     """
     from .. import scenes
-    from ..io import instants, output
-    from ..loadpath.run import run
 
-    config = dataclasses.replace(scene.config, **scenes.scaled_steps(scene.name, scene.config, 0.5))
-    half = scenes.SCENES[scene.name].build(config, scene.algorithm, scene.variant)
-    result = run(half.model, newton=half.newton, control=half.control, observe=half.observe,
-                 progress=progress, raise_on_failure=False, label="step check (half increments) ")
-    if not result.converged:
-        raise ValueError(f"the step check (half the nominal increments) did not complete: {result.message}")
-    _, _, values = output.history_table(half, result)
-    window, _ = instants.steady_window(half.name, values, half.steady_window)
-    return {"steady": instants.steady_drawing_force({**values, "phase_name": values["phase"]}, window),
-            "peak": float(np.max(values["drawing_force"])), "n_steps": len(values["step"]) - 1,
-            "converged": True}
+    return _companion(scene, scenes.scaled_steps(scene.name, scene.config, 0.5),
+                      "step check (half increments)", progress)
+
+
+def mesh_check(scene, progress: bool = False) -> dict:
+    """The run of ``scene`` again with about half the elements along the strip
+    (:func:`jaxfric.scenes.coarser_along`), for the ``mesh`` component of
+    :func:`jaxfric.io.output.error_estimate`: as :func:`step_check`, plus ``"ratio"``, the ratio of the
+    element counts along the strip. Costs about half the run (and a compilation)."""
+    from .. import scenes
+
+    check = _companion(scene, scenes.coarser_along(scene.name, scene.config), "mesh check (coarser mesh)",
+                       progress)
+    ratio = scene.model.mesh.nx / check["mesh"][0]
+    if not ratio > 1.0:
+        raise ValueError(f"the mesh check needs fewer elements along the strip than {scene.model.mesh.nx}")
+    return {**check, "ratio": ratio}
 
 
 # ---- error measures -----------------------------------------------------------------------------------

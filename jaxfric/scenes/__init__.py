@@ -25,7 +25,8 @@ from ._common import check_steady_window
 from .base import Scene
 
 __all__ = ["SCENES", "ALGORITHMS", "Scene", "scene_names", "variants", "default_variant",
-           "config_class", "config_fields", "make", "parse_override", "parse_mesh", "scaled_steps"]
+           "config_class", "config_fields", "make", "parse_override", "parse_mesh", "scaled_steps",
+           "coarser_along"]
 
 SCENES = {"flat_die": flat_die, "bead": bead, "nine": nine, "blankholder": blankholder}
 
@@ -74,6 +75,16 @@ def scaled_steps(name: str, config, factor: float) -> dict:
         value = getattr(config, field)
         out[field] = max(1, math.ceil(value / factor)) if isinstance(value, int) else value * factor
     return out
+
+
+def coarser_along(name: str, config) -> dict:
+    """Config overrides for about half the elements along the strip, the same layers: ``nx`` halved
+    (rounded down, at least 1), or, where ``nx`` is None and derived from ``element_length``
+    (the blankholder), the element length doubled."""
+    _module(name)
+    if getattr(config, "nx", None) is None and hasattr(config, "element_length"):
+        return {"element_length": 2.0 * config.element_length}
+    return {"nx": max(1, config.nx // 2)}
 
 
 def parse_mesh(text) -> tuple[int, int]:

@@ -44,6 +44,9 @@ MAX_AUGMENTATIONS_DOC = ("auglag: augmentations allowed per step attempt before 
                          "[chosen]")
 MAX_STEPS_DOC = ("size of the history buffer in accepted steps; a run that fills it stops (MAX_STEPS). "
                  "None: 10x the nominal step count + 200 [chosen]")
+ELEMENTS = ("fbar", "ans", "eas")  # plain Q4 locks in plastic flow: kept for elastic checks only
+ELEMENT_DOC = ("element formulation (jaxfric.fem.element): 'fbar' F-bar Q4, 'ans' F-bar with assumed "
+               "natural strain through the thickness (no parasitic shear), 'eas' enhanced strain Q1/E4")
 MAX_NOMINAL_STEPS = 1_000_000  # per phase: an increment that needs more is a typo, not a study
 # A dimension of the sheet or a tool beyond 1 km is a typo; far beyond it the tool chains no longer close
 # in float64 (an edge radius of 1e300 mm next to a 1 mm sheet) and derived lengths overflow.
@@ -95,7 +98,9 @@ def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=No
         v = getattr(config, name)
         if v not in allowed:
             raise _bad(name, v, f"choose one of {', '.join(map(repr, allowed))}")
-    # Every scene carries the material of spec 1.2 and the contact constants of spec 1.5-1.6.
+    # Every scene carries the material of spec 1.2, the contact constants of spec 1.5-1.6 and an element.
+    if config.element not in ELEMENTS:
+        raise _bad("element", config.element, f"choose one of {', '.join(map(repr, ELEMENTS))}")
     if not -1.0 < _number("nu", config.nu) < 0.5:
         raise _bad("nu", config.nu, "Poisson's ratio must lie in (-1, 0.5)")
     for name in ("E", "sigma_y", "eps_n", "target_gap", "d_capture"):

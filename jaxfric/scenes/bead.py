@@ -97,6 +97,7 @@ class BeadConfig:
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(512, "-", cm.BAND_DOC)
+    element: str = cm.spec_field("ans", "-", cm.ELEMENT_DOC)
     n_clamp: int = cm.spec_field(10, "-", "steps of the clamp force ramp [chosen]")
     dtheta: float = cm.spec_field(0.5, "deg", "nominal increment of the jaw angle [chosen]")
     ds: float = cm.spec_field(0.05, "mm", "nominal increment of the jaw travel [chosen]")
@@ -215,7 +216,7 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
-    model = StripModel(mesh, material, phases, tools=tools, contact=law)
+    model = StripModel(mesh, material, phases, tools=tools, contact=law, formulation=config.element)
     observe = BeadObserve(jaw=tuple(int(a) for a in jaw), tail=int(mesh.node_index(0, 0)), theta=theta,
                           s_draw=float(config.s_draw))
 

@@ -132,6 +132,7 @@ class BlankholderConfig:
     clearance: float = cm.spec_field(0.05, "mm", "the upper die is set this far above the sheet [chosen]")
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(256, "-", cm.BAND_DOC)
+    element: str = cm.spec_field("ans", "-", cm.ELEMENT_DOC)
     F_clamp: float = cm.spec_field(300.0, "N/mm", "clamping force on the lower tool [chosen]")
     U_pull: float = cm.spec_field(55.0, "mm", "pull of the right end during draw [chosen]")
     lock_control: str = cm.spec_field("force", "-", "lower tool during draw: 'force' (P = F_clamp) or "
@@ -279,7 +280,7 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
-    model = StripModel(mesh, material, phases, tools=tools, contact=law)
+    model = StripModel(mesh, material, phases, tools=tools, contact=law, formulation=config.element)
     observe = BlankholderObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)),
                                  U_pull=float(config.U_pull), x_g=float(x_g), L=float(config.L))
 

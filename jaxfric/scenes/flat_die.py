@@ -75,6 +75,7 @@ class FlatDieConfig:
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(None, "-", cm.BAND_DOC)
+    element: str = cm.spec_field("ans", "-", cm.ELEMENT_DOC)
     F_clamp: float = cm.spec_field(50.0, "N/mm", "clamping force on the half model [paper]")
     draw_control: str = cm.spec_field("force", "-", "die during draw: 'force' (const_force) or 'position' "
                                                     "(const_position) [paper]")
@@ -155,7 +156,7 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
-    model = StripModel(mesh, material, phases, tools=(tool,), contact=law)
+    model = StripModel(mesh, material, phases, tools=(tool,), contact=law, formulation=config.element)
     observe = FlatDieObserve(right=tuple(int(a) for a in mesh.right), U_draw=float(config.U_draw))
 
     parameters = {

@@ -25,11 +25,13 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
   simulator, keeps the check meaningful.
   ``entry_guide`` = False restores the spec's free end;
 - ``U_draw`` = 70 mm; nominal increments ``dq_clamp`` = 0.1 mm and ``dU`` = 0.1 mm. Measured cost of
-  that choice (``experiments/nine_iteration_budget.py``; docs/results.md, run time of the Nine test): at
-  300 x 3 the steady
-  drawing force carries a step error of about -1.1 %, first order in the increment (-0.5 % at 0.05 mm,
-  -2.2 % at 0.2 mm), from the return mapping along the plastic bending path; halve both fields for
-  half the error at 1.4x the Newton iterations;
+  that choice (``experiments/nine_error_sources.py``; docs/results.md, discretisation error of the Nine
+  test): at 300 x 3 with the default element the steady drawing force carries a step error of about
+  -0.6 % (``mu000``) and -0.8 % (``mu017``), first order in the increment, from the return mapping along
+  the plastic bending path; halve both fields for half the error at 1.4x the Newton iterations;
+- ``element`` = ``ans`` (F-bar on assumed natural strains, :mod:`jaxfric.fem.element`): F-bar's parasitic
+  shear put the steady force on 300 x 3 6.9 % (``mu000``) and 9.3 % (``mu017``) above its limit along
+  the strip; ``ans`` 1.4 % and 3.5 % (docs/results.md, discretisation error of the Nine test);
 - ``steady_window`` = (20, 35) mm;
 - eps_t = mu eps_n [paper] (``eps_t`` None), with mu the largest coefficient of the scene.
 - exact contact by lcp_lemke: ``band`` = 128 of the 602 candidate nodes (at 300 x 3) enter the complementarity
@@ -100,6 +102,7 @@ class NineConfig:
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(128, "-", cm.BAND_DOC)
+    element: str = cm.spec_field("ans", "-", cm.ELEMENT_DOC)
     stroke: float = cm.spec_field(11.0, "mm", "downward travel of B during clamp (2 R1) [paper]")
     U_draw: float = cm.spec_field(70.0, "mm", "pull of the right end during draw [chosen]")
     dq_clamp: float = cm.spec_field(0.1, "mm", "nominal increment of B's travel [chosen]")
@@ -188,7 +191,7 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations)
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
-    model = StripModel(mesh, material, phases, tools=tuple(tools), contact=law)
+    model = StripModel(mesh, material, phases, tools=tuple(tools), contact=law, formulation=config.element)
     observe = NineObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)),
                           U_draw=float(config.U_draw))
 

@@ -1,0 +1,106 @@
+"""Where the Nine test's discretisation error comes from: ``python experiments/nine_error_sources.py``.
+
+    python experiments/nine_error_sources.py [--root DIR] [--only CASE ...] [--table]
+
+The steady drawing force of the Nine test (``mu000``: no friction, so the force is the plastic work of
+bending and unbending per unit length drawn; ``mu017``: with the friction of the wraps) on variations
+of one mesh, each changing one candidate source of error and nothing else:
+
+- the element: F-bar (``fbar``) against F-bar on assumed natural strains (``ans``, no parasitic shear);
+- the contact discretisation along the wraps: ``ans`` on 600 x 3 with every node of the surfaces a
+  contact candidate, and with every second one only, so that the contact points are spaced as on
+  300 x 3 while the elements are those of 600 x 3;
+- the time step: the nominal increments and a half of them (the cases' default) and a quarter;
+- the layers: 3 and 6 through the thickness.
+
+Exact contact (``lcp_ssn``), U_draw 36 mm, half the nominal increments unless named, as the reference
+ladder of docs/results.md. Each case is a run directory under ``--root`` (default
+``runs/nine_error_sources``, kept: a second call reads it back); the table goes to
+``experiments/results/nine_error_sources.csv`` and to stdout. ``--only`` runs some cases (to spread them
+over processes), ``--table`` only reads back what is on disk.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+
+import jaxfric as jf
+from benchutil import write_rows
+from jaxfric import scenes
+from jaxfric.contact.rigid import RigidTool
+from jaxfric.io import output
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+BASE = {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05}
+# (mesh, element, increment factor on BASE's, contact candidates: every k-th surface node)
+VARIATIONS = {
+    "fbar_300x3": ("300x3", "fbar", 1.0, 1),
+    "ans_300x3": ("300x3", "ans", 1.0, 1),
+    "fbar_600x3": ("600x3", "fbar", 1.0, 1),
+    "ans_600x3": ("600x3", "ans", 1.0, 1),
+    "ans_600x3_contact_every_2nd": ("600x3", "ans", 1.0, 2),
+    "ans_300x3_steps_x2": ("300x3", "ans", 2.0, 1),
+    "ans_300x3_steps_x0.5": ("300x3", "ans", 0.5, 1),
+    "ans_300x6": ("300x6", "ans", 1.0, 1),
+}
+CASES = {f"{variant}_{name}": (variant, *v) for variant in ("mu000", "mu017") for name, v in VARIATIONS.items()}
+
+
+def thinned(model, every: int):
+    """``model`` with every ``every``-th candidate node of each tool kept (the first and the last kept)."""
+    if every == 1:
+        return model
+    tools = []
+    for t in model.tools:
+        keep = list(t.candidates[::every])
+        if keep[-1] != t.candidates[-1]:
+            keep.append(t.candidates[-1])
+        tools.append(RigidTool(t.name, t.geometry, t.drive, keep, t.controls, t.mu, frictional=t.frictional))
+    return dataclasses.replace(model, tools=tuple(tools))
+
+
+def run_one(name: str, root: str) -> dict:
+    variant, mesh, element, factor, every = CASES[name]
+    out = os.path.join(root, name)
+    path = os.path.join(out, "summary.json")
+    if not os.path.exists(path):
+        overrides = {**BASE, "mesh": mesh, "element": element,
+                     "dq_clamp": BASE["dq_clamp"] * factor, "dU": BASE["dU"] * factor}
+        scene = scenes.make("nine", variant, "lcp_ssn", overrides)
+        scene = dataclasses.replace(scene, model=thinned(scene.model, every))
+        print(f"{name}: running {overrides}, contact on every {every} surface node", file=sys.stderr, flush=True)
+        result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                        snapshot=scene.snapshot, progress=False, raise_on_failure=False)
+        output.write_run(scene, result, out, tag="nine_error_sources", figures=False)
+    with open(path) as fh:
+        s = json.load(fh)
+    return {"case": name, "variant": variant, "mesh": mesh, "element": element, "increments": BASE["dU"] * factor,
+            "contact_every": every, "steady_drawing_force": s.get("steady_drawing_force"),
+            "converged": s.get("converged"), "n_steps": s.get("n_steps"),
+            "newton_iters_total": s.get("newton_iters_total"), "wall_s": s.get("wall_s")}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--root", default=os.path.join("runs", "nine_error_sources"))
+    p.add_argument("--only", nargs="*", choices=sorted(CASES), help="run these cases only")
+    p.add_argument("--table", action="store_true", help="read back the cases on disk, run none")
+    a = p.parse_args(argv)
+    names = a.only or list(CASES)
+    if a.table:
+        names = [n for n in CASES if os.path.exists(os.path.join(a.root, n, "summary.json"))]
+    rows = [run_one(n, a.root) for n in names]
+    for r in rows:
+        print(f"{r['case']:<36} {r['steady_drawing_force']:.3f} N/mm  {r['n_steps']} steps  "
+              f"{r['newton_iters_total']} it.  {r['wall_s']:.0f} s  converged {r['converged']}")
+    if not a.only:
+        write_rows(os.path.join(HERE, "results", "nine_error_sources.csv"), rows)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
