@@ -18,6 +18,7 @@ import argparse
 import os
 import shutil
 import sys
+from typing import Any
 
 from .contact.formulations import ALGORITHMS
 
@@ -284,33 +285,22 @@ def _run(args) -> int:
         if created is not None and not any(files for _, _, files in os.walk(created)):
             shutil.rmtree(created, ignore_errors=True)
         raise UsageError(str(err)) from None
-    tangent = None
-    if args.error_estimate == "sensitivity" and result.converged:
-        from .identification.accuracy import penalty_tangent
+    # The optional component of the error estimate: its write_run argument, computed from the finished run.
+    extra: dict[str, Any] = {}
+    if args.error_estimate != "basic" and result.converged:
+        from .identification import accuracy
 
+        keyword, compute = {
+            "sensitivity": ("penalty_tangent", lambda: accuracy.penalty_tangent(scene, result)),
+            "step": ("step_check", lambda: accuracy.step_check(scene, progress=not args.quiet)),
+            "mesh": ("mesh_check", lambda: accuracy.mesh_check(scene, progress=not args.quiet)),
+        }[args.error_estimate]
         try:
-            tangent = penalty_tangent(scene, result)
-        except ValueError as err:
-            print(f"note: {err}")
-    check = None
-    if args.error_estimate == "step" and result.converged:
-        from .identification.accuracy import step_check
-
-        try:
-            check = step_check(scene, progress=not args.quiet)
-        except ValueError as err:
-            print(f"note: {err}")
-    coarse = None
-    if args.error_estimate == "mesh" and result.converged:
-        from .identification.accuracy import mesh_check
-
-        try:
-            coarse = mesh_check(scene, progress=not args.quiet)
+            extra[keyword] = compute()
         except ValueError as err:
             print(f"note: {err}")
     try:
-        summary = output.write_run(scene, result, out, tag=args.tag, penalty_tangent=tangent, step_check=check,
-                                   mesh_check=coarse)
+        summary = output.write_run(scene, result, out, tag=args.tag, **extra)
     except output.OutputError as err:
         return _error(err, EXIT_FAILED)
     steady = summary["steady_drawing_force"]

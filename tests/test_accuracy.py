@@ -230,6 +230,25 @@ def test_penalty_sensitivity_estimates_the_penalty_error_of_a_held_die(tmp_path,
     assert "penalty" in capsys.readouterr().out          # printed among the components
 
 
+def test_mesh_estimate_runs_the_coarser_companion_and_says_what_it_left_out(tmp_path, capsys):
+    """``jaxfric run --error-estimate mesh``: the summary holds the companion's mesh (half the elements
+    along, the same layers) and the component it gives, and names the step's share as not estimated; a
+    basic run's printed line names both discretisation components as not estimated."""
+    import json
+
+    common = ["run", "flat_die", "--variant", "const_position", "--mesh", "24x1", "--quiet", "--algorithm",
+              "lcp_ssn", "--set", "steady_window=0.02,0.03"]
+    assert main(common + ["--error-estimate", "mesh", "--out", str(tmp_path / "mesh")]) == 0
+    est = json.loads((tmp_path / "mesh" / "summary.json").read_text())["error_estimate"]
+    assert est["mesh_check"]["mesh"] == [12, 1] and est["mesh_check"]["ratio"] == 2.0
+    assert est["components"]["mesh"] == pytest.approx(abs(est["value"] - est["mesh_check"]["value"]) / est["value"])
+    assert est["not_estimated"] == ["step"]
+    out = capsys.readouterr().out
+    assert "mesh" in out and "not estimated: step discretisation" in out
+    assert main(common + ["--out", str(tmp_path / "basic")]) == 0
+    assert "not estimated: mesh and step discretisation" in capsys.readouterr().out
+
+
 def test_penalty_sensitivity_is_refused_for_other_algorithms(capsys):
     assert main(["run", "flat_die", "--algorithm", "lcp_ssn", "--error-estimate", "sensitivity",
                  "--mesh", "24x1"]) != 0

@@ -375,9 +375,9 @@ def test_cut_limit_stops_the_run_cleanly():
     """F_clamp = 1e6 N/mm (nominal clamp steps of 1e5 N/mm, a pressure of 2e5 MPa at the end): near
     7150 N/mm even nominal / 2**10 = 98 N/mm steps do not converge (Newton with the line search inverts
     an element, plain Newton fails too): the run stops with INVERTED_ELEMENT after cutting its last step
-    down to nominal / 2**max_cuts, every earlier step converged and kept. With F-bar elements, whose
-    failure here is that inversion; the default ``ans`` element stops the same way earlier, at 3906 N/mm,
-    with MAX_ITERATIONS (measured)."""
+    down to nominal / 2**max_cuts, every earlier step converged and kept. With F-bar elements (the flat
+    die's default), whose failure here is that inversion; ``ans`` elements stop the same way earlier, at
+    3906 N/mm, with MAX_ITERATIONS (measured)."""
     scene = _flat_die(F_clamp=1e6, element="fbar")
     res = _run("flat_die F_clamp = 1e6 (cut limit)", scene)
     assert not res.converged and res.code == Result.INVERTED_ELEMENT

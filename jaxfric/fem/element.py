@@ -17,7 +17,7 @@ Internal force: the virtual work ``sum_gp w_gp P_bar : dF_bar/du`` with P_bar = 
 by pulling P_bar back through the map u -> F_bar with a JAX VJP. The element tangent is the forward-mode
 Jacobian of that force, which makes it consistent with the return mapping by construction.
 
-``formulation="ans"`` (the default): F-bar on assumed natural strains through the thickness. A bilinear element
+``formulation="ans"``: F-bar on assumed natural strains through the thickness. A bilinear element
 x(xi, eta) = x_0 + a_1 xi + a_2 eta + h xi eta bent along xi (the strip's length) has
 dx/deta = a_2 + h xi: its through-thickness fibres turn along the element, a shear that a bent strip
 does not have (Q4's parasitic shear, about kappa dx / 2 at the element's ends). In plastic bending that
@@ -39,8 +39,12 @@ F-bar's (the same operations on other constant gradients). Measured (``tests/tes
 ``experiments/nine_error_sources.py``, docs/results.md): elastic bending independent of the aspect ratio
 (F-bar's moment grows 1.6 times from aspect ratio 1 to 4); plastic bending at aspect ratio 1 within
 0.01 % of a 4 times finer mesh along the strip (F-bar 3.7 %); the Nine's steady force on its 300 x 3
-mesh 1.4 % (``mu000``) and 3.4 % (``mu017``) above the mesh limit, against 6.9 % and 9.2 % with F-bar.
-It keeps F-bar's through-thickness error (below).
+mesh 1.4 % (``mu000``) and 3.5 % (``mu017``) above the mesh limit, against 6.9 % and 9.3 % with F-bar.
+It keeps F-bar's through-thickness error (below), which no longer cancels part of the parasitic shear's:
+with 2 layers it bends too softly (the blankholder's spec mesh: 149.03 N/mm against 166.14 with 4
+layers, where F-bar gives 164.61). So ``ans`` is the default of the scenes whose strips have 3 layers or
+more (Nine, bead), F-bar that of the others and of :class:`~jaxfric.loadpath.model.StripModel`, which
+knows nothing of the mesh's orientation.
 
 ``formulation="q4"`` (plain displacement Q4, F_bar = F) is kept for the elastic verification checks.
 

@@ -38,9 +38,10 @@ class StripModel(eqx.Module):
         mesh: the strip mesh.
         material: the material law (one quadrature point).
         phases: the load path, one :class:`~jaxfric.fem.loading.Phase` per phase.
-        formulation: "ans" (default: F-bar on assumed natural strains, the strip's length along each
-            element's first parent axis), "fbar" (F-bar Q4), "eas" (enhanced strain Q1/E4) or "q4"
-            (plain Q4, for elastic checks only); static. See :mod:`jaxfric.fem.element`.
+        formulation: "fbar" (default: F-bar Q4), "ans" (F-bar on assumed natural strains, for strips
+            with the thickness along each element's second parent axis; the Nine and bead scenes'
+            default), "eas" (enhanced strain Q1/E4) or "q4" (plain Q4, for elastic checks only); static.
+            See :mod:`jaxfric.fem.element`.
         tools: rigid tools (:class:`~jaxfric.contact.rigid.RigidTool`), one control per phase each.
         contact: the contact formulation, needed with tools
             (:class:`~jaxfric.contact.formulations.AbstractContactFormulation`:
@@ -52,7 +53,7 @@ class StripModel(eqx.Module):
     mesh: StripMesh
     material: J2Material
     phases: tuple
-    formulation: str = eqx.field(static=True, default="ans")
+    formulation: str = eqx.field(static=True, default="fbar")
     tools: tuple = ()
     contact: AbstractContactFormulation | None = None
 

@@ -20,6 +20,8 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
   0.17 in all six);
 - increments: clamp in ``n_clamp`` = 10 steps, ``dtheta`` = 0.5 deg, ``ds`` = 0.05 mm;
 - ``steady_window`` = (4, 8) mm;
+- ``element`` = ``ans`` (:mod:`jaxfric.fem.element`): th090_mu017's steady force moves 0.03 % from 725 x 4
+  to 1450 x 4 (300.74 to 300.66 N/mm, ``lcp_ssn``), with F-bar 0.29 % (301.93 to 301.07);
 - exact contact by lcp_lemke: ``band`` = 512 of the 1452 candidate nodes (at 725 x 4) enter the
   complementarity problem, the nearest to a tool. About 350 pairs are closed at theta = 45 deg (the
   two clamp faces, 181 nodes each over 50 mm, plus the roller), an estimated 45 more on the roller

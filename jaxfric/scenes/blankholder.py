@@ -51,6 +51,11 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
   nodes, 153 steps, 48,303 pivots, 388 s of CPU; 256 nodes, 152 steps, 26,334 pivots, 99 s; the whole
   55 mm pull at 256 nodes: 680 steps, 0 cutbacks, 41,195 pivots, 406 s. A band too small stops the
   step with CONTACT_BAND (a node outside it penetrates), never silently.
+- ``element`` = ``fbar`` (:mod:`jaxfric.fem.element`), not the Nine's ``ans``: on the spec's 2 layers
+  ``ans`` bends too softly (shape1, ``lcp_ssn``: 149.03 N/mm, 166.14 with 4 layers), while F-bar's
+  parasitic shear (its force falls 6.9 % from 0.5 to 0.25 mm elements, 164.61 to 153.23; ``ans`` 0.9 %)
+  cancels part of its own softness (177.56 with 4 layers, where its elements are twice as long as
+  thick). Neither is converged on the spec mesh.
 The spec's stop rule (a reaction above F_clamp at the end of ``close`` ends the run unconverged) needs
 the run driver: the lock ramp alone would simply lower the force.
 """
@@ -132,7 +137,7 @@ class BlankholderConfig:
     clearance: float = cm.spec_field(0.05, "mm", "the upper die is set this far above the sheet [chosen]")
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(256, "-", cm.BAND_DOC)
-    element: str = cm.spec_field("ans", "-", cm.ELEMENT_DOC)
+    element: str = cm.spec_field("fbar", "-", cm.ELEMENT_DOC)
     F_clamp: float = cm.spec_field(300.0, "N/mm", "clamping force on the lower tool [chosen]")
     U_pull: float = cm.spec_field(55.0, "mm", "pull of the right end during draw [chosen]")
     lock_control: str = cm.spec_field("force", "-", "lower tool during draw: 'force' (P = F_clamp) or "

@@ -75,7 +75,7 @@ class FlatDieConfig:
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(None, "-", cm.BAND_DOC)
-    element: str = cm.spec_field("ans", "-", cm.ELEMENT_DOC)
+    element: str = cm.spec_field("fbar", "-", cm.ELEMENT_DOC)
     F_clamp: float = cm.spec_field(50.0, "N/mm", "clamping force on the half model [paper]")
     draw_control: str = cm.spec_field("force", "-", "die during draw: 'force' (const_force) or 'position' "
                                                     "(const_position) [paper]")
