@@ -262,7 +262,7 @@ def penalty_tangent(scene, result) -> np.ndarray:
     return df
 
 
-# ---- the step size's share of a run's error -------------------------------------------------------------
+# ---- the step size's and the element length's shares of a run's error ----------------------------------
 
 def _companion(scene, overrides: dict, what: str, progress: bool) -> dict:
     """``scene`` run again with config ``overrides``, reduced to what :func:`jaxfric.io.output.error_estimate`

@@ -202,7 +202,7 @@ def error_estimate(scene, values: dict, window, steady, penalty_tangent=None, st
     - ``mesh`` (only with ``mesh_check``, the same run with r times fewer elements along the strip from
       :func:`jaxfric.identification.accuracy.mesh_check`; ``jaxfric run --error-estimate mesh``):
       |F̄ - F̄_coarse| / (r - 1) / |F̄|, Richardson's estimate of the error of the element length for a
-      first-order one (the Nine's steady force on 300 x 3 with the default element: 0.79 % estimated
+      first-order one (the Nine's steady force on 300 x 3 with its default element: 0.79 % estimated
       against 1.4 % measured without friction, 8.0 % against 3.5 % with it, where the coarser mesh is not
       yet in the first-order range; docs/results.md). The layers through the thickness are not varied,
       so their share is not in it.
