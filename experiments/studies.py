@@ -67,8 +67,8 @@ MAX_AUGMENTATIONS = {(1e4, 1e-6): 60}
 # whole stroke.
 MAX_STEPS = {1e6: 30_000}
 MESHES = [(nx, ny) for ny in (3, 6) for nx in (150, 300, 600, 1200)]
-# The element of every study case: the studies' tables in docs/results.md are F-bar's (the scenes' default
-# is ``ans``; the Nine's discretisation error with each element: experiments/nine_error_sources.py).
+# The element of every study case: the studies' tables in docs/results.md are F-bar's (the Nine's and the
+# bead's default is ``ans``; the Nine's discretisation error with each element: experiments/nine_error_sources.py).
 STUDY_ELEMENT = {"element": "fbar"}
 GRID = 200
 
