@@ -35,7 +35,7 @@ from jaxfric.contact.rigid import RigidTool
 from jaxfric.io import output
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-BASE = {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05}
+BASE = {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05, "entry_guide_kind": "end_nodes"}
 # (mesh, element, increment factor on BASE's, contact candidates: every k-th surface node)
 VARIATIONS = {
     "fbar_300x3": ("300x3", "fbar", 1.0, 1),

@@ -207,12 +207,13 @@ def test_a_penetrating_node_whose_stick_piece_pulls_slips_instead_of_cycling():
 def test_line_search_merit_of_accepted_iterates_does_not_jump_up_between_directions():
     """The in-loop line search measures a trial with the forces its direction predicts, the hint the
     next direction's merit starts from. Measured with the direction's own hint, the merit of the same
-    iterate rises 5 to 20 times at each new direction once the entry-guided tail (a candidate node
-    with a prescribed dof) reaches shoulder A, the iterates drift along the draw-in mode, and this
-    run stops at U = 43.7 mm (Newton's limit at the smallest increment). It must complete."""
+    iterate rises 5 to 20 times at each new direction once a candidate node with a prescribed dof
+    reaches shoulder A (the tail held by the left-end constraint, ``entry_guide_kind=end_nodes``), the
+    iterates drift along the draw-in mode, and this run stops at U = 43.7 mm (Newton's limit at the
+    smallest increment). It must complete."""
     from jaxfric.scenes import make
 
-    scene = make("nine", "mu017", "lcp_ssn", {"dU": 0.4, "dq_clamp": 0.4})
+    scene = make("nine", "mu017", "lcp_ssn", {"dU": 0.4, "dq_clamp": 0.4, "entry_guide_kind": "end_nodes"})
     result = jf.run(scene.model, newton=jf.NewtonOptions(rtol=1e-5), control=scene.control,
                     observe=scene.observe, progress=False, raise_on_failure=False)
     assert result.converged, result.message

@@ -45,3 +45,36 @@ def test_flat_die_const_position_ends_at_the_study_s_normal_force(flat_die):
     h = flat_die["const_position"]
     assert h["clamping_force"][-1] == pytest.approx(6.37, rel=0.01)
     assert h["drawing_force"][-1] == pytest.approx(0.15 * h["clamping_force"][-1], rel=1e-6)
+
+
+@pytest.mark.slow  # two Nine runs at 100 x 2, about 40 s each (make test-all)
+@pytest.mark.parametrize("variant", ["mu000", "mu017"])
+def test_nine_forces_drop_when_the_tail_passes_the_bead(variant):
+    """The study reports a steady drawing force, then a drop when the sheet's end is swallowed by the
+    bead. With the entry guide's channel the tail leaves the guide after the steady window and passes
+    the bead freely. Checked on the coarse fitting mesh 100 x 2 (exact contact, the nominal increments):
+    - after the window, no drawing force above 1.3 times the steady one (the issue's goal; measured
+      1.13x at mu017, from the coarse mesh's node-passing ripple of about +/- 10 %);
+    - no runaway plastic strain: the run's largest equivalent plastic strain within 1.5 times the
+      largest in the steady window (measured 1.11x at mu017; the tail dragged into the bead by the
+      left-end constraint reached 5.6 times on 300 x 3, experiments/nine_tail_exit.py);
+    - once the tail is past A (tail_x > R1), the drawing force below 0.75 times the steady one (the wrap
+      on A and the guide's couple are gone: measured 0.47 at mu017 on 100 x 2, 0.59 and 0.52 for
+      mu000 and mu017 on 300 x 3, where the bending over B and C remains)."""
+    scene = make("nine", variant, "lcp_ssn", {"mesh": "100x2", "U_draw": 62.0})
+    result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                 snapshot=scene.snapshot, progress=False)
+    assert result.converged, result.message
+    h = result.history
+    u, force, tail = h["drawing_displacement"], h["drawing_force"], h["tail_x"]
+    draw = h["phase_name"] == "draw"
+    window = draw & (u >= 20.0) & (u <= 35.0)
+    steady = np.mean(force[window])
+    after = draw & (u > 35.0)
+    assert u[-1] == pytest.approx(62.0)
+    assert np.max(force[after]) <= 1.3 * steady, (np.max(force[after]), steady)
+    eqps = np.array([np.max(result.snapshots[k]["eqps"]) for k in range(len(u))])
+    assert np.max(eqps) <= 1.5 * np.max(eqps[window]), (np.max(eqps), np.max(eqps[window]))
+    past_a = draw & (tail > scene.config.R1)
+    assert np.any(past_a)
+    assert np.max(force[past_a]) <= 0.75 * steady, (np.max(force[past_a]), steady)

@@ -36,13 +36,16 @@ SPEC_VARIANTS = {
 }
 SPEC_TOOLS = {"flat_die": ("die",), "bead": ("die_up", "die_lo", "roller"), "nine": ("A", "B", "C", "D", "E"),
               "blankholder": ("upper", "lower")}
+# The tools each scene builds by default: the spec's, then the Nine's entry guide (config entry_guide).
+TOOLS = {**SPEC_TOOLS, "nine": SPEC_TOOLS["nine"] + ("guide_top", "guide_bottom")}
 SPEC_PHASES = {"flat_die": ("clamp", "draw"), "bead": ("clamp", "wind", "draw"), "nine": ("clamp", "draw"),
                "blankholder": ("close", "lock", "draw")}
 REQUIRED = ("drawing_displacement", "drawing_force", "clamping_force", "tool_position", "max_penetration",
             "n_active", "n_slip")
 EXTRA = {"flat_die": ("sum_ft", "mu_sum_fn", "n_candidates"),
          "bead": ("theta_deg", "jaw_fx", "jaw_fy", "roller_fx", "roller_fy", "clamp_ft", "tail_x"),
-         "nine": ("bead_fx", "tail_x", "cyl_a_fx", "cyl_a_fy", "cyl_c_fx", "cyl_c_fy", "cyl_d_fy", "cyl_e_fy"),
+         "nine": ("bead_fx", "tail_x", "cyl_a_fx", "cyl_a_fy", "cyl_c_fx", "cyl_c_fy", "cyl_d_fy", "cyl_e_fy",
+                  "guide_top_fy", "guide_bottom_fy"),
          "blankholder": ("upper_fx", "upper_fy", "lower_fx", "n_land_closed", "tail_x")}
 SNAPSHOT_KEYS = {"x", "eqps", "rn", "rt", "gap", "normal", "status", "mu", "tool_offset"}
 # A coarse mesh per scene: every variant then has the same array shapes, so building the whole
@@ -75,12 +78,12 @@ def test_every_variant_builds_with_every_algorithm(name):
         for algorithm in ALGORITHMS:
             scene = make(name, variant, algorithm, COARSE[name])
             assert (scene.name, scene.variant, scene.algorithm) == (name, variant, algorithm)
-            assert scene.tool_names == SPEC_TOOLS[name] == tuple(t.name for t in scene.model.tools)
+            assert scene.tool_names == TOOLS[name] == tuple(t.name for t in scene.model.tools)
             assert scene.phase_names == SPEC_PHASES[name] == tuple(p.name for p in scene.model.phases)
             params = json.loads(json.dumps(scene.parameters))  # JSON-ready
             assert params["contact"]["target_gap"] == (scene.config.target_gap if algorithm == "auglag" else None)
             assert set(params["material"]) == {"E", "nu", "sigma_y", "A", "n"}
-            assert set(params["friction"]) == set(SPEC_TOOLS[name])
+            assert set(params["friction"]) == set(TOOLS[name])
             assert params["mesh"] == {"nx": scene.model.mesh.nx, "ny": scene.model.mesh.ny}
             assert [p["name"] for p in params["schedule"]] == list(SPEC_PHASES[name])
             assert params["variant"] == variant
@@ -102,7 +105,8 @@ def test_default_variants_and_spec_defaults():
     scene = make("nine", overrides=COARSE["nine"])
     assert scene.variant == "mu017"
     assert scene.parameters["contact"]["eps_t"] == pytest.approx(0.17 * 1e5)
-    assert [t.frictional for t in scene.model.tools] == [True, True, True, False, False]
+    assert [t.frictional for t in scene.model.tools] == [True, True, True, False, False, False, False]
+    assert make("nine", overrides={**COARSE["nine"], "entry_guide": False}).tool_names == SPEC_TOOLS["nine"]
     # 110 clamp steps of 0.1 mm, 700 draw steps of 0.1 mm.
     assert [p.increments for p in scene.model.phases] == [((1.0, 110),), ((1.0, 700),)]
     assert scene.steady_window == (20.0, 35.0)
@@ -191,7 +195,7 @@ def _gaps(tool, points, offset=(0.0, 0.0)):
 def test_nine_geometry():
     scene = make("nine", overrides=COARSE["nine"])
     tools = {t.name: t for t in scene.model.tools}
-    circles = {k: t.geometry.primitives[0] for k, t in tools.items()}
+    circles = {k: tools[k].geometry.primitives[0] for k in nine.TOOLS}
     centre = {k: np.asarray(c.centre) for k, c in circles.items()}
     radius = {k: float(c.radius) for k, c in circles.items()}
     t = 0.97
@@ -402,6 +406,39 @@ def test_smoothed_contact_law_through_the_scene_config():
     bound = 25 * (1 + 0.15) * s * math.log(2)
     # (here every pair slips far beyond the limit, where the smooth clip is exponentially close to it)
     assert -1e-8 * 7.5 <= 0.15 * 50.0 - h["drawing_force"][-1] <= bound
+
+
+def test_nine_entry_guide_kinds():
+    """The channel (default): two fixed frictionless faces clear of the undeformed strip by
+    guide_clearance, ending at guide_end, whose candidates are the surface nodes that can reach the exit
+    lip, and no constraint on the left end; ``end_nodes``: v = 0 on the left-end nodes in both phases
+    and no guide tools; entry_guide off: neither."""
+
+    scene = make("nine", overrides=COARSE["nine"])
+    config, mesh = scene.config, scene.model.mesh
+    guide = scene.model.tools[len(nine.TOOLS):]
+    assert tuple(t.name for t in guide) == nine.GUIDE_TOOLS
+    assert all(not t.frictional and np.all(np.asarray(t.mu) == 0.0) for t in guide)
+    assert not any(bc.nodes == tuple(mesh.left) for p in scene.model.phases for bc in p.bcs)
+    nodes = np.asarray(mesh.nodes)
+    for tool, surface in zip(guide, (mesh.top, mesh.bottom)):
+        reach = [int(a) for a in surface if nodes[a, 0] <= config.guide_end + config.guide_lip]
+        assert list(tool.candidates) == reach and len(reach) < len(surface)
+        gaps = np.array([float(project(tool.geometry, nodes[a], np.zeros(2)).gap) for a in reach])
+        inside = (nodes[reach, 0] >= config.guide_end - config.guide_length) & (nodes[reach, 0] <= config.guide_end)
+        assert np.any(inside)
+        np.testing.assert_allclose(gaps[inside], config.guide_clearance, rtol=1e-9)
+        assert np.all(gaps >= config.guide_clearance * (1 - 1e-9))
+    end_nodes = make("nine", overrides={**COARSE["nine"], "entry_guide_kind": "end_nodes"})
+    assert end_nodes.tool_names == SPEC_TOOLS["nine"]
+    for phase in end_nodes.model.phases:
+        assert [bc.components for bc in phase.bcs if bc.nodes == tuple(mesh.left)] == [(1,)]
+    free = make("nine", overrides={**COARSE["nine"], "entry_guide": False})
+    assert free.tool_names == SPEC_TOOLS["nine"]
+    assert not any(bc.nodes == tuple(mesh.left) for p in free.model.phases for bc in p.bcs)
+    with pytest.raises(ValueError, match="'guide_end'"):
+        make("nine", overrides={**COARSE["nine"], "guide_end": 1.0})
+    make("nine", overrides={**COARSE["nine"], "guide_end": 1.0, "entry_guide": False})  # no channel: unused
 
 
 def test_nine_short_run():

@@ -19,7 +19,8 @@ REQUIRED = ("step", "phase", "time", "drawing_displacement", "drawing_force", "c
 INT_REQUIRED = ("step", "n_active", "n_slip", "newton_iters")
 INT_EXTRAS = ("cutbacks", "n_aug", "lcp_pivots", "ssn_iters", "ssn_fallbacks")
 
-# Per scene: variants, phases, instants, tools, (clamping tool, e_q), default steady window (mm).
+# Per scene: variants, phases, instants, tools, (clamping tool, e_q), default steady window (mm);
+# extra_tools: tools a scene's config may add after the spec's (the Nine's entry guide, its ``entry_guide``).
 SCENES: dict[str, dict[str, Any]] = {
     "flat_die": dict(variants=("const_force", "const_position"), phases=("clamp", "draw"),
                      instants=("clamped", "intermediate", "sliding", "final"), tools=("die",),
@@ -29,7 +30,7 @@ SCENES: dict[str, dict[str, Any]] = {
                  tools=("die_up", "die_lo", "roller"), clamp=("die_up", (0.0, -1.0)), window=(4.0, 8.0)),
     "nine": dict(variants=("mu000", "mu017"), phases=("clamp", "draw"),
                  instants=("clamped", "steady", "final"), tools=("A", "B", "C", "D", "E"),
-                 clamp=("B", (0.0, -1.0)), window=(20.0, 35.0)),
+                 extra_tools=("guide_top", "guide_bottom"), clamp=("B", (0.0, -1.0)), window=(20.0, 35.0)),
     "blankholder": dict(variants=tuple(f"shape{k}" for k in range(1, 10)), phases=("close", "lock", "draw"),
                         instants=("closed", "locked", "drawing", "final"), tools=("upper", "lower"),
                         clamp=("lower", (0.0, 1.0)), window=(35.0, 55.0)),

@@ -3,10 +3,13 @@
 A strip x in [x_left, x_right], y in [0, t] lies on two fixed shoulders A and C (radius R1, below it);
 the clamping bead B (radius R1, above it) is pushed down by ``stroke`` between them (phase ``clamp``),
 then the right end is pulled by U_draw (phase ``draw``) through the bead and the guide rollers D (above)
-and E (below, radius R2). The left end slides in a frictionless entry guide (v = 0, see below).
+and E (below, radius R2). The strip is fed through a frictionless entry guide, a channel on its two faces
+that ends before A (see below).
 
-Tools, in order: ``A, B, C, D, E`` (full circles). Candidates: bottom-surface nodes vs A, C, E; top-surface
-nodes vs B, D. B is displacement-driven (e_q = (0, -1)); A, C, D, E are fixed.
+Tools, in order: ``A, B, C, D, E`` (full circles), then with the guide ``guide_top, guide_bottom`` (flat
+faces with rounded lips). Candidates: bottom-surface nodes vs A, C, E; top-surface nodes vs B, D; the
+nodes that can enter the channel vs its faces. B is displacement-driven (e_q = (0, -1)); the rest are
+fixed.
 
 Values tagged [chosen] in the spec (section 9), all config fields here:
 - reading of Table 3: e is the thickness ``t``, ``L1`` = 2 R1 + e is the pitch A->B and B->C, ``L2`` the
@@ -15,28 +18,46 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
 - rotating cylinders modelled as frictionless fixed cylinders (``mu_guides`` = 0 on D and E always;
   ``mu`` on A, B, C: 0 for ``mu000``, 0.17 for ``mu017``);
 - right end held (u = v = 0) during ``clamp``, u = U(t) and v = 0 during ``draw``;
-- left end: the spec leaves it free. Changed here (``entry_guide`` = True, v = 0 on the left-end nodes,
-  u free): with a free end, the 50 mm entry leg pivots about A while B descends between A and C (the
-  gap between B and A is the thickness, so the strip leaves A vertically) and stands up vertically by
-  the end of ``clamp`` (tail_x = -2.05 mm, +3.1 mm at U = 35). The spec's own validity check (tail_x <
-  -1 mm at U = 35, "before the free end arrives at shoulder A") then fails from the start and the
-  steady window collapses; the swinging leg also costs cutbacks (75 x 2 mesh, ``clamp``: 488 steps and
-  106 cutbacks free, 330 and 67 guided). A strip fed horizontally, as in the physical drawbead
-  simulator, keeps the check meaningful.
-  ``entry_guide`` = False restores the spec's free end;
+- entry guide (``entry_guide`` = True; spec: "rigid tools on both faces of the strip that end before
+  shoulder A at a documented position"): two fixed frictionless faces, ``guide_top`` above the strip's top
+  and ``guide_bottom`` below its bottom, each ``guide_clearance`` away from the undeformed strip, straight
+  over x in [guide_end - guide_length, guide_end] with rounded lips of radius ``guide_lip`` at both ends.
+  Only the part of the strip inside the channel touches it: the tail leaves through the exit and passes
+  the bead freely.
+  * Why a guide: with a free end the 50 mm entry leg pivots about A while B descends and stands up
+    vertically by the end of ``clamp``; it reaches A at U of about 7.5 mm and the steady window collapses.
+  * ``guide_end`` = -3 mm (the exit 3 mm before A's top): the strip leaves the channel straight and
+    wraps A, and the channel reacts the bending moment of the wrap with a constant lever, so the drawing
+    force stays steady while the tail is inside. The tail reaches the exit after the steady window:
+    at U = 35 mm it is at x = -5.2 (``mu000``) and -7.9 mm (``mu017``) on 300 x 3; a longer lever would
+    let it out inside the window. The short lever presses the strip on A: with ``mu017`` its friction
+    adds about 3 % to the steady force (docs/results.md, the tail leaving the bead);
+  * ``guide_length`` = 5 mm, ``guide_clearance`` = 0.01 mm, ``guide_lip`` = 1 mm: a channel long
+    enough to hold the strip's slope, short enough that the nodes inside it (15 per face on 300 x 3)
+    leave ``band`` room for the wraps; the clearance keeps the unloaded faces off the strip (no
+    degenerate contact at zero gap) and lets it tilt by at most 0.004 rad; the lips let a node enter
+    and leave without meeting a corner.
+  ``entry_guide_kind`` = ``end_nodes`` replaces the channel by v = 0 on the left-end nodes for the whole
+  run: the wrap's bending on A is then reacted with the lever from A to the tail (about 20 to 5 mm
+  across the steady window), and from U of about 41 mm the held tail is dragged into the bead (drawing
+  force up to 4 times the steady one). The Nine's tables of docs/results.md other than the tail's
+  passage were measured with it (U_draw 36 mm). ``entry_guide`` = False leaves the spec's free end;
 - ``U_draw`` = 70 mm; nominal increments ``dq_clamp`` = 0.1 mm and ``dU`` = 0.1 mm. Measured cost of
-  that choice (``experiments/nine_error_sources.py``; docs/results.md, discretisation error of the Nine
-  test): at 300 x 3 with the default element the steady drawing force carries a step error of about
-  -0.6 % (``mu000``) and -0.8 % (``mu017``), first order in the increment, from the return mapping along
-  the plastic bending path; halve both fields for half the error at 1.4x the Newton iterations;
+  that choice (``experiments/nine_error_sources.py``, with ``end_nodes``; docs/results.md, discretisation
+  error of the Nine test): at 300 x 3 with the default element the steady drawing force carries a step
+  error of about -0.6 % (``mu000``) and -0.8 % (``mu017``), first order in the increment, from the return
+  mapping along the plastic bending path; halve both fields for half the error at 1.4x the Newton
+  iterations;
 - ``element`` = ``ans`` (F-bar on assumed natural strains, :mod:`jaxfric.fem.element`): F-bar's parasitic
   shear put the steady force on 300 x 3 6.9 % (``mu000``) and 9.3 % (``mu017``) above its limit along
-  the strip; ``ans`` 1.4 % and 3.5 % (docs/results.md, discretisation error of the Nine test);
+  the strip; ``ans`` 1.4 % and 3.5 % (docs/results.md, discretisation error of the Nine test, with
+  ``end_nodes``);
 - ``steady_window`` = (20, 35) mm;
 - eps_t = mu eps_n [paper] (``eps_t`` None), with mu the largest coefficient of the scene.
 - exact contact by lcp_lemke: ``band`` = 128 of the 602 candidate nodes (at 300 x 3) enter the complementarity
-  problem, the nearest to a tool; at most about 60 pairs are closed at once (A, B, C wraps and the
-  guides), so the band holds them with margin while the problem stays a fifth of the full size.
+  problem, the nearest to a tool; at most about 60 pairs are closed at once (A, B, C wraps, the
+  rollers D and E), and the channel holds about 30 more at small gaps, so the band holds them with margin
+  while the problem stays a fifth of the full size.
 Not in the spec: the seam of each circle (where its arc length jumps) is put where the strip never
 touches it: at the top of B and D (the strip touches their bottoms), at the bottom of A, C and E.
 """
@@ -47,10 +68,12 @@ import dataclasses
 import math
 
 import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
 
 from ..contact.formulations import formulation
 from ..contact.rigid import Move, RigidTool
-from ..contact.tools import Tool
+from ..contact.tools import Arc, Segment, Tool
 from ..fem.loading import DirichletBC, Phase, Ramp
 from ..fem.material import J2Material
 from ..fem.mesh import strip_mesh
@@ -67,6 +90,8 @@ STEP_FIELDS = ("dq_clamp", "dU")
 STROKE_FIELD = "U_draw"  # the drawing stroke: steady_window lies in [0, U_draw]
 PHASES = ("clamp", "draw")
 TOOLS = ("A", "B", "C", "D", "E")
+GUIDE_TOOLS = ("guide_top", "guide_bottom")  # after TOOLS with the entry guide's channel
+GUIDE_KINDS = ("channel", "end_nodes")
 # Named instants (benchmarks spec, scene Outputs), in order, each with its rule
 # (:func:`jaxfric.io.instants.select_instants`).
 INSTANT_RULES = {"clamped": ("end", "clamp"), "steady": ("closest", "draw", 27.5), "final": ("final",)}
@@ -108,8 +133,17 @@ class NineConfig:
     dq_clamp: float = cm.spec_field(0.1, "mm", "nominal increment of B's travel [chosen]")
     dU: float = cm.spec_field(0.1, "mm", "nominal increment of the pull [chosen]")
     steady_window: tuple = cm.spec_field((20.0, 35.0), "mm", "steady window in U [chosen]")
-    entry_guide: bool = cm.spec_field(True, "-", "hold v = 0 at the left end (a frictionless entry guide); "
-                                      "False: the spec's free end [chosen, see the module docstring]")
+    entry_guide: bool = cm.spec_field(True, "-", "feed the strip through a frictionless channel on its two "
+                                      "faces ending before A; False: the spec's free end [chosen, see the "
+                                      "module docstring]")
+    entry_guide_kind: str = cm.spec_field("channel", "-", "'channel': frictionless faces on both sides of the "
+                                          "strip ending at guide_end; 'end_nodes': v = 0 on the left-end "
+                                          "nodes [chosen, see the module docstring]")
+    guide_end: float = cm.spec_field(-3.0, "mm", "x of the entry guide's exit (A's top is at x = 0) [chosen]")
+    guide_length: float = cm.spec_field(5.0, "mm", "length of the entry guide's straight faces [chosen]")
+    guide_clearance: float = cm.spec_field(0.01, "mm", "gap between each guide face and the undeformed "
+                                           "strip [chosen]")
+    guide_lip: float = cm.spec_field(1.0, "mm", "radius of the rounded lips at the guide's ends [chosen]")
 
 
 VARIANTS = {"mu000": {"mu": 0.0}, "mu017": {"mu": 0.17}}
@@ -119,7 +153,8 @@ class NineObserve(eqx.Module):
     """Static ``observe(model, state)`` of the Nine scene (spec section 4, Outputs).
 
     drawing_force = sum of the right-end reactions along +x; clamping_force = e_q . resultant of B
-    (e_q = (0, -1)); tool_position = q_B; drawing_displacement = U (0 before draw).
+    (e_q = (0, -1)); tool_position = q_B; drawing_displacement = U (0 before draw); guide_top_fy and
+    guide_bottom_fy: vertical resultants of the entry guide's faces on the strip (0 without the guide).
     """
 
     right: tuple = eqx.field(static=True)     # right-end nodes
@@ -128,7 +163,9 @@ class NineObserve(eqx.Module):
 
     def __call__(self, model, state) -> dict:
         c = state.contact
-        f_a, f_b, f_c, f_d, f_e = cm.tool_resultants(model, state)
+        resultants = cm.tool_resultants(model, state)
+        f_a, f_b, f_c, f_d, f_e = resultants[:len(TOOLS)]
+        guide = resultants[len(TOOLS):] or (jnp.zeros(2), jnp.zeros(2))
         return {
             "drawing_displacement": self.U_draw * cm.phase_progress(state, 1),
             "drawing_force": cm.end_reaction(model, state, self.right)[0],
@@ -140,15 +177,50 @@ class NineObserve(eqx.Module):
             "cyl_a_fx": f_a[0], "cyl_a_fy": f_a[1],
             "cyl_c_fx": f_c[0], "cyl_c_fy": f_c[1],
             "cyl_d_fy": f_d[1], "cyl_e_fy": f_e[1],
+            "guide_top_fy": guide[0][1], "guide_bottom_fy": guide[1][1],
         }
 
 
 def _check(config: NineConfig) -> None:
-    cm.check_config(config, positive=("t", "R1", "R2", "L1", "U_draw", "dq_clamp", "dU"),
+    cm.check_config(config, positive=("t", "R1", "R2", "L1", "U_draw", "dq_clamp", "dU", "guide_length",
+                                      "guide_clearance", "guide_lip"),
                     nonnegative=("mu", "mu_guides", "stroke", "L2", "L3"), integers=("nx", "ny", "band"),
-                    lengths=("x_left", "x_right", "t", "R1", "R2", "L1", "L2", "L3"))
+                    choices={"entry_guide_kind": GUIDE_KINDS},
+                    lengths=("x_left", "x_right", "t", "R1", "R2", "L1", "L2", "L3", "guide_end", "guide_length",
+                             "guide_clearance", "guide_lip"))
     if not config.x_right > config.x_left:
         raise ValueError(f"config field 'x_right' = {config.x_right!r} must exceed x_left = {config.x_left!r}")
+    if channel(config) and not config.x_left < config.guide_end < 0.0:
+        raise ValueError(f"config field 'guide_end' = {config.guide_end!r} must lie between x_left = "
+                         f"{config.x_left!r} and A's top at x = 0")
+
+
+def channel(config: NineConfig) -> bool:
+    """The strip is fed through the entry guide's channel (``entry_guide`` on, kind ``channel``)."""
+    return bool(config.entry_guide) and config.entry_guide_kind == "channel"
+
+
+def _guide(mesh, config: NineConfig) -> list:
+    """The entry guide's two faces (module docstring): fixed, frictionless, each a straight face between
+    two convex quarter-circle lips; candidates are the nodes that can reach the exit lip (the strip
+    moves towards +x only)."""
+    x0, x1, r, c = config.guide_end - config.guide_length, config.guide_end, config.guide_lip, config.guide_clearance
+    half_pi = 0.5 * math.pi
+    y_top, y_bottom = config.t + c, -c
+    # Above the strip, walked left to right with the sheet on the right: convex arcs turn counter-clockwise.
+    top = Tool((Arc((x0, y_top + r), r, -math.pi, -half_pi), Segment((x0, y_top), (x1, y_top)),
+                Arc((x1, y_top + r), r, -half_pi, 0.0)), "right", config.d_capture)
+    # Below it, walked left to right with the sheet on the left: convex arcs turn clockwise.
+    bottom = Tool((Arc((x0, y_bottom - r), r, math.pi, half_pi), Segment((x0, y_bottom), (x1, y_bottom)),
+                   Arc((x1, y_bottom - r), r, half_pi, 0.0)), "left", config.d_capture)
+    x_reach = x1 + r
+    still = (Move(0.0, 0.0), Move(0.0, 0.0))
+    faces = []
+    for name, geometry, nodes, drive in (("guide_top", top, mesh.top, (0.0, -1.0)),
+                                         ("guide_bottom", bottom, mesh.bottom, (0.0, 1.0))):
+        candidates = np.asarray(nodes)[np.asarray(mesh.nodes)[np.asarray(nodes), 0] <= x_reach]
+        faces.append(RigidTool(name, geometry, drive, candidates, still, 0.0, frictional=False))
+    return faces
 
 
 def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant: str = DEFAULT_VARIANT) -> Scene:
@@ -170,8 +242,8 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
     n_draw = cm.n_steps("dU", config.U_draw, config.dU)
     hold = DirichletBC(mesh.right, (0, 1))
     pull = DirichletBC(mesh.right, (0, 1), Ramp((0.0, 0.0), (config.U_draw, 0.0)))
-    guide = [DirichletBC(mesh.left, (1,))] if config.entry_guide else []
-    phases = (Phase("clamp", [hold] + guide, n_clamp), Phase("draw", [pull] + guide, n_draw))
+    end_nodes = [DirichletBC(mesh.left, (1,))] if config.entry_guide and not channel(config) else []
+    phases = (Phase("clamp", [hold] + end_nodes, n_clamp), Phase("draw", [pull] + end_nodes, n_draw))
 
     tools = []
     for name in TOOLS:
@@ -185,6 +257,9 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
         # A tool of mu = 0 is declared frictionless: no friction term is built for it.
         tools.append(RigidTool(name, geometry, drive, candidates, controls, mu[name] if mu[name] > 0 else 0.0,
                                frictional=mu[name] > 0))
+    if channel(config):
+        tools += _guide(mesh, config)
+    tool_names = tuple(t.name for t in tools)
 
     mu_max = max(mu.values())
     eps_t = cm.resolve_eps_t(config, mu_max)
@@ -201,9 +276,12 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
         "geometry": {"x_left": config.x_left, "x_right": config.x_right, "t": t, "R1": R1, "R2": R2,
                      "L1": L1, "L2": config.L2, "L3": config.L3,
                      "centres": {k: list(v) for k, v in centres.items()},
-                     "stroke": config.stroke, "U_draw": config.U_draw},
+                     "stroke": config.stroke, "U_draw": config.U_draw,
+                     "entry_guide": ({"x": [config.guide_end - config.guide_length, config.guide_end],
+                                      "clearance": config.guide_clearance, "lip": config.guide_lip}
+                                     if channel(config) else None)},
         "material": cm.material_dict(config),
-        "friction": cm.friction_table(TOOLS, PHASES, [(mu[k], mu[k]) for k in TOOLS]),
+        "friction": cm.friction_table(tool_names, PHASES, [(mu.get(k, 0.0),) * 2 for k in tool_names]),
         "contact": {"algorithm": algorithm, "eps_n": config.eps_n, "eps_t": eps_t,
                     "target_gap": config.target_gap if algorithm == "auglag" else None,
                     "max_augmentations": config.max_augmentations if algorithm == "auglag" else None,
@@ -217,6 +295,6 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
         name=NAME, variant=variant, algorithm=algorithm, config=config, model=model, observe=observe,
         snapshot=cm.ContactSnapshot(),
         control=cm.step_control(phases, config.max_steps),
-        phase_names=PHASES, tool_names=TOOLS, clamping_tool=1, instants=INSTANTS,
+        phase_names=PHASES, tool_names=tool_names, clamping_tool=1, instants=INSTANTS,
         steady_window=tuple(float(v) for v in config.steady_window),
         roi=(-15.0, 45.0, -15.0, 12.0), y_scale=1.0, parameters=parameters)
