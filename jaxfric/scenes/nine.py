@@ -56,8 +56,9 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
 - eps_t = mu eps_n [paper] (``eps_t`` None), with mu the largest coefficient of the scene.
 - exact contact by lcp_lemke: ``band`` = 128 of the 602 candidate nodes (at 300 x 3) enter the complementarity
   problem, the nearest to a tool; at most about 60 pairs are closed at once (A, B, C wraps, the
-  rollers D and E), and the channel holds about 30 more at small gaps, so the band holds them with margin
-  while the problem stays a fifth of the full size.
+  rollers D and E), so the band holds them with margin while the problem stays a fifth of the full size.
+  The channel adds about 30 nodes at small gaps, and Lemke slows down near its exit (docs/results.md,
+  the tail leaving the bead).
 Not in the spec: the seam of each circle (where its arc length jumps) is put where the strip never
 touches it: at the top of B and D (the strip touches their bottoms), at the bottom of A, C and E.
 """
