@@ -55,7 +55,8 @@ def _history(out: str) -> dict:
     return {k: np.array([float(r[k]) for r in rows]) for k in rows[0] if k not in ("phase", "phase_name")}
 
 
-def run_one(name: str, mesh: str, root: str) -> dict:
+def run_one(name: str, mesh: str, root: str) -> tuple[dict, dict]:
+    """The table row of case ``name`` (run it first if not on disk) and its draw history."""
     variant, algorithm = name.removesuffix(END_NODES).split("_", 1)
     kind = "end_nodes" if name.endswith(END_NODES) else "channel"
     out = os.path.join(root, name)
@@ -91,10 +92,10 @@ def run_one(name: str, mesh: str, root: str) -> dict:
             "eqps_max_steady": eqps["steady"], "eqps_max_final": eqps["final"],
             "final_drawing_force": float(force[-1]),
             "n_steps": s.get("n_steps"), "newton_iters_total": s.get("newton_iters_total"),
-            "wall_s": s.get("wall_s")}
+            "wall_s": s.get("wall_s")}, col
 
 
-def figure(rows: list[dict], root: str, path: str) -> None:
+def figure(rows: list[dict], histories: dict, path: str) -> None:
     """Drawing force over its steady value against U, per variant and case; the guide faces' and A's
     vertical forces around the tail's exit (lcp_ssn)."""
     import matplotlib
@@ -105,7 +106,7 @@ def figure(rows: list[dict], root: str, path: str) -> None:
     for j, variant in enumerate(VARIANTS):
         ax = axes[0, j]
         for r in (r for r in rows if r["variant"] == variant):
-            h = _history(os.path.join(root, r["case"]))
+            h = histories[r["case"]]
             style = {"ls": "--", "color": "k", "lw": 1.0} if r["entry_guide_kind"] == "end_nodes" else {"lw": 1.0}
             ax.plot(h["drawing_displacement"], h["drawing_force"] / r["steady_drawing_force"],
                     label=f"{r['algorithm']} ({r['entry_guide_kind']})", **style)
@@ -118,7 +119,7 @@ def figure(rows: list[dict], root: str, path: str) -> None:
         r = next((r for r in rows if r["case"] == f"{variant}_lcp_ssn"), None)
         if r is None:
             continue
-        h = _history(os.path.join(root, r["case"]))
+        h = histories[r["case"]]
         for key, label in (("guide_top_fy", "guide top face"), ("guide_bottom_fy", "guide bottom face"),
                            ("cyl_a_fy", "shoulder A"), ("drawing_force", "drawing force")):
             ax.plot(h["drawing_displacement"], h[key], lw=1.0, label=label)
@@ -145,7 +146,8 @@ def main(argv=None) -> int:
     names = a.only or list(CASES)
     if a.table:
         names = [n for n in CASES if os.path.exists(os.path.join(root, n, "summary.json"))]
-    rows = [run_one(n, a.mesh, root) for n in names]
+    runs = {n: run_one(n, a.mesh, root) for n in names}
+    rows = [row for row, _ in runs.values()]
     for r in rows:
         print(f"{r['case']:<18} steady {r['steady_drawing_force']:.2f} N/mm, after the window at most "
               f"{r['max_drawing_after_window']:.2f}x (clamping {r['max_clamping_after_window']:.2f}x); tail "
@@ -154,7 +156,8 @@ def main(argv=None) -> int:
               f"{r['eqps_max_final']:.3f} final; converged {r['converged']}")
     if not a.only:
         write_rows(os.path.join(HERE, "results", f"nine_tail_exit_{a.mesh}.csv"), rows)
-        figure(rows, root, os.path.join(HERE, "results", f"nine_tail_exit_{a.mesh}.png"))
+        histories = {n: h for n, (_, h) in runs.items()}
+        figure(rows, histories, os.path.join(HERE, "results", f"nine_tail_exit_{a.mesh}.png"))
     return 0
 
 

@@ -424,7 +424,7 @@ def test_nine_entry_guide_kinds():
     for tool, surface in zip(guide, (mesh.top, mesh.bottom)):
         reach = [int(a) for a in surface if nodes[a, 0] <= config.guide_end + config.guide_lip]
         assert list(tool.candidates) == reach and len(reach) < len(surface)
-        gaps = np.array([float(project(tool.geometry, nodes[a], np.zeros(2)).gap) for a in reach])
+        gaps = _gaps(tool, nodes[reach])
         inside = (nodes[reach, 0] >= config.guide_end - config.guide_length) & (nodes[reach, 0] <= config.guide_end)
         assert np.any(inside)
         np.testing.assert_allclose(gaps[inside], config.guide_clearance, rtol=1e-9)

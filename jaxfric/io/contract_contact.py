@@ -85,10 +85,10 @@ def check_contact(path: str, s: dict | None, cols: dict | None, out: list) -> No
         ok = False
     scene = scene_of(s.get("scene")) if s is not None else None
     tools = [str(t) for t in data["tool_names"]]
-    extra = scene.get("extra_tools", ()) if scene is not None else ()
-    allowed = [scene["tools"]] + ([scene["tools"] + extra] if extra else []) if scene is not None else []
-    if scene is not None and tuple(tools) not in allowed:
-        out.append(f"contact.npz: tool_names {tools} must be " + " or ".join(str(list(a)) for a in allowed))
+    if scene is not None:
+        allowed = [scene["tools"]] + ([scene["tools"] + scene["extra_tools"]] if "extra_tools" in scene else [])
+        if tuple(tools) not in allowed:
+            out.append(f"contact.npz: tool_names {tools} must be " + " or ".join(str(list(a)) for a in allowed))
     if s is not None and isinstance(s.get("instants"), list) and names != s["instants"]:
         out.append(f"contact.npz: instant_names {names} differ from summary instants {s['instants']}")
     per = {"x": ((n_nodes, 2), "float64"), "eqps": ((n_el,), "float64"), "rn": ((m,), "float64"),

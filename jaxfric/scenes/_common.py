@@ -17,7 +17,7 @@ import numpy as np
 from ..contact.formulations import ALGORITHMS
 from ..contact.rigid import max_penetration, split_pairs
 from ..contact.status import SLIP
-from ..contact.tools import GAP_OPEN
+from ..contact.tools import GAP_OPEN, Arc, Segment, Tool
 from ..fem.loading import Phase, schedule
 from ..loadpath.controller import StepControl
 from ..loadpath.model import reactions
@@ -165,6 +165,18 @@ def pair_forces(state) -> jnp.ndarray:
     c = state.contact
     tangent = jnp.stack([-c.normal[:, 1], c.normal[:, 0]], axis=1)
     return c.rn[:, None] * c.normal + c.rt[:, None] * tangent
+
+
+def flat_faces(x_start: float, x_end: float, y_top: float, y_bottom: float, lip: float, d_capture) -> tuple:
+    """Two fixed flat faces over x in [x_start, x_end] (mm) with convex quarter-circle lips of radius ``lip``
+    at both ends: the upper at y_top with the sheet below it (normal side 'right'), the lower at
+    y_bottom with the sheet above it ('left'). The bead's clamp dies and the Nine's entry guide."""
+    a, b, r, pi = x_start, x_end, lip, math.pi
+    upper = Tool((Arc((a, y_top + r), r, pi, 1.5 * pi), Segment((a, y_top), (b, y_top)),
+                  Arc((b, y_top + r), r, 1.5 * pi, 2 * pi)), normal_side="right", d_capture=d_capture)
+    lower = Tool((Arc((a, y_bottom - r), r, pi, 0.5 * pi), Segment((a, y_bottom), (b, y_bottom)),
+                  Arc((b, y_bottom - r), r, 0.5 * pi, 0.0)), normal_side="left", d_capture=d_capture)
+    return upper, lower
 
 
 def tool_resultants(model, state) -> tuple:

@@ -42,7 +42,7 @@ import numpy as np
 
 from ..contact.formulations import formulation
 from ..contact.rigid import Force, Move, RigidTool
-from ..contact.tools import Arc, Segment, Tool
+from ..contact.tools import Tool
 from ..fem.loading import DirichletBC, Phase, RigidMotion
 from ..fem.material import J2Material
 from ..fem.mesh import strip_mesh
@@ -170,17 +170,6 @@ def _check(config: BeadConfig) -> None:
                          f"({config.x_left}, {config.x_right})")
 
 
-def _clamp_dies(config: BeadConfig):
-    """The upper (sheet below: normal side 'right') and lower (sheet above: 'left') clamp dies."""
-    t, a, b, r = config.t, config.x_clamp_left, config.x_clamp_right, config.r_e
-    pi = math.pi
-    upper = Tool((Arc((a, t + r), r, pi, 1.5 * pi), Segment((a, t), (b, t)), Arc((b, t + r), r, 1.5 * pi, 2 * pi)),
-                 normal_side="right", d_capture=config.d_capture)
-    lower = Tool((Arc((a, -r), r, pi, 0.5 * pi), Segment((a, 0.0), (b, 0.0)), Arc((b, -r), r, 0.5 * pi, 0.0)),
-                 normal_side="left", d_capture=config.d_capture)
-    return upper, lower
-
-
 def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant: str = DEFAULT_VARIANT) -> Scene:
     """The bead scene for ``config`` (the variant's overrides already applied) and ``algorithm``."""
     cm.check_variant(NAME, VARIANTS, variant)
@@ -203,7 +192,8 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
     phases = (Phase("clamp", [held], config.n_clamp), Phase("wind", [wind], n_wind),
               Phase("draw", [pull], n_draw))
 
-    upper, lower = _clamp_dies(config)
+    upper, lower = cm.flat_faces(config.x_clamp_left, config.x_clamp_right, config.t, 0.0, config.r_e,
+                                 config.d_capture)
     roller = Tool.circle(pivot, config.R_r, d_capture=config.d_capture, seam=ROLLER_SEAM)
     P = config.F_clamp
     fixed = (Move(0.0, 0.0),) * 3

@@ -74,7 +74,7 @@ import numpy as np
 
 from ..contact.formulations import formulation
 from ..contact.rigid import Move, RigidTool
-from ..contact.tools import Arc, Segment, Tool
+from ..contact.tools import Tool
 from ..fem.loading import DirichletBC, Phase, Ramp
 from ..fem.material import J2Material
 from ..fem.mesh import strip_mesh
@@ -205,16 +205,10 @@ def _guide(mesh, config: NineConfig) -> list:
     """The entry guide's two faces (module docstring): fixed, frictionless, each a straight face between
     two convex quarter-circle lips; candidates are the nodes that can reach the exit lip (the strip
     moves towards +x only)."""
-    x0, x1, r, c = config.guide_end - config.guide_length, config.guide_end, config.guide_lip, config.guide_clearance
-    half_pi = 0.5 * math.pi
-    y_top, y_bottom = config.t + c, -c
-    # Above the strip, walked left to right with the sheet on the right: convex arcs turn counter-clockwise.
-    top = Tool((Arc((x0, y_top + r), r, -math.pi, -half_pi), Segment((x0, y_top), (x1, y_top)),
-                Arc((x1, y_top + r), r, -half_pi, 0.0)), "right", config.d_capture)
-    # Below it, walked left to right with the sheet on the left: convex arcs turn clockwise.
-    bottom = Tool((Arc((x0, y_bottom - r), r, math.pi, half_pi), Segment((x0, y_bottom), (x1, y_bottom)),
-                   Arc((x1, y_bottom - r), r, half_pi, 0.0)), "left", config.d_capture)
-    x_reach = x1 + r
+    c = config.guide_clearance
+    top, bottom = cm.flat_faces(config.guide_end - config.guide_length, config.guide_end, config.t + c, -c,
+                                config.guide_lip, config.d_capture)
+    x_reach = config.guide_end + config.guide_lip
     still = (Move(0.0, 0.0), Move(0.0, 0.0))
     faces = []
     for name, geometry, nodes, drive in (("guide_top", top, mesh.top, (0.0, -1.0)),
