@@ -6,7 +6,9 @@ The steady drawing force of the Nine test (``mu000``: no friction, so the force 
 bending and unbending per unit length drawn; ``mu017``: with the friction of the wraps) on variations
 of one mesh, each changing one candidate source of error and nothing else:
 
-- the element: F-bar (``fbar``) against F-bar on assumed natural strains (``ans``, no parasitic shear);
+- the element: F-bar (``fbar``) against F-bar on assumed natural strains (``ans``, no parasitic shear)
+  and against assumed natural strains with a condensed through-thickness mode (``anst``, no parasitic
+  shear and no constant dilatation per element);
 - the contact discretisation along the wraps: ``ans`` on 600 x 3 with every node of the surfaces a
   contact candidate, and with every second one only, so that the contact points are spaced as on
   300 x 3 while the elements are those of 600 x 3;
@@ -46,6 +48,9 @@ VARIATIONS = {
     "ans_300x3_steps_x2": ("300x3", "ans", 2.0, 1),
     "ans_300x3_steps_x0.5": ("300x3", "ans", 0.5, 1),
     "ans_300x6": ("300x6", "ans", 1.0, 1),
+    "anst_300x3": ("300x3", "anst", 1.0, 1),
+    "anst_600x3": ("600x3", "anst", 1.0, 1),
+    "anst_300x6": ("300x6", "anst", 1.0, 1),
 }
 CASES = {f"{variant}_{name}": (variant, *v) for variant in ("mu000", "mu017") for name, v in VARIATIONS.items()}
 

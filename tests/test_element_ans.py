@@ -96,27 +96,28 @@ def test_strong_compression_without_hourglassing():
     assert ratio < 1.5, f"hourglass amplitude {ratio:.3f} times F-bar's"
 
 
-def test_element_tangent_is_the_derivative_of_its_force():
-    """At a plastic state of one distorted element, the ``ans`` tangent equals central differences of
-    its force."""
+@pytest.mark.parametrize("formulation", ["ans", "anst"])
+def test_element_tangent_is_the_derivative_of_its_force(formulation):
+    """At a plastic state of one distorted element, the tangent equals central differences of its force
+    (for ``anst`` with its thickness mode condensed)."""
     from jaxfric.fem.assembly import mesh_geometry
     from jaxfric.fem.element import element_force, element_force_and_tangent
 
     mesh = jf.strip_mesh(0.0, 1.0, 0.0, 0.5, 1, 1)
     mesh = jf.StripMesh(mesh.nodes.at[2].add(jnp.array([0.1, 0.05])), 1, 1)
     geo = jax.tree_util.tree_map(lambda a: a[0], mesh_geometry(mesh))
-    dN = geo.gradients("ans")
+    dN = geo.gradients(formulation)
     u = jnp.array([[0.0, 0.0], [0.03, 0.004], [0.025, -0.01], [-0.004, -0.012]])  # 3 % stretch, bent
     mat = jf.J2Material(**STEEL)
     init = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (4, *jnp.shape(a))), mat.init_state())
 
     @jax.jit
     def force(v):
-        return element_force(mat, "ans", dN, geo.dN_dX_center, geo.weight, v, init)
+        return element_force(mat, formulation, dN, geo.dN_dX_center, geo.weight, v, init)
 
     f, (states, _, _) = force(u)
     assert float(jnp.max(states.eqps)) > 1e-3, "the state must be plastic"
-    f2, K, _ = jax.jit(element_force_and_tangent, static_argnums=1)(mat, "ans", dN, geo.dN_dX_center,
+    f2, K, _ = jax.jit(element_force_and_tangent, static_argnums=1)(mat, formulation, dN, geo.dN_dX_center,
                                                                     geo.weight, u, init)
     np.testing.assert_allclose(f2, f, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(f))))
     h = 1e-7

@@ -26,11 +26,13 @@ _SMALL_H, _FINITE_H = [[2e-3, 1e-3], [-5e-4, -1e-3]], [[0.3, 0.2], [-0.1, -0.25]
 
 
 @pytest.mark.parametrize("formulation, H", [
-    ("fbar", _SMALL_H), ("fbar", _FINITE_H), ("ans", _SMALL_H), ("ans", _FINITE_H), ("q4", _SMALL_H),
+    ("fbar", _SMALL_H), ("fbar", _FINITE_H), ("ans", _SMALL_H), ("ans", _FINITE_H), ("anst", _SMALL_H),
+    ("anst", _FINITE_H), ("q4", _SMALL_H),
     ("q4", _FINITE_H),
     # eas: 30 s each (compiling the element's local solve); measured 5e-15 / 2e-16 in make test-all
     pytest.param("eas", _FINITE_H, marks=pytest.mark.slow), pytest.param("eas", _SMALL_H, marks=pytest.mark.slow)],
-    ids=["fbar-small", "fbar-finite", "ans-small", "ans-finite", "q4-small", "q4-finite", "eas-finite", "eas-small"])
+    ids=["fbar-small", "fbar-finite", "ans-small", "ans-finite", "anst-small", "anst-finite", "q4-small",
+         "q4-finite", "eas-finite", "eas-small"])
 def test_patch_test_reproduces_homogeneous_state(formulation, H):
     mesh, boundary, interior = distorted_patch()
     model = jf.StripModel(mesh, ELASTIC, (jf.Phase("load", [jf.DirichletBC(boundary, motion=jf.Affine(H))],
@@ -45,7 +47,7 @@ def test_patch_test_reproduces_homogeneous_state(formulation, H):
 
 
 # eas: slow (its element tangent is checked against differences in the fast suite)
-@pytest.mark.parametrize("formulation", ["fbar", "ans", pytest.param("eas", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("formulation", ["fbar", "ans", "anst", pytest.param("eas", marks=pytest.mark.slow)])
 def test_newton_converges_quadratically_on_a_plastic_step(formulation):
     """One large plastic step (strain 1.5 %, 7x the yield strain): the residual sequence is quadratic
     (for ``eas`` with the enhanced parameters condensed in the element)."""

@@ -43,11 +43,15 @@ class MaterialState(eqx.Module):
         cp_inv: (2, 2) in-plane block of C_p^-1 (identity initially).
         cp_inv_zz: () its zz component (1 initially).
         eqps: () equivalent plastic strain (0 initially).
+        enhanced: (n,) the enhanced parameters of the point's element (:mod:`jaxfric.fem.element`,
+            ``formulation="anst"`` or ``"eas"``), kept with the history so that the next step's local
+            solve starts from them; the law passes them through; None for the other formulations.
     """
 
     cp_inv: jax.Array
     cp_inv_zz: jax.Array
     eqps: jax.Array
+    enhanced: jax.Array | None = None
 
 
 def von_mises(tau: jax.Array) -> jax.Array:
@@ -241,6 +245,7 @@ class J2Material(eqx.Module):
             cp_inv=jnp.where(plastic, cp_inv_plastic, state.cp_inv),
             cp_inv_zz=jnp.where(plastic, jnp.exp(2.0 * eps_zz), state.cp_inv_zz),
             eqps=state.eqps + dg,
+            enhanced=state.enhanced,
         )
         return tau, new_state
 

@@ -20,7 +20,7 @@ from ..contact.rigid import ContactState, initial_contact_state, max_penetration
 from ..contact.status import SLIP
 from ..contact.tools import project
 from ..fem.assembly import internal_force, mesh_geometry
-from ..fem.element import FORMULATIONS
+from ..fem.element import FORMULATIONS, initial_point_state
 from ..fem.loading import Phase, constraint_masks
 from ..fem.material import J2Material
 from ..fem.mesh import StripMesh
@@ -40,7 +40,8 @@ class StripModel(eqx.Module):
         phases: the load path, one :class:`~jaxfric.fem.loading.Phase` per phase.
         formulation: "fbar" (default: F-bar Q4), "ans" (F-bar on assumed natural strains, for strips
             with the thickness along each element's second parent axis; the Nine and bead scenes'
-            default), "eas" (enhanced strain Q1/E4) or "q4" (plain Q4, for elastic checks only); static.
+            default), "anst" (assumed natural strains with a condensed through-thickness mode, same
+            orientation), "eas" (enhanced strain Q1/E4) or "q4" (plain Q4, for elastic checks only); static.
             See :mod:`jaxfric.fem.element`.
         tools: rigid tools (:class:`~jaxfric.contact.rigid.RigidTool`), one control per phase each.
         contact: the contact formulation, needed with tools
@@ -142,7 +143,7 @@ def initial_state(model: StripModel) -> SimState:
     """The state before the first step: zero displacements, virgin material at every Gauss point, the
     tools at their initial positions (with no force), pseudo-time 0 in phase 0."""
     n_el = model.mesh.n_elements
-    one = model.material.init_state()
+    one = initial_point_state(model.material, model.formulation)
     states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n_el, 4) + a.shape), one)
     zeros = jnp.zeros((model.mesh.n_nodes, 2))
     contact = initial_contact_state(model.tools, model.mesh.nodes) if model.tools else None

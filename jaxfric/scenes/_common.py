@@ -44,9 +44,11 @@ MAX_AUGMENTATIONS_DOC = ("auglag: augmentations allowed per step attempt before 
                          "[chosen]")
 MAX_STEPS_DOC = ("size of the history buffer in accepted steps; a run that fills it stops (MAX_STEPS). "
                  "None: 10x the nominal step count + 200 [chosen]")
-ELEMENTS = ("fbar", "ans", "eas")  # plain Q4 locks in plastic flow: kept for elastic checks only
+ELEMENTS = ("fbar", "ans", "anst", "eas")  # plain Q4 locks in plastic flow: kept for elastic checks only
 ELEMENT_DOC = ("element formulation (jaxfric.fem.element): 'fbar' F-bar Q4, 'ans' F-bar with assumed "
-               "natural strain through the thickness (no parasitic shear), 'eas' enhanced strain Q1/E4")
+               "natural strain through the thickness (no parasitic shear), 'anst' assumed natural strain with "
+               "a condensed through-thickness mode (no parasitic shear, exact elastic bending at 2 layers), "
+               "'eas' enhanced strain Q1/E4")
 MAX_NOMINAL_STEPS = 1_000_000  # per phase: an increment that needs more is a typo, not a study
 # A dimension of the sheet or a tool beyond 1 km is a typo; far beyond it the tool chains no longer close
 # in float64 (an edge radius of 1e300 mm next to a 1 mm sheet) and derived lengths overflow.
