@@ -65,9 +65,10 @@ and 0.75 % of 12 layers at 2 and 3 layers (``ans`` -3.6 % and -5.0 %); the thick
 pressure within 0.7 %; the 40 % compressed block finished without an inverted element. On the scenes
 (docs/results.md, the through-thickness mode) it removes the layer error: the blankholder moves 0.5 %
 from 2 to 4 layers (``ans`` 11 %, F-bar 8 %); on the Nine it is not layer-converged (6 layers give
-2.3 % and 4.1 % more than 3, cause not found). Its cost is the local solve in every element evaluation, from the last converged step's
-alpha (which the point states keep), where a batch of elements iterates as long as its slowest one: on
-the Nine's ``make run`` case 1.8 times ``ans`` per Newton iteration and 1.6 times its compilation.
+2.3 % and 4.1 % more than 3, cause not found). Its cost is the local solve in every element
+evaluation, from the last converged step's alpha (which the point states keep), where a batch of
+elements iterates as long as its slowest one: on the Nine's ``make run`` case 1.8 times ``ans`` per
+Newton iteration and 1.6 times its compilation.
 
 ``formulation="q4"`` (plain displacement Q4, F_bar = F) is kept for the elastic verification checks.
 
