@@ -4,6 +4,7 @@ benchmark spec's inputs determine, checked on the spec's scenes at their spec me
 import numpy as np
 import pytest
 
+from jaxfric.io.instants import steady_drawing_force
 from jaxfric.loadpath.run import run
 from jaxfric.scenes import make
 
@@ -78,3 +79,59 @@ def test_nine_forces_drop_when_the_tail_passes_the_bead(variant):
     past_a = draw & (tail > scene.config.R1)
     assert np.any(past_a)
     assert np.max(force[past_a]) <= 0.75 * steady, (np.max(force[past_a]), steady)
+
+
+# Limits of the Nine's steady force along the strip (N/mm, 3 layers, U_draw 36 mm, 0.05 mm increments,
+# lcp_ssn, v = 0 on the left-end nodes): first-order Richardson extrapolation of the 600 x 3 and
+# 1200 x 3 runs of F-bar and of ``ans``, which agree within 0.1 % (mu000) and 0.4 % (mu017): docs/results.md,
+# "Discretisation error of the Nine test"; runs: ``python experiments/nine_error_sources.py``.
+NINE_LIMITS = {"mu000": 79.9, "mu017": 140.5}
+
+
+@pytest.mark.slow  # two Nine runs at the spec mesh, U_draw 36 mm, about 2 to 4 minutes each
+@pytest.mark.parametrize("variant", ["mu000", "mu017"])
+def test_nine_spec_mesh_within_four_percent_of_the_converged_force(variant):
+    """The study finds the 300 x 3 mesh within 4 % of its finest. Here the steady force on 300 x 3 (default
+    element, the reference's increments and entry guide) against the limit along the strip of finer runs
+    (NINE_LIMITS, uncertain by about 0.3 %): tolerance 4 %, the study's statement (measured with ``ans``:
+    +1.4 % and +3.5 %; F-bar, the element the spec names, gives +6.9 % and +9.3 %). The project's goal of
+    1 % at the spec mesh is not reached (docs/results.md)."""
+    scene = make("nine", variant, "lcp_ssn", {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05,
+                                             "entry_guide_kind": "end_nodes"})
+    result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                 progress=False)
+    assert result.converged, result.message
+    force = steady_drawing_force(result.history, scene.steady_window)
+    assert force == pytest.approx(NINE_LIMITS[variant], rel=0.04), force
+
+
+@pytest.mark.slow  # two bead runs at the spec mesh, about 2 minutes each
+def test_bead_wrap_follows_bending_under_tension():
+    """The roller's wrap (th090) against the bending-under-tension relation F = T e^(mu theta') + F_bend:
+    - T is the back tension that the clamp's friction holds (``clamp_ft``: 2 mu_clamp F_clamp = 204 N/mm
+      once the clamp slides);
+    - F_bend = F - T of the frictionless roller (th090_mu000; th135_mu000 gives the same 44.04 N/mm);
+    - theta' = theta R_r / (R_r + t / 2): the friction acts on the roller's surface, the tension at the
+      strip's mid-thickness, and the bending moments at both ends of the wrap are equal, so the moments
+      about the roller's centre give dT (R_r + t / 2) = mu R_r dN (on this thick strip, R_r / t = 3.3, the
+      thin-belt exponent mu theta would put F 2.9 % higher).
+    Mean values over the steady window. Tolerance 1 %, for what the relation leaves out (the tension's
+    effect on the bending work, the contact arc's ends); measured +0.08 %, and -0.43 % on th135. On th045
+    the relation is 2.1 % low: a 45 degree wrap does not bend the strip to the roller's curvature (F_bend
+    38.46 N/mm). A roller without friction is 20 % off, twice its friction 30 %."""
+    steady = {}
+    for variant in ("th090_mu000", "th090_mu017"):
+        scene = make("bead", variant, "lcp_ssn")
+        result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                     progress=False)
+        assert result.converged, result.message
+        h = result.history
+        window = (h["phase_name"] == "draw") & (h["drawing_displacement"] >= scene.steady_window[0])
+        steady[variant] = (np.mean(h["drawing_force"][window]), np.mean(h["clamp_ft"][window]))
+    config = scene.config
+    back_tension = 2 * config.mu_clamp * config.F_clamp
+    assert all(t == pytest.approx(back_tension, rel=0.01) for _, t in steady.values()), steady
+    (f0, t0), (f1, t1) = steady["th090_mu000"], steady["th090_mu017"]
+    wrap = np.deg2rad(config.theta) * config.R_r / (config.R_r + config.t / 2)
+    predicted = t1 * np.exp(config.mu_roller * wrap) + (f0 - t0)
+    assert f1 == pytest.approx(predicted, rel=0.01), (f1, predicted)
