@@ -114,7 +114,7 @@ def test_bead_wrap_follows_bending_under_tension():
     - theta' = theta R_r / (R_r + t / 2): the friction acts on the roller's surface, the tension at the
       strip's mid-thickness, and the bending moments at both ends of the wrap are equal, so the moments
       about the roller's centre give dT (R_r + t / 2) = mu R_r dN (on this thick strip, R_r / t = 3.3, the
-      thin-belt exponent mu theta would put F 2.9 % higher).
+      run is 2.9 % below the thin-belt relation's mu theta).
     Mean values over the steady window. Tolerance 1 %, for what the relation leaves out (the tension's
     effect on the bending work, the contact arc's ends); measured +0.08 %, and -0.43 % on th135. On th045
     the relation is 2.1 % low: a 45 degree wrap does not bend the strip to the roller's curvature (F_bend
