@@ -261,6 +261,18 @@ def _piola(material):
     return piola
 
 
+def _value_and_jacfwd(fn, x):
+    """``fn(x) = (value, aux)``: (value, aux, d value / dx) from one forward-mode pass, the value riding
+    along as auxiliary output instead of a second evaluation."""
+
+    def with_value(y):
+        value, aux = fn(y)
+        return value, (value, aux)
+
+    jac, (value, aux) = jax.jacfwd(with_value, has_aux=True)(x)
+    return value, aux, jac
+
+
 def _condensed(material, formulation, dN_dX, dN_dX_center, weight, u_e, states):
     """The enhanced parameters at displacements ``u_e``: alpha solves R(alpha) = sum_g w_g P_g : G_g = 0,
     G = dF/dalpha (F is affine in alpha); a local Newton from the last converged step's alpha (kept in
@@ -269,9 +281,8 @@ def _condensed(material, formulation, dN_dX, dN_dX_center, weight, u_e, states):
     n = N_ENHANCED.get(formulation, 0)
     if n == 0:
         return jnp.zeros(0, u_e.dtype)
-    F_c, _ = _kinematics(formulation, dN_dX, dN_dX_center, weight, u_e, jnp.zeros(n, u_e.dtype))
-    G = jax.jacfwd(lambda a: _kinematics(formulation, dN_dX, dN_dX_center, weight, u_e, a)[0])(
-        jnp.zeros(n, u_e.dtype))
+    F_c, _, G = _value_and_jacfwd(lambda a: _kinematics(formulation, dN_dX, dN_dX_center, weight, u_e, a),
+                                  jnp.zeros(n, u_e.dtype))
     point = jax.vmap(_piola(material))
     norm_g = jnp.sqrt(jnp.sum(G**2, axis=(1, 2, 3)))
 
@@ -285,8 +296,7 @@ def _condensed(material, formulation, dN_dX, dN_dX_center, weight, u_e, states):
 
     def linearized(alpha):
         """(dR/dalpha, R, tolerance) at alpha from one forward pass of the material."""
-        jac, (r, tol) = jax.jacfwd(lambda a: (lambda rt: (rt[0], rt))(residual_and_tolerance(a)),
-                                   has_aux=True)(alpha)
+        r, tol, jac = _value_and_jacfwd(residual_and_tolerance, alpha)
         return jac, r, tol
 
     def newton(fn, alpha0):
