@@ -13,7 +13,7 @@ of one mesh, each changing one candidate source of error and nothing else:
   contact candidate, and with every second one only, so that the contact points are spaced as on
   300 x 3 while the elements are those of 600 x 3;
 - the time step: the nominal increments and a half of them (the cases' default) and a quarter;
-- the layers: 3 and 6 through the thickness.
+- the layers: 3, 6 and 12 through the thickness, on 300 and 600 elements along (and ``anst`` on 1200 x 6).
 
 Exact contact (``lcp_ssn``), U_draw 36 mm, half the nominal increments unless named, as the reference
 ladder of docs/results.md. Each case is a run directory under ``--root`` (default
@@ -51,6 +51,11 @@ VARIATIONS = {
     "anst_300x3": ("300x3", "anst", 1.0, 1),
     "anst_600x3": ("600x3", "anst", 1.0, 1),
     "anst_300x6": ("300x6", "anst", 1.0, 1),
+    "ans_300x12": ("300x12", "ans", 1.0, 1),
+    "anst_300x12": ("300x12", "anst", 1.0, 1),
+    "ans_600x12": ("600x12", "ans", 1.0, 1),
+    "anst_600x6": ("600x6", "anst", 1.0, 1),
+    "anst_1200x6": ("1200x6", "anst", 1.0, 1),
 }
 CASES = {f"{variant}_{name}": (variant, *v) for variant in ("mu000", "mu017") for name, v in VARIATIONS.items()}
 

@@ -9,7 +9,8 @@ import numpy as np
 
 from jaxfric import DirichletBC, J2Material, Phase, Ramp, RigidMotion, StripModel, run, strip_mesh
 
-__all__ = ["stretch_bend_strip", "end_rotation", "pure_bending", "end_moment", "bending_ratio"]
+__all__ = ["stretch_bend_strip", "end_rotation", "pure_bending", "bending_path", "end_moment", "end_axial_force",
+           "bending_ratio"]
 
 
 def stretch_bend_strip(nx: int = 300, ny: int = 3, length: float = 30.0, thickness: float = 1.0,
@@ -52,12 +53,37 @@ def pure_bending(length, thickness, nx, ny, angle, material, n_steps=1, formulat
     return StripModel(mesh, material, (Phase("bend", bcs, n_steps=n_steps),), formulation=formulation)
 
 
+def bending_path(length, thickness, nx, ny, path, material, n_steps, formulation):
+    """As :func:`pure_bending`, along a path of phases: phase k turns the end faces from the previous
+    (angle, shift) to ``path[k]`` = (angle, shift) (rad, mm; from (0, 0)), the right face by +angle and
+    +shift along x, the left by the opposite; ``n_steps`` steps per phase."""
+    mesh = strip_mesh(-length / 2, length / 2, -thickness / 2, thickness, nx, ny)
+    pin = DirichletBC([mesh.left[0], mesh.right[0]], components=(1,))
+
+    def face(side, sign, start, end):
+        nodes = getattr(mesh, side)
+        pivot = (float(mesh.nodes[nodes[0], 0]), float(jnp.mean(mesh.nodes[nodes, 1])))
+        return DirichletBC(nodes, components=(0,), motion=RigidMotion(
+            pivot=pivot, angle_start=sign * start[0], angle_end=sign * end[0],
+            shift_start=(sign * start[1], 0.0), shift_end=(sign * end[1], 0.0)))
+
+    ends = [(0.0, 0.0), *path]
+    phases = tuple(Phase(f"path{k}", [face("left", -1.0, a, b), face("right", 1.0, a, b), pin], n_steps=n_steps)
+                   for k, (a, b) in enumerate(zip(ends[:-1], ends[1:])))
+    return StripModel(mesh, material, phases, formulation=formulation)
+
+
 def end_moment(result, mesh):
     """Moment (N mm / mm) of the right-face reactions about the face centre (counter-clockwise > 0)."""
     nodes = mesh.right
     y = mesh.nodes[nodes, 1] - jnp.mean(mesh.nodes[nodes, 1])
     f = result.final.f_int[nodes]
     return float(-jnp.sum(y * f[:, 0]))
+
+
+def end_axial_force(result, mesh):
+    """Axial force (N/mm) of the right-face reactions, positive in tension."""
+    return float(jnp.sum(result.final.f_int[mesh.right, 0]))
 
 
 def bending_ratio(ny, formulation, nx=40, length=2.0):

@@ -64,8 +64,9 @@ pure bending exact to 1e-8 at 2, 3 and 6 layers; plastic bending to 4 % surface 
 and 0.75 % of 12 layers at 2 and 3 layers (``ans`` -3.6 % and -5.0 %); the thick cylinder's limit
 pressure within 0.7 %; the 40 % compressed block finished without an inverted element. On the scenes
 (docs/results.md, the through-thickness mode) it removes the layer error: the blankholder moves 0.5 %
-from 2 to 4 layers (``ans`` 11 %, F-bar 8 %); on the Nine it is not layer-converged (6 layers give
-2.3 % and 4.1 % more than 3, cause not found). Its cost is the local solve in every element
+from 2 to 4 layers (``ans`` 11 %, F-bar 8 %); on the Nine 12 layers give 2.9 % more than 3 (mu000),
+a rise that bending, bending under tension and reversed bending without tools do not show
+(``experiments/layer_patches.py``). Its cost is the local solve in every element
 evaluation, from the last converged step's alpha (which the point states keep), where a batch of
 elements iterates as long as its slowest one: on the Nine's ``make run`` case 1.8 times ``ans`` per
 Newton iteration and 1.6 times its compilation.
