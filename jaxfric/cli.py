@@ -128,6 +128,18 @@ def _one_line(text) -> str:
     return " ".join(str(text).split())
 
 
+def _not_estimated(names) -> str:
+    """The printed line's tail naming the discretisation components a run did not estimate, with the
+    option or the run that would."""
+    if not names:
+        return ""
+    options = [n for n in names if n != "layers"]
+    hints = ([f"--error-estimate {' or '.join(options)}"] if options else []) + (
+        ["layers: a run with more of them, --mesh NXxNY"] if "layers" in names else [])
+    words = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+    return f"; not estimated: {words} discretisation ({'; '.join(hints)})"
+
+
 def _error(message: str | Exception, code: int) -> int:
     print(f"jaxfric: error: {_one_line(message)}", file=sys.stderr)
     return code
@@ -316,8 +328,7 @@ def _run(args) -> int:
     print(f"wall time {summary['wall_s'] + summary['compile_s']:.2f} s; error estimate of the "
           f"{est['quantity'].replace('_', ' ')}: +/- {est['absolute']:.3g} N/mm ({100 * est['relative']:.2g} %; "
           + ", ".join(f"{k} {100 * v:.2g} %" for k, v in est["components"].items()) + ")"
-          + (f"; not estimated: {' and '.join(est['not_estimated'])} discretisation "
-             f"(--error-estimate {' or '.join(est['not_estimated'])})" if est.get("not_estimated") else ""))
+          + _not_estimated(est.get("not_estimated", [])))
     if not summary["converged"]:
         return _error(f"run did not complete (partial results written to {out}): {summary['message']}",
                       EXIT_FAILED)

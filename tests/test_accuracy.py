@@ -232,8 +232,8 @@ def test_penalty_sensitivity_estimates_the_penalty_error_of_a_held_die(tmp_path,
 
 def test_mesh_estimate_runs_the_coarser_companion_and_says_what_it_left_out(tmp_path, capsys):
     """``jaxfric run --error-estimate mesh``: the summary holds the companion's mesh (half the elements
-    along, the same layers) and the component it gives, and names the step's share as not estimated; a
-    basic run's printed line names both discretisation components as not estimated."""
+    along, the same layers) and the component it gives, and names the step's and the layers' shares as not
+    estimated; a basic run's printed line names the three discretisation components as not estimated."""
     import json
 
     common = ["run", "flat_die", "--variant", "const_position", "--mesh", "24x1", "--quiet", "--algorithm",
@@ -242,11 +242,12 @@ def test_mesh_estimate_runs_the_coarser_companion_and_says_what_it_left_out(tmp_
     est = json.loads((tmp_path / "mesh" / "summary.json").read_text())["error_estimate"]
     assert est["mesh_check"]["mesh"] == [12, 1] and est["mesh_check"]["ratio"] == 2.0
     assert est["components"]["mesh"] == pytest.approx(abs(est["value"] - est["mesh_check"]["value"]) / est["value"])
-    assert est["not_estimated"] == ["step"]
+    assert est["not_estimated"] == ["step", "layers"]
     out = capsys.readouterr().out
-    assert "mesh" in out and "not estimated: step discretisation" in out
+    assert "mesh" in out and "not estimated: step and layers discretisation (--error-estimate step; layers:" in out
     assert main(common + ["--out", str(tmp_path / "basic")]) == 0
-    assert "not estimated: mesh and step discretisation" in capsys.readouterr().out
+    basic = capsys.readouterr().out
+    assert "not estimated: mesh, step and layers discretisation (--error-estimate mesh or step;" in basic
 
 
 def test_penalty_sensitivity_is_refused_for_other_algorithms(capsys):
@@ -428,10 +429,10 @@ def test_mesh_component_is_richardsons_first_order_estimate():
     est = output.error_estimate(scene, values, (0.02, 0.03), 10.0, mesh_check=check)
     assert est["components"]["mesh"] == pytest.approx(0.04, rel=1e-12)
     assert est["mesh_check"] == {"value": 10.4, "n_steps": 6, "mesh": [12, 1], "ratio": 2.0}
-    assert est["not_estimated"] == ["step"]
+    assert est["not_estimated"] == ["step", "layers"]
     third = output.error_estimate(scene, values, (0.02, 0.03), 10.0, mesh_check={**check, "ratio": 3.0})
     assert third["components"]["mesh"] == pytest.approx(0.02, rel=1e-12)
-    assert output.error_estimate(scene, values, (0.02, 0.03), 10.0)["not_estimated"] == ["mesh", "step"]
+    assert output.error_estimate(scene, values, (0.02, 0.03), 10.0)["not_estimated"] == ["mesh", "step", "layers"]
 
 
 @pytest.mark.parametrize("scene, field, value", [("nine", "nx", 150), ("bead", "nx", 362), ("flat_die", "nx", 120),
