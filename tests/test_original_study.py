@@ -9,16 +9,22 @@ from jaxfric.loadpath.run import run
 from jaxfric.scenes import make
 
 
+def _converged_run(scene_name, variant, algorithm, overrides=None, snapshots=False):
+    """The scene's run to its end (with the scene's snapshots at every step if ``snapshots``), asserted
+    converged."""
+    scene = make(scene_name, variant, algorithm, overrides)
+    result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                 snapshot=scene.snapshot if snapshots else None, progress=False)
+    assert result.converged, result.message
+    return scene, result
+
+
 @pytest.fixture(scope="module")
 def flat_die():
     """Both flat-die variants at the spec defaults (240 x 2, drawn 0.03 mm), penalty law."""
     out = {}
     for variant in ("const_force", "const_position"):
-        scene = make("flat_die", variant, "penalty")
-        result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                     progress=False)
-        assert result.converged, result.message
-        out[variant] = result.history
+        out[variant] = _converged_run("flat_die", variant, "penalty")[1].history
     return out
 
 
@@ -62,10 +68,7 @@ def test_nine_forces_drop_when_the_tail_passes_the_bead(variant):
     - once the tail is past A (tail_x > R1), the drawing force below 0.75 times the steady one (the wrap
       on A and the guide's couple are gone: measured 0.47 at mu017 on 100 x 2, 0.59 and 0.52 for
       mu000 and mu017 on 300 x 3, where the bending over B and C remains)."""
-    scene = make("nine", variant, "lcp_ssn", {"mesh": "100x2", "U_draw": 62.0})
-    result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                 snapshot=scene.snapshot, progress=False)
-    assert result.converged, result.message
+    scene, result = _converged_run("nine", variant, "lcp_ssn", {"mesh": "100x2", "U_draw": 62.0}, snapshots=True)
     h = result.history
     u, force, tail = h["drawing_displacement"], h["drawing_force"], h["tail_x"]
     draw = h["phase_name"] == "draw"
@@ -96,11 +99,8 @@ def test_nine_spec_mesh_within_four_percent_of_the_converged_force(variant):
     (NINE_CONVERGED): tolerance 4 %, the study's statement (measured with ``ans``: -1.9 % and +0.4 %, the
     3 layers' error and the element length's partly cancelling; F-bar, the element the spec names, gives
     +3.4 % and +6.1 %). The project's goal of 1 % at the spec mesh is not reached (docs/results.md)."""
-    scene = make("nine", variant, "lcp_ssn", {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05,
-                                             "entry_guide_kind": "end_nodes"})
-    result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                 progress=False)
-    assert result.converged, result.message
+    scene, result = _converged_run("nine", variant, "lcp_ssn", {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05,
+                                                                "entry_guide_kind": "end_nodes"})
     force = steady_drawing_force(result.history, scene.steady_window)
     assert force == pytest.approx(NINE_CONVERGED[variant], rel=0.04), force
 
@@ -121,10 +121,7 @@ def test_bead_wrap_follows_bending_under_tension():
     38.46 N/mm). A roller without friction is 20 % off, twice its friction 30 %."""
     steady = {}
     for variant in ("th090_mu000", "th090_mu017"):
-        scene = make("bead", variant, "lcp_ssn")
-        result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                     progress=False)
-        assert result.converged, result.message
+        scene, result = _converged_run("bead", variant, "lcp_ssn")
         h = result.history
         window = (h["phase_name"] == "draw") & (h["drawing_displacement"] >= scene.steady_window[0])
         steady[variant] = (np.mean(h["drawing_force"][window]), np.mean(h["clamp_ft"][window]))
