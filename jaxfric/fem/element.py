@@ -245,12 +245,14 @@ def _with_enhanced(states, alpha):
 def _kinematics(formulation, dN_dX, dN_dX_center, weight, u_e, alpha):
     """Gradients (4, 2, 2) at the Gauss points for displacements ``u_e`` (4, 2) and enhanced parameters
     ``alpha`` (N_ENHANCED entries), and the smallest det F of the compatible part (see
-    :func:`deformation_gradients`)."""
+    :func:`deformation_gradients`) and of the enhanced gradients."""
     F, det_min = deformation_gradients(dN_dX, dN_dX_center, u_e, formulation)
     if formulation == "eas":
         F = F + _enhanced_basis(dN_dX_center, weight) @ alpha
     elif formulation == "anst":
         F = F + _thickness_mode(dN_dX_center, weight, u_e) @ alpha
+    if alpha.size:
+        det_min = jnp.minimum(det_min, jnp.min(det2(F)))
     return F, det_min
 
 
@@ -364,8 +366,6 @@ def element_force(material, formulation, dN_dX, dN_dX_center, weight, u_e, state
         return _kinematics(formulation, dN_dX, dN_dX_center, weight, u, alpha)
 
     Fb, pull_back, det_min = jax.vjp(kinematics, u_e, has_aux=True)
-    if alpha.size:
-        det_min = jnp.minimum(det_min, jnp.min(det2(Fb)))
     tau, new_states = jax.vmap(material.update)(Fb, states)
     new_states = _with_enhanced(new_states, alpha)
     # Plane strain: tau and F_bar are block-diagonal, so the in-plane block of P_bar = tau F_bar^-T
@@ -396,10 +396,7 @@ def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight
         return _kinematics(formulation, dN_dX, dN_dX_center, weight, v[:8].reshape(4, 2), v[8:])
 
     v = jnp.concatenate([u_e.ravel(), alpha])
-    Fb, det_min = kinematics(v)
-    if alpha.size:
-        det_min = jnp.minimum(det_min, jnp.min(det2(Fb)))
-    dF_dv = jax.jacfwd(lambda w: kinematics(w)[0])(v)  # (4 gp, 2, 2, 8 + n_alpha)
+    Fb, det_min, dF_dv = _value_and_jacfwd(kinematics, v)  # dF_dv: (4 gp, 2, 2, 8 + n_alpha)
     dP_dF, (P, tau, new_states) = jax.vmap(jax.jacfwd(_piola(material), has_aux=True))(Fb, states)
     new_states = _with_enhanced(new_states, alpha)
     wP = weight[:, None, None] * P
