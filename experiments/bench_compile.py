@@ -32,8 +32,7 @@ def counted(*args, **kwargs):
     return original(*args, **kwargs)
 exact_iterate.internal_force_and_tangent = system.internal_force_and_tangent = counted
 sc = scenes.make(scene, variant, algorithm, {"mesh": mesh})
-fn = eqx.filter_jit(lambda m: simulate(m, newton=sc.newton, control=sc.control, observe=sc.observe,
-                                       progress=True, snapshot=sc.snapshot))
+fn = eqx.filter_jit(lambda m: simulate(m, newton=sc.newton, control=sc.control, observe=sc.observe))
 t = time.perf_counter(); lowered = fn.lower(sc.model); lower = time.perf_counter() - t
 t = time.perf_counter(); lowered.compile(); compile_s = time.perf_counter() - t
 print(json.dumps({"lower_s": lower, "compile_s": compile_s, "tangent_traces": len(traced)}))

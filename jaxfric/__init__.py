@@ -23,8 +23,16 @@ from .fem.material import J2Material, MaterialState, von_mises  # noqa: E402
 from .fem.mesh import StripMesh, graded_coordinates, strip_mesh  # noqa: E402
 from .loadpath.controller import StepControl  # noqa: E402
 from .loadpath.model import SimState, StripModel, default_observe, initial_state, reactions, stresses  # noqa: E402
-from .loadpath.run import MemoryBudgetError, RunResult, run  # noqa: E402
-from .loadpath.simulate import Simulation, simulate, simulate_fixed, simulate_flat  # noqa: E402
+from .loadpath.run import Checkpoint, MemoryBudgetError, RunResult, run  # noqa: E402
+from .loadpath.simulate import (  # noqa: E402
+    LoadPathState,
+    Simulation,
+    advance,
+    begin,
+    simulate,
+    simulate_fixed,
+    simulate_flat,
+)
 from .loadpath.step import linearize_step, solve_step  # noqa: E402
 from .numerics.linalg import BlockTridiag, Bordered, block_tridiag_solve, bordered_solve, dense_solve, linear_solve  # noqa: E402
 from .numerics.newton import NewtonOptions  # noqa: E402
@@ -40,7 +48,8 @@ __all__ = [
     "Affine", "DirichletBC", "Motion", "Phase", "Ramp", "RigidMotion",
     "J2Material", "MaterialState", "von_mises",
     "StripMesh", "graded_coordinates", "strip_mesh",
-    "NewtonOptions", "Result", "SimulationError", "MemoryBudgetError", "RunResult", "run",
+    "NewtonOptions", "Result", "SimulationError", "MemoryBudgetError", "RunResult", "Checkpoint", "run",
     "SimState", "Simulation", "StepControl", "StripModel", "default_observe", "initial_state",
-    "simulate", "simulate_flat", "simulate_fixed", "solve_step", "stresses", "linearize_step", "reactions",
+    "simulate", "simulate_flat", "simulate_fixed", "begin", "advance", "LoadPathState", "solve_step", "stresses",
+    "linearize_step", "reactions",
 ]

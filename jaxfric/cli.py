@@ -7,24 +7,35 @@
 
 ``run`` builds the scene (:func:`jaxfric.scenes.make`), runs it with a progress bar, writes the run
 directory (:func:`jaxfric.io.output.write_run`) and prints where the files are, the steady drawing force,
-and the solve and compile times. Exit status: 0 on success, 1 when the run stopped early or its files
-could not all be written (what converged is still written), 2 for bad input. Errors are one line on
-stderr, without traceback.
+and the solve and compile times. The run directory is rewritten as the run goes (the data files every
+few seconds, with ``summary.json`` saying ``converged: false`` and where the run stands, and
+``checkpoint.npz``); SIGINT or SIGTERM stops the run after its current chunk of steps (about a second),
+writes everything converged and says how to resume (``--resume DIR``); a second SIGINT stops at once.
+Exit status: 0 on success, 1 when the run stopped early or its files could not all be written (what
+converged is still written), 2 for bad input, 3 when a stop request ended the run. Errors are one line
+on stderr, without traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import shutil
+import signal
 import sys
+import time
 from typing import Any
 
 from .contact.formulations import ALGORITHMS
 
 __all__ = ["main", "build_parser", "UsageError", "parse_grid"]
 
-EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_STOPPED = 0, 1, 2, 3
+
+#: The shortest interval between two writes of a running run's data files and checkpoint (s); longer
+#: when a write costs more than 2 % of it.
+WRITE_INTERVAL_S = 5.0
 
 
 class UsageError(Exception):
@@ -70,6 +81,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
                      help="override a config field (repeatable); see 'jaxfric scenes'")
     run.add_argument("--out", action=_Once, metavar="DIR", help="run directory (default runs/SCENE/VARIANT/ALGORITHM)")
+    run.add_argument("--resume", action=_Once, metavar="DIR",
+                     help="continue the stopped run in DIR from its last checkpoint (same scene, variant, "
+                          "algorithm and settings; the run directory stays DIR)")
     run.add_argument("--tag", action=_Once,
                      help="study tag recorded in summary.json (regex [A-Za-z0-9][A-Za-z0-9._+-]*)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -148,8 +162,9 @@ def _error(message: str | Exception, code: int) -> int:
 def main(argv=None) -> int:
     """Entry point of the ``jaxfric`` console script; returns the exit status."""
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
     try:
-        args = parser.parse_args(sys.argv[1:] if argv is None else list(argv))
+        args = parser.parse_args(argv)
     except UsageError as err:
         return _error(err, EXIT_USAGE)
     except SystemExit as done:  # --help
@@ -157,6 +172,7 @@ def main(argv=None) -> int:
     if args.command is None:
         parser.print_help()
         return EXIT_USAGE
+    args.argv = argv
     try:
         if args.command == "scenes":
             return _scenes()
@@ -277,21 +293,117 @@ def _first_missing(path: str) -> str | None:
     return path
 
 
+class _StopRequest:
+    """SIGINT and SIGTERM while a run goes: the first asks it to stop after its current chunk of steps;
+    after it both signals take their default action, so a second one ends the process at once. Installed
+    only in the main thread (elsewhere a signal cannot be caught)."""
+
+    def __init__(self) -> None:
+        self.signal: int | None = None
+        self._previous: dict = {}
+
+    def __enter__(self):
+        try:
+            self._previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+        except ValueError:  # not the main thread
+            self._previous = {}
+        return self
+
+    def __exit__(self, *exc):
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+        return False
+
+    def _handle(self, signum, frame):
+        self.signal = signum
+        for s in self._previous:
+            signal.signal(s, signal.SIG_DFL)
+        print(f"\njaxfric: {signal.Signals(signum).name}: stopping after the current chunk of steps "
+              f"(about a second); Ctrl-C again stops at once", file=sys.stderr, flush=True)
+
+    def __call__(self) -> bool:
+        return self.signal is not None
+
+
+class _PartialWriter:
+    """``on_chunk`` of a CLI run: the run directory's data files and checkpoint rewritten from the
+    partial result, after the first chunk and then every :data:`WRITE_INTERVAL_S` s at least (a write
+    takes at most about 2 % of the run)."""
+
+    def __init__(self, scene, out: str, tag, config: dict):
+        self.scene, self.out, self.tag, self.config = scene, out, tag, config
+        self.due = 0.0
+        self.failed = False
+
+    def __call__(self, partial) -> None:
+        start = time.perf_counter()
+        if start < self.due:
+            return
+        from .io import checkpoint, output
+
+        try:
+            result = partial()
+            output.write_run(self.scene, result, self.out, tag=self.tag, figures=False)
+            if result.checkpoint is not None:
+                checkpoint.save(self.out, result.checkpoint, self.config)
+        except (OSError, output.OutputError) as err:
+            if not self.failed:
+                print(f"note: the run directory could not be updated during the run: {_one_line(err)}",
+                      file=sys.stderr)
+            self.failed = True
+        cost = time.perf_counter() - start
+        self.due = time.perf_counter() + max(WRITE_INTERVAL_S, 50.0 * cost)
+
+
+def _resume_command(argv: list, out: str) -> str:
+    """The command line ``argv`` (without the program) that resumes this run from ``out``."""
+    if "--resume" not in argv and not any(a.startswith("--resume=") for a in argv):
+        argv = list(argv) + ["--resume", out]
+    return "jaxfric " + " ".join(shlex.quote(a) for a in argv)
+
+
+def _resume(args, scene, out: str):
+    """The checkpoint to resume from (None without --resume); UsageError naming what does not fit."""
+    if args.resume is None:
+        return None
+    from .io import checkpoint
+
+    try:
+        saved, config = checkpoint.load(out, scene)
+    except (OSError, ValueError) as err:
+        raise UsageError(f"--resume {out}: {err}") from None
+    diff = checkpoint.configuration_difference(config, checkpoint.configuration(scene))
+    if diff is not None:
+        raise UsageError(f"--resume {out}: the configuration differs from the checkpoint's in {diff}; a run "
+                         f"resumes with the settings it was started with")
+    return saved
+
+
 def _run(args) -> int:
     scene = _build(args)
-    from .io import output
+    from .io import checkpoint, output
+    from .io.instants import instant_rows
     from .loadpath.run import MemoryBudgetError, run
+    from .numerics.results import Result
 
     if args.error_estimate == "sensitivity" and scene.algorithm != "penalty":
         raise UsageError(f"--error-estimate sensitivity applies to algorithm penalty, not {scene.algorithm}")
+    if args.resume is not None and args.out is not None and os.path.abspath(args.out) != os.path.abspath(args.resume):
+        raise UsageError(f"--resume {args.resume} continues the run in that directory; --out {args.out} names another")
 
-    out = os.path.join("runs", scene.name, scene.variant, scene.algorithm) if args.out is None else args.out
+    out = args.resume or (os.path.join("runs", scene.name, scene.variant, scene.algorithm) if args.out is None
+                          else args.out)
+    resume = _resume(args, scene, out)
     created = _first_missing(out)
     _writable_dir(out)
     label = f"{scene.name}/{scene.variant}/{scene.algorithm} "
+    config = checkpoint.configuration(scene)
     try:
-        result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                     snapshot=scene.snapshot, progress=not args.quiet, raise_on_failure=False, label=label)
+        with _StopRequest() as stop:
+            result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                         snapshot=scene.snapshot, keep_snapshots=lambda h: instant_rows(scene.name, h),
+                         progress=not args.quiet, raise_on_failure=False, label=label, resume=resume,
+                         on_chunk=_PartialWriter(scene, out, args.tag, config), stop=stop)
     except MemoryBudgetError as err:
         # Refused before it started: remove the directories made for it, if still empty.
         if created is not None and not any(files for _, _, files in os.walk(created)):
@@ -312,9 +424,18 @@ def _run(args) -> int:
         except ValueError as err:
             print(f"note: {err}")
     try:
+        if result.checkpoint is not None:
+            checkpoint.save(out, result.checkpoint, config)
         summary = output.write_run(scene, result, out, tag=args.tag, **extra)
-    except output.OutputError as err:
+    except (OSError, output.OutputError) as err:
         return _error(err, EXIT_FAILED)
+    if result.code == Result.STOPPED:
+        u = result.history.get("drawing_displacement")
+        where = f"step {summary['n_steps']}, t = {float(result.final.time):.6g}" + (
+            "" if u is None else f", drawing displacement {float(u[-1]):.6g} mm")
+        print(f"jaxfric: stopped at {where}; results so far in {out}; resume with: "
+              f"{_resume_command(args.argv, out)}", file=sys.stderr)
+        return EXIT_STOPPED
     steady = summary["steady_drawing_force"]
     a, b = summary["steady_window"]
     print(f"run directory: {out}")

@@ -442,7 +442,7 @@ class _Accounted:
 
 def test_cli_run_that_needs_more_memory_than_available_is_refused_in_one_line(tmp_path, capsys, monkeypatch):
     """The command line gives one line naming the mesh, exit 2, and removes the directories it made."""
-    monkeypatch.setattr(RUN_MODULE, "_compiled", lambda *a, **k: _Accounted())   # nothing compiles or runs
+    monkeypatch.setattr(RUN_MODULE, "_compiled", lambda *a, **k: (None, _Accounted()))   # nothing compiles or runs
     monkeypatch.setattr(RUN_MODULE, "available_memory", lambda: 8 * 2**30)
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "out" / "run1"
@@ -461,7 +461,7 @@ def test_a_run_that_needs_more_memory_than_available_is_refused_before_it_starts
     with pytest.raises(jf.MemoryBudgetError, match="field 'mesh'") as info:
         jf.run(model, progress=False)
     assert "\n" not in str(info.value) and "2x1" in str(info.value)
-    compiled = RUN_MODULE._compiled(model, jf.NewtonOptions(), jf.StepControl(), jf.default_observe, None, True)
+    _, compiled = RUN_MODULE._compiled(model, jf.NewtonOptions(), jf.StepControl(), jf.default_observe, None)
     need = RUN_MODULE.check_memory(compiled, model, available=2**50)   # plenty: the need, no error
     assert need is not None and 0 < need < 2**30
     with pytest.raises(jf.MemoryBudgetError):
@@ -472,28 +472,33 @@ def test_a_run_that_needs_more_memory_than_available_is_refused_before_it_starts
 def test_compiled_programs_are_bounded_least_recently_used_first(monkeypatch):
     """The public entry point keeps a few compiled programs, not one per structure ever run: a process
     running many scene variants must not run out of memory. A stand-in compiler (one compilation per
-    call) and models of several shapes (the key is the structure)."""
+    call; a structure has two programs, the start and the chunk) and models of several shapes (the key
+    is the structure)."""
     import numpy as np
 
     compiled = []
+
+    class _Program:
+        def __call__(self, *args):
+            return None, None
 
     class _Jitted:
         def __init__(self, fn):
             pass
 
-        def lower(self, model):
+        def lower(self, *args):
             return self
 
         def compile(self):
-            compiled.append(object())
+            compiled.append(_Program())
             return compiled[-1]
 
     monkeypatch.setattr(RUN_MODULE, "_COMPILED", LRU(2))
     monkeypatch.setattr(RUN_MODULE.eqx, "filter_jit", _Jitted)
-    options = (jf.NewtonOptions(), jf.StepControl(), jf.default_observe, None, True)
+    options = (jf.NewtonOptions(), jf.StepControl(), jf.default_observe, None)
     first, second = (RUN_MODULE._compiled(np.zeros(n), *options) for n in (1, 2))
     assert RUN_MODULE._compiled(np.zeros(1), *options) is first  # a hit: compiled once
     RUN_MODULE._compiled(np.zeros(3), *options)  # drops the least recently used: shape (2,)
-    assert len(RUN_MODULE._COMPILED) == 2 and len(compiled) == 3
+    assert len(RUN_MODULE._COMPILED) == 2 and len(compiled) == 2 * 3
     assert RUN_MODULE._compiled(np.zeros(1), *options) is first
-    assert RUN_MODULE._compiled(np.zeros(2), *options) is not second and len(compiled) == 4
+    assert RUN_MODULE._compiled(np.zeros(2), *options) is not second and len(compiled) == 2 * 4

@@ -8,8 +8,8 @@ import numpy as np
 
 from .. import scenes
 
-__all__ = ["STEADY_TOL", "TIME_TOL", "select_instants", "steady_rows", "steady_drawing_force", "steady_window",
-           "phase_names", "column", "scene_module"]
+__all__ = ["STEADY_TOL", "TIME_TOL", "select_instants", "instant_rows", "steady_rows", "steady_drawing_force",
+           "steady_window", "phase_names", "column", "scene_module"]
 
 STEADY_TOL = 1e-9        # mm; inclusive window tolerance (benchmarks spec section 6)
 TIME_TOL = 1e-9         # pseudo-time tolerance for "end of phase k" (time = k)
@@ -104,6 +104,27 @@ def select_instants(scene_name: str, history: dict) -> tuple[list, list, list]:
             names.append(name)
             rows.append(row)
     return names, rows, fallback
+
+
+def _as_written(values) -> np.ndarray:
+    """``values`` as ``history.csv`` writes and reads them back (``%.12g``)."""
+    return np.array([float(f"{float(v):.12g}") for v in np.asarray(values)])
+
+
+def instant_rows(scene_name: str, history: dict) -> list:
+    """The rows whose state ``contact.npz`` can still need, given the rows so far: the instants that
+    :func:`select_instants` picks from them as ``history.csv`` writes them, and the last row.
+
+    A later row can replace an instant's row (a closer displacement, a first slip, the final row) but
+    never bring back an older row that no rule picks now: "end" rows are fixed once reached, "closest"
+    keeps the first of equals, the state-based rules take the first hit. So a run may drop the
+    snapshots of every other row as it goes.
+    """
+    h = dict(history)
+    for name in ("time", "drawing_displacement"):
+        h[name] = _as_written(column(history, name))
+    _, rows, _ = select_instants(scene_name, h)
+    return sorted(set(rows) | {len(h["time"]) - 1})
 
 
 # ---- steady drawing force ---------------------------------------------------------------------------

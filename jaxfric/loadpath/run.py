@@ -1,25 +1,39 @@
-"""Public entry point: compile, run with a progress bar, and turn result codes into exceptions."""
+"""Public entry point: compile, run in chunks with a progress bar, and turn result codes into exceptions.
+
+:func:`run` advances the load path in chunks of accepted steps (:func:`jaxfric.loadpath.simulate.advance`),
+returning to the host about once a second: the host keeps the new rows, draws the progress bar, hands a
+partial result to the caller (who may write it to disk) and serves a stop request. The state between
+chunks (:class:`Checkpoint`) is all a run needs to continue, bit for bit, in this process or another.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from typing import Any
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ..numerics.lru import LRU
 from ..numerics.newton import NewtonOptions
 from ..numerics.results import Result, SimulationError, describe
 from .controller import StepControl
-from .model import SimState, StripModel, default_observe, initial_state
+from .model import SimState, StripModel, default_observe
 from .progress import ProgressMonitor
-from .simulate import Simulation, simulate, simulate_fixed
+from .simulate import Chunk, History, LoadPathState, Simulation, advance, begin
 
-__all__ = ["RunResult", "run", "MemoryBudgetError", "available_memory"]
+__all__ = ["RunResult", "Record", "Checkpoint", "run", "MemoryBudgetError", "available_memory", "CHUNK_ROWS",
+           "CHUNK_SECONDS"]
+
+#: Rows of a chunk's buffers: the most accepted steps one chunk can take.
+CHUNK_ROWS = 32
+#: The wall time a chunk aims at (s): the host sees the run, and a stop request is served, about this often.
+CHUNK_SECONDS = 1.0
 
 
 class MemoryBudgetError(ValueError):
@@ -77,6 +91,78 @@ def check_memory(compiled, model: StripModel, available: int | None = None) -> i
 
 
 @dataclasses.dataclass
+class Record:
+    """The host's copy of a run's history rows, as the chunks bring them.
+
+    Attributes:
+        parts: per chunk, its rows: ``time``, ``phase``, ``newton_iters``, ``cutbacks``,
+            ``augmentations``, ``solver_stats`` (n, 3), ``wall_s``, and ``observed`` (a dict of the
+            observations' rows), NumPy arrays.
+        snapshots: history row -> ``snapshot(model, state)`` (NumPy), the rows kept.
+        wall_s, cpu_s: solve time and process CPU time so far (s).
+    """
+
+    parts: list = dataclasses.field(default_factory=list)
+    snapshots: dict = dataclasses.field(default_factory=dict)
+    wall_s: float = 0.0
+    cpu_s: float = 0.0
+
+    @property
+    def n_rows(self) -> int:
+        return sum(len(p["time"]) for p in self.parts)
+
+    def columns(self) -> dict:
+        """The rows of all parts, concatenated: the keys of a part."""
+        if len(self.parts) > 1:  # keep one part: later calls are cheap
+            first = self.parts[0]
+            merged: dict[str, Any] = {k: np.concatenate([p[k] for p in self.parts]) for k in first
+                                      if k != "observed"}
+            merged["observed"] = {k: np.concatenate([p["observed"][k] for p in self.parts])
+                                  for k in first["observed"]}
+            self.parts = [merged]
+        return self.parts[0]
+
+    def add(self, chunk: Chunk, wall_s: float, cpu_s: float) -> int:
+        """Append the rows of ``chunk`` (device or NumPy), sharing ``wall_s`` among them in proportion to
+        their Newton iterations plus one (a step's attempts are not timed apart inside the compiled
+        chunk). Returns the rows added."""
+        h = jax.device_get(chunk.history)
+        n = int(h.n_rows)
+        first = int(chunk.first)
+        if first != self.n_rows:
+            raise ValueError(f"chunk starts at history row {first}, the record has {self.n_rows} rows")
+        iters = np.asarray(h.newton_iters[:n])
+        weight = iters + 1.0
+        part = {"time": np.asarray(h.time[:n]), "phase": np.asarray(h.phase[:n]), "newton_iters": iters,
+                "cutbacks": np.asarray(h.cutbacks[:n]), "augmentations": np.asarray(h.augmentations[:n]),
+                "solver_stats": np.asarray(h.solver_stats[:n]),
+                "wall_s": wall_s * weight / weight.sum() if n else np.zeros(0),
+                "observed": {k: np.asarray(v[:n]) for k, v in h.observed.items()}}
+        self.parts.append(part)
+        if chunk.snapshots is not None:
+            snaps = jax.device_get(chunk.snapshots)
+            for i in range(n):
+                self.snapshots[first + i] = jax.tree_util.tree_map(lambda a: np.asarray(a[i]), snaps)
+        self.wall_s += wall_s
+        self.cpu_s += cpu_s
+        return n
+
+    def keep_snapshots(self, rows: Iterable[int]) -> None:
+        """Drop the snapshots of every row but ``rows`` and the last."""
+        keep = set(int(r) for r in rows) | {self.n_rows - 1}
+        self.snapshots = {k: v for k, v in self.snapshots.items() if k in keep}
+
+
+@dataclasses.dataclass
+class Checkpoint:
+    """Everything a run needs to continue (:func:`run` with ``resume``): where its load path stands and
+    the host's rows. ``path`` has NumPy leaves."""
+
+    path: LoadPathState
+    record: Record
+
+
+@dataclasses.dataclass
 class RunResult:
     """Host-side (NumPy) result of :func:`run`.
 
@@ -84,17 +170,22 @@ class RunResult:
         model: the model that was run.
         history: dict of per-row arrays (row 0 = initial state): ``time``, ``phase`` (index),
             ``phase_name``, ``newton_iters``, ``cutbacks`` (attempts before the accepted one),
-            ``augmentations`` (AL), ``wall_s``, plus every observation.
+            ``augmentations`` (AL), ``wall_s`` (a chunk's wall time shared among its steps in proportion
+            to their Newton iterations plus one), plus every observation.
         final: the last converged :class:`~jaxfric.loadpath.model.SimState`.
-        simulation: the raw :class:`~jaxfric.loadpath.simulate.Simulation` (device arrays, full buffers).
+        simulation: the :class:`~jaxfric.loadpath.simulate.Simulation` (NumPy: the history as one
+            buffer, the final state, the result code, the failed attempt's time and residual).
         converged: True if the whole load path was completed.
-        code: the :class:`~jaxfric.numerics.results.Result`.
+        code: the :class:`~jaxfric.numerics.results.Result` (``STOPPED`` when a stop request ended it,
+            ``CONTINUE`` for the partial result of a run still going).
         message: "" when converged, otherwise where and why the run stopped, and what to try.
-        compile_s, wall_s: compilation time and solve time (s).
+        compile_s, wall_s: compilation time and solve time (s); a resumed run's solve time includes
+            the solve before the stop.
         cpu_s: process CPU time of the solve (s); with one XLA thread it equals ``wall_s`` on an idle
             machine and, unlike it, does not grow when other jobs share the cores or the run is paused.
         snapshots: with ``run(..., snapshot=fn)``, ``fn(model, state)`` as NumPy pytrees per history
-            row (row 0: the initial state); empty otherwise.
+            row kept (row 0: the initial state); empty otherwise.
+        checkpoint: what :func:`run` needs to continue this run (``resume``).
     """
 
     model: StripModel
@@ -108,106 +199,170 @@ class RunResult:
     wall_s: float
     cpu_s: float
     snapshots: dict = dataclasses.field(default_factory=dict)
+    checkpoint: Checkpoint | None = None
 
 
 # Compiled programs by structure (shapes, static fields, options), the most recently used few.
 _COMPILED: LRU = LRU(8)
 
 
-def _compiled(model, newton, control, observe, snapshot, adaptive):
+def _compiled(model, newton, control, observe, snapshot):
     """AOT-compile once per structure (shapes, static fields, options); values never recompile."""
     leaves, treedef = jax.tree_util.tree_flatten(model)
     key = (treedef, tuple((np.shape(x), str(getattr(x, "dtype", type(x)))) for x in leaves),
-           newton, control, observe, snapshot, adaptive)
-    return _COMPILED.get(key, lambda: _compile(model, newton, control, observe, snapshot, adaptive))
+           newton, control, observe, snapshot)
+    return _COMPILED.get(key, lambda: _compile(model, newton, control, observe, snapshot))
 
 
-def _compile(model, newton, control, observe, snapshot, adaptive):
-    """The compiled run program of ``model``'s structure. Every accepted step reports to the host (time
-    stamps for the per-step wall time; the bar is drawn only when asked for)."""
-    if adaptive:
-        fn = eqx.filter_jit(lambda m: simulate(m, newton=newton, control=control, observe=observe,
-                                               progress=True, snapshot=snapshot))
-    else:
-        fn = eqx.filter_jit(lambda m: simulate_fixed(m, newton=newton, observe=observe,
-                                                     progress=True, snapshot=snapshot))
-    return fn.lower(model).compile()
+def _compile(model, newton, control, observe, snapshot):
+    """The two compiled programs of ``model``'s structure: the start of its load path (with history row
+    0) and one chunk (:func:`~jaxfric.loadpath.simulate.advance`). Neither calls the host."""
+    start = eqx.filter_jit(lambda m: begin(m, control=control, observe=observe, snapshot=snapshot))
+    step = eqx.filter_jit(lambda m, p, k: advance(m, p, k, size=CHUNK_ROWS, newton=newton, control=control,
+                                                  observe=observe, snapshot=snapshot))
+    start = start.lower(model).compile()
+    path, _ = start(model)
+    return start, step.lower(model, path, jnp.array(1, jnp.int32)).compile()
+
+
+def _next_limit(rows: int, seconds: float, limit: int) -> int:
+    """The next chunk's step limit: about :data:`CHUNK_SECONDS` at the last chunk's pace, at most
+    doubling."""
+    if rows == 0 or seconds <= 0.0:
+        return min(2 * limit, CHUNK_ROWS)
+    return int(np.clip(round(CHUNK_SECONDS * rows / seconds), 1, min(2 * limit, CHUNK_ROWS)))
 
 
 def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
         control: StepControl = StepControl(), observe: Callable = default_observe,
-        progress: bool = True, adaptive: bool = True, raise_on_failure: bool = True,
-        label: str = "", snapshot: Callable | None = None) -> RunResult:
-    """Run ``model`` to the end of its load path.
+        progress: bool = True, raise_on_failure: bool = True, label: str = "",
+        snapshot: Callable | None = None, keep_snapshots: Callable | None = None,
+        resume: Checkpoint | None = None, on_chunk: Callable | None = None,
+        stop: Callable | None = None) -> RunResult:
+    """Run ``model`` to the end of its load path, with adaptive steps, in chunks.
 
     Compilation is timed apart from the solve. A progress bar on stderr shows steps, pseudo-time and
     Newton iterations when ``progress``. If the run stops early it raises :class:`SimulationError`
     whose ``result`` holds everything converged up to the failure (or returns it, with
-    ``raise_on_failure=False``). ``snapshot(model, state) -> pytree`` (a module-level function) is
-    evaluated at every accepted step and kept on the host in ``RunResult.snapshots``. ``adaptive``
-    False runs the nominal steps without cutting (:func:`~jaxfric.loadpath.simulate.simulate_fixed`) instead
-    of the adaptive controller (:func:`~jaxfric.loadpath.simulate.simulate`). A run that would need more memory
-    than is available raises :class:`MemoryBudgetError` after compiling, before it starts
-    (:func:`check_memory`).
+    ``raise_on_failure=False``). A run that would need more memory than is available raises
+    :class:`MemoryBudgetError` after compiling, before it starts (:func:`check_memory`).
+
+    Args:
+        model, newton, control: the model and the solver's settings.
+        observe: static ``observe(model, state) -> dict`` of arrays recorded at every accepted step.
+        snapshot: static ``snapshot(model, state) -> dict`` of arrays (a module-level function or a
+            hashable module), kept on the host in ``RunResult.snapshots``.
+        keep_snapshots: ``keep_snapshots(history) -> rows``: after every chunk only the snapshots of
+            these rows (and the last row) are kept, ``history`` being the rows so far as in
+            ``RunResult.history``; None keeps every row's.
+        resume: a :class:`Checkpoint` of a run of a model with this structure and values (a stopped
+            or partial run's ``RunResult.checkpoint``, or one read back from disk): the run continues
+            from it and returns the whole run's result, as the run that never stopped would.
+        on_chunk: ``on_chunk(partial)`` after every chunk, ``partial()`` giving the
+            :class:`RunResult` so far (code ``CONTINUE`` while the run goes on).
+        stop: ``stop() -> bool``, asked before every chunk: True ends the run there, with code
+            ``Result.STOPPED`` (a stop request: the result is resumable).
     """
     for name, value, kind in (("model", model, StripModel), ("newton", newton, NewtonOptions),
                               ("control", control, StepControl)):
         if not isinstance(value, kind):
             raise ValueError(f"field '{name}' must be a {kind.__name__}, got {value!r}")
-    for name, function in (("observe", observe), ("snapshot", snapshot)):
-        if not (callable(function) or (name == "snapshot" and function is None)):
-            raise ValueError(f"field '{name}' must be a function{' or None' if name == 'snapshot' else ''}, "
+    for name, function in (("observe", observe), ("snapshot", snapshot), ("keep_snapshots", keep_snapshots),
+                           ("on_chunk", on_chunk), ("stop", stop)):
+        if not (callable(function) or (name != "observe" and function is None)):
+            raise ValueError(f"field '{name}' must be a function{' or None' if name != 'observe' else ''}, "
                              f"got {function!r}")
     t0 = time.perf_counter()
-    compiled = _compiled(model, newton, control, observe, snapshot, adaptive)
+    start, step = _compiled(model, newton, control, observe, snapshot)
     compile_s = time.perf_counter() - t0
-    check_memory(compiled, model)
+    check_memory(step, model)
+    if resume is None:
+        path, chunk = start(model)
+        record = Record()
+        record.add(chunk, 0.0, 0.0)
+    else:
+        if not isinstance(resume, Checkpoint):
+            raise ValueError(f"field 'resume' must be a Checkpoint (RunResult.checkpoint), got {resume!r}")
+        path = jax.tree_util.tree_map(jnp.asarray, resume.path)
+        record = dataclasses.replace(resume.record, parts=list(resume.record.parts),
+                                     snapshots=dict(resume.record.snapshots))
+    code = Result(int(path.ctrl.code))
+    limit = 4
     with ProgressMonitor(total_time=model.n_phases, show=progress, label=label) as monitor:
-        t1, c1 = time.perf_counter(), time.process_time()
-        sim = jax.block_until_ready(compiled(model))
-        wall_s, cpu_s = time.perf_counter() - t1, time.process_time() - c1
-    result = _to_host(model, sim, monitor, compile_s, wall_s, cpu_s)
-    if snapshot is not None:
-        first = eqx.filter_jit(lambda m: snapshot(m, initial_state(m)))(model)
-        snaps = {0: first, **monitor.snapshots}
-        result.snapshots = {k: jax.tree_util.tree_map(np.asarray, v) for k, v in sorted(snaps.items())
-                            if k < len(result.history["time"])}
+        while code == Result.CONTINUE:
+            if stop is not None and stop():
+                code = Result.STOPPED
+                break
+            t1, c1 = time.perf_counter(), time.process_time()
+            path, chunk = step(model, path, jnp.array(limit, jnp.int32))
+            chunk = jax.device_get(chunk)
+            wall, cpu = time.perf_counter() - t1, time.process_time() - c1
+            rows = record.add(chunk, wall, cpu)
+            if keep_snapshots is not None and snapshot is not None:
+                record.keep_snapshots(keep_snapshots(_history(model, record)))
+            code = Result(int(path.ctrl.code))
+            last = record.parts[-1]
+            if rows:
+                monitor.update(record.n_rows - 1, float(last["time"][-1]), int(last["newton_iters"][-1]),
+                               int(last["cutbacks"][-1]))
+            limit = _next_limit(rows, wall, limit)
+            if on_chunk is not None:
+                now = (path, record)
+                on_chunk(lambda: _result(model, *now, Result(int(now[0].ctrl.code)), compile_s))
+    result = _result(model, path, record, code, compile_s)
     if not result.converged and raise_on_failure:
         raise SimulationError(result.message, result.code, result)
     return result
 
 
-def _to_host(model, sim: Simulation, monitor, compile_s, wall_s, cpu_s) -> RunResult:
-    h = sim.history
-    n = int(h.n_rows)
-    history = {
-        "time": np.asarray(h.time[:n]),
-        "phase": np.asarray(h.phase[:n]),
-        "phase_name": np.array([model.phases[int(p)].name for p in np.asarray(h.phase[:n])]),
-        "newton_iters": np.asarray(h.newton_iters[:n]),
-        "cutbacks": np.asarray(h.cutbacks[:n]),
-        "augmentations": np.asarray(h.augmentations[:n]),
-    }
+def _history(model, record: Record) -> dict:
+    """``RunResult.history`` of the rows in ``record``."""
+    cols = record.columns()
+    history = {k: cols[k] for k in ("time", "phase")}
+    history["phase_name"] = np.array([model.phases[int(p)].name for p in cols["phase"]])
+    history.update({k: cols[k] for k in ("newton_iters", "cutbacks", "augmentations")})
     if model.tools and model.contact is not None and model.contact.solver_stats:
-        stats = np.asarray(h.solver_stats[:n])
-        history.update({name: stats[:, k] for k, name in enumerate(model.contact.solver_stats)})
-    history["wall_s"] = monitor.step_wall_times(n)
-    for name, value in h.observed.items():
-        history[name] = np.asarray(value[:n])
-    code = Result(int(sim.code))
-    final = jax.tree_util.tree_map(np.asarray, sim.final)
+        history.update({name: cols["solver_stats"][:, k] for k, name in enumerate(model.contact.solver_stats)})
+    history["wall_s"] = cols["wall_s"]
+    history.update(cols["observed"])
+    return history
+
+
+def _result(model, path: LoadPathState, record: Record, code: Result, compile_s: float) -> RunResult:
+    """The :class:`RunResult` of the rows in ``record`` with the load path standing at ``path``."""
+    path = jax.device_get(path)
+    history = _history(model, record)
+    cols = record.columns()
+    n = record.n_rows
+    final = path.state
     converged = code == Result.SUCCESS
+    ctrl = path.ctrl
     message = ""
     if not converged:
         t = float(final.time)
         phase = model.phases[int(final.phase)].name
-        r = float(sim.residual_norm)
-        residual = f"{r:.3g} N/mm" if np.isfinite(r) else "non-finite"
-        cuts = int(sim.pending_cuts)
-        attempt = ("" if code == Result.MAX_STEPS else
-                   f", while attempting t = {float(sim.failed_time):.10g} after {cuts} failed attempt"
-                   f"{'s' if cuts != 1 else ''} of that step, last residual {residual}")
-        message = (f"stopped after step {n - 1} at t = {t:.10g} (phase '{phase}'){attempt}: "
-                   f"{describe(code)}. Results up to t = {t:.10g} are kept.")
-    return RunResult(model=model, history=history, final=final, simulation=sim, converged=converged,
-                     code=code, message=message, compile_s=compile_s, wall_s=wall_s, cpu_s=cpu_s)
+        where = f"step {n - 1} at t = {t:.10g} (phase '{phase}')"
+        if code == Result.CONTINUE:
+            message = f"in progress: {where}"
+        elif code == Result.STOPPED:
+            message = f"stopped on request after {where}; results up to there are kept and the run can be resumed"
+        else:
+            r = float(ctrl.r_norm)
+            residual = f"{r:.3g} N/mm" if np.isfinite(r) else "non-finite"
+            cuts = int(ctrl.cuts)
+            attempt = ("" if code == Result.MAX_STEPS else
+                       f", while attempting t = {float(ctrl.failed_t):.10g} after {cuts} failed attempt"
+                       f"{'s' if cuts != 1 else ''} of that step, last residual {residual}")
+            message = (f"stopped after {where}{attempt}: {describe(code)}. Results up to t = {t:.10g} "
+                       f"are kept.")
+    buffers = History(time=cols["time"], phase=cols["phase"], newton_iters=cols["newton_iters"],
+                      cutbacks=cols["cutbacks"], augmentations=cols["augmentations"],
+                      solver_stats=cols["solver_stats"], observed=cols["observed"], n_rows=jnp.asarray(n, jnp.int32))
+    simulation = Simulation(history=buffers, final=final, code=jnp.asarray(code, jnp.int32), failed_time=ctrl.failed_t,
+                            residual_norm=ctrl.r_norm, pending_cuts=ctrl.cuts)
+    snapshots = {k: v for k, v in sorted(record.snapshots.items()) if k < n}
+    checkpoint = Checkpoint(path=path, record=dataclasses.replace(record, parts=list(record.parts),
+                                                                  snapshots=dict(record.snapshots)))
+    return RunResult(model=model, history=history, final=final, simulation=simulation, converged=converged,
+                     code=code, message=message, compile_s=compile_s, wall_s=record.wall_s, cpu_s=record.cpu_s,
+                     snapshots=snapshots, checkpoint=checkpoint)

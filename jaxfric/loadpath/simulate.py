@@ -5,7 +5,9 @@ A load path is a sequence of step attempts (:mod:`jaxfric.loadpath.step`) from t
 
 - :func:`simulate` (adaptive): a ``lax.while_loop`` over attempts, the step controller of the
   benchmark spec (section 1.9, :mod:`jaxfric.loadpath.controller`) choosing each increment. Differentiable in
-  forward mode (``jax.jvp``).
+  forward mode (``jax.jvp``). :func:`begin` and :func:`advance` run the same loop in chunks of a bounded
+  number of accepted steps, returning to the host between them (:func:`jaxfric.loadpath.run.run` does, to
+  write results as they come, serve a stop request and save a state to resume from).
 - :func:`simulate_flat`: the same attempts and controller, one Newton iteration per loop pass (for
   vmapped sweeps; penalty formulation).
 - :func:`simulate_fixed`: a ``lax.scan`` over the nominal steps without cutting: a fixed-length loop,
@@ -13,7 +15,7 @@ A load path is a sequence of step attempts (:mod:`jaxfric.loadpath.step`) from t
 
 Each step is a Newton solve differentiated by the implicit function theorem, and the converged plastic
 history is carried to the next step, so derivatives follow the loading path. Failures are result
-codes; :func:`jaxfric.loadpath.run.run` turns them into exceptions.
+codes; :func:`jaxfric.loadpath.run.run` turns them into exceptions. No driver calls the host.
 """
 
 from __future__ import annotations
@@ -33,7 +35,6 @@ from ..numerics.newton import SOLUTION_NAME, LinearizedProblem, NewtonOptions, n
 from ..numerics.results import Result
 from .controller import Controller, ControllerState, Outcome, StepControl
 from .model import SimState, StripModel, default_observe, initial_state, tool_positions
-from .progress import report
 from .step import (
     StepContext,
     continuation_on,
@@ -45,7 +46,8 @@ from .step import (
     unknowns,
 )
 
-__all__ = ["History", "Simulation", "simulate", "simulate_flat", "simulate_fixed"]
+__all__ = ["History", "Simulation", "LoadPathState", "Chunk", "begin", "advance", "simulate", "simulate_flat",
+           "simulate_fixed"]
 
 
 class History(eqx.Module):
@@ -90,32 +92,38 @@ def _select(pred, on_true, on_false):
     return jax.tree_util.tree_map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
 
 
-def _empty_history(n: int, row0: dict) -> History:
-    def buffer(a):
-        a = jnp.asarray(a)
-        return jnp.zeros((n,) + a.shape, a.dtype).at[0].set(a)
+def _buffer(n: int, like):
+    """``n`` rows shaped like the pytree ``like``, zero."""
+    return jax.tree_util.tree_map(lambda a: jnp.zeros((n,) + jnp.shape(a), jnp.asarray(a).dtype), like)
 
+
+def _empty_history(n: int, row0: dict, filled: bool = True) -> History:
+    """History buffers of ``n`` rows; row 0 holds the initial state's observation ``row0`` when ``filled``
+    (a whole run's history), else no row is filled (a chunk's; ``row0`` gives the shapes only)."""
+    observed = _buffer(n, row0)
+    if filled:
+        observed = jax.tree_util.tree_map(lambda b, a: b.at[0].set(a), observed, row0)
     return History(time=jnp.zeros(n), phase=jnp.zeros(n, jnp.int32),
                    newton_iters=jnp.zeros(n, jnp.int32), cutbacks=jnp.zeros(n, jnp.int32),
                    augmentations=jnp.zeros(n, jnp.int32), solver_stats=jnp.zeros((n, 3), jnp.int32),
-                   observed=jax.tree_util.tree_map(buffer, row0), n_rows=jnp.array(1, jnp.int32))
+                   observed=observed, n_rows=jnp.array(1 if filled else 0, jnp.int32))
+
+
+def _put(buf, row, pred, value):
+    """``buf`` with row ``row`` set to ``value`` when ``pred``."""
+    return buf.at[row].set(jnp.where(pred, value, buf[row]))
 
 
 def _record(h: History, row, pred, state: SimState, iters, cuts, augmentations, stats, observed) -> History:
     """Write row ``row`` when ``pred``; leave the buffers unchanged otherwise."""
     def put(buf, value):
-        return buf.at[row].set(jnp.where(pred, value, buf[row]))
+        return _put(buf, row, pred, value)
 
     return History(time=put(h.time, state.time), phase=put(h.phase, state.phase),
                    newton_iters=put(h.newton_iters, iters), cutbacks=put(h.cutbacks, cuts),
                    augmentations=put(h.augmentations, augmentations), solver_stats=put(h.solver_stats, stats),
                    observed=jax.tree_util.tree_map(put, h.observed, observed),
                    n_rows=jnp.where(pred, row + 1, h.n_rows))
-
-
-def _report(row, t, iters, cuts, snapshot, model, state) -> None:
-    extra = () if snapshot is None else (snapshot(model, state),)
-    jax.debug.callback(report, row, t, iters, cuts, *extra)
 
 
 # ---- drivers --------------------------------------------------------------------------------------
@@ -145,14 +153,47 @@ class _Predictor(eqx.Module):
                           dt=jnp.where(ok, new.time - old.time, self.dt))
 
 
-class _Loop(eqx.Module):
-    """Carry of the adaptive load loop: the converged state, the predictor, the controller's state and
-    the history buffers."""
+class LoadPathState(eqx.Module):
+    """Where an adaptive load path stands after an accepted step or a failed attempt: everything the
+    loop carries from one attempt to the next, so that a run continued from it (:func:`advance`) is the
+    run that never stopped, bit for bit.
+
+    Attributes:
+        state: the last converged state.
+        predictor: the secant predictor (the last accepted increment).
+        ctrl: the step controller's state (increment, cuts, result code: ``Result.CONTINUE`` while the
+            load path goes on).
+        rows: () int32 history rows so far (1 + accepted steps).
+    """
 
     state: SimState
     predictor: _Predictor
     ctrl: ControllerState
+    rows: jax.Array
+
+
+class Chunk(eqx.Module):
+    """The rows that one :func:`advance` (or :func:`begin`) accepted, in buffers of a fixed size.
+
+    Attributes:
+        history: rows 0..history.n_rows-1 are filled; they are the run's history rows
+            ``first, first + 1, ...``.
+        snapshots: ``snapshot(model, state)`` per filled row (leading axis: buffer row), or None.
+        first: () int32 the run's history row of the chunk's row 0.
+    """
+
     history: History
+    snapshots: Any
+    first: jax.Array
+
+
+class _Loop(eqx.Module):
+    """Carry of the adaptive load loop: where the load path stands, and the buffers of the rows it
+    records (a whole run's from row 0, or one chunk's), with the snapshots of a chunk's rows."""
+
+    path: LoadPathState
+    history: History
+    snapshots: Any = None
 
 
 def _controller(model: StripModel, control: StepControl) -> Controller:
@@ -164,62 +205,123 @@ def _controller(model: StripModel, control: StepControl) -> Controller:
     return Controller.build(model.phases, control, on, has_line_search, n_stages)
 
 
-def _init_loop(model: StripModel, ctrl: Controller, observe: Callable) -> _Loop:
+def _start(model: StripModel, ctrl: Controller) -> LoadPathState:
     state0 = initial_state(model)
-    return _Loop(state=state0, predictor=_Predictor.empty(state0), ctrl=ctrl.init(state0.u, tool_positions(state0)),
-                 history=_empty_history(ctrl.n_buffer + 1, observe(model, state0)))
+    return LoadPathState(state=state0, predictor=_Predictor.empty(state0),
+                         ctrl=ctrl.init(state0.u, tool_positions(state0)), rows=jnp.array(1, jnp.int32))
 
 
-def _next_attempt(ctrl: Controller, c: _Loop):
+def _init_loop(model: StripModel, ctrl: Controller, observe: Callable) -> _Loop:
+    path = _start(model, ctrl)
+    return _Loop(path=path, history=_empty_history(ctrl.n_buffer + 1, observe(model, path.state)))
+
+
+def _next_attempt(ctrl: Controller, p: LoadPathState):
     """The next attempt's target time, phase and Newton starting point (u, q)."""
-    t_try, phase = ctrl.target(c.ctrl, c.state.time)
-    guess = c.predictor.guess(c.state, t_try - c.state.time, phase, retry=c.ctrl.cuts > 0)
-    return t_try, phase, ctrl.start(c.ctrl, guess)
+    t_try, phase = ctrl.target(p.ctrl, p.state.time)
+    guess = p.predictor.guess(p.state, t_try - p.state.time, phase, retry=p.ctrl.cuts > 0)
+    return t_try, phase, ctrl.start(p.ctrl, guess)
 
 
 def _after_attempt(model: StripModel, ctrl: Controller, c: _Loop, sol: StepSolution, new_state: SimState, t_try,
-                   observe: Callable, progress: bool, snapshot: Callable | None) -> _Loop:
-    """The loop after an attempt: the step recorded (and reported) if accepted, the controller adapted."""
+                   observe: Callable, snapshot: Callable | None = None) -> _Loop:
+    """The loop after an attempt: the step recorded (with its snapshot, in a chunk) if accepted, the
+    controller adapted."""
+    p = c.path
     out = Outcome(sol.code, sol.iterations, sol.hardest, sol.stats, sol.residual_norm, new_state.u,
                   tool_positions(new_state))
-    ok, iters, stats = ctrl.tally(c.ctrl, out)
-    row = c.history.n_rows
-    history = _record(c.history, row, ok, new_state, iters, c.ctrl.cuts, sol.augmentations, stats,
+    ok, iters, stats = ctrl.tally(p.ctrl, out)
+    slot = c.history.n_rows
+    history = _record(c.history, slot, ok, new_state, iters, p.ctrl.cuts, sol.augmentations, stats,
                       observe(model, new_state))
-    if progress or snapshot is not None:
-        jax.lax.cond(ok, lambda: _report(row, t_try, iters, c.ctrl.cuts, snapshot, model, new_state),
-                     lambda: None)
-    return _Loop(state=_select(ok, new_state, c.state), predictor=c.predictor.after(ok, c.state, new_state),
-                 ctrl=ctrl.adapt(c.ctrl, c.state.time, t_try, out, row), history=history)
+    snapshots = c.snapshots
+    if snapshot is not None:
+        snapshots = jax.tree_util.tree_map(lambda b, v: _put(b, slot, ok, v), snapshots, snapshot(model, new_state))
+    path = LoadPathState(state=_select(ok, new_state, p.state), predictor=p.predictor.after(ok, p.state, new_state),
+                         ctrl=ctrl.adapt(p.ctrl, p.state.time, t_try, out, p.rows),
+                         rows=p.rows + ok.astype(jnp.int32))
+    return _Loop(path=path, history=history, snapshots=snapshots)
 
 
 def _simulation(out: _Loop) -> Simulation:
-    return Simulation(history=out.history, final=out.state, code=out.ctrl.code, failed_time=out.ctrl.failed_t,
-                      residual_norm=out.ctrl.r_norm, pending_cuts=out.ctrl.cuts)
+    p = out.path
+    return Simulation(history=out.history, final=p.state, code=p.ctrl.code, failed_time=p.ctrl.failed_t,
+                      residual_norm=p.ctrl.r_norm, pending_cuts=p.ctrl.cuts)
+
+
+def _attempt_body(model: StripModel, ctrl: Controller, newton: NewtonOptions, ctx: StepContext, observe: Callable,
+                  snapshot: Callable | None):
+    """One pass of the adaptive loop: an attempt from where the load path stands, then its outcome."""
+    def body(c: _Loop) -> _Loop:
+        p = c.path
+        t_try, phase, guess = _next_attempt(ctrl, p)
+        sol, new_state = solve_step(model, p.state, phase, t_try, newton, ctx, guess=guess, search=~p.ctrl.plain,
+                                    soften=p.ctrl.stages.soft if ctrl.continuation else None)
+        return _after_attempt(model, ctrl, c, sol, new_state, t_try, observe, snapshot)
+
+    return body
 
 
 def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
-             control: StepControl = StepControl(), observe: Callable = default_observe,
-             progress: bool = False, snapshot: Callable | None = None) -> Simulation:
+             control: StepControl = StepControl(), observe: Callable = default_observe) -> Simulation:
     """Run the whole load path with adaptive steps, inside one ``lax.while_loop``.
 
-    Pure and jit-able (wrap with ``eqx.filter_jit``; :func:`jaxfric.loadpath.run.run` does); ``observe(model,
-    state) -> pytree`` is recorded at every accepted step and must be a static (hashable) function.
-    With ``progress`` a host callback reports every accepted step (see :mod:`jaxfric.loadpath.progress`);
-    with ``snapshot(model, state) -> pytree`` (static) that pytree travels with the report, so the host
-    can keep full states of chosen steps without a device buffer per step.
+    Pure and jit-able (wrap with ``eqx.filter_jit``); ``observe(model, state) -> pytree`` is recorded at
+    every accepted step and must be a static (hashable) function. :func:`begin` and :func:`advance` run
+    the same attempts in chunks.
     """
     ctx = StepContext.build(model)
     ctrl = _controller(model, control)
-
-    def body(c: _Loop) -> _Loop:
-        t_try, phase, guess = _next_attempt(ctrl, c)
-        sol, new_state = solve_step(model, c.state, phase, t_try, newton, ctx, guess=guess, search=~c.ctrl.plain,
-                                    soften=c.ctrl.stages.soft if ctrl.continuation else None)
-        return _after_attempt(model, ctrl, c, sol, new_state, t_try, observe, progress, snapshot)
-
-    out = jax.lax.while_loop(lambda c: c.ctrl.code == Result.CONTINUE, body, _init_loop(model, ctrl, observe))
+    body = _attempt_body(model, ctrl, newton, ctx, observe, None)
+    out = jax.lax.while_loop(lambda c: c.path.ctrl.code == Result.CONTINUE, body, _init_loop(model, ctrl, observe))
     return _simulation(out)
+
+
+def begin(model: StripModel, *, control: StepControl = StepControl(), observe: Callable = default_observe,
+          snapshot: Callable | None = None) -> tuple[LoadPathState, Chunk]:
+    """The start of ``model``'s adaptive load path, and its history row 0 (the initial state's
+    observation and, with ``snapshot``, its snapshot) as a chunk of one row. Jit-able."""
+    ctrl = _controller(model, control)
+    path = _start(model, ctrl)
+    history = _empty_history(1, observe(model, path.state))
+    snapshots = None if snapshot is None else jax.tree_util.tree_map(lambda a: a[None], snapshot(model, path.state))
+    return path, Chunk(history=history, snapshots=snapshots, first=jnp.array(0, jnp.int32))
+
+
+def advance(model: StripModel, path: LoadPathState, limit, *, size: int, newton: NewtonOptions = NewtonOptions(),
+            control: StepControl = StepControl(), observe: Callable = default_observe,
+            snapshot: Callable | None = None) -> tuple[LoadPathState, Chunk]:
+    """Continue the adaptive load path from ``path`` by at most ``limit`` accepted steps.
+
+    The attempts are those of :func:`simulate`, whatever the chunks: a load path advanced in chunks
+    from :func:`begin` ends where :func:`simulate` ends, and one continued from a saved
+    :class:`LoadPathState` where the uninterrupted one does. Jit-able, with ``limit`` a traced () int
+    (1 <= limit <= size) so that chunks of any length share one program.
+
+    Args:
+        model: the model whose load path ``path`` is.
+        path: where the load path stands (from :func:`begin` or a previous :func:`advance`).
+        limit: the most accepted steps in this chunk.
+        size: static, rows of the chunk's buffers (the largest ``limit``).
+        newton, control, observe: as for :func:`simulate`.
+        snapshot: static ``snapshot(model, state) -> pytree`` kept per accepted step, or None.
+
+    Returns:
+        ``(path, chunk)``: where the load path stands after the chunk (``path.ctrl.code`` is
+        ``Result.CONTINUE`` until the load path ends or fails) and the rows it accepted.
+    """
+    ctx = StepContext.build(model)
+    ctrl = _controller(model, control)
+    body = _attempt_body(model, ctrl, newton, ctx, observe, snapshot)
+    history = _empty_history(size, observe(model, path.state), filled=False)
+    snapshots = None if snapshot is None else _buffer(size, snapshot(model, path.state))
+    limit = jnp.clip(jnp.asarray(limit, jnp.int32), 1, size)
+
+    def more(c: _Loop):
+        return (c.path.ctrl.code == Result.CONTINUE) & (c.history.n_rows < limit)
+
+    out = jax.lax.while_loop(more, body, _Loop(path=path, history=history, snapshots=snapshots))
+    return out.path, Chunk(history=out.history, snapshots=out.snapshots, first=path.rows)
 
 
 def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
@@ -234,7 +336,7 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     of Newton iterations and attempts, against the sum over attempts of the slowest member's
     iterations with the nested loops (a batched pass itself still costs more than a single one:
     ``docs/results.md``, batched sweeps). Forward only (derivatives: :func:`simulate`,
-    whose steps are differentiated by the implicit function theorem); no progress reports.
+    whose steps are differentiated by the implicit function theorem).
     """
     if model.tools and model.contact is not None and not model.contact.one_newton_solve:
         raise ValueError(f"field 'contact': simulate_flat runs formulations whose step is one Newton solve "
@@ -245,35 +347,35 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
 
     def attempt(c: _Loop):
         """The next attempt of ``c``: its target time, phase and Newton start."""
-        t_try, phase, guess = _next_attempt(ctrl, c)
+        t_try, phase, guess = _next_attempt(ctrl, c.path)
         return t_try, phase, newton_start(problem0, unknowns(model, *guess), args0, newton)   # args0: shapes only
 
     def body(carry):
         c, t_try, phase, nc = carry
-        args, q_start, f_start = step_args(model, c.state, phase, t_try, ctx)
-        soft = c.ctrl.stages.soft
+        p = c.path
+        args, q_start, f_start = step_args(model, p.state, phase, t_try, ctx)
+        soft = p.ctrl.stages.soft
         if ctrl.continuation:
             args = softened_args(args, jnp.maximum(soft, 0))
-        x_ref = unknowns(model, c.state.u, tool_positions(c.state))
+        x_ref = unknowns(model, p.state.u, tool_positions(p.state))
         problem = LinearizedProblem(linearize, positions=(soft >= 0) if ctrl.continuation else False)
-        nc = newton_pass(nc, args, x_ref, problem, newton, search=~c.ctrl.plain)
+        nc = newton_pass(nc, args, x_ref, problem, newton, search=~p.ctrl.plain)
         done = nc.code != Result.CONTINUE
         sol = from_newton(newton_result(nc, problem, args))
         new_state = step_state(model, args, sol, t_try, phase, q_start, f_start)
-        c = _select(done, _after_attempt(model, ctrl, c, sol, new_state, t_try, observe, False, None), c)
+        c = _select(done, _after_attempt(model, ctrl, c, sol, new_state, t_try, observe), c)
         return _select(done, (c,) + attempt(c), (c, t_try, phase, nc))
 
-    t0, phase0, guess0 = _next_attempt(ctrl, init)
-    args0, _, _ = step_args(model, init.state, phase0, t0, ctx)
+    t0, phase0, guess0 = _next_attempt(ctrl, init.path)
+    args0, _, _ = step_args(model, init.path.state, phase0, t0, ctx)
     problem0 = LinearizedProblem(linearize)
     carry = (init, t0, phase0, newton_start(problem0, unknowns(model, *guess0), args0, newton))
-    out = jax.lax.while_loop(lambda carry: carry[0].ctrl.code == Result.CONTINUE, body, carry)[0]
+    out = jax.lax.while_loop(lambda carry: carry[0].path.ctrl.code == Result.CONTINUE, body, carry)[0]
     return _simulation(out)
 
 
 def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
-                   observe: Callable = default_observe, progress: bool = False,
-                   snapshot: Callable | None = None, checkpoint: bool = True, fresh=None) -> Simulation:
+                   observe: Callable = default_observe, checkpoint: bool = True, fresh=None) -> Simulation:
     """Run the nominal steps of the load path in a fixed-length ``lax.scan`` (no step cutting).
 
     Reverse-mode differentiable. If a step fails the state stays at the last converged step, the
@@ -310,9 +412,6 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
                                     guess=predictor.guess(state, t - state.time, p, retry=retry))
         alive = code == Result.CONTINUE
         ok = alive & (sol.code == Result.SUCCESS)
-        if progress or snapshot is not None:
-            jax.lax.cond(ok, lambda: _report(jnp.sum(times <= t), t, sol.iterations, 0, snapshot, model,
-                                             new_state), lambda: None)
         code = jnp.where(alive & ~ok, sol.code, code).astype(jnp.int32)
         failed_t = jnp.where(alive & ~ok, t, failed_t)
         row = (ok, new_state.time, new_state.phase, sol.iterations, sol.augmentations, sol.stats,

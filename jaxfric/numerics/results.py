@@ -17,6 +17,7 @@ class Result(enum.IntEnum):
     AUGMENTATIONS = 6      # the augmented Lagrangian did not reach its target gap
     LCP_FAILED = 7         # the exact contact problem of an iterate had no solution (Lemke ray)
     CONTACT_BAND = 8       # a candidate outside the proximity band of exact contact penetrates a tool
+    STOPPED = 9            # a stop request ended the run between two chunks of steps (resumable)
 
 
 _ADVICE = {

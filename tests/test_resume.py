@@ -1,0 +1,185 @@
+"""Runs in chunks: a run stopped between two chunks and resumed (in this process, from its checkpoint on
+disk, or by the command line after SIGINT and SIGTERM) is the run that never stopped, bit for bit."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import numpy as np
+import pytest
+
+import jaxfric as jf
+from jaxfric import cli, scenes
+from jaxfric.io import checkpoint, output
+from jaxfric.io.contract import check_run_dir
+from jaxfric.io.instants import instant_rows
+
+# A flat die of a few seconds' solve (24 x 2 elements, 120 draw steps): long enough to be stopped in the
+# middle, from a command line or a stop request.
+OVERRIDES = {"mesh": "24x2", "n_clamp": "4", "U_draw": "0.012", "U_fine": "0.001", "dU_fine": "0.0005",
+             "dU": "0.00003", "steady_window": "0.008,0.012"}
+ARGS = ["flat_die", "--mesh", "24x2"] + [a for k, v in OVERRIDES.items() if k != "mesh" for a in ("--set", f"{k}={v}")]
+
+
+def _scene():
+    return scenes.make("flat_die", None, "lcp_ssn", dict(OVERRIDES))
+
+
+def _run(scene, **kwargs):
+    return jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                  snapshot=scene.snapshot, progress=False, raise_on_failure=False, **kwargs)
+
+
+def _same_rows(a: dict, b: dict) -> None:
+    """Every history column but the wall time equal bit for bit."""
+    assert set(a) == set(b)
+    for key in a:
+        if key != "wall_s":
+            assert np.array_equal(np.asarray(a[key]), np.asarray(b[key])), key
+
+
+def _same_state(a, b) -> None:
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
+        assert np.array_equal(np.asarray(x), np.asarray(y))
+
+
+class _StopAfter:
+    """A stop request after ``n`` chunks."""
+
+    def __init__(self, n):
+        self.n, self.asked = n, 0
+
+    def __call__(self):
+        self.asked += 1
+        return self.asked > self.n
+
+
+@pytest.fixture(scope="module")
+def whole():
+    scene = _scene()
+    result = _run(scene)
+    assert result.converged, result.message
+    return scene, result
+
+
+def test_chunked_run_is_the_single_loop(whole):
+    """The chunks take the attempts of `simulate`, which runs the whole load path in one loop."""
+    scene, result = whole
+    sim = jax.jit(lambda m: jf.simulate(m, newton=scene.newton, control=scene.control,
+                                        observe=scene.observe))(scene.model)
+    n = int(sim.history.n_rows)
+    assert n == len(result.history["time"]) > 100
+    np.testing.assert_array_equal(np.asarray(sim.history.time[:n]), result.history["time"])
+    np.testing.assert_array_equal(np.asarray(sim.history.newton_iters[:n]), result.history["newton_iters"])
+    for key, value in sim.history.observed.items():
+        np.testing.assert_allclose(np.asarray(value[:n]), result.history[key], rtol=1e-12, atol=1e-12)
+
+
+def test_a_stopped_run_resumes_bit_for_bit_from_its_checkpoint_on_disk(whole, tmp_path):
+    """Stopped after two chunks, saved, read back and resumed: the whole run's history, final state and
+    instants' snapshots, exactly."""
+    scene, result = whole
+    stopped = _run(scene, stop=_StopAfter(2))
+    assert stopped.code == jf.Result.STOPPED and not stopped.converged
+    n = len(stopped.history["time"])
+    assert 1 < n < len(result.history["time"]) // 2 and "resumed" in stopped.message
+    checkpoint.save(str(tmp_path), stopped.checkpoint, checkpoint.configuration(scene))
+    saved, config = checkpoint.load(str(tmp_path), scene)
+    assert config == checkpoint.configuration(scene)
+    resumed = _run(scene, resume=saved)
+    assert resumed.converged
+    _same_rows(resumed.history, result.history)
+    _same_state(resumed.final, result.final)
+    for row, snap in resumed.snapshots.items():
+        _same_state(snap, result.snapshots[row])
+    with pytest.raises(jf.SimulationError, match="stopped on request"):
+        jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+               progress=False, stop=lambda: True)
+
+
+def test_kept_snapshots_write_the_contact_file_of_all_snapshots(whole, tmp_path):
+    """The rows `instant_rows` keeps as the run goes are the rows contact.npz needs at the end."""
+    scene, result = whole
+    kept = _run(scene, keep_snapshots=lambda h: instant_rows(scene.name, h))
+    assert len(kept.snapshots) < len(result.snapshots) // 10
+    output.write_run(scene, kept, str(tmp_path / "kept"), figures=False)
+    output.write_run(scene, result, str(tmp_path / "all"), figures=False)
+    with np.load(tmp_path / "kept" / "contact.npz") as a, np.load(tmp_path / "all" / "contact.npz") as b:
+        assert a.files == b.files and all(np.array_equal(a[k], b[k]) for k in a.files)
+
+
+def test_resume_with_another_configuration_is_refused_in_one_line(whole, tmp_path, capsys):
+    out = str(tmp_path / "run")
+    assert cli.main(["run", *ARGS, "--quiet", "--out", out]) == cli.EXIT_OK
+    capsys.readouterr()
+    assert cli.main(["run", *ARGS, "--set", "mu=0.2", "--quiet", "--resume", out]) == cli.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "mu" in err and "0.15" in err and "0.2" in err, err
+    assert cli.main(["run", *ARGS, "--quiet", "--resume", str(tmp_path / "none")]) == cli.EXIT_USAGE
+    assert "checkpoint.npz" in capsys.readouterr().err
+
+
+def _summary(out):
+    try:
+        with open(os.path.join(out, "summary.json")) as f:
+            return json.load(f)
+    except (OSError, ValueError):  # not written yet, or being replaced
+        return None
+
+
+def _signalled(argv, out, signum, after_steps, env):
+    """Run the command line, send ``signum`` once summary.json reports more than ``after_steps`` steps;
+    returns (exit status, stderr)."""
+    proc = subprocess.Popen([sys.executable, "-m", "jaxfric", *argv], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        summary = _summary(out)
+        if summary is not None and summary["n_steps"] > after_steps:
+            proc.send_signal(signum)
+            break
+        time.sleep(0.02)
+    _, err = proc.communicate(timeout=300)
+    return proc.returncode, err
+
+
+def test_sigterm_and_sigint_stop_the_command_line_and_resume_to_the_uninterrupted_run(tmp_path):
+    """SIGTERM, then SIGINT in the resumed run: each ends the run within a chunk with exit status 3,
+    one line saying how to resume, and a run directory that passes the contract checker with
+    converged false; the run resumed to the end writes what the uninterrupted run writes (all but the
+    times). The programs come from JAX's persistent compilation cache after the first process."""
+    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(tmp_path / "cache"),
+               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", JAX_PLATFORMS="cpu")
+    ref, out = str(tmp_path / "ref"), str(tmp_path / "run")
+    done = subprocess.run([sys.executable, "-m", "jaxfric", "run", *ARGS, "--quiet", "--out", ref],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr
+    argv = ["run", *ARGS, "--quiet", "--out", out]
+    steps = 0
+    for signum, extra in ((signal.SIGTERM, []), (signal.SIGINT, ["--resume", out])):
+        code, err = _signalled(argv + extra, out, signum, steps, env)
+        assert code == cli.EXIT_STOPPED, err
+        assert err.strip().splitlines()[-1].startswith("jaxfric: stopped at step") and "--resume" in err, err
+        assert check_run_dir(out) == []
+        summary = _summary(out)
+        assert not summary["converged"] and "stopped on request" in summary["message"]
+        assert steps < summary["n_steps"] < 200
+        steps = summary["n_steps"]
+    done = subprocess.run([sys.executable, "-m", "jaxfric", *argv, "--resume", out], capture_output=True,
+                          text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert check_run_dir(out) == []
+
+    def table(path):
+        with open(os.path.join(path, "history.csv")) as f:
+            rows = [line.split(",") for line in f.read().splitlines()]
+        wall = rows[0].index("wall_s")
+        return [r[:wall] + r[wall + 1:] for r in rows]
+
+    assert table(out) == table(ref)
+    with np.load(os.path.join(out, "contact.npz")) as a, np.load(os.path.join(ref, "contact.npz")) as b:
+        assert a.files == b.files and all(np.array_equal(a[k], b[k]) for k in a.files)
