@@ -83,7 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", action=_Once, metavar="DIR", help="run directory (default runs/SCENE/VARIANT/ALGORITHM)")
     run.add_argument("--resume", action=_Once, metavar="DIR",
                      help="continue the stopped run in DIR from its last checkpoint (same scene, variant, "
-                          "algorithm and settings; the run directory stays DIR)")
+                          "algorithm and settings, except a longer stroke, which extends a stopped or "
+                          "finished run; the run directory stays DIR)")
     run.add_argument("--tag", action=_Once,
                      help="study tag recorded in summary.json (regex [A-Za-z0-9][A-Za-z0-9._+-]*)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -363,20 +364,39 @@ def _resume_command(argv: list, out: str) -> str:
 
 
 def _resume(args, scene, out: str):
-    """The checkpoint to resume from (None without --resume); UsageError naming what does not fit."""
+    """The checkpoint to resume from (None without --resume): the saved one, or, when the command line
+    asks for a longer stroke and nothing else differs, the saved one extended to it
+    (:func:`jaxfric.loadpath.run.extend_stroke`). UsageError naming what does not fit."""
     if args.resume is None:
         return None
+    import numpy as np
+
+    from . import scenes
     from .io import checkpoint
+    from .loadpath.run import extend_stroke
 
     try:
         saved, config = checkpoint.load(out, scene)
     except (OSError, ValueError) as err:
         raise UsageError(f"--resume {out}: {err}") from None
-    diff = checkpoint.configuration_difference(config, checkpoint.configuration(scene))
+    field = scenes.SCENES[scene.name].STROKE_FIELD
+    old, new = config["parameters"]["config"][field], float(getattr(scene.config, field))
+    reference = scene
+    if old != new:  # the same run but for its stroke?
+        reference = scenes.make(scene.name, scene.variant, scene.algorithm, {**_scene_overrides(args), field: old})
+    diff = checkpoint.configuration_difference(config, checkpoint.configuration(reference))
     if diff is not None:
         raise UsageError(f"--resume {out}: the configuration differs from the checkpoint's in {diff}; a run "
-                         f"resumes with the settings it was started with")
-    return saved
+                         f"resumes with the settings it was started with (its stroke, {field}, may grow)")
+    if old == new:
+        return saved
+    if new < old:
+        raise UsageError(f"--resume {out}: {field} = {new:g} is shorter than the checkpoint's {old:g}; a stroke "
+                         f"can only be extended")
+    if not np.array_equal(np.asarray(reference.model.mesh.nodes), np.asarray(scene.model.mesh.nodes)):
+        raise UsageError(f"--resume {out}: {field} = {new:g} moves this scene's mesh (its length follows the "
+                         f"stroke); the run cannot be extended, only run again")
+    return extend_stroke(saved, scene.model, old / new, control=scene.control)
 
 
 def _run(args) -> int:

@@ -22,7 +22,15 @@ from jaxfric.io.instants import instant_rows
 # middle, from a command line or a stop request.
 OVERRIDES = {"mesh": "24x2", "n_clamp": "4", "U_draw": "0.012", "U_fine": "0.001", "dU_fine": "0.0005",
              "dU": "0.00003", "steady_window": "0.008,0.012"}
-ARGS = ["flat_die", "--mesh", "24x2"] + [a for k, v in OVERRIDES.items() if k != "mesh" for a in ("--set", f"{k}={v}")]
+
+
+def _args(**changes) -> list:
+    """The command line's scene arguments of OVERRIDES with ``changes``."""
+    values = {**OVERRIDES, **changes}
+    return ["flat_die", "--mesh", values.pop("mesh")] + [a for k, v in values.items() for a in ("--set", f"{k}={v}")]
+
+
+ARGS = _args()
 
 
 def _scene():
@@ -116,11 +124,41 @@ def test_resume_with_another_configuration_is_refused_in_one_line(whole, tmp_pat
     out = str(tmp_path / "run")
     assert cli.main(["run", *ARGS, "--quiet", "--out", out]) == cli.EXIT_OK
     capsys.readouterr()
-    assert cli.main(["run", *ARGS, "--set", "mu=0.2", "--quiet", "--resume", out]) == cli.EXIT_USAGE
+    assert cli.main(["run", *_args(mu="0.2"), "--quiet", "--resume", out]) == cli.EXIT_USAGE
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "mu" in err and "0.15" in err and "0.2" in err, err
     assert cli.main(["run", *ARGS, "--quiet", "--resume", str(tmp_path / "none")]) == cli.EXIT_USAGE
     assert "checkpoint.npz" in capsys.readouterr().err
+
+
+def _table(path):
+    return np.genfromtxt(os.path.join(path, "history.csv"), delimiter=",", names=True, dtype=None, encoding="utf-8")
+
+
+def test_resume_with_a_longer_stroke_extends_the_run(whole, tmp_path, capsys):
+    """--resume with --set U_draw larger continues the finished run from its last state to the longer
+    stroke: the rows before keep their displacements and forces exactly, and the extended run follows the
+    longer run made from the start (whose increments differ: the schedule divides each stroke into equal
+    steps) to 1e-3 of the force, ending on the same forces to round-off (the sliding die under constant
+    force). A shorter stroke is refused."""
+    out, ref = str(tmp_path / "run"), str(tmp_path / "ref")
+    longer = _args(U_draw="0.02")
+    assert cli.main(["run", *ARGS, "--quiet", "--out", out]) == cli.EXIT_OK
+    before = _table(out)
+    assert cli.main(["run", *longer, "--quiet", "--resume", out]) == cli.EXIT_OK
+    assert cli.main(["run", *longer, "--quiet", "--out", ref]) == cli.EXIT_OK
+    assert check_run_dir(out) == []
+    capsys.readouterr()
+    a, b = _table(out), _table(ref)
+    for name in ("drawing_displacement", "drawing_force", "clamping_force", "tool_position"):
+        assert np.array_equal(a[name][:len(before)], before[name]), name
+        np.testing.assert_allclose(a[name][-1], b[name][-1], rtol=1e-9)
+    assert a["drawing_displacement"][-1] == 0.02 and len(a) > len(before) + 200
+    draw = b["drawing_displacement"] > 0.0012
+    curve = np.interp(b["drawing_displacement"][draw], a["drawing_displacement"], a["drawing_force"])
+    assert np.max(np.abs(curve - b["drawing_force"][draw])) < 1e-3 * np.max(b["drawing_force"])
+    assert cli.main(["run", *_args(U_draw="0.015"), "--quiet", "--resume", out]) == cli.EXIT_USAGE
+    assert "can only be extended" in capsys.readouterr().err
 
 
 def _summary(out):

@@ -25,10 +25,10 @@ from ..numerics.results import Result, SimulationError, describe
 from .controller import StepControl
 from .model import SimState, StripModel, default_observe
 from .progress import ProgressMonitor
-from .simulate import Chunk, History, LoadPathState, Simulation, advance, begin
+from .simulate import Chunk, History, LoadPathState, Simulation, advance, begin, restart
 
-__all__ = ["RunResult", "Record", "Checkpoint", "run", "MemoryBudgetError", "available_memory", "CHUNK_ROWS",
-           "CHUNK_SECONDS"]
+__all__ = ["RunResult", "Record", "Checkpoint", "run", "extend_stroke", "MemoryBudgetError", "available_memory",
+           "CHUNK_ROWS", "CHUNK_SECONDS"]
 
 #: Rows of a chunk's buffers: the most accepted steps one chunk can take.
 CHUNK_ROWS = 32
@@ -313,6 +313,35 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     if not result.converged and raise_on_failure:
         raise SimulationError(result.message, result.code, result)
     return result
+
+
+def extend_stroke(checkpoint: Checkpoint, model: StripModel, scale: float, *,
+                  control: StepControl = StepControl()) -> Checkpoint:
+    """``checkpoint`` continued on ``model``, whose last phase is the checkpoint's stretched ``1 / scale``
+    times (a longer stroke: S_new = S_old / scale, 0 < scale <= 1), the rest of the load path unchanged.
+
+    The last phase's pseudo-times k + s (k its index, s in [0, 1]) become k + s scale, in the history
+    rows and the state, so that every row keeps its displacement; the step controller restarts at the
+    state with the nominal increment (:func:`jaxfric.loadpath.simulate.restart`). The continued run is the
+    longer run from that state on, not bit for bit the longer run from the start: the increments it
+    took before differ from the longer schedule's by round-off, and the controller restarts fresh.
+
+    Raises:
+        ValueError: ``scale`` not in (0, 1] (a shorter stroke cannot continue a run).
+    """
+    if not 0.0 < float(scale) <= 1.0:
+        raise ValueError(f"field 'scale' must be in (0, 1] (the new stroke at least the old one), got {scale!r}")
+    last = model.n_phases - 1
+    record = checkpoint.record
+    cols = dict(record.columns())
+    time = np.asarray(cols["time"], np.float64)
+    cols["time"] = np.where(time > last, last + (time - last) * float(scale), time)
+    record = dataclasses.replace(record, parts=[cols], snapshots=dict(record.snapshots))
+    path = jax.tree_util.tree_map(jnp.asarray, checkpoint.path)
+    t = float(path.state.time)
+    t_new = last + (t - last) * float(scale) if t > last else t
+    path = eqx.filter_jit(lambda m, p, s: restart(m, p, s, control=control))(model, path, t_new)
+    return Checkpoint(path=jax.device_get(path), record=record)
 
 
 def _history(model, record: Record) -> dict:

@@ -46,8 +46,8 @@ from .step import (
     unknowns,
 )
 
-__all__ = ["History", "Simulation", "LoadPathState", "Chunk", "begin", "advance", "simulate", "simulate_flat",
-           "simulate_fixed"]
+__all__ = ["History", "Simulation", "LoadPathState", "Chunk", "begin", "advance", "restart", "simulate",
+           "simulate_flat", "simulate_fixed"]
 
 
 class History(eqx.Module):
@@ -322,6 +322,22 @@ def advance(model: StripModel, path: LoadPathState, limit, *, size: int, newton:
 
     out = jax.lax.while_loop(more, body, _Loop(path=path, history=history, snapshots=snapshots))
     return out.path, Chunk(history=out.history, snapshots=out.snapshots, first=path.rows)
+
+
+def restart(model: StripModel, path: LoadPathState, time, *, control: StepControl = StepControl()) -> LoadPathState:
+    """``path``'s converged state at pseudo-time ``time`` of ``model``'s load path, with the step controller
+    started afresh there: the nominal increment of the schedule segment that ``time`` opens or lies in, no
+    cut, no secant prediction. This is how a run continues on a changed schedule (a longer last phase:
+    :func:`jaxfric.loadpath.run.extend_stroke`), where the controller's increments of the old one mean
+    other displacements. Jit-able."""
+    ctrl = _controller(model, control)
+    state = path.state
+    time = jnp.asarray(time, state.time.dtype)
+    seg = jnp.minimum(jnp.searchsorted(ctrl.seg_end, time, side="right"), ctrl.seg_end.shape[0] - 1)
+    fresh = ctrl.init(state.u, tool_positions(state))
+    fresh = eqx.tree_at(lambda c: (c.seg, c.dt), fresh, (seg.astype(jnp.int32), ctrl.seg_dt[seg]))
+    state = eqx.tree_at(lambda s: s.time, state, time)
+    return LoadPathState(state=state, predictor=_Predictor.empty(state), ctrl=fresh, rows=path.rows)
 
 
 def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
