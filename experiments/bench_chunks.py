@@ -2,7 +2,7 @@
 chunks with the command line's partial writes (:func:`jaxfric.run`), against the same load path in one
 compiled loop (:func:`jaxfric.simulate`), alternated in one process so that both see the same machine.
 
-    python experiments/bench_chunks.py [--repeats 2] [--mesh 300x3]
+    python experiments/bench_chunks.py [--repeats 4] [--mesh 300x3] [--u-draw 70]
 
 Writes ``experiments/results/bench_chunks.csv``: per run, the solve wall time and, for the chunked runs,
 the chunks, the host's time between them and the time of the partial writes.
@@ -61,11 +61,12 @@ def single(scene, program) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=4)
+    parser.add_argument("--u-draw", type=float, default=70.0, help="the drawing stroke (mm)")
     parser.add_argument("--mesh", default="300x3")
     parser.add_argument("--variant", default="mu017")
     args = parser.parse_args(argv)
-    scene = scenes.make("nine", args.variant, "lcp_ssn", {"mesh": args.mesh})
+    scene = scenes.make("nine", args.variant, "lcp_ssn", {"mesh": args.mesh, "U_draw": args.u_draw})
     program = eqx.filter_jit(lambda m: jf.simulate(m, newton=scene.newton, control=scene.control,
                                                    observe=scene.observe)).lower(scene.model).compile()
     rows = []
@@ -78,6 +79,11 @@ def main(argv=None) -> int:
     os.makedirs(RESULTS, exist_ok=True)
     path = os.path.join(RESULTS, "bench_chunks.csv")
     keys = ["repeat", "driver", "steps", "solve_s", "chunk_s", "host_s", "write_s", "chunks"]
+    one = [r["solve_s"] for r in rows if r["driver"] == "one loop"]
+    chunks = [r["solve_s"] for r in rows if r["driver"] == "chunks"]
+    host = sum(r["host_s"] for r in rows if r["driver"] == "chunks") / sum(chunks)
+    print(f"solve: chunks / one loop = {sum(chunks) / sum(one):.4f} (pairs: "
+          + ", ".join(f"{c / o:.3f}" for c, o in zip(chunks, one)) + f"); host time between chunks {100 * host:.2f} %")
     with open(path, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=keys)
         writer.writeheader()

@@ -1,13 +1,15 @@
 """Contact with rigid tools: global Coulomb sliding, force-driven tool balance, penalty -> augmented
 Lagrangian, penetration law, Hertz, capstan, objectivity, derivatives, bad input."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jaxfric as jf
-from jaxfric.contact.formulations import AugmentedLagrangian, Complementarity, Penalty
+from jaxfric.contact.formulations import AugmentedLagrangian, Complementarity, Penalty, StiffPenalty
 from jaxfric.contact.rigid import Force, Move, RigidTool
 from jaxfric.contact.tools import Tool
 from models import STEEL, flat_die_strip, wrapped_strip
@@ -218,6 +220,34 @@ def test_jvp_of_sliding_force_with_respect_to_mu():
     _, tangent = with_tangent(jnp.asarray(0.2))
     h = 1e-5
     fd = (with_tangent(jnp.asarray(0.2 + h))[0] - with_tangent(jnp.asarray(0.2 - h))[0]) / (2 * h)
+    np.testing.assert_allclose(float(tangent), float(fd), rtol=1e-6)
+
+
+@pytest.mark.slow  # 2 min: the exact solver compiled with the penalty's derivative
+def test_stiff_penalty_finishes_where_the_plain_law_does_not_with_its_derivative():
+    """The sliding capstan at eps_n = 1e9 (5e3 times the sheet's modulus): the plain penalty law does
+    not finish; StiffPenalty (a failed attempt solved again from exact contact) does, its exit tension
+    within 1e-5 of exact contact's (the penalty's elastic slip and penetration are 1e-9 of the forces
+    per N/mm), and its forward derivative in mu equals central differences. No tangent reaches the
+    exact solve, which has none."""
+
+    def exit_tension(law, mu):
+        model, _, d2 = capstan_model(mu=mu)
+        model = dataclasses.replace(model, contact=law(mu))
+        sim = jf.simulate(model, newton=TIGHT)
+        return sim.history.observed["reaction_right"][sim.history.n_rows - 1] @ jnp.asarray(d2), sim.code
+
+    plain = jax.jit(lambda mu: exit_tension(lambda m: Penalty(1e9, 1e9 * m), mu))(jnp.asarray(0.2))
+    assert int(plain[1]) != 0
+    exact = jax.jit(lambda mu: exit_tension(lambda m: Complementarity("ssn"), mu))(jnp.asarray(0.2))
+    assert int(exact[1]) == 0
+    with_tangent = jax.jit(lambda mu: jax.jvp(lambda m: exit_tension(lambda k: StiffPenalty(1e9, 1e9 * k), m),
+                                              (mu,), (jnp.ones_like(mu),)))
+    (value, code), (tangent, _) = with_tangent(jnp.asarray(0.2))
+    assert int(code) == 0
+    np.testing.assert_allclose(float(value), float(exact[0]), rtol=1e-5)
+    h = 1e-5
+    fd = (with_tangent(jnp.asarray(0.2 + h))[0][0] - with_tangent(jnp.asarray(0.2 - h))[0][0]) / (2 * h)
     np.testing.assert_allclose(float(tangent), float(fd), rtol=1e-6)
 
 

@@ -18,7 +18,7 @@ counters are recorded). Adding a formulation is a subclass that answers the same
 from __future__ import annotations
 
 import abc
-from typing import ClassVar, NamedTuple
+from typing import ClassVar, NamedTuple, cast
 
 import equinox as eqx
 import jax
@@ -30,12 +30,13 @@ from ..numerics._checks import check_int, check_nonnegative, is_concrete
 from ..numerics.newton import NewtonOptions, newton_solve
 from ..numerics.results import Result
 from .exact import exact_solve
-from .rigid import max_penetration, split_pairs
+from .rigid import max_penetration, pair_nodes, split_pairs
 from .status import STICK
 from .system import StepArgs, linearize, residual
 
 __all__ = ["ALGORITHMS", "DIFFERENTIABLE_ALGORITHMS", "AbstractContactFormulation", "Penalty",
-           "AugmentedLagrangian", "Complementarity", "StepSolution", "formulation", "from_newton", "newton_step"]
+           "AugmentedLagrangian", "Complementarity", "StepSolution", "formulation", "from_newton", "newton_step",
+           "StiffPenalty", "STIFF_PENALTY_RATIO"]
 
 
 class StepSolution(NamedTuple):
@@ -171,6 +172,52 @@ class Penalty(_Regularised):
         return eqx.tree_at(lambda law: (law.eps_n, law.eps_t), self, (self.eps_n * scale, self.eps_t * scale))
 
 
+class StiffPenalty(Penalty):
+    """The penalty law for penalties far stiffer than a scene's own (:func:`formulation` picks it above
+    ``stiff_above``: the scenes give ``STIFF_PENALTY_RATIO`` times their spec penalty). An attempt is
+    the plain law's Newton solve; where that fails, the step is solved with exact contact
+    (:class:`Complementarity`, semismooth Newton) and the penalty's Newton solve starts again from there,
+    every pair's node pushed R_N / eps_n into its tool, where the penalty law gives the exact normal
+    force. The solution is the penalty law's; only Newton's starting
+    point changes (no derivative flows through it: the step is differentiated at its converged solution,
+    as for :class:`Penalty`). Steps the plain law takes cost what they cost with it.
+
+    Reason: at eps_n >> E a Newton iterate that moves a node by the sheet's compliance across a tool
+    surface meets a force eps_n times the overshoot; on a curved tool a pair then 2-cycles between open
+    and a spurious force, and steps are cut down to nothing (the Nine at eps_n = 1e9: thousands of cut
+    steps, the history buffer full in the clamp). From the exact solution the active set is right and the
+    normal forces within O(R_N / eps_n) of the penalty's, so the penalty's Newton converges in a few
+    iterations.
+    """
+
+    one_newton_solve: ClassVar[bool] = False
+
+    def __init__(self, eps_n, eps_t, smoothing=0.0, smooth: bool | None = None):
+        self._set_penalties(eps_n, eps_t, smoothing, smooth)
+
+    def solve_step(self, args, x0, x_ref, newton, search=True, stage=False) -> StepSolution:
+        plain = newton_step(args, x0, x_ref, newton, search, stage)
+
+        def from_exact():
+            # No tangent reaches the exact solve (which has no derivative): only the penalty's carries one.
+            frozen = jax.tree_util.tree_map(lambda a: jax.lax.stop_gradient(a) if eqx.is_array(a) else a,
+                                            (args, x0, x_ref))
+            exact = from_newton(*exact_solve(*frozen, options=newton, law=Complementarity("ssn")))
+            nodes = pair_nodes(args.contact.tools)
+            _, _, c = cast(tuple, exact.aux)   # (f_int, point states, contact output)
+            push = -(c["rn"] / self.eps_n)[:, None] * c["normal"]   # gap -R_N / eps_n on every closed pair
+            start = exact.x.at[2 * nodes].add(push[:, 0]).at[2 * nodes + 1].add(push[:, 1])
+            start = jnp.where(exact.code == Result.SUCCESS, start, jax.lax.stop_gradient(x0))
+            sol = newton_step(args, start, x_ref, newton, search, stage)
+            return sol._replace(iterations=plain.iterations + exact.iterations + sol.iterations,
+                                hardest=jnp.maximum(exact.iterations, sol.iterations))
+
+        def as_is():
+            return plain._replace(hardest=plain.iterations)
+
+        return jax.lax.cond(plain.code == Result.SUCCESS, as_is, from_exact)
+
+
 class AugmentedLagrangian(_Regularised):
     """Augmented Lagrangian (spec 1.6, paper eq. 20): the penalty law with multipliers, updated
     between converged Newton solves (lambda <- R, an Uzawa iteration) until the largest penetration
@@ -294,6 +341,11 @@ class Complementarity(AbstractContactFormulation):
         return from_newton(sol, stats)
 
 
+#: A scene's penalty law is :class:`StiffPenalty` above this many times its spec penalty: the Nine's,
+#: the bead's and the blankholder's 1e5 N/mm (0.5 E) then from 1e7, the flat die's 1e9 (whose straight
+#: die the plain law holds at 1e9 and 1e12 with eps_T = eps_N) from 1e11.
+STIFF_PENALTY_RATIO = 100.0
+
 # The algorithm identifiers (outputs spec section 1) and the formulation class of each.
 _CLASSES: dict[str, type[AbstractContactFormulation]] = {
     "penalty": Penalty, "auglag": AugmentedLagrangian, "lcp_lemke": Complementarity, "lcp_ssn": Complementarity}
@@ -302,15 +354,17 @@ DIFFERENTIABLE_ALGORITHMS = tuple(name for name, cls in _CLASSES.items() if cls.
 
 
 def formulation(algorithm: str, eps_n, eps_t, target_gap, band: int | None = None, smoothing=0.0,
-                max_augmentations: int = 20) -> AbstractContactFormulation:
+                max_augmentations: int = 20, stiff_above=None) -> AbstractContactFormulation:
     """The contact formulation of an algorithm identifier (outputs spec section 1); ``smoothing`` > 0
     (N/mm) smooths the penalty and AL laws (:mod:`jaxfric.contact.laws`); exact contact has none.
-    ``max_augmentations`` is the AL's limit per step attempt (spec 1.6: 20)."""
+    ``max_augmentations`` is the AL's limit per step attempt (spec 1.6: 20). A concrete penalty eps_n
+    above ``stiff_above`` (N/mm per mm; None: never) gets :class:`StiffPenalty`."""
     if algorithm in ("lcp_lemke", "lcp_ssn") and smoothing != 0:
         raise ValueError(f"field 'smoothing' = {smoothing!r} applies to algorithms penalty and auglag only; "
                          f"exact contact ({algorithm}) has no smoothed law")
     if algorithm == "penalty":
-        return Penalty(eps_n, eps_t, smoothing)
+        stiff = stiff_above is not None and is_concrete(eps_n) and float(eps_n) > float(stiff_above)
+        return (StiffPenalty if stiff else Penalty)(eps_n, eps_t, smoothing)
     if algorithm == "auglag":
         return AugmentedLagrangian(eps_n, eps_t, target_gap, max_augmentations, smoothing=smoothing)
     if algorithm == "lcp_lemke":

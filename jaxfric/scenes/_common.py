@@ -14,7 +14,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..contact.formulations import ALGORITHMS
+from ..contact.formulations import ALGORITHMS, STIFF_PENALTY_RATIO
 from ..contact.rigid import max_penetration, split_pairs
 from ..contact.status import SLIP
 from ..contact.tools import GAP_OPEN, Arc, Segment, Tool
@@ -25,7 +25,7 @@ from ..loadpath.model import reactions
 __all__ = ["spec_field", "check_config", "check_steady_window", "check_variant", "check_algorithm", "pair_forces",
            "tool_resultants", "contact_columns", "phase_progress", "ContactSnapshot", "n_steps",
            "schedule_entry", "friction_table", "material_dict", "config_dict", "end_reaction",
-           "resolve_eps_t", "step_control"]
+           "resolve_eps_t", "step_control", "stiff_penalty"]
 
 
 def spec_field(default, unit: str, doc: str):
@@ -197,6 +197,14 @@ def end_reaction(model, state, nodes) -> jnp.ndarray:
     """(2,) sum of the reactions f_int - f_c over ``nodes`` (N/mm): the force the support exerts on
     the sheet there."""
     return jnp.sum(reactions(model, state)[np.asarray(nodes)], axis=0)
+
+
+def stiff_penalty(config) -> float:
+    """The penalty (N/mm per mm) above which the scene's penalty law starts a failed attempt again from
+    exact contact (:class:`jaxfric.contact.formulations.StiffPenalty`): ``STIFF_PENALTY_RATIO`` times the
+    scene's spec penalty (its config's default eps_n)."""
+    spec: float = next(f.default for f in dataclasses.fields(config) if f.name == "eps_n")  # type: ignore[assignment]
+    return STIFF_PENALTY_RATIO * spec
 
 
 def phase_progress(state, phase: int) -> jnp.ndarray:

@@ -206,7 +206,7 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
 
     eps_t = cm.resolve_eps_t(config, max(config.mu_clamp, config.mu_roller))
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
-                      config.max_augmentations)
+                      config.max_augmentations, stiff_above=cm.stiff_penalty(config))
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=tools, contact=law, formulation=config.element)
     observe = BeadObserve(jaw=tuple(int(a) for a in jaw), tail=int(mesh.node_index(0, 0)), theta=theta,

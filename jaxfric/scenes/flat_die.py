@@ -154,7 +154,7 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
 
     eps_t = cm.resolve_eps_t(config, config.mu)
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
-                      config.max_augmentations)
+                      config.max_augmentations, stiff_above=cm.stiff_penalty(config))
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=(tool,), contact=law, formulation=config.element)
     observe = FlatDieObserve(right=tuple(int(a) for a in mesh.right), U_draw=float(config.U_draw))

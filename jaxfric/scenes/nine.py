@@ -259,7 +259,7 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
     mu_max = max(mu.values())
     eps_t = cm.resolve_eps_t(config, mu_max)
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
-                      config.max_augmentations)
+                      config.max_augmentations, stiff_above=cm.stiff_penalty(config))
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
     model = StripModel(mesh, material, phases, tools=tuple(tools), contact=law, formulation=config.element)
     observe = NineObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)),
