@@ -340,13 +340,10 @@ class _PartialWriter:
         start = time.perf_counter()
         if start < self.due:
             return
-        from .io import checkpoint, output
+        from .io import output
 
         try:
-            result = partial()
-            output.write_run(self.scene, result, self.out, tag=self.tag, figures=False)
-            if result.checkpoint is not None:
-                checkpoint.save(self.out, result.checkpoint, self.config)
+            _write(self.scene, partial(), self.out, self.tag, self.config, figures=False)
         except (OSError, output.OutputError) as err:
             if not self.failed:
                 print(f"note: the run directory could not be updated during the run: {_one_line(err)}",
@@ -354,6 +351,16 @@ class _PartialWriter:
             self.failed = True
         cost = time.perf_counter() - start
         self.due = time.perf_counter() + max(WRITE_INTERVAL_S, 50.0 * cost)
+
+
+def _write(scene, result, out: str, tag, config: dict, **options) -> dict:
+    """The run directory of ``result`` (:func:`jaxfric.io.output.write_run` with ``options``) and its
+    checkpoint; returns the summary."""
+    from .io import checkpoint, output
+
+    if result.checkpoint is not None:
+        checkpoint.save(out, result.checkpoint, config)
+    return output.write_run(scene, result, out, tag=tag, **options)
 
 
 def _resume_command(argv: list, out: str) -> str:
@@ -444,9 +451,7 @@ def _run(args) -> int:
         except ValueError as err:
             print(f"note: {err}")
     try:
-        if result.checkpoint is not None:
-            checkpoint.save(out, result.checkpoint, config)
-        summary = output.write_run(scene, result, out, tag=args.tag, **extra)
+        summary = _write(scene, result, out, args.tag, config, **extra)
     except (OSError, output.OutputError) as err:
         return _error(err, EXIT_FAILED)
     if result.code == Result.STOPPED:

@@ -348,7 +348,7 @@ def _history(model, record: Record) -> dict:
     """``RunResult.history`` of the rows in ``record``."""
     cols = record.columns()
     history = {k: cols[k] for k in ("time", "phase")}
-    history["phase_name"] = np.array([model.phases[int(p)].name for p in cols["phase"]])
+    history["phase_name"] = np.array([p.name for p in model.phases])[cols["phase"]]
     history.update({k: cols[k] for k in ("newton_iters", "cutbacks", "augmentations")})
     if model.tools and model.contact is not None and model.contact.solver_stats:
         history.update({name: cols["solver_stats"][:, k] for k, name in enumerate(model.contact.solver_stats)})
