@@ -8,11 +8,18 @@ to round-off, so the suite asks for them. The flag is probed in a child process 
 XLA that no longer knows it aborts the process at start-up; it is then left out. Flags already in
 ``XLA_FLAGS`` are kept, and ``JAXFRIC_TEST_XLA_DEFAULTS=1`` runs the suite with XLA's default emitters
 (what ``jaxfric`` itself uses: the package never sets XLA flags).
+
+The suite's processes (pytest-xdist's two workers and the command lines that tests start) share one JAX
+persistent compilation cache, a fresh folder per session (removed at its end), so that a program
+compiled in one process is read from disk in the others (``JAX_COMPILATION_CACHE_DIR`` already set: that
+folder is used, and kept).
 """
 
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 
 FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
 
@@ -39,6 +46,25 @@ def _ask_for_fast_compilation():
 
 
 _ask_for_fast_compilation()
+
+
+def _share_compiled_programs():
+    """A session-wide compilation cache, set in the environment before JAX starts (the workers and the
+    command lines that tests run inherit it). Returns the folder to remove at the end, if made here."""
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return None
+    folder = tempfile.mkdtemp(prefix="jaxfric-tests-xla-")
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
+    return folder
+
+
+_SESSION_CACHE = _share_compiled_programs()
+
+
+def pytest_unconfigure(config):
+    """The controlling process (not a worker) removes the cache it made."""
+    if _SESSION_CACHE and not hasattr(config, "workerinput"):
+        shutil.rmtree(_SESSION_CACHE, ignore_errors=True)
 
 import jax  # noqa: E402  (after XLA_FLAGS is final)
 
