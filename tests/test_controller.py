@@ -36,9 +36,11 @@ def test_increment_grows_after_easy_steps_up_to_the_nominal_one_and_follows_the_
     assert float(increment_after_acceptance(control, T, 0, 9, 0.25, 1.0, 0.5, T)[2]) == 0.5
 
 
-def test_retry_from_the_converged_state_only_for_a_first_attempt_at_the_floor():
-    assert bool(retry_from_converged(T, 0))
-    assert not bool(retry_from_converged(T, 3)) and not bool(retry_from_converged(F, 0))
+def test_retry_from_the_converged_state_for_a_predicted_first_attempt_or_one_at_the_floor():
+    # (failed, at_floor, cuts, predicted)
+    assert bool(retry_from_converged(T, T, 0, F)) and bool(retry_from_converged(T, F, 0, T))
+    assert not bool(retry_from_converged(T, F, 0, F)) and not bool(retry_from_converged(T, T, 3, T))
+    assert not bool(retry_from_converged(F, T, 0, T))
 
 
 @pytest.mark.parametrize("has_line_search", [True, False])
@@ -86,19 +88,22 @@ def test_stop_code_reports_the_last_searched_attempt():
     assert int(stop_code(F, F, F, F, it, mx)) == Result.CONTINUE
 
 
-def _outcome(code, iterations=4):
+def _outcome(code, iterations=4, predicted=False):
     return Outcome(jnp.array(code, jnp.int32), jnp.array(iterations, jnp.int32), None, jnp.zeros(3, jnp.int32),
-                   jnp.array(1.0 if code != Result.SUCCESS else 0.0), jnp.zeros((3, 2)), jnp.zeros(1))
+                   jnp.array(1.0 if code != Result.SUCCESS else 0.0), jnp.zeros((3, 2)), jnp.zeros(1),
+                   jnp.array(predicted))
 
 
-def _failing_step(ctrl, cs, t_start=0.0):
-    """Attempts of one step that never converges: their targets and whether each ran unsearched."""
+def _failing_step(ctrl, cs, t_start=0.0, predicted=False):
+    """Attempts of one step that never converges: their targets and whether each ran unsearched.
+    ``predicted``: the first attempt starts from the secant prediction (a retry never does)."""
     targets, plain = [], []
     while int(cs.code) == Result.CONTINUE and len(targets) < 20:
         t_try, _ = ctrl.target(cs, t_start)
         targets.append(float(t_try))
         plain.append(bool(cs.plain))
-        cs = ctrl.adapt(cs, t_start, t_try, _outcome(Result.MAX_ITERATIONS), 1)
+        first = predicted and len(targets) == 1
+        cs = ctrl.adapt(cs, t_start, t_try, _outcome(Result.MAX_ITERATIONS, predicted=first), 1)
     return cs, targets, plain
 
 
@@ -114,6 +119,17 @@ def test_a_failing_step_is_halved_to_the_floor_then_retried_unsearched_then_stop
     assert plain == [False] * 3 + ([True] if has_line_search else [])
     assert int(cs.code) == Result.MAX_ITERATIONS and int(cs.cuts) == len(targets)
     assert float(cs.failed_t) == 0.0625
+
+
+def test_a_predicted_first_attempt_that_fails_is_retried_at_its_increment_from_the_converged_state():
+    """Above the floor too: a first attempt from the secant prediction fails, the same increment from
+    the converged state, then halving as before."""
+    ctrl = Controller.build((Phase("load", n_steps=4),), StepControl(max_cuts=2), False, True,
+                            jnp.array(0, jnp.int32))
+    cs, targets, plain = _failing_step(ctrl, ctrl.init(jnp.zeros((3, 2)), jnp.zeros(1)), predicted=True)
+    assert targets == [0.25, 0.25, 0.125, 0.0625, 0.0625]
+    assert plain == [False] * 4 + [True]
+    assert int(cs.code) == Result.MAX_ITERATIONS and int(cs.cuts) == len(targets)
 
 
 @pytest.mark.parametrize("has_line_search", [True, False])

@@ -142,8 +142,12 @@ class _Predictor(eqx.Module):
     def empty(cls, state: SimState) -> _Predictor:
         return cls(jnp.zeros_like(state.u), jnp.zeros_like(tool_positions(state)), jnp.array(0.0))
 
+    def used(self, state: SimState, phase_next, retry=False) -> jax.Array:
+        """Whether an attempt in ``phase_next`` from ``state`` starts from the prediction."""
+        return (self.dt > 0) & (phase_next == state.phase) & ~jnp.asarray(retry, bool)
+
     def guess(self, state: SimState, dt_next, phase_next, retry=False):
-        use = (self.dt > 0) & (phase_next == state.phase) & ~jnp.asarray(retry, bool)
+        use = self.used(state, phase_next, retry)
         scale = jnp.where(use, dt_next / jnp.where(use, self.dt, 1.0), 0.0)
         return state.u + scale * self.du, tool_positions(state) + scale * self.dq
 
@@ -229,7 +233,7 @@ def _after_attempt(model: StripModel, ctrl: Controller, c: _Loop, sol: StepSolut
     controller adapted."""
     p = c.path
     out = Outcome(sol.code, sol.iterations, sol.hardest, sol.stats, sol.residual_norm, new_state.u,
-                  tool_positions(new_state))
+                  tool_positions(new_state), p.predictor.used(p.state, new_state.phase, retry=p.ctrl.cuts > 0))
     ok, iters, stats = ctrl.tally(p.ctrl, out)
     slot = c.history.n_rows
     history = _record(c.history, slot, ok, new_state, iters, p.ctrl.cuts, sol.augmentations, stats,
