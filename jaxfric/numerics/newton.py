@@ -90,16 +90,11 @@ class NewtonOptions(eqx.Module):
     max_iterations: int = eqx.field(static=True, default=25)
     line_search: bool = eqx.field(static=True, default=True)
     roundoff: float = eqx.field(static=True, default=1.0)
-    max_correction: float | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         for name in ("rtol", "atol", "du_rtol", "du_atol", "roundoff"):
             check_nonnegative(name, getattr(self, name))
         check_int("max_iterations", self.max_iterations, 1, 10_000)
-        if self.max_correction is not None:
-            check_nonnegative("max_correction", self.max_correction)
-            if not self.max_correction > 0.0:
-                raise ValueError(f"field 'max_correction' must be positive or None, got {self.max_correction!r}")
 
 
 class Linearization(NamedTuple):
@@ -323,11 +318,6 @@ def newton_pass(c: NewtonCarry, args, x_ref, problem: AbstractNewtonProblem, opt
 
     def fresh():
         trial = problem.direction(x, point, args, first)
-        if options.max_correction is not None and options.line_search and new.merit is not None:   # static
-            size = jnp.max(jnp.abs(trial.dx))
-            may = search & (jnp.array(problem.searches_first_step) | ~first | start_meets)
-            cap = may & (size > options.max_correction)
-            trial = trial._replace(alpha=jnp.where(cap, options.max_correction / jnp.where(cap, size, 1.0), 1.0))
         return trial, trial.stats
 
     def shorter():
