@@ -157,7 +157,9 @@ def retry_from_converged(failed, at_floor, cuts, predicted):
     a free span) Newton's first correction from there throws nodes millimetres into the tools, while
     the same increment from the converged state converges in a few iterations (the bead with a 0.7 mm
     strip over a 35 mm roller: 25 iterations and a failure against 4, at 0.036 degrees of wind; halving
-    instead kept its steps at 1/100 of the nominal increment until the history buffer was full)."""
+    instead kept its steps at 1/100 of the nominal increment until the history buffer was full). The
+    spec's controller (benchmarks spec 1.9) starts every attempt from the converged state: the retry is
+    its attempt, and the predicted one comes before it."""
     return failed & (cuts == 0) & (at_floor | predicted)
 
 
