@@ -79,7 +79,7 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
             message = f"{type(err).__name__}: {err}"
             with open(path, "w") as fh:
                 json.dump({"converged": False, "message": message, "scene": scene_name, "variant": variant,
-                           "algorithm": algorithm, "overrides": output._json_ready(overrides)},
+                           "algorithm": algorithm, "overrides": output.json_ready(overrides)},
                           fh, indent=2)
             log(f"{out}: failed: {message}")
         log(f"{out}: done in {time.perf_counter() - t0:.1f} s")

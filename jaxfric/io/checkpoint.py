@@ -21,7 +21,7 @@ import numpy as np
 
 from ..loadpath.run import Checkpoint, Record
 from ..loadpath.simulate import begin
-from .output import _json_ready
+from .output import json_ready
 
 __all__ = ["FILE", "configuration", "save", "load", "configuration_difference"]
 
@@ -31,7 +31,7 @@ FILE = "checkpoint.npz"
 def configuration(scene) -> dict:
     """What a resumed run must share with the run it continues: the scene, the algorithm and the
     resolved parameters, as JSON reads them back."""
-    return json.loads(json.dumps(_json_ready({"scene": scene.name, "algorithm": scene.algorithm,
+    return json.loads(json.dumps(json_ready({"scene": scene.name, "algorithm": scene.algorithm,
                                               "parameters": scene.parameters})))
 
 

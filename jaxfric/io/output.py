@@ -33,7 +33,7 @@ from .instants import (
 )
 
 __all__ = ["SCHEMA_VERSION", "REQUIRED_COLUMNS", "INT_COLUMNS", "ALGORITHM_EXTRAS", "GAP_NO_PROJECTION",
-           "OutputError", "error_estimate", "history_table", "write_run", "format_title"]
+           "OutputError", "error_estimate", "history_table", "json_ready", "write_run", "format_title"]
 
 SCHEMA_VERSION = 1
 
@@ -133,16 +133,16 @@ def history_table(scene, result) -> tuple[list, list, dict]:
 
 # ---- summary.json -----------------------------------------------------------------------------------
 
-def _json_ready(value):
+def json_ready(value):
     """Plain JSON values: NumPy scalars and arrays to Python, tuples to lists, non-finite to None."""
     if isinstance(value, dict):
-        return {str(k): _json_ready(v) for k, v in value.items()}
+        return {str(k): json_ready(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_json_ready(v) for v in value]
+        return [json_ready(v) for v in value]
     if isinstance(value, np.ndarray):
-        return _json_ready(value.tolist())
+        return json_ready(value.tolist())
     if hasattr(value, "shape") and hasattr(value, "dtype"):  # JAX array
-        return _json_ready(np.asarray(value).tolist())
+        return json_ready(np.asarray(value).tolist())
     if isinstance(value, (bool, np.bool_)):
         return bool(value)
     if isinstance(value, (int, np.integer)):
@@ -276,7 +276,7 @@ def _summary(scene, result, tag, values, instants, fallback, window, steady, not
     elif not result.converged:
         message_parts.append(f"solver reported failure after completing all phases: {result.message}")
     message_parts += [n for n in notes if n]
-    parameters = _json_ready(dict(scene.parameters))
+    parameters = json_ready(dict(scene.parameters))
     mesh = [int(scene.model.mesh.nx), int(scene.model.mesh.ny)]
     parameters.setdefault("mesh", {"nx": mesh[0], "ny": mesh[1]})
     mean_aug = None
@@ -315,7 +315,7 @@ def _summary(scene, result, tag, values, instants, fallback, window, steady, not
 
 
 def _write_summary(path: str, summary: dict) -> None:
-    text = json.dumps(_json_ready(summary), indent=2, allow_nan=False)
+    text = json.dumps(json_ready(summary), indent=2, allow_nan=False)
     _write_text(path, text + "\n")
 
 
