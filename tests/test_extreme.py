@@ -608,6 +608,7 @@ def test_load_step_x10(name):
     stroke = {"nine": "U_draw", "bead": "s_draw", "blankholder": "U_pull"}[name]
     assert res.history["drawing_displacement"][-1] == pytest.approx(getattr(scene.config, stroke))
 
+
 # (scene, case) -> (result code, phase of the last accepted step): the documented clean failures. Such
 # a case passes if it fails this way, or if it converges and passes the physical checks.
 EXPECTED_FAILURES = {
