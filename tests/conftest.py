@@ -10,7 +10,7 @@ XLA that no longer knows it aborts the process at start-up; it is then left out.
 (what ``jaxfric`` itself uses: the package never sets XLA flags).
 
 The suite's processes (pytest-xdist's two workers and the command lines that tests start) share one JAX
-persistent compilation cache, a fresh folder per session (removed at its end), so that a program
+persistent compilation cache, a fresh folder per test run (removed at its end), so that a program
 compiled in one process is read from disk in the others (``JAX_COMPILATION_CACHE_DIR`` already set: that
 folder is used, and kept).
 """
@@ -49,7 +49,7 @@ _ask_for_fast_compilation()
 
 
 def _share_compiled_programs():
-    """A session-wide compilation cache, set in the environment before JAX starts (the workers and the
+    """One compilation cache for the test run, set in the environment before JAX starts (the workers and the
     command lines that tests run inherit it). Returns the folder to remove at the end, if made here."""
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         return None

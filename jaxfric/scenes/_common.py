@@ -199,10 +199,6 @@ def end_reaction(model, state, nodes) -> jnp.ndarray:
     return jnp.sum(reactions(model, state)[np.asarray(nodes)], axis=0)
 
 
-def _default(config, name: str):
-    return next(f.default for f in dataclasses.fields(config) if f.name == name)
-
-
 def stiff_penalty(config) -> float:
     """The penalty (N/mm per mm) above which the scene's penalty law starts a failed attempt again from
     exact contact (:class:`jaxfric.contact.formulations.StiffPenalty`): ``STIFF_PENALTY_RATIO`` times the
@@ -211,9 +207,10 @@ def stiff_penalty(config) -> float:
     width; a thin sheet under the spec's penalty is the spec's sheet under a penalty (t_spec / t)^3 times
     stiffer (the blankholder at t = 0.12 mm, 1e5 N/mm: as stiff as 5.8e7 on the spec's 1 mm sheet, where
     a pair's lift-off front advances one node per Newton iteration; tests/test_extreme.py)."""
+    spec = type(config)()   # the spec's values: every config field has its spec default
     name = "t" if hasattr(config, "t") else "h"   # the flat die's half thickness
-    thinner = min(1.0, float(getattr(config, name)) / float(_default(config, name))) ** 3
-    return STIFF_PENALTY_RATIO * float(_default(config, "eps_n")) * thinner
+    thinner = min(1.0, float(getattr(config, name)) / float(getattr(spec, name))) ** 3
+    return STIFF_PENALTY_RATIO * float(spec.eps_n) * thinner
 
 
 def phase_progress(state, phase: int) -> jnp.ndarray:
