@@ -1,13 +1,15 @@
-"""Test configuration: float64 everywhere, strict dtype promotion, and XLA's faster-compiling CPU emitters.
+"""Test configuration: float64 everywhere, strict dtype promotion, and faster-compiling XLA settings.
 
 The fast suite is almost all XLA compilation: measured with `make test` on a 2-core machine,
 compilation took 1426 s of the 1559 s that the tests ran (backend 1185 s, lowering 95 s, tracing
-147 s, in 3176 compilations). XLA's older CPU fusion emitters compile the same programs faster (the
-same two test files, each pinned to a core of its own: 451 s against 715 s) and give the same results
-to round-off, so the suite asks for them. The flag is probed in a child process first, because an
-XLA that no longer knows it aborts the process at start-up; it is then left out. Flags already in
-``XLA_FLAGS`` are kept, and ``JAXFRIC_TEST_XLA_DEFAULTS=1`` runs the suite with XLA's default emitters
-(what ``jaxfric`` itself uses: the package never sets XLA flags).
+147 s, in 3176 compilations). The suite therefore asks XLA to compile faster, for results equal to
+round-off: its older CPU fusion emitters (the same two test files, each pinned to a core of its own:
+451 s against 715 s), and its backend optimisation level 0 (LLVM's cheap passes: the whole suite
+8 min 14 s and 8 min 49 s against 10 min 1 s; the longest runs of the suite take up to twice as
+long, the many short ones less). The flags are probed in a child process first, because an XLA that
+no longer knows one aborts the process at start-up; they are then left out. Flags already in ``XLA_FLAGS`` are kept, and
+``JAXFRIC_TEST_XLA_DEFAULTS=1`` runs the suite with XLA's defaults (what ``jaxfric`` itself uses: the
+package never sets XLA flags).
 
 The suite's processes (pytest-xdist's two workers and the command lines that tests start) share one JAX
 persistent compilation cache, a fresh folder per test run (removed at its end), so that a program
@@ -21,7 +23,7 @@ import subprocess
 import sys
 import tempfile
 
-FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
+FAST_COMPILE_FLAGS = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0"
 
 
 def _xla_accepts(flags: str) -> bool:
@@ -37,9 +39,10 @@ def _xla_accepts(flags: str) -> bool:
 def _ask_for_fast_compilation():
     """Runs before JAX starts its backend: XLA reads ``XLA_FLAGS`` once, when it starts."""
     current = os.environ.get("XLA_FLAGS", "")
-    if os.environ.get("JAXFRIC_TEST_XLA_DEFAULTS") == "1" or "xla_cpu_use_fusion_emitters" in current:
+    if os.environ.get("JAXFRIC_TEST_XLA_DEFAULTS") == "1" or any(
+            flag.split("=")[0] in current for flag in FAST_COMPILE_FLAGS.split()):
         return
-    flags = f"{current} {FAST_COMPILE_FLAG}".strip()
+    flags = f"{current} {FAST_COMPILE_FLAGS}".strip()
     if _xla_accepts(flags):
         # pytest-xdist's workers inherit the environment, and find the flag already set.
         os.environ["XLA_FLAGS"] = flags

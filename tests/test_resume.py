@@ -75,16 +75,24 @@ def whole():
 
 
 def test_chunked_run_is_the_single_loop(whole):
-    """The chunks take the attempts of `simulate`, which runs the whole load path in one loop."""
+    """The chunks take the steps of `simulate`, which runs the whole load path in one loop.
+
+    The two are different XLA programs, equal to round-off, not bit for bit: compiled at XLA's backend
+    optimisation level 0 (as the test suite is, ``tests/conftest.py``), round-off tips the convergence
+    test of 8 of these 374 steps by one or two Newton iterations. So the steps' times are compared
+    exactly, and the observed values to 1e-9 of their largest (they differ by 2e-12 there)."""
     scene, result = whole
     sim = jax.jit(lambda m: jf.simulate(m, newton=scene.newton, control=scene.control,
                                         observe=scene.observe))(scene.model)
     n = int(sim.history.n_rows)
     assert n == len(result.history["time"]) > 100
     np.testing.assert_array_equal(np.asarray(sim.history.time[:n]), result.history["time"])
-    np.testing.assert_array_equal(np.asarray(sim.history.newton_iters[:n]), result.history["newton_iters"])
+    iterations = np.asarray(sim.history.newton_iters[:n])
+    assert np.mean(iterations != result.history["newton_iters"]) < 0.05
+    np.testing.assert_allclose(iterations.sum(), result.history["newton_iters"].sum(), rtol=0.02)
     for key, value in sim.history.observed.items():
-        np.testing.assert_allclose(np.asarray(value[:n]), result.history[key], rtol=1e-12, atol=1e-12)
+        scale = np.max(np.abs(result.history[key]))
+        np.testing.assert_allclose(np.asarray(value[:n]), result.history[key], rtol=0, atol=1e-9 * scale, err_msg=key)
 
 
 def test_a_stopped_run_resumes_bit_for_bit_from_its_checkpoint_on_disk(whole, tmp_path):
