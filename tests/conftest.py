@@ -4,12 +4,13 @@ The fast suite is almost all XLA compilation: measured with `make test` on a 2-c
 compilation took 1426 s of the 1559 s that the tests ran (backend 1185 s, lowering 95 s, tracing
 147 s, in 3176 compilations). The suite therefore asks XLA to compile faster, for results equal to
 round-off: its older CPU fusion emitters (the same two test files, each pinned to a core of its own:
-451 s against 715 s), and its backend optimisation level 0 (LLVM's cheap passes: the whole suite
-8 min 14 s and 8 min 49 s against 10 min 1 s; the longest runs of the suite take up to twice as
-long, the many short ones less). The flags are probed in a child process first, because an XLA that
-no longer knows one aborts the process at start-up; they are then left out. Flags already in ``XLA_FLAGS`` are kept, and
-``JAXFRIC_TEST_XLA_DEFAULTS=1`` runs the suite with XLA's defaults (what ``jaxfric`` itself uses: the
-package never sets XLA flags).
+451 s against 715 s), and, where exactly the slow runs are deselected (``-m "not slow"``, as ``make
+test`` does), its backend optimisation level 0 (LLVM's cheap passes: the fast suite 8 min 14 s and
+8 min 49 s against 10 min 1 s; its longest runs take up to twice as long, the many short ones less, so
+the slow runs, which are mostly run time, keep the default level). The flags are probed in a child
+process first, because an XLA that no longer knows one aborts the process at start-up; they are then
+left out. Flags already in ``XLA_FLAGS`` are kept, and ``JAXFRIC_TEST_XLA_DEFAULTS=1`` runs the suite
+with XLA's defaults (what ``jaxfric`` itself uses: the package never sets XLA flags).
 
 The suite's processes (pytest-xdist's two workers and the command lines that tests start) share one JAX
 persistent compilation cache, a fresh folder per test run (removed at its end), so that a program
@@ -23,7 +24,8 @@ import subprocess
 import sys
 import tempfile
 
-FAST_COMPILE_FLAGS = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0"
+FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
+FAST_SUITE_FLAGS = ("--xla_backend_optimization_level=0",)   # when the slow runs are deselected
 
 
 def _xla_accepts(flags: str) -> bool:
@@ -36,19 +38,22 @@ def _xla_accepts(flags: str) -> bool:
     return done.returncode == 0
 
 
-def _ask_for_fast_compilation():
-    """Runs before JAX starts its backend: XLA reads ``XLA_FLAGS`` once, when it starts."""
+def _ask_for_fast_compilation(wanted):
+    """Runs before JAX starts its backend (which no test module does on import): XLA reads ``XLA_FLAGS``
+    once, when it starts."""
     current = os.environ.get("XLA_FLAGS", "")
     if os.environ.get("JAXFRIC_TEST_XLA_DEFAULTS") == "1" or any(
-            flag.split("=")[0] in current for flag in FAST_COMPILE_FLAGS.split()):
+            flag.split("=")[0] in current for flag in wanted):
         return
-    flags = f"{current} {FAST_COMPILE_FLAGS}".strip()
+    flags = " ".join([current, *wanted]).strip()
     if _xla_accepts(flags):
-        # pytest-xdist's workers inherit the environment, and find the flag already set.
+        # pytest-xdist's workers inherit the environment, and find the flags already set.
         os.environ["XLA_FLAGS"] = flags
 
 
-_ask_for_fast_compilation()
+def pytest_configure(config):
+    fast_suite = " ".join((config.option.markexpr or "").split()) == "not slow"
+    _ask_for_fast_compilation(FAST_COMPILE_FLAGS + (FAST_SUITE_FLAGS if fast_suite else ()))
 
 
 def _share_compiled_programs():

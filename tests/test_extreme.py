@@ -389,14 +389,15 @@ def test_failed_steps_are_cut_and_recorded():
 
 def test_cut_limit_stops_the_run_cleanly():
     """F_clamp = 1e6 N/mm (nominal clamp steps of 1e5 N/mm, a pressure of 2e5 MPa at the end): near
-    7150 N/mm even nominal / 2**10 = 98 N/mm steps do not converge (Newton with the line search inverts
-    an element, plain Newton fails too): the run stops with INVERTED_ELEMENT after cutting its last step
-    down to nominal / 2**max_cuts, every earlier step converged and kept. With F-bar elements (the flat
-    die's default), whose failure here is that inversion; ``ans`` elements stop the same way earlier, at
-    3906 N/mm, with MAX_ITERATIONS (measured)."""
+    6000 N/mm even nominal / 2**10 = 98 N/mm steps do not converge: the run stops after cutting its last
+    step down to nominal / 2**max_cuts, every earlier step converged and kept. With F-bar elements (the
+    flat die's default). Where and how the last attempts fail depends on Newton's starts (measured: at
+    5864 N/mm, the iteration limit, with the secant prediction withheld after it failed; at 7153 N/mm,
+    an element inverted, with every step predicted), so either code is a clean stop; ``ans`` elements
+    stop earlier, at 3906 N/mm, with MAX_ITERATIONS."""
     scene = _flat_die(F_clamp=1e6, element="fbar")
     res = _run("flat_die F_clamp = 1e6 (cut limit)", scene)
-    assert not res.converged and res.code == Result.INVERTED_ELEMENT
+    assert not res.converged and res.code in (Result.INVERTED_ELEMENT, Result.MAX_ITERATIONS)
     assert "phase 'clamp'" in res.message and "reduce the nominal step" in res.message
     h = res.history
     np.testing.assert_allclose(h["clamping_force"], 1e6 * h["time"], rtol=1e-8, atol=1e-6)

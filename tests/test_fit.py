@@ -249,14 +249,16 @@ def test_fit_caches_keep_the_most_recently_used_entries():
 def test_refined_plan_splits_every_step_and_keeps_phase_ends():
     from jaxfric.identification.fit_curve import refined_plan
 
-    plan = {"time": np.array([0.0, 0.5, 1.0, 1.25, 2.0]), "phase": np.array([0, 0, 0, 1, 1]),
-            "cutbacks": np.array([0, 0, 2, 0, 1])}
+    plan = {"time": np.array([0.0, 0.5, 1.0, 1.25, 2.0, 2.5]), "phase": np.array([0, 0, 0, 1, 1, 1]),
+            "cutbacks": np.array([0, 0, 2, 0, 1, 0]), "predicted": np.array([0, 0, 0, 0, 0, 0])}
     assert refined_plan(plan, 1) is plan
     r = refined_plan(plan, 2)
-    np.testing.assert_array_equal(r["time"], [0.0, 0.25, 0.5, 0.75, 1.0, 1.125, 1.25, 1.625, 2.0])
-    np.testing.assert_array_equal(r["phase"], [0, 0, 0, 0, 0, 1, 1, 1, 1])
-    # a retry's mark stays on the first part of its step (it starts from the converged state)
-    np.testing.assert_array_equal(r["cutbacks"], [0, 0, 0, 2, 0, 0, 0, 1, 0])
+    np.testing.assert_array_equal(r["time"], [0.0, 0.25, 0.5, 0.75, 1.0, 1.125, 1.25, 1.625, 2.0, 2.25, 2.5])
+    np.testing.assert_array_equal(r["phase"], [0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 1])
+    # A step that started converged keeps the mark on its first part (the run's first step, a retry, a
+    # phase's first step); its later parts are predicted, but where the run withheld the prediction
+    # (the last step: same phase, not a retry, not predicted).
+    np.testing.assert_array_equal(r["predicted"], [0, 0, 1, 0, 1, 0, 1, 0, 1, 0, 0])
     with pytest.raises(ValueError, match="substeps"):
         fit("flat_die", {"drawing_displacement": [1.0, 2.0], "drawing_force": [1.0, 2.0]}, ["mu"], substeps=0)
 

@@ -78,7 +78,7 @@ def test_chunked_run_is_the_single_loop(whole):
     """The chunks take the steps of `simulate`, which runs the whole load path in one loop.
 
     The two are different XLA programs, equal to round-off, not bit for bit: compiled at XLA's backend
-    optimisation level 0 (as the test suite is, ``tests/conftest.py``), round-off tips the convergence
+    optimisation level 0 (as the fast suite is, ``tests/conftest.py``), round-off tips the convergence
     test of 8 of these 374 steps by one or two Newton iterations. So the steps' times are compared
     exactly, and the observed values to 1e-9 of their largest (they differ by 2e-12 there)."""
     scene, result = whole

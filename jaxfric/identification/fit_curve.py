@@ -27,7 +27,7 @@ class Curve:
 
     Args:
         par: the parameterised scene.
-        plan_history: the step sequence (``time``, ``phase``, ``cutbacks`` columns of an adaptive run).
+        plan_history: the step sequence (``time``, ``phase``, ``predicted`` columns of an adaptive run).
         x: (m,) measured displacements (mm); edges: window edges (mm), or None (pointwise).
         newton: Newton's options (None: the scene's), with at least :data:`REPLAY_ITERATIONS` iterations.
 
@@ -63,15 +63,18 @@ class Curve:
 
 def refined_plan(history: dict, substeps: int) -> dict:
     """The step sequence of ``history`` with every accepted step split into ``substeps`` equal steps
-    (the time, phase and cutback columns that :func:`jaxfric.identification.params.path_function` replays; a step
-    accepted as a retry keeps that mark on its first part)."""
+    (the time, phase and predicted columns that :func:`jaxfric.identification.params.path_function`
+    replays). A step that started from the converged state keeps that mark on its first part; its later
+    parts start from the prediction (the previous part's increment), unless the run withheld the
+    prediction there (a step in the same phase as the one before, neither predicted nor retried)."""
     if substeps == 1:
         return history
-    t, phase, cuts = (np.asarray(history[k]) for k in ("time", "phase", "cutbacks"))
-    times, phases, retry = [t[0]], [phase[0]], [cuts[0]]
+    t, phase, cuts, predicted = (np.asarray(history[k]) for k in ("time", "phase", "cutbacks", "predicted"))
+    times, phases, marks = [t[0]], [phase[0]], [predicted[0]]
     for k in range(1, len(t)):
+        withheld = k > 1 and predicted[k] == 0 and cuts[k] == 0 and phase[k] == phase[k - 1]
         for j in range(1, substeps + 1):
             times.append(t[k] if j == substeps else t[k - 1] + (t[k] - t[k - 1]) * j / substeps)
             phases.append(phase[k])
-            retry.append(cuts[k] if j == 1 else 0)
-    return {"time": np.array(times), "phase": np.array(phases), "cutbacks": np.array(retry)}
+            marks.append(predicted[k] if j == 1 else int(not withheld))
+    return {"time": np.array(times), "phase": np.array(phases), "predicted": np.array(marks)}

@@ -217,7 +217,7 @@ def path_function(par: Parameterization, *, newton: NewtonOptions | None = None,
             raise ValueError(f"the adaptive run at the start values does not complete: {res.message}")
         plan = res.history
     times, step_phase = np.asarray(plan["time"][1:]), np.asarray(plan["phase"][1:])
-    fresh = np.asarray(plan["cutbacks"][1:]) > 0   # accepted as retries: no secant predictor
+    fresh = np.asarray(plan["predicted"][1:]) == 0   # retries and withheld predictions start converged
 
     def f(p):
         model = par.model(p)

@@ -50,9 +50,9 @@ ALGORITHM_EXTRAS = ("cutbacks", "n_aug", "lcp_pivots", "ssn_iters", "ssn_fallbac
 
 GAP_NO_PROJECTION = 1e30  # mm; gap written for a pair with no projection (outputs spec section 4)
 _NAME = re.compile(r"[a-z][a-z0-9_]*\Z")
-# History keys of RunResult that are not observations (written under their contract names).
+# History keys of RunResult that are not observations (written under their contract names where it has them).
 _RUN_KEYS = ("time", "phase", "phase_name", "newton_iters", "cutbacks", "augmentations", "wall_s",
-             "lcp_pivots", "ssn_iters", "ssn_fallbacks", "step")
+             "lcp_pivots", "ssn_iters", "ssn_fallbacks", "step", "predicted")
 
 class OutputError(RuntimeError):
     """Some output file could not be written; the data files that could be written are on disk."""

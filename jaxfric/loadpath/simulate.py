@@ -55,6 +55,9 @@ class History(eqx.Module):
 
     Attributes:
         time, phase, newton_iters, cutbacks, augmentations: (S,) per row.
+        predicted: (S,) 1 where the step's accepted attempt started from the secant prediction, else 0
+            (a retry, a phase's first step, or the prediction withheld: :class:`_Predictor`); a replay of
+            the steps (:func:`simulate_fixed`'s ``fresh``) starts the others from the converged state.
         solver_stats: (S, 3) exact contact: Lemke pivots, semismooth Newton iterations (active-set
             passes), fallbacks (condensed solver: Lemke after SSN; "ssn": iterations whose active set
             did not settle), summed over the step's attempts (zero for the other laws).
@@ -68,6 +71,7 @@ class History(eqx.Module):
     cutbacks: jax.Array
     augmentations: jax.Array
     solver_stats: jax.Array
+    predicted: jax.Array
     observed: Any
     n_rows: jax.Array
 
@@ -106,7 +110,8 @@ def _empty_history(n: int, row0: dict, filled: bool = True) -> History:
     return History(time=jnp.zeros(n), phase=jnp.zeros(n, jnp.int32),
                    newton_iters=jnp.zeros(n, jnp.int32), cutbacks=jnp.zeros(n, jnp.int32),
                    augmentations=jnp.zeros(n, jnp.int32), solver_stats=jnp.zeros((n, 3), jnp.int32),
-                   observed=observed, n_rows=jnp.array(1 if filled else 0, jnp.int32))
+                   predicted=jnp.zeros(n, jnp.int32), observed=observed,
+                   n_rows=jnp.array(1 if filled else 0, jnp.int32))
 
 
 def _put(buf, row, pred, value):
@@ -114,7 +119,8 @@ def _put(buf, row, pred, value):
     return buf.at[row].set(jnp.where(pred, value, buf[row]))
 
 
-def _record(h: History, row, pred, state: SimState, iters, cuts, augmentations, stats, observed) -> History:
+def _record(h: History, row, pred, state: SimState, iters, cuts, augmentations, stats, predicted,
+            observed) -> History:
     """Write row ``row`` when ``pred``; leave the buffers unchanged otherwise."""
     def put(buf, value):
         return _put(buf, row, pred, value)
@@ -122,6 +128,7 @@ def _record(h: History, row, pred, state: SimState, iters, cuts, augmentations, 
     return History(time=put(h.time, state.time), phase=put(h.phase, state.phase),
                    newton_iters=put(h.newton_iters, iters), cutbacks=put(h.cutbacks, cuts),
                    augmentations=put(h.augmentations, augmentations), solver_stats=put(h.solver_stats, stats),
+                   predicted=put(h.predicted, jnp.asarray(predicted, jnp.int32)),
                    observed=jax.tree_util.tree_map(put, h.observed, observed),
                    n_rows=jnp.where(pred, row + 1, h.n_rows))
 
@@ -132,29 +139,48 @@ class _Predictor(eqx.Module):
     """Secant predictor: the last accepted increment of displacements and tool positions together
     (so that gaps are extrapolated consistently), scaled to the next step. Not used after a phase
     change, where the loading direction may reverse, nor on a retry after a failed attempt. It only
-    moves Newton's starting point, never the solution."""
+    moves Newton's starting point, never the solution.
 
-    du: jax.Array   # (n_nodes, 2) displacement increment of the last accepted step
-    dq: jax.Array   # (n_tools,) tool position increment of the last accepted step
-    dt: jax.Array   # () its pseudo-time increment (0: no prediction)
+    Where the prediction keeps failing (a thin sheet over a large roller, whose predicted attempts throw
+    nodes through the tools), it is withheld: a failed predicted attempt withholds it from the next
+    ``span`` accepted steps after its own, ``span`` doubling with every further failure (1, 2, 4, ...,
+    ``MAX_HOLD``) and starting again at 1 once a predicted attempt converges. The cost where prediction
+    works is nothing; where it never works, one failed attempt every ``MAX_HOLD`` steps."""
+
+    MAX_HOLD = 32
+
+    du: jax.Array      # (n_nodes, 2) displacement increment of the last accepted step
+    dq: jax.Array      # (n_tools,) tool position increment of the last accepted step
+    dt: jax.Array      # () its pseudo-time increment (0: no prediction)
+    hold: jax.Array    # () int32 accepted steps still to start from the converged state
+    span: jax.Array    # () int32 the last hold set (0: the last predicted attempt converged)
 
     @classmethod
     def empty(cls, state: SimState) -> _Predictor:
-        return cls(jnp.zeros_like(state.u), jnp.zeros_like(tool_positions(state)), jnp.array(0.0))
+        return cls(jnp.zeros_like(state.u), jnp.zeros_like(tool_positions(state)), jnp.array(0.0),
+                   jnp.array(0, jnp.int32), jnp.array(0, jnp.int32))
 
     def used(self, state: SimState, phase_next, retry=False) -> jax.Array:
         """Whether an attempt in ``phase_next`` from ``state`` starts from the prediction."""
-        return (self.dt > 0) & (phase_next == state.phase) & ~jnp.asarray(retry, bool)
+        return (self.dt > 0) & (phase_next == state.phase) & ~jnp.asarray(retry, bool) & (self.hold == 0)
 
     def guess(self, state: SimState, dt_next, phase_next, retry=False):
         use = self.used(state, phase_next, retry)
         scale = jnp.where(use, dt_next / jnp.where(use, self.dt, 1.0), 0.0)
         return state.u + scale * self.du, tool_positions(state) + scale * self.dq
 
-    def after(self, ok, old: SimState, new: SimState) -> _Predictor:
+    def after(self, ok, old: SimState, new: SimState, predicted=False) -> _Predictor:
+        """The predictor after an attempt from ``old`` to ``new``, accepted if ``ok``, that started from
+        the prediction if ``predicted``."""
+        ok, predicted = jnp.asarray(ok, bool), jnp.asarray(predicted, bool)
+        missed = predicted & ~ok
+        span = jnp.where(missed, jnp.clip(2 * self.span, 1, self.MAX_HOLD),
+                         jnp.where(ok & predicted, 0, self.span)).astype(jnp.int32)
+        # The failed step's own acceptance (its retry is not predicted anyway) counts too: hence + 1.
+        hold = jnp.where(missed, span + 1, jnp.where(ok, jnp.maximum(self.hold - 1, 0), self.hold))
         return _Predictor(du=jnp.where(ok, new.u - old.u, self.du),
                           dq=jnp.where(ok, tool_positions(new) - tool_positions(old), self.dq),
-                          dt=jnp.where(ok, new.time - old.time, self.dt))
+                          dt=jnp.where(ok, new.time - old.time, self.dt), hold=hold.astype(jnp.int32), span=span)
 
 
 class LoadPathState(eqx.Module):
@@ -232,16 +258,18 @@ def _after_attempt(model: StripModel, ctrl: Controller, c: _Loop, sol: StepSolut
     """The loop after an attempt: the step recorded (with its snapshot, in a chunk) if accepted, the
     controller adapted."""
     p = c.path
+    predicted = p.predictor.used(p.state, new_state.phase, retry=p.ctrl.cuts > 0)
     out = Outcome(sol.code, sol.iterations, sol.hardest, sol.stats, sol.residual_norm, new_state.u,
-                  tool_positions(new_state), p.predictor.used(p.state, new_state.phase, retry=p.ctrl.cuts > 0))
+                  tool_positions(new_state), predicted)
     ok, iters, stats = ctrl.tally(p.ctrl, out)
     slot = c.history.n_rows
-    history = _record(c.history, slot, ok, new_state, iters, p.ctrl.cuts, sol.augmentations, stats,
+    history = _record(c.history, slot, ok, new_state, iters, p.ctrl.cuts, sol.augmentations, stats, predicted,
                       observe(model, new_state))
     snapshots = c.snapshots
     if snapshot is not None:
         snapshots = jax.tree_util.tree_map(lambda b, v: _put(b, slot, ok, v), snapshots, snapshot(model, new_state))
-    path = LoadPathState(state=_select(ok, new_state, p.state), predictor=p.predictor.after(ok, p.state, new_state),
+    path = LoadPathState(state=_select(ok, new_state, p.state),
+                         predictor=p.predictor.after(ok, p.state, new_state, predicted),
                          ctrl=ctrl.adapt(p.ctrl, p.state.time, t_try, out, p.rows),
                          rows=p.rows + ok.astype(jnp.int32))
     return _Loop(path=path, history=history, snapshots=snapshots)
@@ -403,8 +431,9 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
 
     ``fresh``: optional (n_steps,) booleans, known at trace time: the steps whose Newton iterations
     start from the last converged state instead of the secant prediction. Replaying the accepted steps
-    of an adaptive run (:func:`jaxfric.fem.loading.with_steps`), the steps accepted after a cutback were
-    retries, which start so; marking them reproduces the adaptive run's iterations exactly.
+    of an adaptive run (:func:`jaxfric.fem.loading.with_steps`), the steps whose history row has
+    ``predicted`` 0 (retries, steps whose prediction was withheld) started so; marking them reproduces
+    the adaptive run's iterations exactly.
 
     Memory of reverse mode: the history rows are scan outputs, not a carried buffer, so a step's carry
     is the converged state alone (displacements, tool positions, material and contact state). With
@@ -435,7 +464,7 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
         code = jnp.where(alive & ~ok, sol.code, code).astype(jnp.int32)
         failed_t = jnp.where(alive & ~ok, t, failed_t)
         row = (ok, new_state.time, new_state.phase, sol.iterations, sol.augmentations, sol.stats,
-               observe(model, new_state))
+               predictor.used(state, p, retry), observe(model, new_state))
         return (_select(ok, new_state, state), predictor.after(ok, state, new_state), code, failed_t,
                 jnp.where(alive, sol.residual_norm, r_norm)), row
 
@@ -445,7 +474,7 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
             jnp.array(0.0))
     (state, _, code, failed_t, r_norm), rows = jax.lax.scan(
         step, init, (jnp.asarray(times), jnp.asarray(phases, jnp.int32), jnp.asarray(fresh)))
-    ok, t, ph, iters, augs, stats, observed = rows
+    ok, t, ph, iters, augs, stats, predicted, observed = rows
     n_ok = jnp.sum(ok).astype(jnp.int32)   # a failed step stops the run: the ok steps come first
 
     def column(first, values):
@@ -458,6 +487,7 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
                    cutbacks=column(0, jnp.zeros_like(iters, jnp.int32)),
                    augmentations=column(0, augs.astype(jnp.int32)),
                    solver_stats=column(jnp.zeros(3, jnp.int32), stats.astype(jnp.int32)),
+                   predicted=column(0, predicted.astype(jnp.int32)),
                    observed=jax.tree_util.tree_map(column, row0, observed), n_rows=1 + n_ok)
     code = jnp.where(code == Result.CONTINUE, Result.SUCCESS, code).astype(jnp.int32)
     return Simulation(history=hist, final=state, code=code, failed_time=failed_t, residual_norm=r_norm,
