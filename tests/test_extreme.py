@@ -438,13 +438,15 @@ def test_last_attempt_without_line_search():
     steps every full Newton step raises the residual a little, so the line search backtracks and Newton
     does not converge in 25 iterations at any length down to nominal / 2**max_cuts. The controller's
     last attempt, without the line search, converges: the run completes, those steps recording
-    max_cuts + 1 cuts. Where they fall depends on the step sequence (a front of clamp pairs switching
-    between stick and slip, in wind and in draw), so the test asserts that they exist, not where."""
+    max_cuts + 1 cuts (max_cuts + 2 where the step's first attempt, from the secant prediction, was
+    retried from the converged state at its length). Where they fall depends on the step sequence (a
+    front of clamp pairs switching between stick and slip, in wind and in draw, and round-off: XLA's
+    optimisation level moves them), so the test asserts that they exist, not where."""
     scene = make("bead", "th045_mu000", "auglag", {"theta": 12.0, "s_draw": 0.1})
     res = _run("bead auglag to 12 deg (plain Newton at the floor)", scene)
     assert res.converged, res.message
     h = res.history
-    assert h["cutbacks"].max() == scene.control.max_cuts + 1
+    assert scene.control.max_cuts + 1 <= h["cutbacks"].max() <= scene.control.max_cuts + 2
 
 
 # ---- slow: load steps, meshes, rotations ----------------------------------------------------------
@@ -758,10 +760,10 @@ def test_penalty_continuation_carries_a_step_that_newton_cannot_take_at_the_stif
     scene = make("bead", "th090_mu017", "penalty", {**BEAD, "eps_n": 1e12})
     law = scene.model.contact   # the scene's StiffPenalty starts from exact contact: the plain law here
     scene = dataclasses.replace(scene, model=dataclasses.replace(scene.model, contact=Penalty(law.eps_n, law.eps_t)))
-    plain = _run("bead eps_n=1e12, no continuation", scene,
+    plain = _run("bead eps_n=1e12, plain Penalty, no continuation", scene,
                  control=dataclasses.replace(scene.control, continuation=False))
     assert not plain.converged and plain.code == Result.MAX_ITERATIONS and "(phase 'clamp')" in plain.message
-    res = _run("bead eps_n=1e12", scene)
+    res = _run("bead eps_n=1e12, plain Penalty", scene)
     h = res.history
     assert float(h["time"][-1]) > float(plain.history["time"][-1])
 
