@@ -376,3 +376,41 @@ def test_continuation_stages_soften_the_penalty_law_only_and_exactly():
     soft = softened_args(args, jnp.array(4))
     assert float(soft.contact.law.eps_n) == pytest.approx(1e5, rel=1e-15)
     assert float(soft.contact.law.eps_t) == pytest.approx(1.7e4, rel=1e-15)
+
+
+def test_the_stabilised_attempts_damper_acts_on_the_free_dofs_with_its_exact_tangent():
+    """StepControl.stabilize: with StepArgs.damping = eta the residual of every free dof gains eta (u - u_n)
+    (u_n: the converged displacements of the step's start), prescribed rows and tool rows keep theirs,
+    and the Jacobian gains eta on the free dofs' diagonal: the flat die's force-driven die (a bordered
+    system) at a point off its converged state, against the undamped linearisation and the residual's
+    own forward derivative."""
+    from jaxfric.contact.system import linearize, residual
+    from jaxfric.loadpath.model import tool_positions
+    from jaxfric.loadpath.run import run
+    from jaxfric.loadpath.step import StepContext, step_args, unknowns
+    from jaxfric.scenes import make
+
+    scene = make("flat_die", "const_force", "penalty", {"mesh": "6x1", "L": 4.8, "U_draw": 0.003})
+    res = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, progress=False)
+    state, model = res.simulation.final, scene.model
+    ctx = StepContext.build(model)
+    t = float(state.time) + 1e-3
+    plain, _, _ = step_args(model, state, state.phase, t, ctx)
+    eta = 37.0
+    damped, _, _ = step_args(model, state, state.phase, t, ctx, damping=jnp.asarray(eta))
+    x_n = unknowns(model, state.u, tool_positions(state))
+    x = x_n + 1e-4 * jnp.sin(jnp.arange(x_n.size, dtype=float))
+    n, free = model.mesh.n_dofs, ~np.asarray(plain.mask)
+    lin0, lin1 = linearize(x, plain), linearize(x, damped)
+    expected = np.zeros(x.size)
+    expected[:n] = np.where(free, eta * np.asarray(x[:n] - x_n[:n]), 0.0)
+    # Equal up to the round-off of the undamped residual's size (the difference cancels it).
+    roundoff = 1e-13 * float(jnp.max(jnp.abs(lin0.residual)))
+    np.testing.assert_allclose(np.asarray(lin1.residual - lin0.residual), expected, rtol=0, atol=roundoff)
+    extra = np.zeros((x.size, x.size))
+    extra[np.arange(n), np.arange(n)] = np.where(free, eta, 0.0)
+    np.testing.assert_allclose(np.asarray(lin1.jacobian.to_dense() - lin0.jacobian.to_dense()), extra,
+                               rtol=0, atol=1e-9 * eta)
+    forward = jax.jacfwd(lambda y: residual(y, damped)[0])(x)
+    np.testing.assert_allclose(np.asarray(lin1.jacobian.to_dense()), np.asarray(forward), rtol=1e-8,
+                               atol=1e-8 * float(jnp.max(jnp.abs(forward))))

@@ -179,3 +179,46 @@ def test_continuation_stages_come_between_the_floor_and_the_unsearched_attempt()
     assert plain == [False] * 6 + [True]
     assert targets == [0.25, 0.125] + [0.0625] * 5
     assert int(cs.code) == Result.MAX_ITERATIONS
+
+
+@pytest.mark.parametrize("has_line_search", [True, False])
+def test_the_stabilised_attempts_come_last_and_searched_and_their_failure_stops_the_run(has_line_search):
+    """With a sheet modulus (stabilize > 0): after the floor attempt and (with a line search) the
+    unsearched one, an attempt with the damper eta = stabilize E, then one with STABILIZE_RISE eta, both
+    with the line search; when the second fails too, the run stops with its code."""
+    ctrl = Controller.build((Phase("load", n_steps=4),), StepControl(max_cuts=2, stabilize=1e-3), False,
+                            has_line_search, jnp.array(0, jnp.int32), modulus=2e5)
+    assert ctrl.stabilized and float(ctrl.eta) == pytest.approx(200.0)
+    cs = ctrl.init(jnp.zeros((3, 2)), jnp.zeros(1))
+    targets, plain, damped = [], [], []
+    codes = [Result.MAX_ITERATIONS] * (5 if has_line_search else 4) + [Result.INVERTED_ELEMENT]
+    for code in codes:
+        t_try, _ = ctrl.target(cs, 0.0)
+        targets.append(float(t_try))
+        plain.append(bool(cs.plain))
+        damped.append(int(cs.damped))
+        cs = ctrl.adapt(cs, 0.0, t_try, _outcome(code), 1)
+    n = len(codes)
+    assert targets == [0.25, 0.125] + [0.0625] * (n - 2)
+    assert plain == [False] * 3 + ([True] if has_line_search else []) + [False, False]
+    assert damped == [0] * (n - 2) + [1, 2]
+    assert int(cs.code) == Result.INVERTED_ELEMENT and int(cs.cuts) == n
+
+
+def test_a_converged_stabilised_attempt_is_the_step_and_the_next_step_is_undamped():
+    """The damped attempt converges: it is an accepted step (cuts reset) and the next attempt has no
+    damper; with stabilize = 0 (or no modulus) the run stops where the damped attempt would come."""
+    ctrl = Controller.build((Phase("load", n_steps=4),), StepControl(max_cuts=2), False, True,
+                            jnp.array(0, jnp.int32), modulus=2e5)
+    cs = ctrl.init(jnp.zeros((3, 2)), jnp.zeros(1))
+    for _ in range(4):   # 0.25, 0.125, 0.0625, 0.0625 unsearched
+        t_try, _ = ctrl.target(cs, 0.0)
+        cs = ctrl.adapt(cs, 0.0, t_try, _outcome(Result.MAX_ITERATIONS), 1)
+    assert int(cs.damped) == 1 and int(cs.code) == Result.CONTINUE
+    cs = ctrl.adapt(cs, 0.0, 0.0625, _outcome(Result.SUCCESS), 1)
+    assert int(cs.damped) == 0 and int(cs.cuts) == 0 and int(cs.code) == Result.CONTINUE
+    off = Controller.build((Phase("load", n_steps=4),), StepControl(max_cuts=2, stabilize=0.0), False, True,
+                           jnp.array(0, jnp.int32), modulus=2e5)
+    assert not off.stabilized
+    cs, targets, _ = _failing_step(off, off.init(jnp.zeros((3, 2)), jnp.zeros(1)))
+    assert targets == [0.25, 0.125, 0.0625, 0.0625] and int(cs.code) == Result.MAX_ITERATIONS

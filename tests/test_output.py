@@ -436,3 +436,15 @@ def test_cli_failed_run_exits_non_zero(flat, tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Newton did not converge" in err
     assert check_run_dir(out) == []
+
+
+def test_damping_note_counts_the_stabilised_steps_against_the_drawing_work():
+    """The summary's note on the step controller's damper: none without a damped step; otherwise how
+    many steps, the energy the damper took and its share of the drawing force's work (trapezoids)."""
+    values = {"drawing_force": np.array([0.0, 10.0, 10.0]), "drawing_displacement": np.array([0.0, 1.0, 2.0])}
+    assert output.damping_note(np.zeros(3), values) == ""
+    note = output.damping_note(np.array([0.0, 0.0, 0.3]), values)
+    assert note.startswith("1 step stabilised") and "0.3 N mm/mm" in note
+    assert "2 % of the drawing force's work (15 N mm/mm)" in note
+    flat = {"drawing_force": np.zeros(3), "drawing_displacement": np.zeros(3)}
+    assert "%" not in output.damping_note(np.array([0.0, 0.1, 0.2]), flat)

@@ -84,6 +84,8 @@ class AbstractContactFormulation(eqx.Module):
             driver may advance it one iteration at a time (:func:`jaxfric.loadpath.simulate.simulate_flat`).
         solver_stats: names of the history columns of ``History.solver_stats`` (empty: none kept).
         differentiable: steps carry derivatives (implicit function theorem).
+        stabilized: the step controller's stabilised attempt exists: the formulation's residual is
+            :func:`jaxfric.contact.system.linearize`'s, which carries the damper of ``StepArgs.damping``.
     """
 
     warm_start: ClassVar[bool] = False
@@ -92,6 +94,7 @@ class AbstractContactFormulation(eqx.Module):
     one_newton_solve: ClassVar[bool] = False
     solver_stats: ClassVar[tuple] = ()
     differentiable: ClassVar[bool] = True
+    stabilized: ClassVar[bool] = True
 
     @abc.abstractmethod
     def solve_step(self, args: StepArgs, x0, x_ref, newton: NewtonOptions, search=True,
@@ -329,6 +332,7 @@ class Complementarity(AbstractContactFormulation):
     unsearched_retry: ClassVar[bool] = False
     solver_stats: ClassVar[tuple] = ("lcp_pivots", "ssn_iters", "ssn_fallbacks")
     differentiable: ClassVar[bool] = False
+    stabilized: ClassVar[bool] = False
 
     def __check_init__(self):
         if self.solver not in SOLVERS:

@@ -3,8 +3,12 @@
 Unknowns x = (u, q_f): the nodal displacements, node-major, and the positions of the tools that are
 force-driven in some phase. Residual (spec 1.3, 1.8):
 
-    R_u = f_int(u) - f_c(u, q)                     free dofs;  u - u_presc on prescribed dofs
+    R_u = f_int(u) - f_c(u, q) [+ eta (u - u_n)]   free dofs;  u - u_presc on prescribed dofs
     R_q = sum_a e_q . f_c,a - P                    force-driven phase;  q - q_presc otherwise
+
+The bracketed term is the step controller's stabilisation (:class:`jaxfric.loadpath.controller.StepControl`,
+``stabilize``): a damper of stiffness eta on every node, acting on the step's displacement increment from
+the converged u_n; absent (``StepArgs.damping`` None) or zero in every other attempt.
 
 The Jacobian is block-tridiagonal (strip, plus a 2x2 block per contact pair on the diagonal), bordered
 by the force-driven tools (:class:`jaxfric.numerics.linalg.Bordered`); prescribed dofs get identity rows. All
@@ -44,6 +48,8 @@ class StepArgs(eqx.Module):
     contact: ContactStep | None
     formulation: str = eqx.field(static=True)
     force_idx: tuple = eqx.field(static=True)
+    damping: jax.Array | None = None    # () eta (N/mm per mm) of the stabilisation; None: no such term
+    u_start: jax.Array | None = None    # (n_dofs,) the converged displacements the damper acts from
 
 
 def _constrain_rows(K: BlockTridiag, mask: jax.Array, scale=1.0) -> BlockTridiag:
@@ -84,6 +90,9 @@ def _evaluate(x, args: StepArgs, jacobian: bool):
     assemble = internal_force_and_tangent if jacobian else internal_force
     a = assemble(args.mesh, args.material, args.formulation, args.geo, u, args.states)
     r_u = a.f_int
+    if args.damping is not None:
+        assert args.u_start is not None
+        r_u = r_u + (args.damping * (x[:n] - args.u_start)).reshape(-1, 2)
     contact = None
     if args.contact is not None:
         q, pairs, f_c, tool_f = _contact_terms(args, u, qf, jacobian)
@@ -168,12 +177,15 @@ def linearize(x, args: StepArgs) -> Linearization:
     R, a, contact = _evaluate(x, args, jacobian=True)
     keep = jnp.where(args.mask, 0.0, 1.0)
     assert a.tangent is not None
-    K: BlockTridiag | Bordered = a.tangent
+    strip: BlockTridiag = a.tangent
+    if args.damping is not None:
+        strip = BlockTridiag(strip.lower, strip.diag + args.damping * jnp.eye(strip.diag.shape[-1]), strip.upper)
+    K: BlockTridiag | Bordered = strip
     status = None
     aux_contact = None
     if contact is not None and args.contact is not None:
         q, pairs, tool_f = contact
-        K = _contact_jacobian(args, a.tangent, pairs, keep)
+        K = _contact_jacobian(args, strip, pairs, keep)
         aux_contact = _contact_out(q, pairs, tool_f)
         # Newton's "no status change" test (jaxfric.contact.status.settled_status) with the default force
         # tolerance of the residual test.

@@ -52,7 +52,7 @@ GAP_NO_PROJECTION = 1e30  # mm; gap written for a pair with no projection (outpu
 _NAME = re.compile(r"[a-z][a-z0-9_]*\Z")
 # History keys of RunResult that are not observations (written under their contract names where it has them).
 _RUN_KEYS = ("time", "phase", "phase_name", "newton_iters", "cutbacks", "augmentations", "wall_s",
-             "lcp_pivots", "ssn_iters", "ssn_fallbacks", "step", "predicted")
+             "lcp_pivots", "ssn_iters", "ssn_fallbacks", "step", "predicted", "damping_energy")
 
 class OutputError(RuntimeError):
     """Some output file could not be written; the data files that could be written are on disk."""
@@ -314,6 +314,21 @@ def _summary(scene, result, tag, values, instants, fallback, window, steady, not
     }
 
 
+def damping_note(energy, values: dict) -> str:
+    """The summary's note on the stabilised steps (:class:`jaxfric.loadpath.controller.StepControl`,
+    ``stabilize``): how many, and the energy their damper took against the drawing force's work,
+    the integral of ``drawing_force`` over ``drawing_displacement``; "" where there are none."""
+    energy = np.asarray(energy, float)
+    n = int(np.count_nonzero(energy))
+    if n == 0:
+        return ""
+    total = float(energy.sum())
+    work = float(np.trapezoid(values["drawing_force"], values["drawing_displacement"]))
+    share = f", {100 * total / work:.2g} % of the drawing force's work ({work:.4g} N mm/mm)" if work > 0 else ""
+    return (f"{n} step{'s' if n != 1 else ''} stabilised (history damping_energy): the damper took "
+            f"{total:.3g} N mm/mm{share}")
+
+
 def _write_summary(path: str, summary: dict) -> None:
     text = json.dumps(json_ready(summary), indent=2, allow_nan=False)
     _write_text(path, text + "\n")
@@ -422,6 +437,7 @@ def write_run(scene, result, out_dir, tag: str | None = None, figures: bool = Tr
         names, rows, fallback = ["final"], [len(lines) - 1], []
     window, note = steady_window(scene.name, values, scene.steady_window)
     notes.append(note)
+    notes.append(damping_note(result.history.get("damping_energy", ()), values))
     steady = steady_drawing_force({**values, "phase_name": values["phase"]}, window)
     summary = _summary(scene, result, tag, values, names, fallback, window, steady, notes, penalty_tangent,
                        step_check, mesh_check)

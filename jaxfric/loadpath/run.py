@@ -96,7 +96,8 @@ class Record:
 
     Attributes:
         parts: per chunk, its rows: ``time``, ``phase``, ``newton_iters``, ``cutbacks``,
-            ``augmentations``, ``solver_stats`` (n, 3), ``predicted``, ``wall_s``, and ``observed`` (a dict of the
+            ``augmentations``, ``solver_stats`` (n, 3), ``predicted``, ``damping_energy``, ``wall_s``, and
+            ``observed`` (a dict of the
             observations' rows), NumPy arrays.
         snapshots: history row -> ``snapshot(model, state)`` (NumPy), the rows kept.
         wall_s, cpu_s: solve time and process CPU time so far (s).
@@ -136,6 +137,7 @@ class Record:
         part = {"time": np.asarray(h.time[:n]), "phase": np.asarray(h.phase[:n]), "newton_iters": iters,
                 "cutbacks": np.asarray(h.cutbacks[:n]), "augmentations": np.asarray(h.augmentations[:n]),
                 "solver_stats": np.asarray(h.solver_stats[:n]), "predicted": np.asarray(h.predicted[:n]),
+                "damping_energy": np.asarray(h.damping_energy[:n]),
                 "wall_s": wall_s * weight / weight.sum() if n else np.zeros(0),
                 "observed": {k: np.asarray(v[:n]) for k, v in h.observed.items()}}
         self.parts.append(part)
@@ -171,7 +173,8 @@ class RunResult:
         history: dict of per-row arrays (row 0 = initial state): ``time``, ``phase`` (index),
             ``phase_name``, ``newton_iters``, ``cutbacks`` (attempts before the accepted one),
             ``augmentations`` (AL), ``predicted`` (1 where the accepted attempt started from the secant
-            prediction), ``wall_s`` (a chunk's wall time shared among its steps in proportion
+            prediction), ``damping_energy`` (N mm per mm: what the stabilised attempt's damper took, 0
+            in every other step), ``wall_s`` (a chunk's wall time shared among its steps in proportion
             to their Newton iterations plus one), plus every observation.
         final: the last converged :class:`~jaxfric.loadpath.model.SimState`.
         simulation: the :class:`~jaxfric.loadpath.simulate.Simulation` (NumPy: the history as one
@@ -350,7 +353,8 @@ def _history(model, record: Record) -> dict:
     cols = record.columns()
     history = {k: cols[k] for k in ("time", "phase")}
     history["phase_name"] = np.array([p.name for p in model.phases])[cols["phase"]]
-    history.update({k: cols[k] for k in ("newton_iters", "cutbacks", "augmentations", "predicted")})
+    history.update({k: cols[k] for k in ("newton_iters", "cutbacks", "augmentations", "predicted",
+                                         "damping_energy")})
     if model.tools and model.contact is not None and model.contact.solver_stats:
         history.update({name: cols["solver_stats"][:, k] for k, name in enumerate(model.contact.solver_stats)})
     history["wall_s"] = cols["wall_s"]
@@ -387,7 +391,8 @@ def _result(model, path: LoadPathState, record: Record, code: Result, compile_s:
                        f"are kept.")
     buffers = History(time=cols["time"], phase=cols["phase"], newton_iters=cols["newton_iters"],
                       cutbacks=cols["cutbacks"], augmentations=cols["augmentations"],
-                      solver_stats=cols["solver_stats"], predicted=cols["predicted"], observed=cols["observed"],
+                      solver_stats=cols["solver_stats"], predicted=cols["predicted"],
+                      damping_energy=cols["damping_energy"], observed=cols["observed"],
                       n_rows=jnp.asarray(n, jnp.int32))
     simulation = Simulation(history=buffers, final=final, code=jnp.asarray(code, jnp.int32), failed_time=ctrl.failed_t,
                             residual_norm=ctrl.r_norm, pending_cuts=ctrl.cuts)

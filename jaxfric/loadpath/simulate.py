@@ -33,7 +33,7 @@ from ..contact.system import linearize
 from ..fem.loading import schedule
 from ..numerics.newton import SOLUTION_NAME, LinearizedProblem, NewtonOptions, newton_pass, newton_result, newton_start
 from ..numerics.results import Result
-from .controller import Controller, ControllerState, Outcome, StepControl
+from .controller import STABILIZE_RISE, Controller, ControllerState, Outcome, StepControl
 from .model import SimState, StripModel, default_observe, initial_state, tool_positions
 from .step import (
     StepContext,
@@ -58,6 +58,8 @@ class History(eqx.Module):
         predicted: (S,) 1 where the step's accepted attempt started from the secant prediction, else 0
             (a retry, a phase's first step, or the prediction withheld: :class:`_Predictor`); a replay of
             the steps (:func:`simulate_fixed`'s ``fresh``) starts the others from the converged state.
+        damping_energy: (S,) the energy the stabilisation's damper took in the step (N mm per mm; 0 for
+            every step but a stabilised one: :class:`jaxfric.loadpath.controller.StepControl`).
         solver_stats: (S, 3) exact contact: Lemke pivots, semismooth Newton iterations (active-set
             passes), fallbacks (condensed solver: Lemke after SSN; "ssn": iterations whose active set
             did not settle), summed over the step's attempts (zero for the other laws).
@@ -72,6 +74,7 @@ class History(eqx.Module):
     augmentations: jax.Array
     solver_stats: jax.Array
     predicted: jax.Array
+    damping_energy: jax.Array
     observed: Any
     n_rows: jax.Array
 
@@ -110,7 +113,7 @@ def _empty_history(n: int, row0: dict, filled: bool = True) -> History:
     return History(time=jnp.zeros(n), phase=jnp.zeros(n, jnp.int32),
                    newton_iters=jnp.zeros(n, jnp.int32), cutbacks=jnp.zeros(n, jnp.int32),
                    augmentations=jnp.zeros(n, jnp.int32), solver_stats=jnp.zeros((n, 3), jnp.int32),
-                   predicted=jnp.zeros(n, jnp.int32), observed=observed,
+                   predicted=jnp.zeros(n, jnp.int32), damping_energy=jnp.zeros(n), observed=observed,
                    n_rows=jnp.array(1 if filled else 0, jnp.int32))
 
 
@@ -120,7 +123,7 @@ def _put(buf, row, pred, value):
 
 
 def _record(h: History, row, pred, state: SimState, iters, cuts, augmentations, stats, predicted,
-            observed) -> History:
+            observed, damping_energy=0.0) -> History:
     """Write row ``row`` when ``pred``; leave the buffers unchanged otherwise."""
     def put(buf, value):
         return _put(buf, row, pred, value)
@@ -129,6 +132,7 @@ def _record(h: History, row, pred, state: SimState, iters, cuts, augmentations, 
                    newton_iters=put(h.newton_iters, iters), cutbacks=put(h.cutbacks, cuts),
                    augmentations=put(h.augmentations, augmentations), solver_stats=put(h.solver_stats, stats),
                    predicted=put(h.predicted, jnp.asarray(predicted, jnp.int32)),
+                   damping_energy=put(h.damping_energy, jnp.asarray(damping_energy, h.damping_energy.dtype)),
                    observed=jax.tree_util.tree_map(put, h.observed, observed),
                    n_rows=jnp.where(pred, row + 1, h.n_rows))
 
@@ -233,7 +237,10 @@ def _controller(model: StripModel, control: StepControl) -> Controller:
     on = continuation_on(model, control)
     has_line_search = model.contact is None or not model.tools or model.contact.unsearched_retry
     n_stages = continuation_stages(model) if on else jnp.array(0, jnp.int32)
-    return Controller.build(model.phases, control, on, has_line_search, n_stages)
+    # The stabilised attempt: a formulation whose residual carries the damper, and a sheet modulus to scale it.
+    damper = (model.contact is None or not model.tools or model.contact.stabilized)
+    modulus = getattr(model.material, "E", None) if damper else None
+    return Controller.build(model.phases, control, on, has_line_search, n_stages, modulus)
 
 
 def _start(model: StripModel, ctrl: Controller) -> LoadPathState:
@@ -254,18 +261,31 @@ def _next_attempt(ctrl: Controller, p: LoadPathState):
     return t_try, phase, ctrl.start(p.ctrl, guess)
 
 
+def _damping(ctrl: Controller, p: LoadPathState):
+    """The next attempt's damper (:class:`StepControl`, ``stabilize``): eta or STABILIZE_RISE eta in the
+    stabilised attempts, 0 in the others; None where the run has none (no such term in the program)."""
+    if not ctrl.stabilized:
+        return None
+    return jnp.select([p.ctrl.damped == 1, p.ctrl.damped == 2], [ctrl.eta, STABILIZE_RISE * ctrl.eta], 0.0)
+
+
 def _after_attempt(model: StripModel, ctrl: Controller, c: _Loop, sol: StepSolution, new_state: SimState, t_try,
-                   observe: Callable, snapshot: Callable | None = None) -> _Loop:
+                   observe: Callable, fixed, snapshot: Callable | None = None) -> _Loop:
     """The loop after an attempt: the step recorded (with its snapshot, in a chunk) if accepted, the
-    controller adapted."""
+    controller adapted. ``fixed``: the prescribed dofs of the attempt's phase (the damper's energy is
+    taken over the others)."""
     p = c.path
+    energy = jnp.zeros(())
+    if ctrl.stabilized:
+        du = (new_state.u - p.state.u).reshape(-1)
+        energy = _damping(ctrl, p) * jnp.sum(jnp.where(fixed, 0.0, du**2))
     predicted = p.predictor.used(p.state, new_state.phase, retry=p.ctrl.cuts > 0)
     out = Outcome(sol.code, sol.iterations, sol.hardest, sol.stats, sol.residual_norm, new_state.u,
                   tool_positions(new_state), predicted)
     ok, iters, stats = ctrl.tally(p.ctrl, out)
     slot = c.history.n_rows
     history = _record(c.history, slot, ok, new_state, iters, p.ctrl.cuts, sol.augmentations, stats, predicted,
-                      observe(model, new_state))
+                      observe(model, new_state), energy)
     snapshots = c.snapshots
     if snapshot is not None:
         snapshots = jax.tree_util.tree_map(lambda b, v: _put(b, slot, ok, v), snapshots, snapshot(model, new_state))
@@ -289,8 +309,9 @@ def _attempt_body(model: StripModel, ctrl: Controller, newton: NewtonOptions, ct
         p = c.path
         t_try, phase, guess = _next_attempt(ctrl, p)
         sol, new_state = solve_step(model, p.state, phase, t_try, newton, ctx, guess=guess, search=~p.ctrl.plain,
-                                    soften=p.ctrl.stages.soft if ctrl.continuation else None)
-        return _after_attempt(model, ctrl, c, sol, new_state, t_try, observe, snapshot)
+                                    soften=p.ctrl.stages.soft if ctrl.continuation else None,
+                                    damping=_damping(ctrl, p))
+        return _after_attempt(model, ctrl, c, sol, new_state, t_try, observe, ctx.masks[phase], snapshot)
 
     return body
 
@@ -402,7 +423,7 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     def body(carry):
         c, t_try, phase, nc = carry
         p = c.path
-        args, q_start, f_start = step_args(model, p.state, phase, t_try, ctx)
+        args, q_start, f_start = step_args(model, p.state, phase, t_try, ctx, _damping(ctrl, p))
         soft = p.ctrl.stages.soft
         if ctrl.continuation:
             args = softened_args(args, jnp.maximum(soft, 0))
@@ -412,11 +433,11 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
         done = nc.code != Result.CONTINUE
         sol = from_newton(newton_result(nc, problem, args))
         new_state = step_state(model, args, sol, t_try, phase, q_start, f_start)
-        c = _select(done, _after_attempt(model, ctrl, c, sol, new_state, t_try, observe), c)
+        c = _select(done, _after_attempt(model, ctrl, c, sol, new_state, t_try, observe, ctx.masks[phase]), c)
         return _select(done, (c,) + attempt(c), (c, t_try, phase, nc))
 
     t0, phase0, guess0 = _next_attempt(ctrl, init.path)
-    args0, _, _ = step_args(model, init.path.state, phase0, t0, ctx)
+    args0, _, _ = step_args(model, init.path.state, phase0, t0, ctx, _damping(ctrl, init.path))
     problem0 = LinearizedProblem(linearize)
     carry = (init, t0, phase0, newton_start(problem0, unknowns(model, *guess0), args0, newton))
     out = jax.lax.while_loop(lambda carry: carry[0].path.ctrl.code == Result.CONTINUE, body, carry)[0]
@@ -489,6 +510,7 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
                    augmentations=column(0, augs.astype(jnp.int32)),
                    solver_stats=column(jnp.zeros(3, jnp.int32), stats.astype(jnp.int32)),
                    predicted=column(0, predicted.astype(jnp.int32)),
+                   damping_energy=column(0.0, jnp.zeros_like(t)),
                    observed=jax.tree_util.tree_map(column, row0, observed), n_rows=1 + n_ok)
     code = jnp.where(code == Result.CONTINUE, Result.SUCCESS, code).astype(jnp.int32)
     return Simulation(history=hist, final=state, code=code, failed_time=failed_t, residual_norm=r_norm,

@@ -81,7 +81,10 @@ def _candidates(model: StripModel, u: jax.Array) -> tuple:
     return tuple(u[np.asarray(t.candidates)] for t in model.tools)
 
 
-def step_args(model: StripModel, state: SimState, phase, t_target, ctx: StepContext):
+def step_args(model: StripModel, state: SimState, phase, t_target, ctx: StepContext, damping=None):
+    """The data of the step from ``state`` to ``t_target`` in ``phase``; ``damping`` (may be traced): the
+    stabilisation's eta (N/mm per mm, 0: none) acting on the increment from ``state``, or None (no such
+    term in the program)."""
     phase = jnp.asarray(phase, jnp.int32)
     t_target = jnp.asarray(t_target, jnp.float64)
     tau = t_target - phase.astype(t_target.dtype)
@@ -89,8 +92,9 @@ def step_args(model: StripModel, state: SimState, phase, t_target, ctx: StepCont
     contact, q_start, f_start = (None, None, None)
     if model.tools:
         contact, q_start, f_start = _contact_step(model, state, phase, tau, model.contact)
+    u_start = None if damping is None else state.u.reshape(-1)
     args = StepArgs(model.mesh, model.material, ctx.geo, state.material, ctx.masks[phase], values,
-                     contact, model.formulation, model.force_tools)
+                    contact, model.formulation, model.force_tools, damping, u_start)
     return args, q_start, f_start
 
 
@@ -137,7 +141,7 @@ def softened_args(args: StepArgs, m) -> StepArgs:
 
 def solve_step(model: StripModel, state: SimState, phase, t_target,
                newton: NewtonOptions = NewtonOptions(), ctx: StepContext | None = None, guess=None,
-               search=True, soften=None):
+               search=True, soften=None, damping=None):
     """Solve one load step from the converged ``state`` to pseudo-time ``t_target`` in phase ``phase``.
 
     ``guess`` is Newton's initial point ``(u (n_nodes, 2), q (n_tools,))`` (default: the last state).
@@ -146,6 +150,8 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
     :class:`StepControl` when >= 0: the formulation's ``softened(soften)`` (penalty: eps_n and eps_t
     divided by 10^soften; 0: the model's law), and Newton's round-off floor
     relative to the positions (:mod:`jaxfric.numerics.newton`); None or < 0: a plain attempt.
+    ``damping`` (may be traced; formulations with ``stabilized``): the stabilisation's eta (N/mm per mm)
+    on the increment from ``state`` (:class:`StepControl`, ``stabilize``); 0 or None: none.
 
     Returns the :class:`StepSolution` (iterations, code, residual history, AL augmentations) and the
     new :class:`SimState` (meaningful only when ``solution.code == Result.SUCCESS``).
@@ -153,7 +159,7 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
     ctx = StepContext.build(model) if ctx is None else ctx
     t_target = jnp.asarray(t_target, jnp.float64)
     phase = jnp.asarray(phase, jnp.int32)
-    args, q_start, f_start = step_args(model, state, phase, t_target, ctx)
+    args, q_start, f_start = step_args(model, state, phase, t_target, ctx, damping)
     stage = jnp.array(False)
     if soften is not None and _softenable(model):
         stage = jnp.asarray(soften) >= 0

@@ -44,6 +44,9 @@ MAX_AUGMENTATIONS_DOC = ("auglag: augmentations allowed per step attempt before 
                          "[chosen]")
 MAX_STEPS_DOC = ("size of the history buffer in accepted steps; a run that fills it stops (MAX_STEPS). "
                  "None: 10x the nominal step count + 200 [chosen]")
+STABILIZE_DOC = ("the step controller's damper where a step fails at the smallest increment: eta = stabilize E "
+                 "(N/mm per mm) on every free node's increment, then 100 eta; the energy it takes is reported "
+                 "(jaxfric.loadpath.controller.StepControl). 0: a run stops there instead [chosen]")
 ELEMENTS = ("fbar", "ans", "anst", "eas")  # plain Q4 locks in plastic flow: kept for elastic checks only
 ELEMENT_DOC = ("element formulation (jaxfric.fem.element): 'fbar' F-bar Q4, 'ans' F-bar with assumed "
                "natural strain through the thickness (no parasitic shear), 'anst' assumed natural strain with "
@@ -250,9 +253,10 @@ class ContactSnapshot(eqx.Module):
 
 # ---- JSON description ----------------------------------------------------------------------------
 
-def step_control(phases, max_steps: int | None = None) -> StepControl:
+def step_control(phases, max_steps: int | None = None, stabilize: float = 1e-5) -> StepControl:
     """The spec's step controller (section 1.9: StepControl defaults) with a history buffer of
-    ``max_steps`` rows, by default 10x the nominal step count + 200.
+    ``max_steps`` rows, by default 10x the nominal step count + 200, and the damper ``stabilize``
+    (:class:`StepControl`) where a step fails at the smallest increment.
 
     Why 10x: the controller halves the increment on a failure and grows it back (x1.5) only after two
     consecutive steps of at most 6 Newton iterations, so a phase whose steps regularly need 7 or more
@@ -262,7 +266,7 @@ def step_control(phases, max_steps: int | None = None) -> StepControl:
     such limit (it stops only below nominal / 2**10): a run that needs more rows (the Nine with a
     penalty of 1e6, about 20x its nominal steps) sets ``max_steps``.
     """
-    return StepControl(max_steps=max_steps or 10 * schedule(phases).n_nominal_steps + 200)
+    return StepControl(max_steps=max_steps or 10 * schedule(phases).n_nominal_steps + 200, stabilize=stabilize)
 
 
 def schedule_entry(phase: Phase, control: str, variable: str, unit: str, start: float | None,

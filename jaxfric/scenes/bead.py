@@ -96,6 +96,7 @@ class BeadConfig:
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
     max_augmentations: int = cm.spec_field(20, "-", cm.MAX_AUGMENTATIONS_DOC)
     max_steps: int | None = cm.spec_field(None, "-", cm.MAX_STEPS_DOC)
+    stabilize: float = cm.spec_field(1e-5, "-", cm.STABILIZE_DOC)
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(512, "-", cm.BAND_DOC)
@@ -156,7 +157,8 @@ class BeadObserve(eqx.Module):
 
 def _check(config: BeadConfig) -> None:
     cm.check_config(config, positive=("t", "R_r", "r_e", "F_clamp", "s_draw", "dtheta", "ds"),
-                    nonnegative=("mu_clamp", "mu_roller", "theta"), integers=("nx", "ny", "band", "n_clamp"),
+                    nonnegative=("stabilize", "mu_clamp", "mu_roller", "theta"),
+                    integers=("nx", "ny", "band", "n_clamp"),
                     lengths=("x_left", "x_right", "t", "R_r", "x_clamp_left", "x_clamp_right", "r_e", "x_jaw"))
     if not config.x_right > config.x_left:
         raise ValueError(f"config field 'x_right' = {config.x_right!r} must exceed x_left = {config.x_left!r}")
@@ -235,7 +237,7 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
     return Scene(
         name=NAME, variant=variant, algorithm=algorithm, config=config, model=model, observe=observe,
         snapshot=cm.ContactSnapshot(),
-        control=cm.step_control(phases, config.max_steps),
+        control=cm.step_control(phases, config.max_steps, config.stabilize),
         phase_names=PHASES, tool_names=TOOLS, clamping_tool=0, instants=INSTANTS,
         steady_window=tuple(float(v) for v in config.steady_window),
         roi=(-95.0, 30.0, -45.0, 15.0), y_scale=1.0, parameters=parameters)

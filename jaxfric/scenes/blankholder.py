@@ -137,6 +137,7 @@ class BlankholderConfig:
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
     max_augmentations: int = cm.spec_field(20, "-", cm.MAX_AUGMENTATIONS_DOC)
     max_steps: int | None = cm.spec_field(None, "-", cm.MAX_STEPS_DOC)
+    stabilize: float = cm.spec_field(1e-5, "-", cm.STABILIZE_DOC)
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     clearance: float = cm.spec_field(0.05, "mm", "the upper die is set this far above the sheet [chosen]")
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
@@ -211,7 +212,8 @@ class BlankholderObserve(eqx.Module):
 def _check(config: BlankholderConfig) -> None:
     cm.check_config(config, positive=("H", "R", "r", "Rp", "L", "t", "r_e", "element_length", "U_pull", "ds_close",
                                       "dU"),
-                    nonnegative=("mu", "F_clamp", "upstream_margin", "grip_length", "land_margin", "clearance"),
+                    nonnegative=("stabilize", "mu", "F_clamp", "upstream_margin", "grip_length", "land_margin",
+                                 "clearance"),
                     integers=("nx", "ny", "band", "n_lock", "newton_iterations"),
                     choices={"lock_control": ("force", "position")},
                     lengths=("H", "R", "r", "Rp", "L", "t", "r_e", "x_left", "x_right", "upstream_margin",
@@ -319,7 +321,7 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
     return Scene(
         name=NAME, variant=variant, algorithm=algorithm, config=config, model=model, observe=observe,
         snapshot=cm.ContactSnapshot(),
-        control=cm.step_control(phases, config.max_steps),
+        control=cm.step_control(phases, config.max_steps, config.stabilize),
         phase_names=PHASES, tool_names=TOOLS, clamping_tool=1, instants=INSTANTS,
         steady_window=tuple(float(v) for v in config.steady_window),
         roi=(-(x_g + 10.0), x_g + 10.0, -3.0, config.H + 5.0), y_scale=1.0, parameters=parameters,

@@ -72,6 +72,7 @@ class FlatDieConfig:
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
     max_augmentations: int = cm.spec_field(20, "-", cm.MAX_AUGMENTATIONS_DOC)
     max_steps: int | None = cm.spec_field(None, "-", cm.MAX_STEPS_DOC)
+    stabilize: float = cm.spec_field(1e-5, "-", cm.STABILIZE_DOC)
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(None, "-", cm.BAND_DOC)
@@ -118,7 +119,7 @@ class FlatDieObserve(eqx.Module):
 
 def _check(config: FlatDieConfig) -> None:
     cm.check_config(config, positive=("L", "h", "die_overhang", "U_draw", "U_fine", "dU_fine", "dU"),
-                    nonnegative=("mu", "F_clamp"), integers=("nx", "ny", "band", "n_clamp"),
+                    nonnegative=("stabilize", "mu", "F_clamp"), integers=("nx", "ny", "band", "n_clamp"),
                     choices={"draw_control": ("force", "position")}, lengths=("L", "h", "die_overhang"))
 
 
@@ -181,7 +182,7 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
     return Scene(
         name=NAME, variant=variant, algorithm=algorithm, config=config, model=model, observe=observe,
         snapshot=cm.ContactSnapshot(),
-        control=cm.step_control(phases, config.max_steps),
+        control=cm.step_control(phases, config.max_steps, config.stabilize),
         phase_names=PHASES, tool_names=TOOLS, clamping_tool=0, instants=INSTANTS,
         steady_window=tuple(float(v) for v in config.steady_window),
         roi=(-1.0, L + 1.0, -0.1, h + 0.1), y_scale=20.0, parameters=parameters)
