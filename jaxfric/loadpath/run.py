@@ -97,8 +97,7 @@ class Record:
     Attributes:
         parts: per chunk, its rows: ``time``, ``phase``, ``newton_iters``, ``cutbacks``,
             ``augmentations``, ``solver_stats`` (n, 3), ``predicted``, ``damping_energy``, ``wall_s``, and
-            ``observed`` (a dict of the
-            observations' rows), NumPy arrays.
+            ``observed`` (a dict of the observations' rows), NumPy arrays.
         snapshots: history row -> ``snapshot(model, state)`` (NumPy), the rows kept.
         wall_s, cpu_s: solve time and process CPU time so far (s).
     """
