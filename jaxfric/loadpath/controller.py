@@ -34,8 +34,12 @@ from ..numerics.results import Result
 
 __all__ = ["StepControl", "Controller", "ControllerState", "ContinuationState", "Outcome", "Tally",
            "increment_after_acceptance", "retry_from_converged", "unsearched_attempt", "continuation_rule",
-           "stabilised_attempt", "stop_code", "STABILIZE_RISE"]
+           "stabilised_attempt", "stop_code", "STABILIZE", "STABILIZE_RISE"]
 
+
+#: The default first damper of the stabilised attempts, in multiples of the sheet's Young's modulus
+#: (:class:`StepControl`, ``stabilize``).
+STABILIZE = 1e-5
 
 #: The second stabilised attempt's damper, in multiples of the first's (:class:`StepControl`, ``stabilize``).
 STABILIZE_RISE = 100.0
@@ -98,7 +102,7 @@ class StepControl(eqx.Module):
     easy_steps: int = eqx.field(static=True, default=2)
     max_steps: int | None = eqx.field(static=True, default=None)
     continuation: bool = eqx.field(static=True, default=True)
-    stabilize: float = eqx.field(static=True, default=1e-5)
+    stabilize: float = eqx.field(static=True, default=STABILIZE)
 
     def __check_init__(self):
         check_int("max_cuts", self.max_cuts, 0, 60)
@@ -327,16 +331,16 @@ class Controller(eqx.Module):
         dt_cut = 0.5 * (t_try - t_start)
         at_floor = ~ok & (dt_cut < dt_nom / 2.0**self.control.max_cuts * (1.0 - 1e-9))
         again = retry_from_converged(~ok, at_floor, cs.cuts, out.predicted)
-        plain = unsearched_attempt(at_floor, again, cs.plain, self.has_line_search)
+        # After a stabilised attempt the unsearched one does not come back.
+        plain = unsearched_attempt(at_floor, again, cs.plain, self.has_line_search) & (cs.damped == 0)
         stages, held = cs.stages, jnp.array(False)
         if self.continuation:
             stages, start, stage_done, held = continuation_rule(cs.stages, self.n_stages, at_floor, again,
                                                                 cs.plain, converged, ok, out.u, out.q)
-            plain = plain & ~start & ~stage_done & (cs.damped == 0)
+            plain = plain & ~start & ~stage_done
             too_small = at_floor & ~again & ~plain & ~start & ~stage_done
             repeat = again | plain | start | stage_done
         else:
-            plain = plain & (cs.damped == 0)
             too_small = at_floor & ~again & ~plain
             repeat = again | plain
         level = stabilised_attempt(too_small, cs.damped, self.stabilized)

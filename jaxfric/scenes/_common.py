@@ -19,7 +19,7 @@ from ..contact.rigid import max_penetration, split_pairs
 from ..contact.status import SLIP
 from ..contact.tools import GAP_OPEN, Arc, Segment, Tool
 from ..fem.loading import Phase, schedule
-from ..loadpath.controller import StepControl
+from ..loadpath.controller import STABILIZE, StepControl
 from ..loadpath.model import reactions
 
 __all__ = ["spec_field", "check_config", "check_steady_window", "check_variant", "check_algorithm", "pair_forces",
@@ -253,7 +253,7 @@ class ContactSnapshot(eqx.Module):
 
 # ---- JSON description ----------------------------------------------------------------------------
 
-def step_control(phases, max_steps: int | None = None, stabilize: float = 1e-5) -> StepControl:
+def step_control(phases, max_steps: int | None = None, stabilize: float = STABILIZE) -> StepControl:
     """The spec's step controller (section 1.9: StepControl defaults) with a history buffer of
     ``max_steps`` rows, by default 10x the nominal step count + 200, and the damper ``stabilize``
     (:class:`StepControl`) where a step fails at the smallest increment.

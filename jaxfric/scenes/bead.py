@@ -96,7 +96,7 @@ class BeadConfig:
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
     max_augmentations: int = cm.spec_field(20, "-", cm.MAX_AUGMENTATIONS_DOC)
     max_steps: int | None = cm.spec_field(None, "-", cm.MAX_STEPS_DOC)
-    stabilize: float = cm.spec_field(1e-5, "-", cm.STABILIZE_DOC)
+    stabilize: float = cm.spec_field(cm.STABILIZE, "-", cm.STABILIZE_DOC)
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(512, "-", cm.BAND_DOC)
