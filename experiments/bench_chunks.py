@@ -21,7 +21,7 @@ import jax
 
 import jaxfric as jf
 from jaxfric import scenes
-from jaxfric.io.instants import instant_rows
+from jaxfric.io.instants import InstantRows
 
 RESULTS = os.path.join(os.path.dirname(__file__), "results")
 
@@ -46,7 +46,7 @@ def chunked(scene, out: str) -> dict:
     timed = _Timed(cli._PartialWriter(scene, out, None, checkpoint.configuration(scene)))
     t = time.perf_counter()
     result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                    snapshot=scene.snapshot, keep_snapshots=lambda h: instant_rows(scene.name, h),
+                    snapshot=scene.snapshot, keep_snapshots=InstantRows(scene.name),
                     progress=False, on_chunk=timed)
     total = time.perf_counter() - t - result.compile_s
     return {"driver": "chunks", "solve_s": total, "chunk_s": result.wall_s, "host_s": total - result.wall_s,

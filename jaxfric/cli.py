@@ -409,7 +409,7 @@ def _resume(args, scene, out: str):
 def _run(args) -> int:
     scene = _build(args)
     from .io import checkpoint, output
-    from .io.instants import instant_rows
+    from .io.instants import InstantRows
     from .loadpath.run import MemoryBudgetError, run
     from .numerics.results import Result
 
@@ -428,7 +428,7 @@ def _run(args) -> int:
     try:
         with _StopRequest() as stop:
             result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                         snapshot=scene.snapshot, keep_snapshots=lambda h: instant_rows(scene.name, h),
+                         snapshot=scene.snapshot, keep_snapshots=InstantRows(scene.name),
                          progress=not args.quiet, raise_on_failure=False, label=label, resume=resume,
                          on_chunk=_PartialWriter(scene, out, args.tag, config), stop=stop)
     except MemoryBudgetError as err:

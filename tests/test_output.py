@@ -57,6 +57,27 @@ def test_instants_of_unreached_phases_are_omitted():
     assert instants.select_instants("blankholder", h) == (["closed", "final"], [1, 2], [])
 
 
+def test_instant_rows_of_a_growing_history_equal_those_of_each_whole_history():
+    """`InstantRows` rounds only the rows it has not seen; what it keeps is what a fresh call keeps,
+    and a history whose earlier rows changed is read again from its start."""
+    rng = np.random.default_rng(0)
+    n = 60
+    phases = ["clamp"] * 10 + ["draw"] * (n - 10)
+    time = np.concatenate([np.linspace(0.0, 1.0, 10), 1.0 + np.cumsum(rng.uniform(0.001, 0.03, n - 10))])
+    u = np.concatenate([np.zeros(10), 40.0 * (time[10:] - 1.0) / (time[-1] - 1.0)])
+    h = _history(phases, time, u=u)
+    keep = instants.InstantRows("nine")
+    picked = []
+    for m in (3, 11, 12, 30, 45, n):
+        part = {k: v[:m] for k, v in h.items()}
+        picked.append(keep(part))
+        assert picked[-1] == instants.instant_rows("nine", part)
+    assert len({tuple(r) for r in picked}) == len(picked)   # the steady and final rows moved as it grew
+    changed = {k: v.copy() for k, v in h.items()}
+    changed["drawing_displacement"][10:] *= 0.8
+    assert keep(changed) == instants.instant_rows("nine", changed) != picked[-1]
+
+
 def test_closest_and_end_of_phase_instants():
     u = [0, 0, 0, 0, 2.0, 3.9, 4.2, 8.0]
     h = _history(["clamp", "clamp", "wind", "wind", "draw", "draw", "draw", "draw"],

@@ -16,7 +16,7 @@ import jaxfric as jf
 from jaxfric import cli, scenes
 from jaxfric.io import checkpoint, output
 from jaxfric.io.contract import check_run_dir
-from jaxfric.io.instants import instant_rows
+from jaxfric.io.instants import InstantRows
 
 # A flat die of a few seconds' solve (24 x 2 elements, 120 draw steps): long enough to be stopped in the
 # middle, from a command line or a stop request.
@@ -118,9 +118,9 @@ def test_a_stopped_run_resumes_bit_for_bit_from_its_checkpoint_on_disk(whole, tm
 
 
 def test_kept_snapshots_write_the_contact_file_of_all_snapshots(whole, tmp_path):
-    """The rows `instant_rows` keeps as the run goes are the rows contact.npz needs at the end."""
+    """The rows `InstantRows` keeps as the run goes are the rows contact.npz needs at the end."""
     scene, result = whole
-    kept = _run(scene, keep_snapshots=lambda h: instant_rows(scene.name, h))
+    kept = _run(scene, keep_snapshots=InstantRows(scene.name))
     assert len(kept.snapshots) < len(result.snapshots) // 10
     output.write_run(scene, kept, str(tmp_path / "kept"), figures=False)
     output.write_run(scene, result, str(tmp_path / "all"), figures=False)

@@ -195,6 +195,8 @@ class StiffPenalty(Penalty):
 
     one_newton_solve: ClassVar[bool] = False
 
+    # Penalty's __init__, repeated: equinox would give this subclass Penalty's at run time, but type checkers
+    # read the dataclass fields' signature (smooth required) for a Module without an __init__ of its own.
     def __init__(self, eps_n, eps_t, smoothing=0.0, smooth: bool | None = None):
         self._set_penalties(eps_n, eps_t, smoothing, smooth)
 

@@ -8,8 +8,8 @@ import numpy as np
 
 from .. import scenes
 
-__all__ = ["STEADY_TOL", "TIME_TOL", "select_instants", "instant_rows", "steady_rows", "steady_drawing_force",
-           "steady_window", "phase_names", "column", "scene_module"]
+__all__ = ["STEADY_TOL", "TIME_TOL", "select_instants", "InstantRows", "instant_rows", "steady_rows",
+           "steady_drawing_force", "steady_window", "phase_names", "column", "scene_module"]
 
 STEADY_TOL = 1e-9        # mm; inclusive window tolerance (benchmarks spec section 6)
 TIME_TOL = 1e-9         # pseudo-time tolerance for "end of phase k" (time = k)
@@ -111,20 +111,48 @@ def _as_written(values) -> np.ndarray:
     return np.array([float(f"{float(v):.12g}") for v in np.asarray(values)])
 
 
-def instant_rows(scene_name: str, history: dict) -> list:
-    """The rows whose state ``contact.npz`` can still need, given the rows so far: the instants that
-    :func:`select_instants` picks from them as ``history.csv`` writes them, and the last row.
+class InstantRows:
+    """The rows whose state ``contact.npz`` can still need, given a run's rows so far (a run's
+    ``keep_snapshots``): the instants that :func:`select_instants` picks from them as ``history.csv``
+    writes them, and the last row.
 
     A later row can replace an instant's row (a closer displacement, a first slip, the final row) but
     never bring back an older row that no rule picks now: "end" rows are fixed once reached, "closest"
     keeps the first of equals, the state-based rules take the first hit. So a run may drop the
     snapshots of every other row as it goes.
+
+    Called after every chunk with the whole history, it rounds only the rows it has not seen (the
+    rounding through text is what costs; a run's recorded rows never change), so a long run's calls cost
+    O(rows) in all, not O(rows^2); a history whose earlier rows differ from those seen starts over.
     """
-    h = dict(history)
-    for name in ("time", "drawing_displacement"):
-        h[name] = _as_written(column(history, name))
-    _, rows, _ = select_instants(scene_name, h)
-    return sorted(set(rows) | {len(h["time"]) - 1})
+
+    _COLUMNS = ("time", "drawing_displacement")
+
+    def __init__(self, scene_name: str):
+        self.scene_name = scene_name
+        self._seen = {name: (np.empty(0), np.empty(0)) for name in self._COLUMNS}  # raw, as written
+
+    def _written(self, history: dict, name: str) -> np.ndarray:
+        values = np.asarray(column(history, name), dtype=np.float64)
+        raw, written = self._seen[name]
+        n = raw.size
+        if values.size < n or not np.array_equal(values[:n], raw):
+            raw, written, n = np.empty(0), np.empty(0), 0
+        written = np.concatenate([written, _as_written(values[n:])])
+        self._seen[name] = (values, written)
+        return written
+
+    def __call__(self, history: dict) -> list:
+        h = dict(history)
+        for name in self._COLUMNS:
+            h[name] = self._written(history, name)
+        _, rows, _ = select_instants(self.scene_name, h)
+        return sorted(set(rows) | {len(h["time"]) - 1})
+
+
+def instant_rows(scene_name: str, history: dict) -> list:
+    """:class:`InstantRows` of one history."""
+    return InstantRows(scene_name)(history)
 
 
 # ---- steady drawing force ---------------------------------------------------------------------------
