@@ -13,7 +13,8 @@ of one mesh, each changing one candidate source of error and nothing else:
   contact candidate, and with every second one only, so that the contact points are spaced as on
   300 x 3 while the elements are those of 600 x 3;
 - the time step: the nominal increments and a half of them (the cases' default) and a quarter;
-- the layers: 3, 6 and 12 through the thickness, on 300 and 600 elements along (and ``anst`` on 1200 x 6).
+- the layers: 3, 6 and 12 through the thickness, on 300 and 600 elements along (and ``anst`` on 1200 x 6);
+- the Gauss points through each element's thickness: 2 (the 2 x 2 rule) and 4 (``anst``, cases ``_p4``).
 
 Exact contact (``lcp_ssn``), U_draw 36 mm, half the nominal increments unless named, as the reference
 ladder of docs/results.md. Each case is a run directory under ``--root`` (default
@@ -38,7 +39,8 @@ from jaxfric.io import output
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 BASE = {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05, "entry_guide_kind": "end_nodes"}
-# (mesh, element, increment factor on BASE's, contact candidates: every k-th surface node)
+# (mesh, element, increment factor on BASE's, contact candidates: every k-th surface node[, Gauss points
+# through each element's thickness: 2 unless given])
 VARIATIONS = {
     "fbar_300x3": ("300x3", "fbar", 1.0, 1),
     "ans_300x3": ("300x3", "ans", 1.0, 1),
@@ -56,6 +58,10 @@ VARIATIONS = {
     "ans_600x12": ("600x12", "ans", 1.0, 1),
     "anst_600x6": ("600x6", "anst", 1.0, 1),
     "anst_1200x6": ("1200x6", "anst", 1.0, 1),
+    "anst_300x3_p4": ("300x3", "anst", 1.0, 1, 4),
+    "anst_300x6_p4": ("300x6", "anst", 1.0, 1, 4),
+    "anst_100x2": ("100x2", "anst", 1.0, 1),
+    "anst_100x2_p4": ("100x2", "anst", 1.0, 1, 4),
 }
 CASES = {f"{variant}_{name}": (variant, *v) for variant in ("mu000", "mu017") for name, v in VARIATIONS.items()}
 
@@ -74,11 +80,12 @@ def thinned(model, every: int):
 
 
 def run_one(name: str, root: str) -> dict:
-    variant, mesh, element, factor, every = CASES[name]
+    variant, mesh, element, factor, every, *points = CASES[name]
+    points = points[0] if points else 2
     out = os.path.join(root, name)
     path = os.path.join(out, "summary.json")
     if not os.path.exists(path):
-        overrides = {**BASE, "mesh": mesh, "element": element,
+        overrides = {**BASE, "mesh": mesh, "element": element, "thickness_points": points,
                      "dq_clamp": BASE["dq_clamp"] * factor, "dU": BASE["dU"] * factor}
         scene = scenes.make("nine", variant, "lcp_ssn", overrides)
         scene = dataclasses.replace(scene, model=thinned(scene.model, every))
@@ -88,7 +95,8 @@ def run_one(name: str, root: str) -> dict:
         output.write_run(scene, result, out, tag="nine_error_sources", figures=False)
     with open(path) as fh:
         s = json.load(fh)
-    return {"case": name, "variant": variant, "mesh": mesh, "element": element, "increments": BASE["dU"] * factor,
+    return {"case": name, "variant": variant, "mesh": mesh, "element": element, "thickness_points": points,
+            "increments": BASE["dU"] * factor,
             "contact_every": every, "steady_drawing_force": s.get("steady_drawing_force"),
             "converged": s.get("converged"), "n_steps": s.get("n_steps"),
             "newton_iters_total": s.get("newton_iters_total"), "wall_s": s.get("wall_s")}

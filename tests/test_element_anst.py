@@ -9,7 +9,10 @@ no volumetric locking, no hourglassing under strong compression. The patch test,
 Newton's rate are with the other formulations (``tests/test_solver.py``, ``tests/test_element_ans.py``).
 """
 
+import dataclasses
+
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import jaxfric as jf
@@ -25,6 +28,43 @@ def test_elastic_bending_is_exact_at_two_and_three_layers():
     0.928 (its constant dilatation per element)."""
     ratios = {(ny, a): bending_ratio(ny, "anst", nx=10, length=10 * a / ny) for ny, a in ((2, 1), (3, 4))}
     assert all(abs(r - 1.0) < 1e-6 for r in ratios.values()), ratios
+
+
+@pytest.mark.parametrize("points", [2, 3, 4, 6])
+def test_gauss_rule_integrates_through_the_thickness_exactly(points):
+    """The rule with ``points`` through the thickness integrates eta^p exactly up to p = 2 points - 1 (and
+    xi^p up to 3), with weights summing to the parent square's area 4; 2 points is the 2 x 2 rule."""
+    from jaxfric.fem.element import GAUSS_POINTS, gauss_rule
+
+    xy, w = gauss_rule(points)
+    assert xy.shape == (2 * points, 2) and w.shape == (2 * points,)
+    for p in range(2 * points):
+        exact = 2.0 * (1.0 - (-1.0) ** (p + 1)) / (p + 1)   # int of eta^p over the square
+        assert abs(float(np.sum(w * xy[:, 1] ** p)) - exact) < 1e-13, p
+    for p in range(4):
+        assert abs(float(np.sum(w * xy[:, 0] ** p)) - 2.0 * (1.0 - (-1.0) ** (p + 1)) / (p + 1)) < 1e-13, p
+    if points == 2:
+        assert np.array_equal(xy, GAUSS_POINTS)
+
+
+@pytest.mark.parametrize("formulation", ["anst", "ans"])
+def test_more_points_through_the_thickness_keep_elastic_bending(formulation):
+    """Elastic pure bending (3 layers, elements as long as thick) with 4 points through each element's
+    thickness: ``anst`` stays exact, ``ans`` keeps its 2-point moment (the elastic integrand is
+    polynomial in eta, which 2 points integrate exactly already)."""
+    def ratio(points):
+        E, nu, angle, length = 200000.0, 0.3, 1e-4, 10.0 / 3.0
+        model = pure_bending(length, 1.0, nx=10, ny=3, angle=angle, material=jf.J2Material.elastic(E, nu),
+                             formulation=formulation)
+        model = dataclasses.replace(model, thickness_points=points)
+        res = jf.run(model, progress=False)
+        assert res.final.material.eqps.shape == (30, 2 * points)
+        return abs(end_moment(res, model.mesh)) / (E / (1 - nu**2) / 12 * 2 * angle / length)
+
+    two, four = ratio(2), ratio(4)
+    assert abs(four / two - 1.0) < 1e-9, (two, four)
+    if formulation == "anst":
+        assert abs(four - 1.0) < 1e-6, four
 
 
 @pytest.mark.slow  # three plastic bending runs, about a minute with compilation

@@ -74,3 +74,40 @@ def test_study_table_between_cases_keeps_the_rows_still_to_come(tmp_path, monkey
     studies._write_partial("demo", [{"case": "a", "value": 10}, {"case": "d", "value": 4}])
     rows = studies._read_table("demo")
     assert [(r["case"], r["value"]) for r in rows] == [("a", "10"), ("d", "4"), ("b", "2"), ("c", "3")]
+
+
+# ---- experiments/nine_plastic_work.py: the work per column and its staircase (no simulation) ------------
+
+def test_plastic_work_of_a_column_is_the_dissipation_integrated_through_the_thickness():
+    """A uniform plastic strain e gives every column W = w(e) t, w(e) = int_0^e sigma_Y, with either
+    quadrature through the thickness."""
+    import equinox as eqx
+    import jax.numpy as jnp
+    import nine_plastic_work
+    from jaxfric import scenes
+    from jaxfric.loadpath.model import initial_state
+
+    for points in (2, 4):
+        scene = scenes.make("nine", "mu000", "lcp_ssn", {"mesh": "30x2", "thickness_points": points})
+        model, e = scene.model, 0.2
+        state = initial_state(model)
+        state = eqx.tree_at(lambda s: s.material.eqps, state, jnp.full_like(state.material.eqps, e))
+        mid, W = nine_plastic_work.column_work(model, state)
+        m = model.material
+        sy, A, n = float(m.sigma_y), float(m.A), float(m.n)
+        grid = np.linspace(0.0, e, 20001)
+        w = np.trapezoid(sy * (1.0 + A * grid) ** n, grid)
+        np.testing.assert_allclose(W, w * scene.config.t, rtol=1e-8)
+        assert mid.shape == (30, 2)
+
+
+def test_plastic_work_staircase_gives_the_levels_and_the_force_by_the_energy_balance():
+    import nine_plastic_work
+
+    X = -80.0 + (np.arange(390) + 0.5) / 3.0
+    W = np.interp(X, [-80, -62, -60, -56, -54, -40, -38, -30, -28, 50], [0, 0, 10, 10, 40, 40, 75, 75, 90, 90])
+    W = np.where(X > -15.0, 50.0, W)   # material that was in the tools when the run began
+    s = np.cumsum(np.where(X > -28.0, 1.08, 1.0)) / 3.0   # stretched by 8 % after the last step
+    out = nine_plastic_work.analyse({"x_left": -80.0}, s, W)
+    assert [round(out[f"W_level_{k}"]) for k in (1, 2, 3, 4)] == [10, 40, 75, 90] and "W_level_5" not in out
+    assert abs(out["stretch_end"] - 0.08) < 1e-9 and abs(out["force_from_work"] - 90.0 / 1.08) < 1e-9

@@ -32,8 +32,9 @@ class Assembled(NamedTuple):
     Attributes:
         f_int: (n_nodes, 2) internal nodal forces (N/mm).
         tangent: d f_int / d u as a BlockTridiag over the flattened dofs (node-major), or None.
-        states: trial material states at every Gauss point (leading axes (n_el, 4)).
-        tau: (n_el, 4, 3, 3) Kirchhoff stress (MPa).
+        states: trial material states at every Gauss point (leading axes (n_el, gp), gp = 4 with the
+            default 2 x 2 rule).
+        tau: (n_el, gp, 3, 3) Kirchhoff stress (MPa).
         det_min: () smallest det F over all Gauss points and centroids (<= 0: inverted element).
     """
 
@@ -44,9 +45,10 @@ class Assembled(NamedTuple):
     det_min: jax.Array
 
 
-def mesh_geometry(mesh: StripMesh) -> ElementGeometry:
-    """Reference shape-function gradients and weights of every element of ``mesh``."""
-    return element_geometry(mesh.nodes[mesh.elements])
+def mesh_geometry(mesh: StripMesh, thickness_points: int = 2) -> ElementGeometry:
+    """Reference shape-function gradients and weights of every element of ``mesh``, with
+    ``thickness_points`` Gauss points through each element's thickness (:func:`~jaxfric.fem.element.gauss_rule`)."""
+    return element_geometry(mesh.nodes[mesh.elements], thickness_points)
 
 
 @functools.cache

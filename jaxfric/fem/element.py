@@ -71,6 +71,17 @@ evaluation, from the last converged step's alpha (which the point states keep), 
 elements iterates as long as its slowest one: on the Nine's ``make run`` case 1.8 times ``ans`` per
 Newton iteration and 1.6 times its compilation.
 
+Through its thickness each element is integrated by ``thickness_points`` Gauss-Legendre points
+(:func:`gauss_rule`: 2 along xi times that many along eta; :class:`~jaxfric.loadpath.model.StripModel`'s
+field and the scenes' of that name, 2 by default: the 2 x 2 rule). A strip bent plastically carries
+a stress that jumps across its neutral axis, and the plastic work and stretch of bending under tension
+follow from integrating it; with 2 points per layer and few layers that integral is coarse. Measured
+on the Nine without friction (``experiments/nine_plastic_work.py``, docs/results.md, where the layers'
+error comes from): ``anst`` on 3 layers gives a steady force 2.2 % below 12 layers with 2 points and
+0.5 % below with 4, the plastic work of the two reversed bends (A to B, B to C) being the part that
+moves. ``ans`` gains 1.0 % only: its error with few layers is its constant dilatation per element, which
+more points do not change (on 3 layers it stretches the strip 4.4 % over the tools, 12 layers 8.1 %).
+
 ``formulation="q4"`` (plain displacement Q4, F_bar = F) is kept for the elastic verification checks.
 
 ``formulation="eas"``: the enhanced-assumed-strain element Q1/E4 at finite strain (Simo & Armero,
@@ -95,6 +106,8 @@ at 20 % compression of the block of ``tests/test_element_ans.py``, and during th
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -102,7 +115,7 @@ import numpy as np
 
 from ..numerics.tensor import det2, inv2
 
-__all__ = ["FORMULATIONS", "ElementGeometry", "element_geometry", "deformation_gradients",
+__all__ = ["FORMULATIONS", "ElementGeometry", "gauss_rule", "element_geometry", "deformation_gradients",
            "initial_point_state", "element_force", "element_force_and_tangent"]
 
 FORMULATIONS = ("fbar", "ans", "anst", "q4", "eas")
@@ -123,27 +136,49 @@ def _parent_gradients(xi: float, eta: float) -> np.ndarray:
     return 0.25 * np.stack([_XI * (1.0 + _ETA * eta), _ETA * (1.0 + _XI * xi)], axis=1)
 
 
-_DN_GAUSS = np.stack([_parent_gradients(*p) for p in GAUSS_POINTS])  # (4 gp, 4 nodes, 2)
 _DN_CENTER = _parent_gradients(0.0, 0.0)  # (4, 2)
-# The assumed parent gradients: d/dxi at the Gauss point, d/deta at the centre line xi = 0.
-_DN_ASSUMED = np.stack([np.stack([_DN_GAUSS[g, :, 0], _parent_gradients(0.0, p[1])[:, 1]], axis=1)
-                        for g, p in enumerate(GAUSS_POINTS)])  # (4 gp, 4 nodes, 2)
-# Enhanced modes: A_ik = alpha_(2i+k) * (xi, eta)_k at each Gauss point, as (4 gp, 2, 2, 4).
-_MODES = np.zeros((4, 2, 2, 4))
-for _i in range(2):
-    for _k in range(2):
-        _MODES[:, _i, _k, 2 * _i + _k] = GAUSS_POINTS[:, _k]
+
+
+@functools.cache
+def gauss_rule(thickness_points: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """The element's quadrature: parent points (n, 2) and weights (n,), 2 Gauss points along xi (the
+    strip's length) times ``thickness_points`` Gauss-Legendre points along eta (its thickness). With 2
+    it is the 2 x 2 rule, :data:`GAUSS_POINTS` (counter-clockwise); with more, the rows of eta in
+    ascending order. A rule's size n = 2 ``thickness_points`` is the leading axis of the point arrays
+    (:class:`ElementGeometry`, the material states), from which the element functions recover it."""
+    if thickness_points == 2:
+        return GAUSS_POINTS, GAUSS_WEIGHTS
+    eta, w = np.polynomial.legendre.leggauss(int(thickness_points))
+    points = np.array([[xi, e] for e in eta for xi in (-_G, _G)])
+    return points, np.repeat(w, 2)
+
+
+@functools.cache
+def _parent_tables(n_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For the rule of ``n_points`` points: its weights (n,), the parent gradients at its points
+    (n, 4 nodes, 2), the assumed ones (d/dxi at the point, d/deta at the centre line xi = 0), and the
+    Q1/E4 modes A_ik = alpha_(2i+k) (xi, eta)_k at its points, (n, 2, 2, 4)."""
+    points, weights = gauss_rule(n_points // 2)
+    dn = np.stack([_parent_gradients(*p) for p in points])
+    assumed = np.stack([np.stack([dn[g, :, 0], _parent_gradients(0.0, p[1])[:, 1]], axis=1)
+                        for g, p in enumerate(points)])
+    modes = np.zeros((len(points), 2, 2, 4))
+    for i in range(2):
+        for k in range(2):
+            modes[:, i, k, 2 * i + k] = points[:, k]
+    return weights, dn, assumed, modes
 
 
 class ElementGeometry(eqx.Module):
-    """Reference-configuration data of every element, computed once per simulation.
+    """Reference-configuration data of every element, computed once per simulation (gp: the points of
+    the element's rule, :func:`gauss_rule`; 4 with the default 2 x 2).
 
     Attributes:
-        dN_dX: (n_el, 4 gp, 4 nodes, 2) shape-function gradients at the Gauss points (1/mm).
+        dN_dX: (n_el, gp, 4 nodes, 2) shape-function gradients at the Gauss points (1/mm).
         dN_dX_center: (n_el, 4 nodes, 2) shape-function gradients at the centroid (1/mm).
-        dN_dX_assumed: (n_el, 4 gp, 4 nodes, 2) the gradients of ``formulation="ans"`` at the Gauss
+        dN_dX_assumed: (n_el, gp, 4 nodes, 2) the gradients of ``formulation="ans"`` at the Gauss
             points: the eta-derivatives taken at the element's centre line xi = 0 (1/mm).
-        weight: (n_el, 4 gp) Gauss weight times det(dX/dxi): reference area per point (mm^2,
+        weight: (n_el, gp) Gauss weight times det(dX/dxi): reference area per point (mm^2,
             per unit out-of-plane width).
     """
 
@@ -157,25 +192,27 @@ class ElementGeometry(eqx.Module):
         return self.dN_dX_assumed if formulation in ("ans", "anst") else self.dN_dX
 
 
-def element_geometry(X_el: jax.Array) -> ElementGeometry:
-    """Element geometry from the reference corner coordinates ``X_el`` (n_el, 4, 2), in mm."""
+def element_geometry(X_el: jax.Array, thickness_points: int = 2) -> ElementGeometry:
+    """Element geometry from the reference corner coordinates ``X_el`` (n_el, 4, 2), in mm, for the rule
+    of :func:`gauss_rule` with ``thickness_points`` points through the thickness."""
+    weights, dn_gauss, dn_assumed, _ = _parent_tables(2 * int(thickness_points))
 
     def gradients(dN_dxi, X):
         jac = X.T @ dN_dxi  # dX/dxi, (2, 2)
         return dN_dxi @ inv2(jac), det2(jac)
 
     def one(X):
-        dN, det = jax.vmap(gradients, (0, None))(jnp.asarray(_DN_GAUSS), X)
+        dN, det = jax.vmap(gradients, (0, None))(jnp.asarray(dn_gauss), X)
         dN0, _ = gradients(jnp.asarray(_DN_CENTER), X)
-        dN_ans, _ = jax.vmap(gradients, (0, None))(jnp.asarray(_DN_ASSUMED), X)
-        return dN, dN0, dN_ans, det * GAUSS_WEIGHTS
+        dN_ans, _ = jax.vmap(gradients, (0, None))(jnp.asarray(dn_assumed), X)
+        return dN, dN0, dN_ans, det * weights
 
     dN, dN0, dN_ans, w = jax.vmap(one)(X_el)
     return ElementGeometry(dN_dX=dN, dN_dX_center=dN0, dN_dX_assumed=dN_ans, weight=w)
 
 
 def deformation_gradients(dN_dX, dN_dX_center, u_e, formulation: str):
-    """In-plane deformation gradients at the 4 Gauss points, (4, 2, 2), and det F there and at the centroid.
+    """In-plane deformation gradients at the Gauss points, (gp, 2, 2), and det F there and at the centroid.
 
     F = I + sum_a u_a (x) dN_a/dX (``dN_dX``: :meth:`ElementGeometry.gradients` of the formulation). With
     ``formulation="fbar"`` or ``"ans"`` the returned gradients are F_bar = (J_0/J)^(1/2) F. Also returns
@@ -200,15 +237,16 @@ def _centroid_jacobian_inverse(dN_dX_center) -> jax.Array:
 
 
 def _enhanced_basis(dN_dX_center, weight) -> jax.Array:
-    """dF_g/dalpha of the Q1/E4 enhancement, (4 gp, 2, 2, 4): (j_0 / j_g) A_g J_0^-1, with
-    j_g = weight_g (unit Gauss weights)."""
+    """dF_g/dalpha of the Q1/E4 enhancement, (gp, 2, 2, 4): (j_0 / j_g) A_g J_0^-1, with
+    j_g = weight_g / (the rule's weight at g)."""
+    rule_weights, _, _, modes = _parent_tables(weight.shape[0])
     J0_inv = _centroid_jacobian_inverse(dN_dX_center)
-    ratio = 1.0 / (det2(J0_inv) * weight)
-    return ratio[:, None, None, None] * jnp.einsum("gikm,kj->gijm", jnp.asarray(_MODES), J0_inv)
+    ratio = jnp.asarray(rule_weights) / (det2(J0_inv) * weight)
+    return ratio[:, None, None, None] * jnp.einsum("gikm,kj->gijm", jnp.asarray(modes), J0_inv)
 
 
 def _thickness_mode(dN_dX_center, weight, u_e) -> jax.Array:
-    """dF_g/dalpha of the ``anst`` enhancement, (4 gp, 2, 2, 1): the incompatible displacement
+    """dF_g/dalpha of the ``anst`` enhancement, (gp, 2, 2, 1): the incompatible displacement
     (1 - eta^2) alpha dx/deta(0) (a stretch of the element's current thickness fibre, quadratic through
     its thickness), whose gradient with Taylor's correction is
 
@@ -220,7 +258,8 @@ def _thickness_mode(dN_dX_center, weight, u_e) -> jax.Array:
     J0_inv = _centroid_jacobian_inverse(dN_dX_center)
     projector = jnp.outer(inv2(J0_inv)[:, 1], J0_inv[1, :])
     F0 = jnp.eye(2) + u_e.T @ dN_dX_center
-    ratio = jnp.asarray(GAUSS_POINTS[:, 1]) / (det2(J0_inv) * weight)
+    points, rule_weights = gauss_rule(weight.shape[0] // 2)
+    ratio = jnp.asarray(points[:, 1] * rule_weights) / (det2(J0_inv) * weight)
     return ratio[:, None, None, None] * (F0 @ projector)[None, :, :, None]
 
 
@@ -239,11 +278,12 @@ def _with_enhanced(states, alpha):
     """``states`` (batched over the element's points) carrying the converged ``alpha``."""
     if alpha.size == 0:
         return states
-    return eqx.tree_at(lambda s: s.enhanced, states, jnp.broadcast_to(alpha, (4, alpha.size)))
+    n_points = jax.tree_util.tree_leaves(states)[0].shape[0]
+    return eqx.tree_at(lambda s: s.enhanced, states, jnp.broadcast_to(alpha, (n_points, alpha.size)))
 
 
 def _kinematics(formulation, dN_dX, dN_dX_center, weight, u_e, alpha):
-    """Gradients (4, 2, 2) at the Gauss points for displacements ``u_e`` (4, 2) and enhanced parameters
+    """Gradients (gp, 2, 2) at the Gauss points for displacements ``u_e`` (4, 2) and enhanced parameters
     ``alpha`` (N_ENHANCED entries), and the smallest det F of the compatible part (see
     :func:`deformation_gradients`) and of the enhanced gradients."""
     F, det_min = deformation_gradients(dN_dX, dN_dX_center, u_e, formulation)
@@ -353,11 +393,11 @@ def element_force(material, formulation, dN_dX, dN_dX_center, weight, u_e, state
         dN_dX, dN_dX_center, weight: this element's rows of :class:`ElementGeometry` (``dN_dX``: those of
             :meth:`ElementGeometry.gradients`).
         u_e: (4, 2) nodal displacements (mm).
-        states: material states at the 4 Gauss points (batched pytree, leading axis 4).
+        states: material states at the Gauss points (batched pytree, leading axis gp).
 
     Returns:
         f_e: (4, 2) nodal internal forces (N/mm).
-        aux: (new_states, tau (4, 3, 3), det_min).
+        aux: (new_states, tau (gp, 3, 3), det_min).
     """
 
     alpha = _condensed(material, formulation, dN_dX, dN_dX_center, weight, u_e, states)
@@ -396,7 +436,7 @@ def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight
         return _kinematics(formulation, dN_dX, dN_dX_center, weight, v[:8].reshape(4, 2), v[8:])
 
     v = jnp.concatenate([u_e.ravel(), alpha])
-    Fb, det_min, dF_dv = _value_and_jacfwd(kinematics, v)  # dF_dv: (4 gp, 2, 2, 8 + n_alpha)
+    Fb, det_min, dF_dv = _value_and_jacfwd(kinematics, v)  # dF_dv: (gp, 2, 2, 8 + n_alpha)
     dP_dF, (P, tau, new_states) = jax.vmap(jax.jacfwd(_piola(material), has_aux=True))(Fb, states)
     new_states = _with_enhanced(new_states, alpha)
     wP = weight[:, None, None] * P

@@ -43,6 +43,9 @@ class StripModel(eqx.Module):
             default), "anst" (assumed natural strains with a condensed through-thickness mode, same
             orientation), "eas" (enhanced strain Q1/E4) or "q4" (plain Q4, for elastic checks only); static.
             See :mod:`jaxfric.fem.element`.
+        thickness_points: Gauss points through each element's thickness (2: the 2 x 2 rule; more
+            integrate the stress through the thickness more finely, :func:`jaxfric.fem.element.gauss_rule`);
+            static.
         tools: rigid tools (:class:`~jaxfric.contact.rigid.RigidTool`), one control per phase each.
         contact: the contact formulation, needed with tools
             (:class:`~jaxfric.contact.formulations.AbstractContactFormulation`:
@@ -57,6 +60,7 @@ class StripModel(eqx.Module):
     formulation: str = eqx.field(static=True, default="fbar")
     tools: tuple = ()
     contact: AbstractContactFormulation | None = None
+    thickness_points: int = eqx.field(static=True, default=2)
 
     def __check_init__(self):
         if not isinstance(self.mesh, StripMesh):
@@ -65,6 +69,9 @@ class StripModel(eqx.Module):
             raise ValueError(f"field 'material' must be a material law such as J2Material, got {self.material!r}")
         if self.formulation not in FORMULATIONS:
             raise ValueError(f"field 'formulation' must be one of {FORMULATIONS}, got {self.formulation!r}")
+        if not (isinstance(self.thickness_points, int | np.integer) and not isinstance(self.thickness_points, bool)
+                and 2 <= self.thickness_points <= 16):
+            raise ValueError(f"field 'thickness_points' must be an integer from 2 to 16, got {self.thickness_points!r}")
         if len(self.phases) == 0 or not all(isinstance(p, Phase) for p in self.phases):
             raise ValueError("field 'phases' must be a non-empty tuple of Phase")
         names = [p.name for p in self.phases]
@@ -124,7 +131,7 @@ class SimState(eqx.Module):
 
     Attributes:
         u: (n_nodes, 2) displacements (mm).
-        material: material states at every Gauss point (leading axes (n_el, 4)).
+        material: material states at every Gauss point (leading axes (n_el, gp), gp = 2 thickness_points).
         f_int: (n_nodes, 2) internal forces (N/mm); at prescribed dofs these are the reactions.
         time: () pseudo-time.
         phase: () int32 index of the phase of the last step.
@@ -144,7 +151,8 @@ def initial_state(model: StripModel) -> SimState:
     tools at their initial positions (with no force), pseudo-time 0 in phase 0."""
     n_el = model.mesh.n_elements
     one = initial_point_state(model.material, model.formulation)
-    states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n_el, 4) + a.shape), one)
+    n_points = 2 * model.thickness_points
+    states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n_el, n_points) + a.shape), one)
     zeros = jnp.zeros((model.mesh.n_nodes, 2))
     contact = initial_contact_state(model.tools, model.mesh.nodes) if model.tools else None
     return SimState(u=zeros, material=states, f_int=zeros, time=jnp.array(0.0),
@@ -185,12 +193,13 @@ def reactions(model: StripModel, state: SimState) -> jax.Array:
 
 
 def stresses(model: StripModel, state: SimState) -> jax.Array:
-    """Kirchhoff stress (n_el, 4, 3, 3) (MPa) at every Gauss point of a converged state.
+    """Kirchhoff stress (n_el, gp, 3, 3) (MPa) at every Gauss point of a converged state.
 
     Re-evaluating the update at the converged deformation from the converged history is exact: the
     trial state then lies on (or inside) the yield surface, so the return map is the identity.
     """
-    return internal_force(model.mesh, model.material, model.formulation, mesh_geometry(model.mesh),
+    return internal_force(model.mesh, model.material, model.formulation,
+                          mesh_geometry(model.mesh, model.thickness_points),
                           state.u, state.material).tau
 
 

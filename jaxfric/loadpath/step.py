@@ -39,7 +39,7 @@ class StepContext(eqx.Module):
     @classmethod
     def build(cls, model: StripModel) -> StepContext:
         masks = jnp.asarray(constraint_masks(model.mesh.n_nodes, model.phases))
-        return cls(model, mesh_geometry(model.mesh), masks)
+        return cls(model, mesh_geometry(model.mesh, model.thickness_points), masks)
 
 
 def _contact_step(model: StripModel, state: SimState, phase, tau, law) -> tuple:

@@ -52,6 +52,9 @@ ELEMENT_DOC = ("element formulation (jaxfric.fem.element): 'fbar' F-bar Q4, 'ans
                "natural strain through the thickness (no parasitic shear), 'anst' assumed natural strain with "
                "a condensed through-thickness mode (no parasitic shear, exact elastic bending at 2 layers), "
                "'eas' enhanced strain Q1/E4")
+THICKNESS_POINTS_DOC = ("Gauss points through each element's thickness (2: the 2 x 2 rule; more integrate the "
+                        "stress through the thickness more finely at the cost of more material evaluations; "
+                        "jaxfric.fem.element.gauss_rule) [chosen]")
 MAX_NOMINAL_STEPS = 1_000_000  # per phase: an increment that needs more is a typo, not a study
 # A dimension of the sheet or a tool beyond 1 km is a typo; far beyond it the tool chains no longer close
 # in float64 (an edge radius of 1e300 mm next to a 1 mm sheet) and derived lengths overflow.

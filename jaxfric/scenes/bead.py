@@ -101,6 +101,7 @@ class BeadConfig:
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(512, "-", cm.BAND_DOC)
     element: str = cm.spec_field("ans", "-", cm.ELEMENT_DOC)
+    thickness_points: int = cm.spec_field(2, "-", cm.THICKNESS_POINTS_DOC)
     n_clamp: int = cm.spec_field(10, "-", "steps of the clamp force ramp [chosen]")
     dtheta: float = cm.spec_field(0.5, "deg", "nominal increment of the jaw angle [chosen]")
     ds: float = cm.spec_field(0.05, "mm", "nominal increment of the jaw travel [chosen]")
@@ -210,7 +211,8 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations, stiff_above=cm.stiff_penalty(config))
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
-    model = StripModel(mesh, material, phases, tools=tools, contact=law, formulation=config.element)
+    model = StripModel(mesh, material, phases, tools=tools, contact=law, formulation=config.element,
+                       thickness_points=config.thickness_points)
     observe = BeadObserve(jaw=tuple(int(a) for a in jaw), tail=int(mesh.node_index(0, 0)), theta=theta,
                           s_draw=float(config.s_draw))
 

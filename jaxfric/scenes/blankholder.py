@@ -143,6 +143,7 @@ class BlankholderConfig:
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(256, "-", cm.BAND_DOC)
     element: str = cm.spec_field("fbar", "-", cm.ELEMENT_DOC)
+    thickness_points: int = cm.spec_field(2, "-", cm.THICKNESS_POINTS_DOC)
     F_clamp: float = cm.spec_field(300.0, "N/mm", "clamping force on the lower tool [chosen]")
     U_pull: float = cm.spec_field(55.0, "mm", "pull of the right end during draw [chosen]")
     lock_control: str = cm.spec_field("force", "-", "lower tool during draw: 'force' (P = F_clamp) or "
@@ -291,7 +292,8 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations, stiff_above=cm.stiff_penalty(config))
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
-    model = StripModel(mesh, material, phases, tools=tools, contact=law, formulation=config.element)
+    model = StripModel(mesh, material, phases, tools=tools, contact=law, formulation=config.element,
+                       thickness_points=config.thickness_points)
     observe = BlankholderObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)),
                                  U_pull=float(config.U_pull), x_g=float(x_g), L=float(config.L))
 

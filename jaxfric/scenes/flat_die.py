@@ -77,6 +77,7 @@ class FlatDieConfig:
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(None, "-", cm.BAND_DOC)
     element: str = cm.spec_field("fbar", "-", cm.ELEMENT_DOC)
+    thickness_points: int = cm.spec_field(2, "-", cm.THICKNESS_POINTS_DOC)
     F_clamp: float = cm.spec_field(50.0, "N/mm", "clamping force on the half model [paper]")
     draw_control: str = cm.spec_field("force", "-", "die during draw: 'force' (const_force) or 'position' "
                                                     "(const_position) [paper]")
@@ -157,7 +158,8 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations, stiff_above=cm.stiff_penalty(config))
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
-    model = StripModel(mesh, material, phases, tools=(tool,), contact=law, formulation=config.element)
+    model = StripModel(mesh, material, phases, tools=(tool,), contact=law, formulation=config.element,
+                       thickness_points=config.thickness_points)
     observe = FlatDieObserve(right=tuple(int(a) for a in mesh.right), U_draw=float(config.U_draw))
 
     parameters = {

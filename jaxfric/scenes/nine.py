@@ -130,6 +130,7 @@ class NineConfig:
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(128, "-", cm.BAND_DOC)
     element: str = cm.spec_field("ans", "-", cm.ELEMENT_DOC)
+    thickness_points: int = cm.spec_field(2, "-", cm.THICKNESS_POINTS_DOC)
     stroke: float = cm.spec_field(11.0, "mm", "downward travel of B during clamp (2 R1) [paper]")
     U_draw: float = cm.spec_field(70.0, "mm", "pull of the right end during draw [chosen]")
     dq_clamp: float = cm.spec_field(0.1, "mm", "nominal increment of B's travel [chosen]")
@@ -262,7 +263,8 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations, stiff_above=cm.stiff_penalty(config))
     material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
-    model = StripModel(mesh, material, phases, tools=tuple(tools), contact=law, formulation=config.element)
+    model = StripModel(mesh, material, phases, tools=tuple(tools), contact=law, formulation=config.element,
+                       thickness_points=config.thickness_points)
     observe = NineObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)),
                           U_draw=float(config.U_draw))
 
