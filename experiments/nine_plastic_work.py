@@ -16,13 +16,17 @@ elastic energy left in the strip. Comparing meshes stage by stage locates where 
 the thickness, the element or its quadrature change the force, and whether through the work or the
 stretch.
 
-Cases ``ELEMENT_NXxNY[_pK]``: ``anst_300x12``; ``anst_300x3_p4`` with 4 Gauss points through each
-element's thickness (``thickness_points``); NX is the spec's element count per 100 mm. ``mu000``, exact
+Cases ``[VARIANT_]ELEMENT_NXxNY[_pK]``: ``anst_300x12``; ``anst_300x3_p4`` with 4 Gauss points through
+each element's thickness (``thickness_points``); ``mu017_anst_300x12`` with friction, whose force is the
+plastic work and the friction's (F (1 + stretch) - W_end per unit length). NX is the spec's element
+count per 100 mm. ``mu000`` unless named, exact
 contact (``lcp_ssn``), the left-end nodes held (``entry_guide_kind=end_nodes``, as the reference ladder),
 nominal increments. Writes ``experiments/results/nine_plastic_work.csv`` (per case: the levels, W_end,
-the stretch, the force by the balance and the run's steady force) and ``nine_plastic_work.png`` (W
-against X); each case's profile and facts stay in ``--out`` (default ``runs/nine_plastic_work``), so a
-second call reads them back and runs only the missing cases.
+the stretch, the force by the balance, the run's steady force and the work it did beyond the plastic
+work, F (1 + stretch) - W_end: the friction's with mu017) and ``nine_plastic_work.png`` (W against X;
+``_mu017`` in their names when every case has friction); each case's profile and facts stay in
+``--out`` (default ``runs/nine_plastic_work``), so a second call reads them back and runs only the
+missing cases.
 """
 
 from __future__ import annotations
@@ -94,6 +98,8 @@ def analyse(row: dict, s: np.ndarray, W: np.ndarray) -> dict:
     inside = (X[:-1] >= lo) & (X[:-1] < hi)
     stretch = float(np.mean(np.diff(s)[inside] / dX) - 1.0)
     out.update(W_end=last, stretch_end=stretch, force_from_work=last / (1.0 + stretch))
+    if "steady_drawing_force" in row:   # the work the force did that the plastic work does not account for
+        out["other_work"] = row["steady_drawing_force"] * (1.0 + stretch) - last
     return out
 
 
@@ -106,13 +112,15 @@ def run_case(case: str, U_draw: float, x_left: float, out: str) -> tuple[dict, n
             row = json.load(fh)
         x, W = np.loadtxt(profile, delimiter=",", skiprows=1).T
         return row, x, W
-    element, mesh, *points = case.split("_")
+    parts = case.split("_")
+    variant = parts.pop(0) if parts[0] in ("mu000", "mu017") else "mu000"
+    element, mesh, *points = parts
     nx, ny = (int(v) for v in mesh.split("x"))
     spec = scenes.make("nine", "mu000", "lcp_ssn", {}).config
     nx = round(nx * (spec.x_right - x_left) / (spec.x_right - spec.x_left))   # the spec's element length
     overrides = {"nx": nx, "ny": ny, "x_left": x_left, "element": element, "U_draw": U_draw,
                  "entry_guide_kind": "end_nodes", "thickness_points": int(points[0][1:]) if points else 2}
-    scene = scenes.make("nine", "mu000", "lcp_ssn", overrides)
+    scene = scenes.make("nine", variant, "lcp_ssn", overrides)
     print(f"{case}: running {overrides}", file=sys.stderr, flush=True)
     result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
                     progress=False, raise_on_failure=False)
@@ -123,7 +131,8 @@ def run_case(case: str, U_draw: float, x_left: float, out: str) -> tuple[dict, n
     U, F = np.asarray(h["drawing_displacement"]), np.asarray(h["drawing_force"])
     lo, hi = scene.config.steady_window
     steady = float(np.mean(F[(U >= lo) & (U <= hi)]))
-    row = {"case": case, "element": element, "mesh": f"{nx}x{ny}", "thickness_points": overrides["thickness_points"],
+    row = {"case": case, "variant": variant, "element": element, "mesh": f"{nx}x{ny}",
+           "thickness_points": overrides["thickness_points"],
            "x_left": x_left, "U_draw": U_draw, "converged": result.converged, "steady_drawing_force": steady,
            "newton_iters_total": int(np.sum(h["newton_iters"])), "wall_s": result.wall_s}
     with open(summary, "w") as fh:
@@ -158,13 +167,17 @@ def main(argv=None) -> int:
                 f"W_end {row['W_end']:.2f}, stretch {100 * row['stretch_end']:.2f} %")
     ax.set_xlabel("the column's position in the undeformed strip X (mm)")
     ax.set_ylabel("plastic work received W (N mm/mm)")
-    ax.set_title(f"Nine mu000, lcp_ssn, end of the run (U = {a.U_draw:g} mm): work per unit length, "
+    variants = sorted({row["variant"] if "variant" in row else "mu000" for row in rows})
+    ax.set_title(f"Nine {', '.join(variants)}, lcp_ssn, end of the run (U = {a.U_draw:g} mm): work per unit length, "
                  "steps: onto A, A to B, B to C, off C", fontsize=9)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(os.path.join(HERE, "results", "nine_plastic_work.png"), dpi=120)
-    write_rows(os.path.join(HERE, "results", "nine_plastic_work.csv"), rows)
+    keys = list(dict.fromkeys(k for row in rows for k in row))   # cases run before a column was added lack it
+    rows = [{k: row.get(k, "") for k in keys} for row in rows]
+    stem = "nine_plastic_work" + ("" if variants == ["mu000"] else "_" + "_".join(variants))
+    fig.savefig(os.path.join(HERE, "results", f"{stem}.png"), dpi=120)
+    write_rows(os.path.join(HERE, "results", f"{stem}.csv"), rows)
     return 0
 
 
