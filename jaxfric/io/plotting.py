@@ -14,7 +14,7 @@ __all__ = ["plot_mesh", "element_values_mean"]
 
 
 def element_values_mean(values) -> np.ndarray:
-    """Mean over the Gauss points of per-point values (n_el, 4) -> (n_el,)."""
+    """Mean over the Gauss points of per-point values (n_el, gp) -> (n_el,)."""
     return np.asarray(values).mean(axis=1)
 
 
