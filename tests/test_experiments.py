@@ -83,6 +83,7 @@ def test_plastic_work_of_a_column_is_the_dissipation_integrated_through_the_thic
     quadrature through the thickness."""
     import equinox as eqx
     import jax.numpy as jnp
+
     import nine_plastic_work
     from jaxfric import scenes
     from jaxfric.loadpath.model import initial_state
