@@ -157,6 +157,9 @@ def test_bad_model_input_names_the_field():
         jf.StripModel(mesh, mat, (jf.Phase("p"),), formulation="q8")
     with pytest.raises(ValueError, match="phases"):
         jf.StripModel(mesh, mat, ())
+    for points in (1, 17, 2.0, True):
+        with pytest.raises(ValueError, match="thickness_points"):
+            jf.StripModel(mesh, mat, (jf.Phase("p"),), thickness_points=points)
     with pytest.raises(ValueError, match="n_steps"):
         jf.Phase("p", n_steps=0)
     with pytest.raises(ValueError, match="components"):
