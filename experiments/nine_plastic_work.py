@@ -42,8 +42,10 @@ import jaxfric as jf
 from benchutil import write_rows
 from jaxfric import scenes
 from jaxfric.fem.assembly import mesh_geometry
+from jaxfric.scenes.nine import NineConfig
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+SPEC = NineConfig()   # the spec's strip: its right end, and its length for the element length
 
 
 def column_work(model, state) -> tuple[np.ndarray, np.ndarray]:
@@ -85,13 +87,17 @@ def plateaus(X: np.ndarray, W: np.ndarray, span: float = 1.0, min_length: float 
     return levels[:top + 1]
 
 
+def reference_x(row: dict, n: int) -> np.ndarray:
+    """The position X in the undeformed strip of each of the ``n`` columns of a case's row (mm)."""
+    return row["x_left"] + (np.arange(n) + 0.5) * (SPEC.x_right - row["x_left"]) / n
+
+
 def analyse(row: dict, s: np.ndarray, W: np.ndarray) -> dict:
     """The work received tool by tool (the plateaus of W along the reference X, in order: onto A, from
     A to B, from B to C, off C and the rest), the strip's stretch after the tools (ds/dX - 1 over the
     last plateau) and the force the energy balance gives, W_end / (1 + stretch)."""
-    n = len(W)
-    dX = (50.0 - row["x_left"]) / n
-    X = row["x_left"] + (np.arange(n) + 0.5) * dX
+    X = reference_x(row, len(W))
+    dX = X[1] - X[0]
     levels = plateaus(X, W)
     out = {f"W_level_{k + 1}": v for k, (_, _, v) in enumerate(levels)}
     lo, hi, last = levels[-1]
@@ -116,8 +122,7 @@ def run_case(case: str, U_draw: float, x_left: float, out: str) -> tuple[dict, n
     variant = parts.pop(0) if parts[0] in ("mu000", "mu017") else "mu000"
     element, mesh, *points = parts
     nx, ny = (int(v) for v in mesh.split("x"))
-    spec = scenes.make("nine", "mu000", "lcp_ssn", {}).config
-    nx = round(nx * (spec.x_right - x_left) / (spec.x_right - spec.x_left))   # the spec's element length
+    nx = round(nx * (SPEC.x_right - x_left) / (SPEC.x_right - SPEC.x_left))   # the spec's element length
     overrides = {"nx": nx, "ny": ny, "x_left": x_left, "element": element, "U_draw": U_draw,
                  "entry_guide_kind": "end_nodes", "thickness_points": int(points[0][1:]) if points else 2}
     scene = scenes.make("nine", variant, "lcp_ssn", overrides)
@@ -161,7 +166,7 @@ def main(argv=None) -> int:
         row.update(analyse(row, x, W))
         rows.append(row)
         print(", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
-        X = row["x_left"] + (np.arange(len(W)) + 0.5) * (50.0 - row["x_left"]) / len(W)
+        X = reference_x(row, len(W))
         keep = X < row["x_left"] + a.U_draw + 10.0
         ax.plot(X[keep], W[keep], label=f"{case}: steady {row['steady_drawing_force']:.2f} N/mm, "
                 f"W_end {row['W_end']:.2f}, stretch {100 * row['stretch_end']:.2f} %")

@@ -36,13 +36,15 @@ def test_gauss_rule_integrates_through_the_thickness_exactly(points):
     xi^p up to 3), with weights summing to the parent square's area 4; 2 points is the 2 x 2 rule."""
     from jaxfric.fem.element import GAUSS_POINTS, gauss_rule
 
+    def exact(p):   # the integral of xi^p (or eta^p) over the parent square
+        return 2.0 * (1.0 - (-1.0) ** (p + 1)) / (p + 1)
+
     xy, w = gauss_rule(points)
     assert xy.shape == (2 * points, 2) and w.shape == (2 * points,)
     for p in range(2 * points):
-        exact = 2.0 * (1.0 - (-1.0) ** (p + 1)) / (p + 1)   # int of eta^p over the square
-        assert abs(float(np.sum(w * xy[:, 1] ** p)) - exact) < 1e-13, p
+        assert abs(float(np.sum(w * xy[:, 1] ** p)) - exact(p)) < 1e-13, p
     for p in range(4):
-        assert abs(float(np.sum(w * xy[:, 0] ** p)) - 2.0 * (1.0 - (-1.0) ** (p + 1)) / (p + 1)) < 1e-13, p
+        assert abs(float(np.sum(w * xy[:, 0] ** p)) - exact(p)) < 1e-13, p
     if points == 2:
         assert np.array_equal(xy, GAUSS_POINTS)
 
