@@ -33,7 +33,7 @@ __all__ = ["RunResult", "Record", "Checkpoint", "run", "extend_stroke", "MemoryB
 #: Rows of a chunk's buffers: the most accepted steps one chunk can take.
 CHUNK_ROWS = 32
 #: The wall time a chunk aims at (s): the host sees the run, and a stop request is served, about this often.
-CHUNK_SECONDS = 1.0
+CHUNK_SECONDS = 2.0
 
 
 class MemoryBudgetError(ValueError):
