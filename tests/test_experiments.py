@@ -112,3 +112,45 @@ def test_plastic_work_staircase_gives_the_levels_and_the_force_by_the_energy_bal
     out = nine_plastic_work.analyse({"x_left": -80.0}, s, W)
     assert [round(out[f"W_level_{k}"]) for k in (1, 2, 3, 4)] == [10, 40, 75, 90] and "W_level_5" not in out
     assert abs(out["stretch_end"] - 0.08) < 1e-9 and abs(out["force_from_work"] - 90.0 / 1.08) < 1e-9
+
+
+# ---- experiments/error_estimates.py: the reference and the comparison (no simulation) -----------------
+
+def test_richardson_limit_uses_the_observed_ratio_and_stops_where_changes_do_not_shrink():
+    import error_estimates
+
+    # f = 10 + 3 h^2 at h = 1, 1/2, 1/4: changes 2.25 and 0.5625, ratio 4, limit 10.
+    limit, q = error_estimates.richardson(13.0, 10.75, 10.1875)
+    assert q == pytest.approx(4.0) and limit == pytest.approx(10.0)
+    # Changes that grow or change sign: no extrapolation, the finest value.
+    assert error_estimates.richardson(10.0, 10.5, 9.0) == (9.0, pytest.approx(-0.5 / 1.5))
+
+
+def test_error_estimate_summary_compares_the_run_s_estimate_with_its_reference():
+    import error_estimates
+
+    # Along the strip first order (changes 2, 1), step first order (0.4, 0.2), layers +0.5.
+    forces = {"run": 104.0, "coarse": 108.0, "fine2": 102.0, "fine4": 101.0, "half_step": 103.6,
+              "quarter_step": 103.4, "layers": 104.5}
+    runs = {k: {"steady": v, "n_steps": 1, "mesh": [100 if k != "coarse" else 50, 2]} for k, v in forces.items()}
+    row = error_estimates.summarise("case", runs)
+    assert row["along_limit"] == pytest.approx(100.0) and row["step_limit"] == pytest.approx(103.2)
+    assert row["reference"] == pytest.approx(100.0 + 0.5 - 0.8)
+    assert row["est_mesh_pct"] == pytest.approx(100 * 4.0 / 104.0)
+    assert row["est_step_pct"] == pytest.approx(100 * 0.8 / 104.0)
+    assert row["true_pct"] == pytest.approx(100 * (104.0 - 99.7) / 99.7)
+    assert row["estimate_over_true"] == pytest.approx(
+        np.hypot(4.0, 0.8) / 104.0 / ((104.0 - 99.7) / 99.7))
+
+
+def test_error_estimate_runs_refine_the_spec_configuration():
+    import error_estimates
+    from jaxfric import scenes
+
+    bead = scenes.make("bead", "th090_mu017", "lcp_ssn")
+    assert error_estimates._overrides(bead, "fine4") == {"nx": 4 * 725}
+    assert error_estimates._overrides(bead, "coarse") == {"nx": 362}
+    assert error_estimates._overrides(bead, "layers") == {"ny": 8}
+    holder = scenes.make("blankholder", "shape1", "lcp_ssn")
+    assert error_estimates._overrides(holder, "fine2") == {"element_length": 0.25}
+    assert error_estimates._overrides(holder, "coarse") == {"element_length": 1.0}

@@ -46,7 +46,7 @@ import numpy as np
 from ..io.batch import phase_curve, run_case, stale
 
 __all__ = ["TESTS", "QUICK_TESTS", "Test", "cases", "error_measures", "collect", "test_rows", "read_rows",
-           "mesh_label", "MEASURES", "LEVELS", "penalty_tangent", "step_check", "mesh_check",
+           "mesh_label", "MEASURES", "LEVELS", "penalty_tangent", "companion", "step_check", "mesh_check",
            "reference_overrides"]
 
 REF_GAP = 1e-8          # mm, target gap of the reference's augmented Lagrangian
@@ -264,10 +264,10 @@ def penalty_tangent(scene, result) -> np.ndarray:
 
 # ---- the step size's and the element length's shares of a run's error ----------------------------------
 
-def _companion(scene, overrides: dict, what: str, progress: bool) -> dict:
+def companion(scene, overrides: dict, what: str, progress: bool = False) -> dict:
     """``scene`` run again with config ``overrides``, reduced to what :func:`jaxfric.io.output.error_estimate`
-    needs: ``{"steady", "peak", "n_steps", "mesh", "converged"}``. Raises ValueError (one line) when it does
-    not reach the end of the load path."""
+    needs: ``{"steady", "peak", "n_steps", "mesh", "converged"}``. Raises ValueError (one line, naming the
+    run as ``what``) when it does not reach the end of the load path."""
     from .. import scenes
     from ..io import instants, output
     from ..loadpath.run import run
@@ -294,7 +294,7 @@ def step_check(scene, progress: bool = False) -> dict:
     """
     from .. import scenes
 
-    return _companion(scene, scenes.scaled_steps(scene.name, scene.config, 0.5),
+    return companion(scene, scenes.scaled_steps(scene.name, scene.config, 0.5),
                       "step check (half increments)", progress)
 
 
@@ -307,7 +307,7 @@ def mesh_check(scene, progress: bool = False) -> dict:
 
     if scene.model.mesh.nx < 2:
         raise ValueError("the mesh check needs at least 2 elements along the strip to halve them")
-    check = _companion(scene, scenes.coarser_along(scene.name, scene.config), "mesh check (coarser mesh)",
+    check = companion(scene, scenes.coarser_along(scene.name, scene.config), "mesh check (coarser mesh)",
                        progress)
     return {**check, "ratio": scene.model.mesh.nx / check["mesh"][0]}
 

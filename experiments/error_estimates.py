@@ -1,0 +1,151 @@
+"""The error estimate of a run against its true error: per case (a scene variant at a mesh), the run,
+the companions that ``jaxfric run --error-estimate mesh`` and ``--error-estimate step`` make (half the
+elements along the strip; half the nominal increments), and a reference built from other runs:
+
+- along the strip, the run's mesh with 2 and 4 times the elements, Richardson's limit with the observed
+  ratio of successive changes (the finest run where the changes do not shrink);
+- through the thickness, twice the layers at the run's length, added as a correction (one doubling: a
+  lower bound of the layers' share where they converge from one side);
+- the step, a quarter of the nominal increments beside the half, Richardson's limit with the observed
+  order, added as a correction.
+
+The reference shares no run with the mesh estimate (its companion is coarser, the ladder finer); the
+step estimate and the step correction share the half-increment run, the correction adding the quarter.
+
+    python experiments/error_estimates.py [--cases CASE ...] [--jobs 2] [--out runs/error_estimates]
+
+Cases ``SCENE_VARIANT`` at the spec mesh (``--cases`` lists them). Each run's steady drawing force is kept
+in ``OUT/CASE.json`` as it finishes, so an interrupted study resumes where it stopped. Writes
+``experiments/results/error_estimates.csv``. Exact contact (``lcp_ssn``), the scenes' defaults otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+from concurrent.futures import ProcessPoolExecutor
+
+RESULTS = os.path.join(os.path.dirname(__file__), "results")
+
+#: case -> (scene, variant)
+CASES = {
+    "flat_die_const_position": ("flat_die", "const_position"),
+    "bead_th090_mu000": ("bead", "th090_mu000"),
+    "bead_th090_mu017": ("bead", "th090_mu017"),
+    "blankholder_shape1": ("blankholder", "shape1"),
+    "blankholder_shape5": ("blankholder", "shape5"),
+    "blankholder_shape9": ("blankholder", "shape9"),
+}
+
+#: the runs of a case, cheapest first: name -> what it changes
+RUNS = ("run", "coarse", "half_step", "layers", "fine2", "quarter_step", "fine4")
+
+
+def _overrides(scene, name: str) -> dict:
+    """Config overrides of run ``name`` of ``scene`` (its spec configuration)."""
+    from jaxfric import scenes
+
+    config = scene.config
+    if name == "run":
+        return {}
+    if name == "coarse":
+        return scenes.coarser_along(scene.name, config)
+    if name in ("half_step", "quarter_step"):
+        return scenes.scaled_steps(scene.name, config, 0.5 if name == "half_step" else 0.25)
+    if name == "layers":
+        return {"ny": 2 * config.ny}
+    factor = {"fine2": 2, "fine4": 4}[name]
+    if getattr(config, "nx", None) is None:
+        return {"element_length": config.element_length / factor}
+    return {"nx": factor * config.nx}
+
+
+def run_case(case: str, out: str) -> dict:
+    """The steady drawing forces of ``case``'s runs, read from and added to ``out/CASE.json``."""
+    from jaxfric import scenes
+    from jaxfric.identification import accuracy
+
+    path = os.path.join(out, f"{case}.json")
+    done = json.load(open(path)) if os.path.exists(path) else {}
+    scene = scenes.make(*CASES[case], "lcp_ssn")
+    for name in RUNS:
+        if name in done:
+            continue
+        print(f"{case}: {name}", file=sys.stderr, flush=True)
+        check = accuracy.companion(scene, _overrides(scene, name), f"{case} {name}", progress=False)
+        done[name] = {"steady": check["steady"], "n_steps": check["n_steps"], "mesh": list(check["mesh"])}
+        with open(path + ".tmp", "w") as f:
+            json.dump(done, f, indent=1)
+        os.replace(path + ".tmp", path)
+    return done
+
+
+def richardson(f1: float, f2: float, f4: float) -> tuple[float, float]:
+    """The limit of f1, f2, f4 (each step refining by the same factor) with the observed ratio of their
+    successive changes q = (f1 - f2) / (f2 - f4), and q; where the changes do not shrink (q <= 1 or of
+    opposite signs) the finest value f4 and q as observed."""
+    d1, d2 = f1 - f2, f2 - f4
+    q = d1 / d2 if d2 != 0 else math.inf
+    if not math.isfinite(q) or q <= 1.0:
+        return f4, q
+    return f4 - d2 / (q - 1.0), q
+
+
+def summarise(case: str, runs: dict) -> dict:
+    """The estimate against the true error of ``case``'s run (all in % of the run's force, signed where
+    it is an error, unsigned where it is an estimate)."""
+    F = {k: v["steady"] for k, v in runs.items()}
+    run = F["run"]
+    along, q_along = richardson(run, F["fine2"], F["fine4"])
+    step, q_step = richardson(run, F["half_step"], F["quarter_step"])
+    layers = F["layers"] - run
+    reference = along + layers + (step - run)
+    ratio = runs["run"]["mesh"][0] / runs["coarse"]["mesh"][0]
+    est_mesh = abs(run - F["coarse"]) / (ratio - 1.0) / abs(run)
+    est_step = 2.0 * abs(run - F["half_step"]) / abs(run)
+    estimate = math.hypot(est_mesh, est_step)
+    true = (run - reference) / reference
+    pct = 100.0
+    return {
+        "case": case, "mesh": "x".join(map(str, runs["run"]["mesh"])), "force": run,
+        **{f"F_{k}": F[k] for k in RUNS},
+        "along_limit": along, "q_along": q_along, "step_limit": step, "q_step": q_step,
+        "reference": reference,
+        "true_along_pct": pct * (run - along) / along, "est_mesh_pct": pct * est_mesh,
+        "true_step_pct": pct * (run - step) / step, "est_step_pct": pct * est_step,
+        "true_layers_pct": -pct * layers / run,
+        "true_pct": pct * true, "estimate_pct": pct * estimate,
+        "estimate_over_true": estimate / abs(true) if true else math.inf,
+    }
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    parser.add_argument("--jobs", type=int, default=1, help="cases run at once, one process each")
+    parser.add_argument("--out", default="runs/error_estimates", help="folder of the per-case run records")
+    args = parser.parse_args(argv)
+    os.makedirs(args.out, exist_ok=True)
+    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        done = dict(zip(args.cases, pool.map(run_case, args.cases, [args.out] * len(args.cases))))
+    rows = [summarise(case, runs) for case, runs in done.items()]
+    os.makedirs(RESULTS, exist_ok=True)
+    path = os.path.join(RESULTS, "error_estimates.csv")
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()} for r in rows)
+    for r in rows:
+        print(f"{r['case']:28s} F {r['force']:9.4f}  true {r['true_pct']:+7.3f} %  estimate {r['estimate_pct']:6.3f} %"
+              f"  (along {r['true_along_pct']:+.3f} / est {r['est_mesh_pct']:.3f}; step {r['true_step_pct']:+.3f} /"
+              f" est {r['est_step_pct']:.3f}; layers {r['true_layers_pct']:+.3f})")
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
