@@ -295,7 +295,7 @@ def step_check(scene, progress: bool = False) -> dict:
     from .. import scenes
 
     return companion(scene, scenes.scaled_steps(scene.name, scene.config, 0.5),
-                      "step check (half increments)", progress)
+                     "step check (half increments)", progress)
 
 
 def mesh_check(scene, progress: bool = False) -> dict:
@@ -308,7 +308,7 @@ def mesh_check(scene, progress: bool = False) -> dict:
     if scene.model.mesh.nx < 2:
         raise ValueError("the mesh check needs at least 2 elements along the strip to halve them")
     check = companion(scene, scenes.coarser_along(scene.name, scene.config), "mesh check (coarser mesh)",
-                       progress)
+                      progress)
     return {**check, "ratio": scene.model.mesh.nx / check["mesh"][0]}
 
 
