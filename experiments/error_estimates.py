@@ -16,7 +16,8 @@ step estimate and the step correction share the half-increment run, the correcti
 
 Cases ``SCENE_VARIANT`` at the spec mesh (:data:`CASES`; the Nine drawn 36 mm). Each run's steady drawing force is kept
 in ``OUT/CASE.json`` as it finishes, so an interrupted study resumes where it stopped. Writes
-``experiments/results/error_estimates.csv``. Exact contact (``lcp_ssn``), the scenes' defaults otherwise.
+``experiments/results/error_estimates.csv`` with every case whose runs are all in ``OUT``. Exact contact
+(``lcp_ssn``), the scenes' defaults otherwise.
 """
 
 from __future__ import annotations
@@ -73,7 +74,10 @@ def run_case(case: str, out: str) -> dict:
     from jaxfric.identification import accuracy
 
     path = os.path.join(out, f"{case}.json")
-    done = json.load(open(path)) if os.path.exists(path) else {}
+    done = {}
+    if os.path.exists(path):
+        with open(path) as f:
+            done = json.load(f)
     scene_name, variant, overrides = CASES[case]
     scene = scenes.make(scene_name, variant, "lcp_ssn", overrides)
     for name in RUNS:
@@ -136,7 +140,13 @@ def main(argv=None) -> int:
     os.makedirs(args.out, exist_ok=True)
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         done = dict(zip(args.cases, pool.map(run_case, args.cases, [args.out] * len(args.cases))))
-    rows = [summarise(case, runs) for case, runs in done.items()]
+    # Every case with all its runs on disk, not only those asked for: a run of a few cases keeps the others' rows.
+    for case in CASES:
+        path = os.path.join(args.out, f"{case}.json")
+        if case not in done and os.path.exists(path):
+            with open(path) as f:
+                done[case] = json.load(f)
+    rows = [summarise(case, done[case]) for case in CASES if case in done and all(k in done[case] for k in RUNS)]
     os.makedirs(RESULTS, exist_ok=True)
     path = os.path.join(RESULTS, "error_estimates.csv")
     with open(path, "w", newline="") as f:
