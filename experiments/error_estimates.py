@@ -47,6 +47,9 @@ CASES = {
 
 #: the runs of a case, cheapest first: name -> what it changes
 RUNS = ("run", "coarse", "half_step", "layers", "fine2", "quarter_step", "fine4")
+#: runs made only when asked for (``--extra``): an eighth of the increments, for a step ladder that
+#: starts at half of them where the run's own increments are outside the asymptotic range
+EXTRA_RUNS = ("eighth_step",)
 
 
 def _overrides(scene, name: str) -> dict:
@@ -58,8 +61,9 @@ def _overrides(scene, name: str) -> dict:
         return {}
     if name == "coarse":
         return scenes.coarser_along(scene.name, config)
-    if name in ("half_step", "quarter_step"):
-        return scenes.scaled_steps(scene.name, config, 0.5 if name == "half_step" else 0.25)
+    if name in ("half_step", "quarter_step", "eighth_step"):
+        factor = {"half_step": 0.5, "quarter_step": 0.25, "eighth_step": 0.125}[name]
+        return scenes.scaled_steps(scene.name, config, factor)
     if name == "layers":
         return {"ny": 2 * config.ny}
     factor = {"fine2": 2, "fine4": 4}[name]
@@ -68,7 +72,7 @@ def _overrides(scene, name: str) -> dict:
     return {"nx": factor * config.nx}
 
 
-def run_case(case: str, out: str) -> dict:
+def run_case(case: str, out: str, extra: tuple = ()) -> dict:
     """The steady drawing forces of ``case``'s runs, read from and added to ``out/CASE.json``."""
     from jaxfric import scenes
     from jaxfric.identification import accuracy
@@ -80,7 +84,7 @@ def run_case(case: str, out: str) -> dict:
             done = json.load(f)
     scene_name, variant, overrides = CASES[case]
     scene = scenes.make(scene_name, variant, "lcp_ssn", overrides)
-    for name in RUNS:
+    for name in RUNS + tuple(extra):
         if name in done:
             continue
         print(f"{case}: {name}", file=sys.stderr, flush=True)
@@ -105,29 +109,41 @@ def richardson(f1: float, f2: float, f4: float) -> tuple[float, float]:
 
 def summarise(case: str, runs: dict) -> dict:
     """The estimate against the true error of ``case``'s run (all in % of the run's force, signed where
-    it is an error, unsigned where it is an estimate)."""
+    it is an error, unsigned where it is an estimate). The estimates are those ``jaxfric run`` prints
+    (:func:`jaxfric.io.output.richardson_error`): ``mesh`` from the coarser companion, ``mesh_fine`` from
+    ``fine2`` (the companion of ``--error-estimate mesh_fine``, also the reference's first rung, so its
+    ratio to the true error is 2 (q - 1) / q with q the observed ratio ``q_along``), ``step`` from the
+    half increments. Where ``eighth_step`` was run, the step limit comes from the half, quarter and eighth."""
+    from jaxfric.io.output import richardson_error
+
     F = {k: v["steady"] for k, v in runs.items()}
     run = F["run"]
     along, q_along = richardson(run, F["fine2"], F["fine4"])
-    step, q_step = richardson(run, F["half_step"], F["quarter_step"])
+    step_ladder = ("half_step", "quarter_step", "eighth_step") if "eighth_step" in F else ("run", "half_step",
+                                                                                          "quarter_step")
+    step, q_step = richardson(*(F[k] for k in step_ladder))
     layers = F["layers"] - run
     reference = along + layers + (step - run)
-    ratio = runs["run"]["mesh"][0] / runs["coarse"]["mesh"][0]
-    est_mesh = abs(run - F["coarse"]) / (ratio - 1.0) / abs(run)
-    est_step = 2.0 * abs(run - F["half_step"]) / abs(run)
+    coarse_ratio = runs["run"]["mesh"][0] / runs["coarse"]["mesh"][0]
+    est_mesh = abs(richardson_error(run, F["coarse"], coarse_ratio)) / abs(run)
+    est_fine = abs(richardson_error(run, F["fine2"], 0.5)) / abs(run)
+    est_step = abs(richardson_error(run, F["half_step"], 0.5)) / abs(run)
     estimate = math.hypot(est_mesh, est_step)
+    estimate_fine = math.hypot(est_fine, est_step)
     true = (run - reference) / reference
     pct = 100.0
     return {
         "case": case, "mesh": "x".join(map(str, runs["run"]["mesh"])), "force": run,
-        **{f"F_{k}": F[k] for k in RUNS},
+        **{f"F_{k}": F[k] for k in RUNS}, "F_eighth_step": F.get("eighth_step", math.nan),
         "along_limit": along, "q_along": q_along, "step_limit": step, "q_step": q_step,
         "reference": reference,
         "true_along_pct": pct * (run - along) / along, "est_mesh_pct": pct * est_mesh,
+        "est_mesh_fine_pct": pct * est_fine,
         "true_step_pct": pct * (run - step) / step, "est_step_pct": pct * est_step,
         "true_layers_pct": -pct * layers / run,
-        "true_pct": pct * true, "estimate_pct": pct * estimate,
+        "true_pct": pct * true, "estimate_pct": pct * estimate, "estimate_fine_pct": pct * estimate_fine,
         "estimate_over_true": estimate / abs(true) if true else math.inf,
+        "estimate_fine_over_true": estimate_fine / abs(true) if true else math.inf,
     }
 
 
@@ -135,11 +151,13 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     parser.add_argument("--jobs", type=int, default=1, help="cases run at once, one process each")
+    parser.add_argument("--extra", nargs="*", default=[], choices=list(EXTRA_RUNS), help="runs beyond RUNS")
     parser.add_argument("--out", default="runs/error_estimates", help="folder of the per-case run records")
     args = parser.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        done = dict(zip(args.cases, pool.map(run_case, args.cases, [args.out] * len(args.cases))))
+        done = dict(zip(args.cases, pool.map(run_case, args.cases, [args.out] * len(args.cases),
+                                                 [tuple(args.extra)] * len(args.cases))))
     # Every case with all its runs on disk, not only those asked for: a run of a few cases keeps the others' rows.
     for case in CASES:
         path = os.path.join(args.out, f"{case}.json")
@@ -154,9 +172,10 @@ def main(argv=None) -> int:
         writer.writeheader()
         writer.writerows({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()} for r in rows)
     for r in rows:
-        print(f"{r['case']:28s} F {r['force']:9.4f}  true {r['true_pct']:+7.3f} %  estimate {r['estimate_pct']:6.3f} %"
-              f"  (along {r['true_along_pct']:+.3f} / est {r['est_mesh_pct']:.3f}; step {r['true_step_pct']:+.3f} /"
-              f" est {r['est_step_pct']:.3f}; layers {r['true_layers_pct']:+.3f})")
+        print(f"{r['case']:26s} F {r['force']:9.4f}  true {r['true_pct']:+7.3f} %  estimate {r['estimate_pct']:6.3f} %"
+              f" (fine {r['estimate_fine_pct']:6.3f} %)  along {r['true_along_pct']:+.3f} / est {r['est_mesh_pct']:.3f}"
+              f" (fine {r['est_mesh_fine_pct']:.3f}); step {r['true_step_pct']:+.3f} / est {r['est_step_pct']:.3f};"
+              f" layers {r['true_layers_pct']:+.3f}")
     print(f"wrote {path}")
     return 0
 

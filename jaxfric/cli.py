@@ -89,14 +89,15 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--tag", action=_Once,
                      help="study tag recorded in summary.json (regex [A-Za-z0-9][A-Za-z0-9._+-]*)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
-    run.add_argument("--error-estimate", action=_Once, choices=["basic", "sensitivity", "step", "mesh"],
-                     default="basic",
-                     help="basic: from the run's penetration, force scatter and Newton tolerance (not the "
-                          "discretisation's error); sensitivity (penalty only): also eps_N dF/d eps_N by "
-                          "forward mode along the run (about one more run and its compilation); step: also "
-                          "the change when the nominal increments are halved (a second run of about twice "
-                          "the cost); mesh: also the change on half the elements along the strip (a second "
-                          "run of about half the cost)")
+    run.add_argument("--error-estimate", action=_Once, type=_estimates, default=(), metavar="WHAT",
+                     help="basic (default): from the run's penetration, force scatter and Newton tolerance "
+                          "(not the discretisation's error); or a comma list of: step (the run again with half "
+                          "the nominal increments, about twice the cost), mesh (on half the elements along the "
+                          "strip, about half the cost; overstates the error where that mesh is coarse) or "
+                          "mesh_fine (on twice the elements, two to three times the cost; within 1 to 2 times "
+                          "the error where it halves per halving), layers (twice the layers, about twice the "
+                          "cost), sensitivity (penalty only: eps_N dF/d eps_N by forward mode, about one more "
+                          "run); e.g. step,mesh_fine,layers")
     fit = sub.add_parser("fit", help="identify parameters from a measured drawing-force curve",
                          description="Fit scene config values (e.g. mu, R1) to a measured drawing-force curve "
                                      "(CSV with drawing_displacement and drawing_force; a history.csv of "
@@ -140,20 +141,34 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+ESTIMATES = ("sensitivity", "step", "mesh", "mesh_fine", "layers")
+
+
+def _estimates(text: str) -> tuple:
+    """``--error-estimate``: "basic" -> (); else the comma list of :data:`ESTIMATES`, each once, at most
+    one of mesh and mesh_fine."""
+    names = [w.strip() for w in text.split(",")]
+    if names == ["basic"]:
+        return ()
+    bad = [n for n in names if n not in ESTIMATES]
+    if bad or len(set(names)) != len(names) or {"mesh", "mesh_fine"} <= set(names):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: basic, or a comma list of {', '.join(ESTIMATES)} (each once, mesh or mesh_fine)")
+    return tuple(names)
+
+
 def _one_line(text) -> str:
     return " ".join(str(text).split())
 
 
 def _not_estimated(names) -> str:
     """The printed line's tail naming the discretisation components a run did not estimate, with the
-    option or the run that would."""
+    option that would."""
     if not names:
         return ""
-    options = [n for n in names if n != "layers"]
-    hints = ([f"--error-estimate {' or '.join(options)}"] if options else []) + (
-        ["layers: a run with more of them, --mesh NXxNY"] if "layers" in names else [])
+    option = ",".join("mesh_fine" if n == "mesh" else n for n in names)
     words = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
-    return f"; not estimated: {words} discretisation ({'; '.join(hints)})"
+    return f"; not estimated: {words} discretisation (--error-estimate {option})"
 
 
 def _error(message: str | Exception, code: int) -> int:
@@ -414,7 +429,7 @@ def _run(args) -> int:
     from .loadpath.run import MemoryBudgetError, run
     from .numerics.results import Result
 
-    if args.error_estimate == "sensitivity" and scene.algorithm != "penalty":
+    if "sensitivity" in args.error_estimate and scene.algorithm != "penalty":
         raise UsageError(f"--error-estimate sensitivity applies to algorithm penalty, not {scene.algorithm}")
     if args.resume is not None and args.out is not None and os.path.abspath(args.out) != os.path.abspath(args.resume):
         raise UsageError(f"--resume {args.resume} continues the run in that directory; --out {args.out} names another")
@@ -437,20 +452,27 @@ def _run(args) -> int:
         if created is not None and not any(files for _, _, files in os.walk(created)):
             shutil.rmtree(created, ignore_errors=True)
         raise UsageError(str(err)) from None
-    # The optional component of the error estimate: its write_run argument, computed from the finished run.
+    # The optional components of the error estimate: write_run's arguments, computed from the finished run.
     extra: dict[str, Any] = {}
-    if args.error_estimate != "basic" and result.converged:
+    if args.error_estimate and result.converged:
         from .identification import accuracy
 
-        keyword, compute = {
-            "sensitivity": ("penalty_tangent", lambda: accuracy.penalty_tangent(scene, result)),
-            "step": ("step_check", lambda: accuracy.step_check(scene, progress=not args.quiet)),
-            "mesh": ("mesh_check", lambda: accuracy.mesh_check(scene, progress=not args.quiet)),
-        }[args.error_estimate]
-        try:
-            extra[keyword] = compute()
-        except ValueError as err:
-            print(f"note: {err}")
+        progress = not args.quiet
+        companions = {
+            "step": ("step", lambda: accuracy.step_check(scene, progress=progress)),
+            "mesh": ("mesh", lambda: accuracy.mesh_check(scene, progress=progress)),
+            "mesh_fine": ("mesh", lambda: accuracy.mesh_check(scene, progress=progress, finer=True)),
+            "layers": ("layers", lambda: accuracy.layers_check(scene, progress=progress)),
+        }
+        for name in args.error_estimate:
+            try:
+                if name == "sensitivity":
+                    extra["penalty_tangent"] = accuracy.penalty_tangent(scene, result)
+                else:
+                    component, compute = companions[name]
+                    extra.setdefault("checks", {})[component] = compute()
+            except ValueError as err:
+                print(f"note: {err}")
     try:
         summary = _write(scene, result, out, args.tag, config, **extra)
     except (OSError, output.OutputError) as err:

@@ -233,7 +233,8 @@ def test_penalty_sensitivity_estimates_the_penalty_error_of_a_held_die(tmp_path,
 def test_mesh_estimate_runs_the_coarser_companion_and_says_what_it_left_out(tmp_path, capsys):
     """``jaxfric run --error-estimate mesh``: the summary holds the companion's mesh (half the elements
     along, the same layers) and the component it gives, and names the step's and the layers' shares as not
-    estimated; a basic run's printed line names the three discretisation components as not estimated."""
+    estimated; ``mesh_fine,layers`` runs the companions with twice the elements along and through; a basic
+    run's printed line names the three discretisation components as not estimated."""
     import json
 
     common = ["run", "flat_die", "--variant", "const_position", "--mesh", "24x1", "--quiet", "--algorithm",
@@ -244,10 +245,24 @@ def test_mesh_estimate_runs_the_coarser_companion_and_says_what_it_left_out(tmp_
     assert est["components"]["mesh"] == pytest.approx(abs(est["value"] - est["mesh_check"]["value"]) / est["value"])
     assert est["not_estimated"] == ["step", "layers"]
     out = capsys.readouterr().out
-    assert "mesh" in out and "not estimated: step and layers discretisation (--error-estimate step; layers:" in out
+    assert "mesh" in out and "not estimated: step and layers discretisation (--error-estimate step,layers)" in out
+    assert main(common + ["--error-estimate", "mesh_fine,layers", "--out", str(tmp_path / "fine")]) == 0
+    est = json.loads((tmp_path / "fine" / "summary.json").read_text())["error_estimate"]
+    assert est["mesh_check"]["mesh"] == [48, 1] and est["mesh_check"]["ratio"] == 0.5
+    assert est["layers_check"]["mesh"] == [24, 2] and est["layers_check"]["ratio"] == 0.5
+    assert est["components"]["mesh"] == pytest.approx(2 * abs(est["value"] - est["mesh_check"]["value"]) / est["value"])
+    assert est["not_estimated"] == ["step"]
+    capsys.readouterr()
     assert main(common + ["--out", str(tmp_path / "basic")]) == 0
     basic = capsys.readouterr().out
-    assert "not estimated: mesh, step and layers discretisation (--error-estimate mesh or step;" in basic
+    assert "not estimated: step, mesh and layers discretisation (--error-estimate step,mesh_fine,layers)" in basic
+
+
+@pytest.mark.parametrize("text", ["mesh,mesh_fine", "step,step", "thickness", "basic,step"])
+def test_error_estimate_options_are_checked_when_parsed(text, capsys):
+    assert main(["run", "flat_die", "--mesh", "24x1", "--error-estimate", text]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "--error-estimate" in err[-1] and text in err[-1]
 
 
 def test_penalty_sensitivity_is_refused_for_other_algorithms(capsys):
@@ -399,26 +414,28 @@ def test_the_curve_error_starts_from_the_state_the_draw_starts_from():
 
 def test_step_component_is_twice_the_change_with_half_the_increments():
     """``error_estimate`` with a step check: 2 |F - F_half| / F on the main output (the steady force,
-    else the peak), recorded with the check's value and steps."""
+    else the peak), recorded with the check's value, steps and signed share."""
     from jaxfric.io import output
     from jaxfric.scenes import make
 
     scene = make("flat_die", "const_force", overrides={"mesh": "24x1"})
     values = {"drawing_force": [0.0, 10.0, 10.0, 10.0], "max_penetration": [0.0] * 4,
               "phase": ["clamp", "draw", "draw", "draw"], "drawing_displacement": [0.0, 0.02, 0.025, 0.03]}
-    check = {"steady": 9.9, "peak": 12.0, "n_steps": 6, "converged": True}
-    est = output.error_estimate(scene, values, (0.02, 0.03), 10.0, step_check=check)
+    check = {"steady": 9.9, "peak": 12.0, "n_steps": 6, "mesh": (24, 1), "ratio": 0.5, "converged": True}
+    est = output.error_estimate(scene, values, (0.02, 0.03), 10.0, checks={"step": check})
     assert est["components"]["step"] == pytest.approx(0.02, rel=1e-12)
-    assert est["step_check"] == {"value": 9.9, "n_steps": 6, "increments": 0.5}
+    assert est["step_check"] == {"value": 9.9, "n_steps": 6, "mesh": [24, 1], "ratio": 0.5,
+                                 "signed": pytest.approx(0.02, rel=1e-12)}
     assert est["relative"] >= est["components"]["step"]
-    peak = output.error_estimate(scene, values, (0.02, 0.03), None, step_check=check)
+    peak = output.error_estimate(scene, values, (0.02, 0.03), None, checks={"step": check})
     assert peak["quantity"] == "peak_drawing_force" and peak["components"]["step"] == pytest.approx(0.4)
     assert "step" not in output.error_estimate(scene, values, (0.02, 0.03), 10.0)["components"]
 
 
-def test_mesh_component_is_richardsons_first_order_estimate():
-    """``error_estimate`` with a mesh check on r times fewer elements along the strip: |F - F_coarse| /
-    (r - 1) / F, recorded with the check; the components not estimated are named."""
+def test_mesh_and_layers_components_are_richardsons_first_order_estimates():
+    """``error_estimate`` with a companion whose element length is r times the run's: |F - F_other| /
+    |1 - r| / F, signed as the run minus the limit (a coarser companion r = 2, 3; a finer one r = 1/2);
+    the components not estimated are named; an unknown component is refused in one line."""
     from jaxfric.io import output
     from jaxfric.scenes import make
 
@@ -426,13 +443,40 @@ def test_mesh_component_is_richardsons_first_order_estimate():
     values = {"drawing_force": [0.0, 10.0, 10.0, 10.0], "max_penetration": [0.0] * 4,
               "phase": ["clamp", "draw", "draw", "draw"], "drawing_displacement": [0.0, 0.02, 0.025, 0.03]}
     check = {"steady": 10.4, "peak": 12.0, "n_steps": 6, "mesh": (12, 1), "ratio": 2.0, "converged": True}
-    est = output.error_estimate(scene, values, (0.02, 0.03), 10.0, mesh_check=check)
+    est = output.error_estimate(scene, values, (0.02, 0.03), 10.0, checks={"mesh": check})
     assert est["components"]["mesh"] == pytest.approx(0.04, rel=1e-12)
-    assert est["mesh_check"] == {"value": 10.4, "n_steps": 6, "mesh": [12, 1], "ratio": 2.0}
+    assert est["mesh_check"]["signed"] == pytest.approx(0.04, rel=1e-12)   # coarser above: the run too
     assert est["not_estimated"] == ["step", "layers"]
-    third = output.error_estimate(scene, values, (0.02, 0.03), 10.0, mesh_check={**check, "ratio": 3.0})
+    third = output.error_estimate(scene, values, (0.02, 0.03), 10.0, checks={"mesh": {**check, "ratio": 3.0}})
     assert third["components"]["mesh"] == pytest.approx(0.02, rel=1e-12)
-    assert output.error_estimate(scene, values, (0.02, 0.03), 10.0)["not_estimated"] == ["mesh", "step", "layers"]
+    finer = {**check, "steady": 9.8, "mesh": (48, 1), "ratio": 0.5}
+    layers = {**check, "steady": 10.1, "mesh": (24, 2), "ratio": 0.5}
+    both = output.error_estimate(scene, values, (0.02, 0.03), 10.0, checks={"mesh": finer, "layers": layers})
+    assert both["components"]["mesh"] == pytest.approx(0.04, rel=1e-12)
+    assert both["mesh_check"]["signed"] == pytest.approx(0.04, rel=1e-12)
+    assert both["components"]["layers"] == pytest.approx(0.02, rel=1e-12)
+    assert both["layers_check"]["signed"] == pytest.approx(-0.02, rel=1e-12)
+    assert both["not_estimated"] == ["step"]
+    assert output.error_estimate(scene, values, (0.02, 0.03), 10.0)["not_estimated"] == ["step", "mesh", "layers"]
+    with pytest.raises(ValueError, match="field 'checks'"):
+        output.error_estimate(scene, values, (0.02, 0.03), 10.0, checks={"thickness": check})
+
+
+def test_richardson_error_from_a_finer_companion_is_within_twice_the_error_beyond_first_order():
+    """F = 1 + C h^p: the finer companion's first-order estimate is 2 (q - 1) / q of the true error, q = 2^p,
+    so between 1 and 2 times it for p >= 1; the coarser companion's is q - 1 times it."""
+    from jaxfric.io.output import richardson_error
+
+    for p in (1.0, 1.5, 2.0, 3.0):
+        q = 2.0 ** p
+        f = lambda h: 1.0 + 0.3 * h ** p  # noqa: E731
+        true = f(1.0) - 1.0
+        fine = richardson_error(f(1.0), f(0.5), 0.5)
+        coarse = richardson_error(f(1.0), f(2.0), 2.0)
+        assert fine / true == pytest.approx(2 * (q - 1) / q) and 1.0 <= fine / true < 2.0
+        assert coarse / true == pytest.approx(q - 1)
+    with pytest.raises(ValueError, match="field 'ratio'"):
+        richardson_error(1.0, 1.0, 1.0)
 
 
 @pytest.mark.parametrize("scene, field, value", [("nine", "nx", 150), ("bead", "nx", 362), ("flat_die", "nx", 120),

@@ -141,6 +141,13 @@ def test_error_estimate_summary_compares_the_run_s_estimate_with_its_reference()
     assert row["true_pct"] == pytest.approx(100 * (104.0 - 99.7) / 99.7)
     assert row["estimate_over_true"] == pytest.approx(
         np.hypot(4.0, 0.8) / 104.0 / ((104.0 - 99.7) / 99.7))
+    # The finer companion (fine2) estimates twice its change; with an eighth of the increments the step
+    # limit comes from the half, quarter and eighth (changes 0.2, 0.1: limit 103.2 again).
+    assert row["est_mesh_fine_pct"] == pytest.approx(100 * 4.0 / 104.0)
+    runs["eighth_step"] = {"steady": 103.3, "n_steps": 1, "mesh": [100, 2]}
+    eighth = error_estimates.summarise("case", runs)
+    assert eighth["step_limit"] == pytest.approx(103.2) and eighth["q_step"] == pytest.approx(2.0)
+    assert eighth["F_eighth_step"] == 103.3
 
 
 def test_error_estimate_runs_refine_the_spec_configuration():

@@ -47,7 +47,7 @@ from ..io.batch import phase_curve, run_case, stale
 
 __all__ = ["TESTS", "QUICK_TESTS", "Test", "cases", "error_measures", "collect", "test_rows", "read_rows",
            "mesh_label", "MEASURES", "LEVELS", "penalty_tangent", "companion", "step_check", "mesh_check",
-           "reference_overrides"]
+           "layers_check", "reference_overrides"]
 
 REF_GAP = 1e-8          # mm, target gap of the reference's augmented Lagrangian
 LEVELS = (0.1, 0.01, 0.001)
@@ -288,28 +288,45 @@ def companion(scene, overrides: dict, what: str, progress: bool = False) -> dict
 def step_check(scene, progress: bool = False) -> dict:
     """The run of ``scene`` again with every nominal increment halved (:func:`jaxfric.scenes.scaled_steps`),
     reduced to what :func:`jaxfric.io.output.error_estimate` needs for its ``step`` component:
-    ``{"steady": steady drawing force or None, "peak": peak drawing force, "n_steps", "converged"}``.
-    Costs about twice the run (and a compilation). Raises ValueError (one line) when it does not reach
-    the end of the load path.
+    ``{"steady": steady drawing force or None, "peak": peak drawing force, "n_steps", "mesh", "converged",
+    "ratio": 0.5}``. Costs about twice the run (and a compilation). Raises ValueError (one line) when it
+    does not reach the end of the load path.
     """
     from .. import scenes
 
-    return companion(scene, scenes.scaled_steps(scene.name, scene.config, 0.5),
-                     "step check (half increments)", progress)
+    check = companion(scene, scenes.scaled_steps(scene.name, scene.config, 0.5),
+                      "step check (half increments)", progress)
+    return {**check, "ratio": 0.5}
 
 
-def mesh_check(scene, progress: bool = False) -> dict:
-    """The run of ``scene`` again with about half the elements along the strip
-    (:func:`jaxfric.scenes.coarser_along`), for the ``mesh`` component of
-    :func:`jaxfric.io.output.error_estimate`: as :func:`step_check`, plus ``"ratio"``, the ratio of the
-    element counts along the strip. Costs about half the run (and a compilation)."""
+def mesh_check(scene, progress: bool = False, finer: bool = False) -> dict:
+    """The run of ``scene`` again with about half (``finer``: twice) the elements along the strip
+    (:func:`jaxfric.scenes.coarser_along`, :func:`~jaxfric.scenes.finer_along`), for the ``mesh``
+    component of :func:`jaxfric.io.output.error_estimate`: as :func:`step_check`, with ``"ratio"`` the
+    companion's element length over the run's (the run's element count along over the companion's).
+    Costs about half (``finer``: two to three times) the run, and a compilation."""
     from .. import scenes
 
-    if scene.model.mesh.nx < 2:
-        raise ValueError("the mesh check needs at least 2 elements along the strip to halve them")
-    check = companion(scene, scenes.coarser_along(scene.name, scene.config), "mesh check (coarser mesh)",
-                      progress)
+    if finer:
+        overrides, what = scenes.finer_along(scene.name, scene.config), "mesh check (finer mesh)"
+    else:
+        if scene.model.mesh.nx < 2:
+            raise ValueError("the mesh check needs at least 2 elements along the strip to halve them")
+        overrides, what = scenes.coarser_along(scene.name, scene.config), "mesh check (coarser mesh)"
+    check = companion(scene, overrides, what, progress)
     return {**check, "ratio": scene.model.mesh.nx / check["mesh"][0]}
+
+
+def layers_check(scene, progress: bool = False) -> dict:
+    """The run of ``scene`` again with twice the elements through the thickness
+    (:func:`jaxfric.scenes.finer_through`), for the ``layers`` component of
+    :func:`jaxfric.io.output.error_estimate`: as :func:`step_check`, with ``"ratio"`` 0.5 (the layers'
+    thickness halved). Costs about twice the run, and a compilation."""
+    from .. import scenes
+
+    check = companion(scene, scenes.finer_through(scene.name, scene.config), "layers check (twice the layers)",
+                      progress)
+    return {**check, "ratio": scene.model.mesh.ny / check["mesh"][1]}
 
 
 # ---- error measures -----------------------------------------------------------------------------------

@@ -33,7 +33,8 @@ from .instants import (
 )
 
 __all__ = ["SCHEMA_VERSION", "REQUIRED_COLUMNS", "INT_COLUMNS", "ALGORITHM_EXTRAS", "GAP_NO_PROJECTION",
-           "OutputError", "error_estimate", "history_table", "json_ready", "write_run", "format_title"]
+           "OutputError", "CHECKS", "error_estimate", "richardson_error", "history_table", "json_ready", "write_run",
+           "format_title"]
 
 SCHEMA_VERSION = 1
 
@@ -170,12 +171,31 @@ def format_title(scene_name: str, variant: str, algorithm: str, tag: str | None 
 SOLVER_RTOL = 1e-8  # Newton's relative residual tolerance (jaxfric.numerics.newton.NewtonOptions default)
 
 
-def error_estimate(scene, values: dict, window, steady, penalty_tangent=None, step_check=None,
-                   mesh_check=None) -> dict:
-    """An a-posteriori estimate of the error of the run's main output, from this run alone.
+def richardson_error(value: float, other: float, ratio: float) -> float:
+    """Richardson's first-order estimate of the error of ``value`` (signed: ``value`` minus the limit) from
+    a companion run ``other`` whose discretisation parameter (element length, increment, layer thickness)
+    is ``ratio`` times the run's: with F = F* + C h, F - F* = (F - F_other) / (1 - ratio).
+
+    ``ratio`` 2 (a coarser companion) gives F - F_other; 1/2 (a finer one) gives 2 (F - F_other). For an
+    error that falls by a factor q >= 2 per halving of h, the finer companion's estimate lies between 1
+    and 2 times the true error (2 (q - 1) / q of it), and the coarser one's is q - 1 times it, so only
+    the finer companion bounds the error within a factor of 2 when the order is unknown.
+    """
+    if ratio <= 0 or ratio == 1 or not math.isfinite(ratio):
+        raise ValueError(f"field 'ratio' must be a finite number > 0 other than 1, got {ratio!r}")
+    return (value - other) / (1.0 - ratio)
+
+
+#: The discretisation components a companion run estimates: name -> what it varies, for the method text.
+CHECKS = {"step": "the nominal increments", "mesh": "the elements along the strip",
+          "layers": "the elements through the thickness"}
+
+
+def error_estimate(scene, values: dict, window, steady, penalty_tangent=None, checks=None) -> dict:
+    """An a-posteriori estimate of the error of the run's main output, from this run and its companions.
 
     The main output is the steady drawing force F̄ (the peak drawing force where no steady value
-    exists). Three relative contributions, combined in quadrature:
+    exists). Relative contributions, combined in quadrature:
 
     - ``contact``: the largest penetration over the run divided by the modelled sheet thickness (the
       half thickness where a scene uses symmetry). A penetration
@@ -192,26 +212,20 @@ def error_estimate(scene, values: dict, window, steady, penalty_tangent=None, st
       |eps_N dF̄/d eps_N| / |F̄|, the penalty's share. Where the sheet is stiff across its thickness the
       penetration is tiny although the penalty's compliance sets the force (flat die with the die held
       in place: ``contact`` 1.1e-5 against a measured error of 0.74 at eps_N = 1e5), which this term sees.
-    - ``step`` (only with ``step_check``, the same run with half the nominal increments from
-      :func:`jaxfric.identification.accuracy.step_check`; ``jaxfric run --error-estimate step``): 2 |F̄ - F̄_half| / |F̄|,
-      Richardson's estimate of the step size's error for a first-order one (the Nine's exact-contact
-      runs: 0.42, 0.21, 0.09 % at 1, 1/2, 1/4 of the nominal increments); for a higher order it
-      overestimates by at most 2x. It sees the step error only where halving the nominal increments
-      halves the steps: where the controller's cuts set them (a stiff penalty), the two runs take
-      nearly the same steps (``step_check.n_steps`` in the estimate tells).
-    - ``mesh`` (only with ``mesh_check``, the same run with r times fewer elements along the strip from
-      :func:`jaxfric.identification.accuracy.mesh_check`; ``jaxfric run --error-estimate mesh``):
-      |F̄ - F̄_coarse| / (r - 1) / |F̄|, Richardson's estimate of the error of the element length for a
-      first-order one (the Nine's steady force on 300 x 3 with its default element: 0.79 % estimated
-      against 1.4 % measured without friction, 8.0 % against 3.5 % with it, where the coarser mesh is not
-      yet in the first-order range; docs/results.md). The layers through the thickness are not varied,
-      so their share is not in it.
+    - ``step``, ``mesh``, ``layers`` (only with ``checks``: name -> a companion run from
+      :func:`jaxfric.identification.accuracy.step_check`, ``mesh_check`` or ``layers_check``, whose
+      ``"ratio"`` is its increment, element length or layer thickness over the run's; ``jaxfric run
+      --error-estimate step,mesh_fine,layers``): |:func:`richardson_error`| / |F̄|, the first-order
+      estimate of that discretisation's error. A finer companion (ratio 1/2) gives 1 to 2 times the error
+      wherever it falls at least in half per halving; a coarser one (``--error-estimate mesh``, ratio 2)
+      costs half the run but is q - 1 times the error for a ratio q of successive changes, so it
+      overstates the error where the coarser mesh is not yet in the asymptotic range (docs/results.md,
+      estimates against the true error). Each component carries its signed value in ``signed``.
 
-    ``not_estimated`` lists the discretisation components the run did not estimate: ``mesh`` and
-    ``step`` where not asked for, and always ``layers`` (the elements through the thickness).
+    ``not_estimated`` lists the discretisation components the run did not estimate.
 
-    This is an order-of-magnitude indicator, not a bound; the accuracy-cost study compares it with
-    the error against converged references.
+    This is an indicator, not a bound; ``experiments/error_estimates.py`` compares it with the error
+    against converged references.
     """
     nodes = np.asarray(scene.model.mesh.nodes)
     left = np.asarray(scene.model.mesh.left)
@@ -238,32 +252,26 @@ def error_estimate(scene, values: dict, window, steady, penalty_tangent=None, st
         parts["penalty"] = abs(change) / abs(value) if value else 0.0
         method += ", and |eps_N dF/d eps_N| / F (forward mode along the run)"
     extra: dict = {}
-    if step_check is not None:
-        other = step_check["steady"] if steady is not None else step_check["peak"]
+    for name, check in (checks or {}).items():
+        if name not in CHECKS:
+            raise ValueError(f"field 'checks': unknown component {name!r} (one of {', '.join(CHECKS)})")
+        other = check["steady"] if steady is not None else check["peak"]
         if other is None:
-            raise ValueError("field 'step_check': the run with half the increments has no steady drawing force")
-        parts["step"] = 2.0 * abs(value - other) / abs(value) if value else 0.0
-        method += ", and 2 |F - F(half increments)| / F"
-        extra["step_check"] = {"value": float(other), "n_steps": int(step_check["n_steps"]), "increments": 0.5}
-    if mesh_check is not None:
-        other = mesh_check["steady"] if steady is not None else mesh_check["peak"]
-        if other is None:
-            raise ValueError("field 'mesh_check': the run on the coarser mesh has no steady drawing force")
-        ratio = float(mesh_check["ratio"])
-        parts["mesh"] = abs(value - other) / (ratio - 1.0) / abs(value) if value else 0.0
-        method += ", and |F - F(coarser mesh)| / (r - 1) / F"
-        extra["mesh_check"] = {"value": float(other), "n_steps": int(mesh_check["n_steps"]),
-                               "mesh": list(mesh_check["mesh"]), "ratio": ratio}
-    # No option varies the layers through the thickness: their share is never estimated (on the Nine's
-    # 300 x 3, 12 layers give 2 to 3 % more than 3; docs/results.md, layers through the thickness).
-    extra["not_estimated"] = [k for k in ("mesh", "step") if k not in parts] + ["layers"]
+            raise ValueError(f"field 'checks': the {name} companion has no steady drawing force")
+        ratio = float(check["ratio"])
+        signed = richardson_error(value, other, ratio) / abs(value) if value else 0.0
+        parts[name] = abs(signed)
+        method += f", and Richardson's first-order error from {CHECKS[name]} times {ratio:g}"
+        extra[f"{name}_check"] = {"value": float(other), "n_steps": int(check["n_steps"]),
+                                  "mesh": list(check["mesh"]), "ratio": ratio, "signed": signed}
+    extra["not_estimated"] = [k for k in CHECKS if k not in parts]
     relative = math.sqrt(math.fsum(v * v for v in parts.values()))
     return {"quantity": quantity, "value": value, "relative": relative, "absolute": relative * abs(value),
             "components": parts, "method": method + " (jaxfric.io.output.error_estimate)", **extra}
 
 
 def _summary(scene, result, tag, values, instants, fallback, window, steady, notes, penalty_tangent=None,
-             step_check=None, mesh_check=None) -> dict:
+             checks=None) -> dict:
     import jax
 
     n_rows = len(values["step"])
@@ -306,7 +314,7 @@ def _summary(scene, result, tag, values, instants, fallback, window, steady, not
         "instants": list(instants),
         "instants_fallback": list(fallback),
         "mean_augmentations": mean_aug,
-        "error_estimate": error_estimate(scene, values, window, steady, penalty_tangent, step_check, mesh_check),
+        "error_estimate": error_estimate(scene, values, window, steady, penalty_tangent, checks),
         "dtype": "float64",
         "device": _device(),
         "jax_version": jax.__version__,
@@ -394,7 +402,7 @@ def contact_arrays(scene, result, names, rows, values) -> dict:
 # ---- the run directory ------------------------------------------------------------------------------
 
 def write_run(scene, result, out_dir, tag: str | None = None, figures: bool = True,
-              penalty_tangent=None, step_check=None, mesh_check=None) -> dict:
+              penalty_tangent=None, checks=None) -> dict:
     """Write the run directory of ``result`` (outputs spec): six files, also for a failed run.
 
     Order: ``history.csv``, ``summary.json``, ``contact.npz``, then the figures. A failure in a later
@@ -409,10 +417,9 @@ def write_run(scene, result, out_dir, tag: str | None = None, figures: bool = Tr
         figures: write the three PNG figures (False only for tests of the data files).
         penalty_tangent: optional eps_N dF/d eps_N per history row
             (:func:`jaxfric.identification.accuracy.penalty_tangent`), adding the penalty's share to ``error_estimate``.
-        step_check: optional result of :func:`jaxfric.identification.accuracy.step_check` (the run with half the
-            nominal increments), adding the step size's share to ``error_estimate``.
-        mesh_check: optional result of :func:`jaxfric.identification.accuracy.mesh_check` (the run on a mesh
-            with fewer elements along the strip), adding the element length's share to ``error_estimate``.
+        checks: optional companion runs, ``{"step" | "mesh" | "layers": result}`` of
+            :func:`jaxfric.identification.accuracy.step_check`, ``mesh_check`` or ``layers_check``, adding
+            that discretisation's share to ``error_estimate``.
 
     Returns:
         the ``summary.json`` object.
@@ -440,7 +447,7 @@ def write_run(scene, result, out_dir, tag: str | None = None, figures: bool = Tr
     notes.append(damping_note(result.history.get("damping_energy", ()), values))
     steady = steady_drawing_force({**values, "phase_name": values["phase"]}, window)
     summary = _summary(scene, result, tag, values, names, fallback, window, steady, notes, penalty_tangent,
-                       step_check, mesh_check)
+                       checks)
     summary_path = os.path.join(out_dir, "summary.json")
     _write_summary(summary_path, summary)
 

@@ -26,7 +26,7 @@ from .base import Scene
 
 __all__ = ["SCENES", "ALGORITHMS", "Scene", "scene_names", "variants", "default_variant",
            "config_class", "config_fields", "make", "parse_override", "parse_mesh", "scaled_steps",
-           "coarser_along"]
+           "coarser_along", "finer_along", "finer_through"]
 
 SCENES = {"flat_die": flat_die, "bead": bead, "nine": nine, "blankholder": blankholder}
 
@@ -85,6 +85,21 @@ def coarser_along(name: str, config) -> dict:
     if getattr(config, "nx", None) is None and hasattr(config, "element_length"):
         return {"element_length": 2.0 * config.element_length}
     return {"nx": max(1, config.nx // 2)}
+
+
+def finer_along(name: str, config) -> dict:
+    """Config overrides for twice the elements along the strip, the same layers: ``nx`` doubled, or,
+    where ``nx`` is None and derived from ``element_length`` (the blankholder), the element length halved."""
+    _module(name)
+    if getattr(config, "nx", None) is None and hasattr(config, "element_length"):
+        return {"element_length": 0.5 * config.element_length}
+    return {"nx": 2 * config.nx}
+
+
+def finer_through(name: str, config) -> dict:
+    """Config overrides for twice the elements through the thickness, the same elements along."""
+    _module(name)
+    return {"ny": 2 * config.ny}
 
 
 def parse_mesh(text) -> tuple[int, int]:
