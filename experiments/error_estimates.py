@@ -5,16 +5,20 @@ elements along the strip; half the nominal increments), and a reference built fr
 - along the strip, the run's mesh with 2 and 4 times the elements, Richardson's limit with the observed
   ratio of successive changes (the finest run where the changes do not shrink);
 - through the thickness, twice the layers at the run's length, added as a correction (one doubling: a
-  lower bound of the layers' share where they converge from one side);
+  lower bound of the layers' share where they converge from one side), or, with ``--extra layers4``,
+  Richardson's limit of 1, 2 and 4 times the layers;
 - the step, a quarter of the nominal increments beside the half, Richardson's limit with the observed
-  order, added as a correction.
+  order (with ``--extra eighth_step``, of the half, quarter and eighth), added as a correction.
 
-The reference shares no run with the mesh estimate (its companion is coarser, the ladder finer); the
-step estimate and the step correction share the half-increment run, the correction adding the quarter.
+The estimates are those of ``jaxfric run --error-estimate``: ``mesh`` (coarser companion), ``mesh_fine``
+(the ladder's first rung, so its ratio to the length's true error is 2 (q - 1) / q, q the observed ratio),
+``step`` (half increments) and ``layers`` (twice the layers, the reference's first rung too). The
+coarser companion shares no run with the reference.
 
     python experiments/error_estimates.py [--cases CASE ...] [--jobs 2] [--out runs/error_estimates]
 
-Cases ``SCENE_VARIANT`` at the spec mesh (:data:`CASES`; the Nine drawn 36 mm). Each run's steady drawing force is kept
+Cases ``SCENE_VARIANT`` at the spec mesh, and the Nine at the fitting mesh 100 x 2 (:data:`CASES`; the Nine
+drawn 36 mm). Each run's steady drawing force is kept
 in ``OUT/CASE.json`` as it finishes, so an interrupted study resumes where it stopped. Writes
 ``experiments/results/error_estimates.csv`` with every case whose runs are all in ``OUT``. Exact contact
 (``lcp_ssn``), the scenes' defaults otherwise.
@@ -43,13 +47,16 @@ CASES = {
     "blankholder_shape9": ("blankholder", "shape9", {}),
     "nine_mu000": ("nine", "mu000", {"U_draw": 36.0}),
     "nine_mu017": ("nine", "mu017", {"U_draw": 36.0}),
+    "nine_mu000_100x2": ("nine", "mu000", {"U_draw": 36.0, "mesh": "100x2"}),
+    "nine_mu017_100x2": ("nine", "mu017", {"U_draw": 36.0, "mesh": "100x2"}),
 }
 
 #: the runs of a case, cheapest first: name -> what it changes
 RUNS = ("run", "coarse", "half_step", "layers", "fine2", "quarter_step", "fine4")
 #: runs made only when asked for (``--extra``): an eighth of the increments, for a step ladder that
-#: starts at half of them where the run's own increments are outside the asymptotic range
-EXTRA_RUNS = ("eighth_step",)
+#: starts at half of them where the run's own increments are outside the asymptotic range; four times
+#: the layers, for a layers' limit by Richardson instead of one doubling
+EXTRA_RUNS = ("eighth_step", "layers4")
 
 
 def _overrides(scene, name: str) -> dict:
@@ -64,8 +71,8 @@ def _overrides(scene, name: str) -> dict:
     if name in ("half_step", "quarter_step", "eighth_step"):
         factor = {"half_step": 0.5, "quarter_step": 0.25, "eighth_step": 0.125}[name]
         return scenes.scaled_steps(scene.name, config, factor)
-    if name == "layers":
-        return {"ny": 2 * config.ny}
+    if name in ("layers", "layers4"):
+        return {"ny": (2 if name == "layers" else 4) * config.ny}
     factor = {"fine2": 2, "fine4": 4}[name]
     if getattr(config, "nx", None) is None:
         return {"element_length": config.element_length / factor}
@@ -122,28 +129,36 @@ def summarise(case: str, runs: dict) -> dict:
     step_ladder = ("half_step", "quarter_step", "eighth_step") if "eighth_step" in F else ("run", "half_step",
                                                                                           "quarter_step")
     step, q_step = richardson(*(F[k] for k in step_ladder))
-    layers = F["layers"] - run
+    if "layers4" in F:
+        layers_limit, q_layers = richardson(run, F["layers"], F["layers4"])
+    else:
+        layers_limit, q_layers = F["layers"], math.nan
+    layers = layers_limit - run
     reference = along + layers + (step - run)
     coarse_ratio = runs["run"]["mesh"][0] / runs["coarse"]["mesh"][0]
     est_mesh = abs(richardson_error(run, F["coarse"], coarse_ratio)) / abs(run)
     est_fine = abs(richardson_error(run, F["fine2"], 0.5)) / abs(run)
     est_step = abs(richardson_error(run, F["half_step"], 0.5)) / abs(run)
+    est_layers = abs(richardson_error(run, F["layers"], 0.5)) / abs(run)
     estimate = math.hypot(est_mesh, est_step)
     estimate_fine = math.hypot(est_fine, est_step)
+    estimate_all = math.hypot(est_fine, est_step, est_layers)
     true = (run - reference) / reference
     pct = 100.0
     return {
         "case": case, "mesh": "x".join(map(str, runs["run"]["mesh"])), "force": run,
-        **{f"F_{k}": F[k] for k in RUNS}, "F_eighth_step": F.get("eighth_step", math.nan),
+        **{f"F_{k}": F[k] for k in RUNS}, **{f"F_{k}": F.get(k, math.nan) for k in EXTRA_RUNS},
         "along_limit": along, "q_along": q_along, "step_limit": step, "q_step": q_step,
         "reference": reference,
         "true_along_pct": pct * (run - along) / along, "est_mesh_pct": pct * est_mesh,
         "est_mesh_fine_pct": pct * est_fine,
         "true_step_pct": pct * (run - step) / step, "est_step_pct": pct * est_step,
-        "true_layers_pct": -pct * layers / run,
+        "q_layers": q_layers, "true_layers_pct": -pct * layers / layers_limit, "est_layers_pct": pct * est_layers,
         "true_pct": pct * true, "estimate_pct": pct * estimate, "estimate_fine_pct": pct * estimate_fine,
         "estimate_over_true": estimate / abs(true) if true else math.inf,
         "estimate_fine_over_true": estimate_fine / abs(true) if true else math.inf,
+        "estimate_all_pct": pct * estimate_all,
+        "estimate_all_over_true": estimate_all / abs(true) if true else math.inf,
     }
 
 

@@ -148,6 +148,14 @@ def test_error_estimate_summary_compares_the_run_s_estimate_with_its_reference()
     eighth = error_estimates.summarise("case", runs)
     assert eighth["step_limit"] == pytest.approx(103.2) and eighth["q_step"] == pytest.approx(2.0)
     assert eighth["F_eighth_step"] == 103.3
+    # Four times the layers: their limit by Richardson (changes 0.5, 0.25: 105), the estimate twice the
+    # first change.
+    runs["layers4"] = {"steady": 104.75, "n_steps": 1, "mesh": [100, 8]}
+    layered = error_estimates.summarise("case", runs)
+    assert layered["q_layers"] == pytest.approx(2.0)
+    assert layered["true_layers_pct"] == pytest.approx(-100 * 1.0 / 105.0)
+    assert layered["est_layers_pct"] == pytest.approx(100 * 1.0 / 104.0)
+    assert layered["reference"] == pytest.approx(100.0 + 1.0 - 0.8)
 
 
 def test_error_estimate_runs_refine_the_spec_configuration():
@@ -161,3 +169,16 @@ def test_error_estimate_runs_refine_the_spec_configuration():
     holder = scenes.make("blankholder", "shape1", "lcp_ssn")
     assert error_estimates._overrides(holder, "fine2") == {"element_length": 0.25}
     assert error_estimates._overrides(holder, "coarse") == {"element_length": 1.0}
+
+
+def test_chunk_boundary_cost_is_the_extra_time_per_extra_chunk_plus_the_host_time():
+    import bench_chunks
+
+    # Chunks of one step: 100 more chunks, 1 s more inside the compiled calls -> 10 ms per boundary;
+    # the default run's 10 boundaries cost 0.1 s there, plus 0.1 s on the host, of a 20 s single loop.
+    rows = [{"driver": "chunks", "chunk_s": 19.9, "chunks": 10, "host_s": 0.1, "solve_s": 20.0},
+            {"driver": "one loop", "solve_s": 20.0},
+            {"driver": "1-step chunks", "chunk_s": 20.9, "chunks": 110, "host_s": 0.3, "solve_s": 21.2}]
+    assert bench_chunks.boundary_cost(rows) == ("a chunk's boundary costs 10.0 ms inside the compiled calls; the "
+                                                "default chunks' boundaries with the host's time between them "
+                                                "1.00 % of the one loop's solve")
