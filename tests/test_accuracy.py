@@ -509,3 +509,16 @@ def test_scaled_steps_halves_increments_and_doubles_step_counts(scene):
     assert counts(built) == [2 * n for n in counts(base)]
     with pytest.raises(ValueError, match="'factor'"):
         scenes.scaled_steps(scene, config, 0.0)
+
+
+@pytest.mark.parametrize("scene, along, through", [("nine", {"nx": 600}, {"ny": 6}), ("bead", {"nx": 1450}, {"ny": 8}),
+                                                   ("flat_die", {"nx": 480}, {"ny": 4}),
+                                                   ("blankholder", {"element_length": 0.25}, {"ny": 4})])
+def test_finer_companions_double_the_elements_along_or_through(scene, along, through):
+    """The mesh_fine and layers companions: twice the elements along the strip (the blankholder's element
+    length halved), or twice the layers."""
+    from jaxfric import scenes
+
+    config = scenes.make(scene).config
+    assert scenes.finer_along(scene, config) == along
+    assert scenes.finer_through(scene, config) == through
