@@ -70,13 +70,17 @@ MESHES = [(nx, ny) for ny in (3, 6) for nx in (150, 300, 600, 1200)]
 # The settings the studies' tables in docs/results.md were run with, where they differ from the scenes'
 # defaults: F-bar elements (the Nine's and the bead's default is ``ans``; the Nine's discretisation error
 # with each element: experiments/nine_error_sources.py) and, on the Nine, v = 0 on the strip's left-end
-# nodes instead of the entry guide's channel (the tail stays far from A in every study's draw).
+# nodes instead of the entry guide's channel (the tail stays far from A in every study's draw). The
+# studies in AT_DEFAULTS were run again with the scenes' defaults.
 STUDY_SETTINGS = {"element": "fbar"}
 NINE_STUDY_SETTINGS = {"entry_guide_kind": "end_nodes"}
+AT_DEFAULTS = ("mesh_convergence",)
 
 
-def study_settings(scene_name: str) -> dict:
-    """The overrides every study case of ``scene_name`` starts from (see STUDY_SETTINGS)."""
+def study_settings(scene_name: str, study: str = "") -> dict:
+    """The overrides every case of ``study`` on ``scene_name`` starts from (see STUDY_SETTINGS)."""
+    if study in AT_DEFAULTS:
+        return {}
     return {**STUDY_SETTINGS, **(NINE_STUDY_SETTINGS if scene_name == "nine" else {})}
 GRID = 200
 
@@ -86,7 +90,7 @@ def case(study: str, name: str, scene_name: str, variant: str, algorithm: str, o
          opts) -> dict:
     """Run one case into ``runs/<name>`` of the study (or read it back): :func:`jaxfric.io.batch.run_case`."""
     return run_case(os.path.join(ROOT, study, "runs", name), scene_name, variant, algorithm,
-                    {**study_settings(scene_name), **overrides}, rerun=opts.rerun and _selected(opts, name),
+                    {**study_settings(scene_name, study), **overrides}, rerun=opts.rerun and _selected(opts, name),
                     progress=opts.progress,
                     figures=opts.run_figures, tag=study, log=lambda m: print(f"[{study}] {m}", flush=True))
 
@@ -429,7 +433,8 @@ def mesh_convergence(opts) -> None:
     plt.close(fig)
     cols = ["nx", "ny", "n_elements", "steady_drawing_force", "rel_diff_to_finest", "finest", "n_steps",
             "newton_iters_total", "wall_s", "converged"]
-    write_section(study, _header(study, cases, "Nine test `mu000`, `penalty`, eps_N = 1e5, the same "
+    write_section(study, _header(study, cases, "Nine test `mu000`, `penalty`, eps_N = 1e5, the scene's "
+                                 "defaults (element `ans`, the entry guide's channel), the same "
                                  "nominal increments for every mesh. `rel_diff_to_finest` is against "
                                  "1200 x 6 (against the finest converged mesh, named, when 1200 x 6 is "
                                  "missing).") + "\n\n" + markdown_table(rows, cols) + "\n\n"
