@@ -72,11 +72,8 @@ def _overrides(scene, name: str) -> dict:
         factor = {"half_step": 0.5, "quarter_step": 0.25, "eighth_step": 0.125}[name]
         return scenes.scaled_steps(scene.name, config, factor)
     if name in ("layers", "layers4"):
-        return {"ny": (2 if name == "layers" else 4) * config.ny}
-    factor = {"fine2": 2, "fine4": 4}[name]
-    if getattr(config, "nx", None) is None:
-        return {"element_length": config.element_length / factor}
-    return {"nx": factor * config.nx}
+        return scenes.finer_through(scene.name, config, 2 if name == "layers" else 4)
+    return scenes.finer_along(scene.name, config, {"fine2": 2, "fine4": 4}[name])
 
 
 def run_case(case: str, out: str, extra: tuple = ()) -> dict:

@@ -220,7 +220,10 @@ def error_estimate(scene, values: dict, window, steady, penalty_tangent=None, ch
       wherever it falls at least in half per halving; a coarser one (``--error-estimate mesh``, ratio 2)
       costs half the run but is q - 1 times the error for a ratio q of successive changes, so it
       overstates the error where the coarser mesh is not yet in the asymptotic range (docs/results.md,
-      estimates against the true error). Each component carries its signed value in ``signed``.
+      estimates against the true error). ``step`` sees the step error only where halving the nominal
+      increments halves the steps: where the controller's cuts set them (a stiff penalty), the two runs
+      take nearly the same steps (``step_check.n_steps`` tells). Each companion's record
+      ``<name>_check`` keeps its value, steps, mesh, ratio and signed share (``signed``).
 
     ``not_estimated`` lists the discretisation components the run did not estimate.
 

@@ -87,19 +87,20 @@ def coarser_along(name: str, config) -> dict:
     return {"nx": max(1, config.nx // 2)}
 
 
-def finer_along(name: str, config) -> dict:
-    """Config overrides for twice the elements along the strip, the same layers: ``nx`` doubled, or,
-    where ``nx`` is None and derived from ``element_length`` (the blankholder), the element length halved."""
+def finer_along(name: str, config, factor: int = 2) -> dict:
+    """Config overrides for ``factor`` times the elements along the strip, the same layers: ``nx``
+    multiplied, or, where ``nx`` is None and derived from ``element_length`` (the blankholder), the element
+    length divided by ``factor``."""
     _module(name)
     if getattr(config, "nx", None) is None and hasattr(config, "element_length"):
-        return {"element_length": 0.5 * config.element_length}
-    return {"nx": 2 * config.nx}
+        return {"element_length": config.element_length / factor}
+    return {"nx": factor * config.nx}
 
 
-def finer_through(name: str, config) -> dict:
-    """Config overrides for twice the elements through the thickness, the same elements along."""
+def finer_through(name: str, config, factor: int = 2) -> dict:
+    """Config overrides for ``factor`` times the elements through the thickness, the same elements along."""
     _module(name)
-    return {"ny": 2 * config.ny}
+    return {"ny": factor * config.ny}
 
 
 def parse_mesh(text) -> tuple[int, int]:
