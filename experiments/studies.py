@@ -1,9 +1,10 @@
-"""The five studies of the benchmark specification (section 7).
+"""The five studies of the benchmark specification (section 7), and the algorithms on common steps.
 
     python experiments/studies.py STUDY [--only TEXT] [--rerun] [--no-run-figures]
 
 STUDY is one of ``penalty_sensitivity``, ``auglag_sensitivity``, ``mesh_convergence``,
-``blankholder_shapes``, ``algorithm_agreement`` (or ``all``). Each case is an ordinary run: its run
+``blankholder_shapes``, ``algorithm_agreement``, ``common_steps`` (every algorithm on the step sequence
+of the semismooth Newton run) or ``all``. Each case is an ordinary run: its run
 directory (outputs contract) goes to ``experiments/results/studies/<study>/runs/<case>/`` (not
 committed), and the study writes ``table.csv`` and ``figure.png`` (plus the figures the spec names) into
 ``experiments/results/studies/<study>/`` and its section of ``docs/results.md`` (between
@@ -74,7 +75,7 @@ MESHES = [(nx, ny) for ny in (3, 6) for nx in (150, 300, 600, 1200)]
 # studies in AT_DEFAULTS were run again with the scenes' defaults.
 STUDY_SETTINGS = {"element": "fbar"}
 NINE_STUDY_SETTINGS = {"entry_guide_kind": "end_nodes"}
-AT_DEFAULTS = ("mesh_convergence",)
+AT_DEFAULTS = ("mesh_convergence", "common_steps")
 
 
 def study_settings(scene_name: str, study: str = "") -> dict:
@@ -87,11 +88,12 @@ GRID = 200
 
 # --------------------------------------------------------------------------------------------- runs
 def case(study: str, name: str, scene_name: str, variant: str, algorithm: str, overrides: dict,
-         opts) -> dict:
-    """Run one case into ``runs/<name>`` of the study (or read it back): :func:`jaxfric.io.batch.run_case`."""
+         opts, steps=None) -> dict:
+    """Run one case into ``runs/<name>`` of the study (or read it back): :func:`jaxfric.io.batch.run_case`
+    (``steps``: end times of the steps to take instead of the nominal increments)."""
     return run_case(os.path.join(ROOT, study, "runs", name), scene_name, variant, algorithm,
                     {**study_settings(scene_name, study), **overrides}, rerun=opts.rerun and _selected(opts, name),
-                    progress=opts.progress,
+                    progress=opts.progress, steps=steps,
                     figures=opts.run_figures, tag=study, log=lambda m: print(f"[{study}] {m}", flush=True))
 
 
@@ -561,15 +563,15 @@ def _curves_path(study: str, name: str) -> str:
     return os.path.join(ROOT, study, "curves", f"{name}.npz")
 
 
-def _save_curves(study: str, name: str, c: dict) -> None:
+def _save_curves(study: str, name: str, c: dict, columns=CURVE_COLUMNS) -> None:
     """Keep (committed) what the agreement table and figure read from a run: the history columns of
-    ``CURVE_COLUMNS`` and the contact status at the named instants. A later invocation then compares a new
+    ``columns`` and the contact status at the named instants. A later invocation then compares a new
     case with this one without running it again (run directories are not committed)."""
     h, contact = c["history"], c["contact"]
     path, summary = _curves_path(study, name), os.path.join(c["dir"], "summary.json")
     if not h or (os.path.exists(path) and os.path.getmtime(path) >= os.path.getmtime(summary)):
         return  # rewritten only after a new run (a zip archive differs at every write)
-    arrays = {k: np.asarray(h[k]) for k in CURVE_COLUMNS if k in h}
+    arrays = {k: np.asarray(h[k]) for k in columns if k in h}
     names = [str(n) for n in contact.get("instant_names", [])]
     arrays["instant_names"] = np.array(names, dtype=str)
     arrays.update({f"{n}__status": contact[f"{n}__status"] for n in names if f"{n}__status" in contact})
@@ -577,7 +579,7 @@ def _save_curves(study: str, name: str, c: dict) -> None:
     np.savez_compressed(path, **arrays)
 
 
-def _case_from_curves(study: str, name: str, row: dict) -> dict:
+def _case_from_curves(study: str, name: str, row: dict, columns=CURVE_COLUMNS) -> dict:
     """A case of an earlier invocation from its committed table row and curves (the shape :func:`case`
     returns)."""
     with np.load(_curves_path(study, name), allow_pickle=False) as data:
@@ -586,8 +588,8 @@ def _case_from_curves(study: str, name: str, row: dict) -> dict:
                                         "cpu_s", "compile_s", "max_penetration", "steady_drawing_force",
                                         "device")}
     summary["n_cutbacks"] = row.get("cutbacks")
-    history = {k: arrays[k] for k in CURVE_COLUMNS if k in arrays}
-    contact = {k: v for k, v in arrays.items() if k not in CURVE_COLUMNS}
+    history = {k: arrays[k] for k in columns if k in arrays}
+    contact = {k: v for k, v in arrays.items() if k not in columns}
     return {"summary": summary, "history": history, "contact": contact, "dir": None}
 
 
@@ -683,7 +685,7 @@ def algorithm_agreement(opts) -> None:
                   + "\n\n![algorithm agreement](../experiments/results/studies/algorithm_agreement/figure.png)")
 
 
-def _agreement_figure(panels) -> None:
+def _agreement_figure(panels, study: str = "algorithm_agreement") -> None:
     if not panels:
         return
     plt = _plt()
@@ -709,12 +711,98 @@ def _agreement_figure(panels) -> None:
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
     fig.tight_layout()
-    fig.savefig(os.path.join(ROOT, "algorithm_agreement", "figure.png"), dpi=110)
+    fig.savefig(os.path.join(ROOT, study, "figure.png"), dpi=110)
     plt.close(fig)
 
 
+# ------------------------------------------------------------------- (5b) every algorithm, one step sequence
+COMMON_REPLAYS = ("lcp_lemke", "penalty", "auglag")
+COMMON_COLUMNS = (*CURVE_COLUMNS, "time", "n_active", "n_slip", "cutbacks", "ssn_iters")
+
+
+def _common_row(name: str, variant: str, algorithm: str, c: dict, plan: dict) -> dict:
+    """One row of ``common_steps``: the run ``c`` against the plan (``lcp_ssn``) at the plan's step ends."""
+    s, h, p = c["summary"], c["history"], plan["history"]
+    row = {"case": f"{name}_{variant}_{algorithm}", "scene": name, "variant": variant, "algorithm": algorithm,
+           **common(s)}
+    if row["n_steps"] is not None and plan["summary"].get("n_steps") is not None:
+        row["extra_steps"] = int(row["n_steps"]) - int(plan["summary"]["n_steps"])
+    if algorithm != "lcp_ssn" and h and p:
+        fs, fp = s.get("steady_drawing_force"), plan["summary"].get("steady_drawing_force")
+        row["rel_diff_steady"] = _r((fs - fp) / abs(fp)) if fs is not None and fp else None
+        # The rows of this run that end where the plan's steps end (all of them, unless it stopped).
+        k = np.clip(np.searchsorted(h["time"], p["time"] - 1e-9), 0, len(h["time"]) - 1)
+        hit = np.abs(h["time"][k] - p["time"]) < 1e-9
+        k, ref = k[hit], {col: p[col][hit] for col in p}
+        scale = float(np.max(np.abs(p["drawing_force"])) + np.max(np.abs(p["clamping_force"])))
+        row["force_diff"] = _r(max(float(np.max(np.abs(h[col][k] - ref[col])))
+                                   for col in ("drawing_force", "clamping_force")) / scale)
+        differ = (h["n_active"][k] != ref["n_active"]) | (h["n_slip"][k] != ref["n_slip"])
+        row["status_differ"] = _r(float(np.mean(differ)))
+        row["common_rows"] = int(hit.sum())
+    if algorithm == "lcp_lemke" and "ssn_iters" in h:
+        row["refined_steps"] = int(np.sum(h["ssn_iters"] > 0))
+    row["device"] = s.get("device")
+    row["message"] = s.get("message", "")
+    return row
+
+
+def common_steps(opts) -> None:
+    """Every algorithm on one step sequence: each scene variant with its defaults runs with ``lcp_ssn``
+    (the plan), then ``lcp_lemke``, ``penalty`` and ``auglag`` replay the plan's accepted steps as their
+    nominal increments (:func:`jaxfric.io.batch.replay_steps`; their controllers still cut a step that
+    fails). The differences from the plan at its step ends are then those of the algorithms, not of their
+    step sequences. Cases are kept as in ``algorithm_agreement`` (committed rows and ``curves/``)."""
+    study = "common_steps"
+    kept = _committed_rows(study, opts)
+    rows, panels, cases = [], [], []
+    for name, variant in _variants():
+        got = {}
+
+        def take(algorithm, steps=None):
+            label = f"{name}_{variant}_{algorithm}"
+            if label in kept and os.path.exists(_curves_path(study, label)):
+                got[algorithm] = _case_from_curves(study, label, kept[label], COMMON_COLUMNS)
+            elif _want(opts, study, label):
+                got[algorithm] = case(study, label, name, variant, algorithm, {}, opts, steps=steps)
+                cases.append(got[algorithm])
+                if got[algorithm]["dir"]:
+                    _save_curves(study, label, got[algorithm], COMMON_COLUMNS)
+
+        take("lcp_ssn")
+        plan = got.get("lcp_ssn")
+        if plan is not None and plan["summary"].get("converged") and plan["history"]:
+            for algorithm in COMMON_REPLAYS:
+                take(algorithm, np.asarray(plan["history"]["time"][1:]))
+        if plan is None:
+            continue
+        rows += [_common_row(name, variant, a, got[a], plan) for a in ("lcp_ssn", *COMMON_REPLAYS) if a in got]
+        panels.append((name, variant, got))
+        _write_partial(study, rows)
+    write_table(study, rows)
+    _agreement_figure(panels, study)
+    cols = ["scene", "variant", "algorithm", "converged", "n_steps", "extra_steps", "newton_iters_total",
+            "wall_s", "max_penetration", "steady_drawing_force", "rel_diff_steady", "force_diff",
+            "status_differ", "refined_steps"]
+    write_section(study, _header(study, cases,
+                                 "Every algorithm on one step sequence, each scene variant with its "
+                                 "defaults: `lcp_ssn` plans the steps (its own controller), then "
+                                 "`lcp_lemke`, `penalty` (eps_N = 1e5) and `auglag` (target gap 1e-5 mm) "
+                                 "take the plan's accepted steps as their nominal increments; a step that "
+                                 "fails is still cut (`extra_steps`: steps beyond the plan's). Against the "
+                                 "plan at its step ends: `rel_diff_steady` (signed), `force_diff` (largest "
+                                 "difference of the drawing and clamping forces over the plan's drawing "
+                                 "plus clamping force scale), `status_differ` (fraction of the step ends "
+                                 "where the numbers of closed or slipping pairs differ); `refined_steps`: "
+                                 "Lemke steps whose answer needed the semismooth polish. Lemke never cut "
+                                 "a step where `extra_steps` is 0, so its proximity band never saturated "
+                                 "(a closing pair outside it fails the attempt).")
+                  + "\n\n" + markdown_table(rows, cols) + "\n\n" + failures(rows, opts.missing)
+                  + "\n\n![common steps](../experiments/results/studies/common_steps/figure.png)")
+
+
 STUDIES = {f.__name__: f for f in (penalty_sensitivity, auglag_sensitivity, mesh_convergence,
-                                   blankholder_shapes, algorithm_agreement)}
+                                   blankholder_shapes, algorithm_agreement, common_steps)}
 
 
 def main(argv=None) -> int:

@@ -76,6 +76,46 @@ def test_study_table_between_cases_keeps_the_rows_still_to_come(tmp_path, monkey
     assert [(r["case"], r["value"]) for r in rows] == [("a", "10"), ("d", "4"), ("b", "2"), ("c", "3")]
 
 
+def test_common_steps_row_compares_a_replay_with_its_plan_at_the_plan_s_step_ends():
+    """A replay that cut one step has one row more than its plan; the comparison takes the rows that end
+    where the plan's steps end, so the extra row does not enter the force or status differences."""
+    t = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
+    plan_h = {"time": t, "phase": np.array(["clamp"] * 3 + ["draw"] * 2),
+              "drawing_force": np.array([0.0, 0.0, 0.0, 50.0, 100.0]),
+              "clamping_force": np.array([0.0, 10.0, 20.0, 20.0, 20.0]),
+              "n_active": np.array([0, 2, 3, 3, 3]), "n_slip": np.array([0, 0, 0, 3, 3])}
+    plan = {"summary": {"n_steps": 4, "steady_drawing_force": 100.0}, "history": plan_h}
+    cut = np.array([0.0, 0.5, 1.0, 1.25, 1.5, 2.0])  # the step to 1.5 cut in two
+    h = {"time": cut, "drawing_force": np.array([0.0, 0.0, 0.0, 999.0, 50.0, 101.2]),
+         "clamping_force": np.array([0.0, 10.0, 20.0, 999.0, 20.0, 20.0]),
+         "n_active": np.array([0, 2, 3, 9, 3, 3]), "n_slip": np.array([0, 0, 0, 9, 2, 3]),
+         "ssn_iters": np.array([0, 0, 3, 0, 0, 1])}
+    run = {"summary": {"n_steps": 5, "steady_drawing_force": 101.0, "converged": True}, "history": h}
+    row = studies._common_row("nine", "mu017", "lcp_lemke", run, plan)
+    assert row["extra_steps"] == 1 and row["common_rows"] == 5
+    assert row["rel_diff_steady"] == pytest.approx(0.01)
+    assert row["force_diff"] == pytest.approx(1.2 / 120.0)  # over the plan's drawing + clamping scale
+    assert row["status_differ"] == pytest.approx(1 / 5)  # n_slip differs at t = 1.5 only
+    assert row["refined_steps"] == 2
+
+
+def test_replayed_steps_become_the_nominal_increments_phase_by_phase():
+    """:func:`jaxfric.io.batch.replay_steps`: a step ending at k + 1 belongs to phase k, the next to
+    phase k + 1; the scene's schedule then has exactly the given steps."""
+    from jaxfric import scenes
+    from jaxfric.fem.loading import schedule
+    from jaxfric.io.batch import replay_steps
+
+    scene = scenes.make("flat_die", "const_position", "lcp_ssn", {"U_draw": 1.0})
+    n_phases = len(scene.model.phases)
+    times = np.concatenate([k + np.array([0.25, 0.75, 1.0]) for k in range(n_phases)])
+    replayed = replay_steps(scene, times)
+    ends, phase = schedule(replayed.model.phases).nominal_steps()
+    np.testing.assert_allclose(ends, times, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(phase, np.repeat(np.arange(n_phases), 3))
+    assert replayed.name == scene.name and replayed.algorithm == scene.algorithm
+
+
 # ---- experiments/nine_plastic_work.py: the work per column and its staircase (no simulation) ------------
 
 def test_plastic_work_of_a_column_is_the_dissipation_integrated_through_the_thickness():

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-__all__ = ["read_history", "phase_curve", "run_case", "stale", "write_csv"]
+__all__ = ["read_history", "phase_curve", "replay_steps", "run_case", "stale", "write_csv"]
 
 
 def read_history(path: str) -> dict:
@@ -47,13 +47,18 @@ def phase_curve(history: dict, x_name: str, y_name: str, phase: str, start: bool
 
 def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, overrides: dict, *,
              rerun: bool = False, progress: bool = False, figures: bool = False, tag: str | None = None,
-             log=print, rerun_stale: bool = True) -> dict:
+             log=print, rerun_stale: bool = True, steps=None) -> dict:
     """Run one case into ``out`` (or read it back) and return ``{"summary", "history", "contact", "dir"}``.
 
     ``summary`` always has ``converged`` and ``message``: a case that could not even be built or run
     enters with ``converged`` False and the reason (one failed case never stops a batch). A run on
     disk made with another variant, algorithm or overrides (:func:`stale`) is run again, unless
     ``rerun_stale`` is False (read-only callers), which reads it back as it is.
+
+    ``steps``: the end times of the steps to take (global pseudo-time, increasing, the last one the
+    number of phases), for example another run's accepted steps (its history's ``time`` without the
+    first row); they replace the scene's nominal increments (:func:`replay_steps`). The stale check
+    does not compare them: a run directory made with other steps is read back as it is.
     """
     from .. import scenes
     from ..loadpath.run import run
@@ -68,6 +73,8 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
         log(f"{out}: {scene_name}/{variant}/{algorithm} {overrides}")
         try:
             scene = scenes.make(scene_name, variant, algorithm, dict(overrides))
+            if steps is not None:
+                scene = replay_steps(scene, steps)
             result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
                          snapshot=scene.snapshot,
                          progress=progress, raise_on_failure=False, label=f"{os.path.basename(out)} ")
@@ -89,6 +96,22 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
     npz = os.path.join(out, "contact.npz")
     return {"summary": summary, "history": read_history(hist) if os.path.exists(hist) else {},
             "contact": dict(np.load(npz, allow_pickle=False)) if os.path.exists(npz) else {}, "dir": out}
+
+
+def replay_steps(scene, times):
+    """``scene`` with its nominal increments replaced by steps ending at ``times`` (global
+    pseudo-time; a step ending in (k, k + 1] belongs to phase k): :func:`jaxfric.fem.loading.with_steps`.
+    The step controller still cuts a step that fails and grows back to the given steps, never beyond."""
+    import dataclasses
+
+    import equinox as eqx
+
+    from ..fem.loading import with_steps
+
+    times = np.asarray(times, float)
+    phase = np.ceil(times - 1e-9).astype(int) - 1
+    model = eqx.tree_at(lambda m: m.phases, scene.model, with_steps(scene.model.phases, times, phase))
+    return dataclasses.replace(scene, model=model)
 
 
 def _same(have, want) -> bool:
