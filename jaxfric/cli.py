@@ -13,7 +13,9 @@ few seconds, with ``summary.json`` saying ``converged: false`` and where the run
 writes everything converged and says how to resume (``--resume DIR``); a second SIGINT stops at once.
 Exit status: 0 on success, 1 when the run stopped early or its files could not all be written (what
 converged is still written), 2 for bad input, 3 when a stop request ended the run. Errors are one line
-on stderr, without traceback.
+on stderr, without traceback. ``run``, ``fit`` and ``report`` keep their compiled programs in JAX's
+persistent compilation cache (:mod:`jaxfric.io.cache`: ``~/.cache/jaxfric/xla``; ``JAXFRIC_CACHE_DIR=off``
+turns it off), so a second run of the same configuration in a new process compiles nothing.
 """
 
 from __future__ import annotations
@@ -193,6 +195,9 @@ def main(argv=None) -> int:
     try:
         if args.command == "scenes":
             return _scenes()
+        from .io.cache import enable_compilation_cache
+
+        enable_compilation_cache()
         if args.command == "fit":
             return _fit(args)
         if args.command == "report":

@@ -469,3 +469,37 @@ def test_damping_note_counts_the_stabilised_steps_against_the_drawing_work():
     assert "2 % of the drawing force's work (15 N mm/mm)" in note
     flat = {"drawing_force": np.zeros(3), "drawing_displacement": np.zeros(3)}
     assert "%" not in output.damping_note(np.array([0.0, 0.1, 0.2]), flat)
+
+
+# ---- jaxfric.io.cache: the persistent compilation cache of the command lines ------------------------
+
+def test_compilation_cache_folder_follows_jax_then_jaxfric_then_xdg():
+    from jaxfric.io.cache import cache_dir
+
+    assert cache_dir({"JAX_COMPILATION_CACHE_DIR": "/a", "JAXFRIC_CACHE_DIR": "/b"}) == "/a"
+    assert cache_dir({"JAXFRIC_CACHE_DIR": "/b", "XDG_CACHE_HOME": "/c"}) == "/b"
+    assert cache_dir({"JAXFRIC_CACHE_DIR": "off"}) is None and cache_dir({"JAXFRIC_CACHE_DIR": ""}) is None
+    assert cache_dir({"XDG_CACHE_HOME": "/c"}) == os.path.join("/c", "jaxfric", "xla")
+
+
+def test_compilation_cache_keeps_a_program_for_the_next_process(tmp_path):
+    """A process that enables the cache writes its compiled program into the folder, and a second process
+    finds it there (JAX's cache hit, not a second compilation)."""
+    import subprocess
+    import sys
+
+    folder = tmp_path / "xla"
+    probe = ("import logging, jax, jax.numpy as jnp\n"
+             "from jaxfric.io.cache import enable_compilation_cache\n"
+             "jax.config.update('jax_persistent_cache_min_compile_time_secs', 0.0)\n"
+             "print('folder', enable_compilation_cache())\n"
+             "logging.basicConfig(level=logging.DEBUG)\n"
+             "jax.jit(lambda x: jnp.sin(x) @ x)(jnp.ones((8, 8))).block_until_ready()\n")
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env["JAXFRIC_CACHE_DIR"] = str(folder)
+    runs = [subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=120)
+            for _ in range(2)]
+    assert all(r.returncode == 0 for r in runs), runs[-1].stderr[-2000:]
+    assert f"folder {folder}" in runs[0].stdout
+    assert any(folder.iterdir())
+    assert "cache hit" in runs[1].stderr.lower() and "cache hit" not in runs[0].stderr.lower()
