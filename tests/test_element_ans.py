@@ -96,7 +96,7 @@ def test_strong_compression_without_hourglassing():
     assert ratio < 1.5, f"hourglass amplitude {ratio:.3f} times F-bar's"
 
 
-@pytest.mark.parametrize("formulation", ["ans", "anst"])
+@pytest.mark.parametrize("formulation", ["ans", "anst", "fbar"])
 def test_element_tangent_is_the_derivative_of_its_force(formulation):
     """At a plastic state of one distorted element, the tangent equals central differences of its force
     (for ``anst`` with its thickness mode condensed)."""
@@ -124,3 +124,33 @@ def test_element_tangent_is_the_derivative_of_its_force(formulation):
     fd = jnp.stack([(force(u + h * e.reshape(4, 2))[0] - force(u - h * e.reshape(4, 2))[0]).ravel() / (2 * h)
                     for e in jnp.eye(8)], axis=1)
     np.testing.assert_allclose(K, fd, rtol=0, atol=1e-6 * float(jnp.max(jnp.abs(K))))
+
+
+@pytest.mark.parametrize("formulation", ["fbar", "ans"])
+def test_fbar_geometric_term_is_the_hessian_of_the_kinematics(formulation):
+    """The closed form of the F-bar tangent's geometric term (:func:`jaxfric.fem.element._fbar_geometric_term`)
+    equals the forward-over-reverse derivative of the element's kinematics, on distorted elements under
+    large random displacements, and where an inverted point guards the ratio J_0 / J (no term there)."""
+    from jaxfric.fem.assembly import mesh_geometry
+    from jaxfric.fem.element import _fbar_geometric_term, _kinematics
+
+    rng = np.random.default_rng(3)
+    mesh = jf.strip_mesh(0.0, 3.0, 0.0, 0.6, 6, 2)
+    mesh = jf.StripMesh(mesh.nodes + jnp.asarray(rng.uniform(-0.08, 0.08, mesh.nodes.shape)), 6, 2)
+    geo = mesh_geometry(mesh)
+    dN, dN0 = geo.gradients(formulation), geo.dN_dX_center
+    u = jnp.asarray(rng.normal(scale=0.05, size=mesh.nodes.shape))[mesh.elements]
+    u = u.at[0, 1, 0].add(-1.2)                        # element 0: its corner 1 pushed through corner 0
+    S = jnp.asarray(rng.normal(scale=100.0, size=(mesh.n_elements, 4, 2, 2)))
+
+    def by_ad(S_e, dN_e, dN0_e, w_e, u_e):
+        def term(v):
+            return jnp.sum(S_e * _kinematics(formulation, dN_e, dN0_e, w_e, v.reshape(4, 2), jnp.zeros(0))[0])
+        return jax.jacfwd(jax.grad(term))(u_e.ravel())
+
+    want = jax.vmap(by_ad)(S, dN, dN0, geo.weight, u)
+    got = jax.vmap(_fbar_geometric_term)(S, dN, dN0, u)
+    J = jax.vmap(lambda d, v: jnp.linalg.det(jnp.eye(2) + jnp.einsum("ai,gaj->gij", v, d)))(dN, u)
+    assert bool(jnp.any(J[0] <= 0)), "element 0 must have an inverted point"
+    for e in range(mesh.n_elements):
+        np.testing.assert_allclose(got[e], want[e], rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(want[e]))))

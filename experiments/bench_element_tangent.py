@@ -1,0 +1,110 @@
+"""The element tangent's cost, with the F-bar geometric term in closed form (the library) or by automatic
+differentiation (its forward-over-reverse Hessian, as the tangent was assembled before).
+
+    python experiments/bench_element_tangent.py [--mesh 300x3] [--element ans] [--rounds 15]
+
+Times, on the Nine's mesh at a plastic state (random nodal displacements of 0.03 mm from the virgin
+state), the forces and tangents of all elements, one ``vmap`` jitted alone, the two variants alternated
+in one process, and the geometric term alone both ways. Process CPU time (``time.process_time``), so
+that another process on the same core does not enter the figures; pin it with ``taskset -c N`` and one
+XLA thread (``XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"``). Writes
+``experiments/results/bench_element_tangent.csv`` (one row per variant, element and mesh: median and
+fastest call, the median per-round ratio to the AD variant, and how closely the two tangents agree).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxfric import scenes
+from jaxfric.fem import element as el
+from jaxfric.fem.element import element_geometry
+from jaxfric.io.batch import write_csv
+from jaxfric.loadpath.model import initial_state
+
+OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "bench_element_tangent.csv")
+
+
+def tangent_with_ad_geometric_term(material, formulation, dN_dX, dN_dX_center, weight, u_e, states):
+    """:func:`jaxfric.fem.element.element_force_and_tangent` for ``fbar``/``ans`` with the geometric term
+    as the forward-over-reverse Hessian of the kinematics."""
+    def kinematics(v):
+        return el._kinematics(formulation, dN_dX, dN_dX_center, weight, v.reshape(4, 2), jnp.zeros(0))
+
+    v = u_e.ravel()
+    Fb, _, dF_dv = el._value_and_jacfwd(kinematics, v)
+    dP_dF, (P, _, _) = jax.vmap(jax.jacfwd(el._piola(material), has_aux=True))(Fb, states)
+    wP = weight[:, None, None] * P
+    f_e = jnp.einsum("gij,gija->a", wP, dF_dv)
+    K_e = jnp.einsum("g,gija,gijkl,gklb->ab", weight, dF_dv, dP_dF, dF_dv)
+    K_e = K_e + jax.jacfwd(jax.grad(lambda w: jnp.sum(jax.lax.stop_gradient(wP) * kinematics(w)[0])))(v)
+    return f_e.reshape(4, 2), K_e
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--mesh", default="300x3")
+    parser.add_argument("--element", default="ans", choices=("ans", "fbar"))
+    parser.add_argument("--rounds", type=int, default=15)
+    args = parser.parse_args(argv)
+    jax.config.update("jax_enable_x64", True)
+    model = scenes.make("nine", "mu017", "lcp_ssn", {"mesh": args.mesh, "element": args.element}).model
+    mesh, material, formulation = model.mesh, model.material, args.element
+    geo = element_geometry(mesh.nodes[mesh.elements], model.thickness_points)
+    states = initial_state(model).material
+    u_e = jnp.asarray(np.random.default_rng(0).normal(scale=0.03, size=mesh.nodes.shape))[mesh.elements]
+    dN, dN0, w = geo.gradients(formulation), geo.dN_dX_center, geo.weight
+    S = jnp.asarray(np.random.default_rng(1).normal(size=(mesh.n_elements, dN.shape[1], 2, 2)))
+
+    def batched(fn):
+        return jax.jit(lambda u, s: jax.vmap(lambda *a: fn(material, formulation, *a))(dN, dN0, w, u, s))
+
+    def ad_term(S_e, dN_e, dN0_e, w_e, u):
+        def term(v):
+            return jnp.sum(S_e * el._kinematics(formulation, dN_e, dN0_e, w_e, v.reshape(4, 2), jnp.zeros(0))[0])
+        return jax.jacfwd(jax.grad(term))(u.ravel())
+
+    calls = {
+        "tangent_closed_form": (batched(el.element_force_and_tangent), (u_e, states)),
+        "tangent_ad": (batched(tangent_with_ad_geometric_term), (u_e, states)),
+        "geometric_term_closed_form": (jax.jit(jax.vmap(el._fbar_geometric_term)), (S, dN, dN0, u_e)),
+        "geometric_term_ad": (jax.jit(jax.vmap(ad_term)), (S, dN, dN0, w, u_e)),
+    }
+    out = {name: jax.block_until_ready(fn(*a)) for name, (fn, a) in calls.items()}
+    K_new, K_ad = out["tangent_closed_form"][1], out["tangent_ad"][1]
+    agree = float(jnp.max(jnp.abs(K_new - K_ad)) / jnp.max(jnp.abs(K_ad)))
+    plastic = float(jnp.mean(jax.vmap(lambda *a: el.element_force(material, formulation, *a)[1][0].eqps)(
+        dN, dN0, w, u_e, states) > 0))
+    times: dict[str, list] = {name: [] for name in calls}
+    for _ in range(args.rounds):
+        for name, (fn, a) in calls.items():
+            t0 = time.process_time()
+            jax.block_until_ready(fn(*a))
+            times[name].append(time.process_time() - t0)
+    rows = []
+    for name, t in times.items():
+        ref = times["tangent_ad" if name.startswith("tangent") else "geometric_term_ad"]
+        rows.append({"variant": name, "element": formulation, "mesh": args.mesh, "plastic_points": plastic,
+                     "median_ms": round(1e3 * float(np.median(t)), 3), "fastest_ms": round(1e3 * min(t), 3),
+                     "ratio_to_ad": round(float(np.median(np.array(t) / np.array(ref))), 3),
+                     "tangents_agree_to": agree})
+        print(f"{name:28s} median {1e3 * np.median(t):7.2f} ms  fastest {1e3 * min(t):7.2f} ms  "
+              f"ratio to AD {rows[-1]['ratio_to_ad']:.3f}")
+    print(f"tangents agree to {agree:.1e} (relative); plastic points {plastic:.0%}")
+    if os.path.exists(OUT):  # keep the other elements' and meshes' rows
+        with open(OUT, newline="") as fh:
+            rows = [r for r in csv.DictReader(fh)
+                    if (r["element"], r["mesh"]) != (formulation, args.mesh)] + rows
+    write_csv(OUT, rows)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
