@@ -720,11 +720,20 @@ COMMON_REPLAYS = ("lcp_lemke", "penalty", "auglag")
 COMMON_COLUMNS = (*CURVE_COLUMNS, "time", "n_active", "n_slip", "cutbacks", "ssn_iters")
 
 
-def _common_row(name: str, variant: str, algorithm: str, c: dict, plan: dict) -> dict:
-    """One row of ``common_steps``: the run ``c`` against the plan (``lcp_ssn``) at the plan's step ends."""
+def union_steps(histories) -> np.ndarray:
+    """The end times of every step that any of ``histories`` accepted (their ``time`` after row 0),
+    increasing, times within 1e-9 of each other taken as one."""
+    t = np.unique(np.concatenate([np.asarray(h["time"][1:], float) for h in histories]))
+    return t[np.concatenate([[True], np.diff(t) > 1e-9])] if t.size else t
+
+
+def _common_row(name: str, variant: str, algorithm: str, c: dict, plan: dict, steps: str = "plan") -> dict:
+    """One row of ``common_steps``: the run ``c`` against the plan (``lcp_ssn`` on the same steps) at the
+    plan's step ends. ``steps``: ``plan`` (the semismooth Newton run's own steps) or ``union``."""
     s, h, p = c["summary"], c["history"], plan["history"]
-    row = {"case": f"{name}_{variant}_{algorithm}", "scene": name, "variant": variant, "algorithm": algorithm,
-           **common(s)}
+    suffix = "" if steps == "plan" else f"_{steps}"
+    row = {"case": f"{name}_{variant}_{algorithm}{suffix}", "scene": name, "variant": variant,
+           "algorithm": algorithm, "steps": steps, **common(s)}
     if row["n_steps"] is not None and plan["summary"].get("n_steps") is not None:
         row["extra_steps"] = int(row["n_steps"]) - int(plan["summary"]["n_steps"])
     if algorithm != "lcp_ssn" and h and p:
@@ -752,36 +761,49 @@ def common_steps(opts) -> None:
     (the plan), then ``lcp_lemke``, ``penalty`` and ``auglag`` replay the plan's accepted steps as their
     nominal increments (:func:`jaxfric.io.batch.replay_steps`; their controllers still cut a step that
     fails). The differences from the plan at its step ends are then those of the algorithms, not of their
-    step sequences. Cases are kept as in ``algorithm_agreement`` (committed rows and ``curves/``)."""
+    step sequences. Where some cut steps of the plan, ``--union`` runs a second pass: every algorithm,
+    ``lcp_ssn`` included, on the union of the steps the first pass accepted (cases ``..._union``). Cases
+    are kept as in ``algorithm_agreement`` (committed rows and ``curves/``)."""
     study = "common_steps"
     kept = _committed_rows(study, opts)
     rows, panels, cases = [], [], []
     for name, variant in _variants():
-        got = {}
+        got: dict = {}
 
-        def take(algorithm, steps=None):
-            label = f"{name}_{variant}_{algorithm}"
+        def take(key, algorithm, label, steps=None):
             if label in kept and os.path.exists(_curves_path(study, label)):
-                got[algorithm] = _case_from_curves(study, label, kept[label], COMMON_COLUMNS)
+                got[key] = _case_from_curves(study, label, kept[label], COMMON_COLUMNS)
             elif _want(opts, study, label):
-                got[algorithm] = case(study, label, name, variant, algorithm, {}, opts, steps=steps)
-                cases.append(got[algorithm])
-                if got[algorithm]["dir"]:
-                    _save_curves(study, label, got[algorithm], COMMON_COLUMNS)
+                got[key] = case(study, label, name, variant, algorithm, {}, opts, steps=steps)
+                cases.append(got[key])
+                if got[key]["dir"]:
+                    _save_curves(study, label, got[key], COMMON_COLUMNS)
 
-        take("lcp_ssn")
+        group = f"{name}_{variant}"
+        take("lcp_ssn", "lcp_ssn", f"{group}_lcp_ssn")
         plan = got.get("lcp_ssn")
-        if plan is not None and plan["summary"].get("converged") and plan["history"]:
-            for algorithm in COMMON_REPLAYS:
-                take(algorithm, np.asarray(plan["history"]["time"][1:]))
         if plan is None:
             continue
-        rows += [_common_row(name, variant, a, got[a], plan) for a in ("lcp_ssn", *COMMON_REPLAYS) if a in got]
-        panels.append((name, variant, got))
+        first = ("lcp_ssn", *COMMON_REPLAYS)
+        if plan["summary"].get("converged") and plan["history"]:
+            for algorithm in COMMON_REPLAYS:
+                take(algorithm, algorithm, f"{group}_{algorithm}", np.asarray(plan["history"]["time"][1:]))
+        rows += [_common_row(name, variant, a, got[a], plan) for a in first if a in got]
+        done = [got[a] for a in first if a in got and got[a]["summary"].get("converged") and got[a]["history"]]
+        if opts.union and len(done) == len(first) and any(c["summary"].get("n_steps") != plan["summary"].get("n_steps")
+                                                          for c in done):
+            steps = union_steps([c["history"] for c in done])
+            for algorithm in first:
+                take(f"{algorithm}_union", algorithm, f"{group}_{algorithm}_union", steps)
+            plan_u = got.get("lcp_ssn_union")
+            if plan_u is not None:
+                rows += [_common_row(name, variant, a, got[f"{a}_union"], plan_u, "union") for a in first
+                         if f"{a}_union" in got]
+        panels.append((name, variant, {k: v for k, v in got.items() if not k.endswith("_union")}))
         _write_partial(study, rows)
     write_table(study, rows)
     _agreement_figure(panels, study)
-    cols = ["scene", "variant", "algorithm", "converged", "n_steps", "extra_steps", "newton_iters_total",
+    cols = ["scene", "variant", "algorithm", "steps", "converged", "n_steps", "extra_steps", "newton_iters_total",
             "wall_s", "max_penetration", "steady_drawing_force", "rel_diff_steady", "force_diff",
             "status_differ", "refined_steps"]
     write_section(study, _header(study, cases,
@@ -796,7 +818,10 @@ def common_steps(opts) -> None:
                                  "where the numbers of closed or slipping pairs differ); `refined_steps`: "
                                  "Lemke steps whose answer needed the semismooth polish. Lemke never cut "
                                  "a step where `extra_steps` is 0, so its proximity band never saturated "
-                                 "(a closing pair outside it fails the attempt).")
+                                 "(a closing pair outside it fails the attempt). Rows with `steps` = "
+                                 "`union` (`--union`, where the first pass cut the plan's steps): every "
+                                 "algorithm, `lcp_ssn` included, on the union of the steps the first pass "
+                                 "accepted, against `lcp_ssn` on those steps.")
                   + "\n\n" + markdown_table(rows, cols) + "\n\n" + failures(rows, opts.missing)
                   + "\n\n![common steps](../experiments/results/studies/common_steps/figure.png)")
 
@@ -815,6 +840,9 @@ def main(argv=None) -> int:
     p.add_argument("--no-run-figures", dest="run_figures", action="store_false",
                    help="skip the three per-run PNGs (the study figures are always drawn)")
     p.add_argument("--quiet", dest="progress", action="store_false", help="no progress bars")
+    p.add_argument("--union", action="store_true",
+                   help="common_steps: replay every algorithm on the union of the steps its first pass accepted "
+                        "where some algorithm cut the plan's steps")
     p.add_argument("--collect", action="store_true",
                    help="run nothing: rewrite the table, figures and section from the runs on disk")
     opts = p.parse_args(argv)

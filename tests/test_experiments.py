@@ -99,6 +99,47 @@ def test_common_steps_row_compares_a_replay_with_its_plan_at_the_plan_s_step_end
     assert row["refined_steps"] == 2
 
 
+def test_union_of_accepted_steps_merges_step_ends_equal_to_round_off():
+    a = {"time": np.array([0.0, 0.5, 1.0, 2.0])}
+    b = {"time": np.array([0.0, 0.25, 0.5 + 1e-12, 1.0, 1.5, 2.0])}
+    np.testing.assert_allclose(studies.union_steps([a, b]), [0.25, 0.5, 1.0, 1.5, 2.0], rtol=0, atol=1e-11)
+
+
+def test_common_steps_study_replays_the_plan_then_the_union_where_a_replay_cut(tmp_path, monkeypatch):
+    """The study's flow, runs stubbed: the three replays get the plan's steps; one of them cut a step, so
+    with ``--union`` all four algorithms run again on the union of the accepted steps, and the rows
+    compare each pass with its own ``lcp_ssn``."""
+    import argparse
+
+    monkeypatch.setattr(studies, "ROOT", str(tmp_path))
+    monkeypatch.setattr(studies, "RESULTS_MD", str(tmp_path / "results.md"))
+    monkeypatch.setattr(studies, "_variants", lambda: iter([("nine", "mu017")]))
+    monkeypatch.setattr(studies, "_agreement_figure", lambda panels, study: None)
+    calls = []
+
+    def fake_case(study, label, name, variant, algorithm, overrides, opts, steps=None):
+        calls.append((label, None if steps is None else list(np.round(steps, 12))))
+        t = np.array([0.0, 0.5, 1.0, 2.0]) if steps is None else np.concatenate([[0.0], steps])
+        if label == "nine_mu017_penalty":
+            t = np.array([0.0, 0.5, 0.75, 1.0, 2.0])   # cut the step to 1.0
+        n = len(t)
+        h = {"time": t, "phase": np.array(["clamp"] * n), "drawing_force": t * 10.0, "clamping_force": t,
+             "n_active": np.ones(n, int), "n_slip": np.zeros(n, int), "ssn_iters": np.zeros(n, int)}
+        return {"summary": {"converged": True, "n_steps": n - 1, "steady_drawing_force": 20.0}, "history": h,
+                "contact": {}, "dir": None}
+
+    monkeypatch.setattr(studies, "case", fake_case)
+    opts = argparse.Namespace(only=[], rerun=False, collect=False, union=True, missing=[], progress=False,
+                              run_figures=False)
+    studies.common_steps(opts)
+    plan, union = [0.5, 1.0, 2.0], [0.5, 0.75, 1.0, 2.0]
+    assert calls == ([("nine_mu017_lcp_ssn", None)] + [(f"nine_mu017_{a}", plan) for a in studies.COMMON_REPLAYS]
+                     + [(f"nine_mu017_{a}_union", union) for a in ("lcp_ssn", *studies.COMMON_REPLAYS)])
+    rows = {r["case"]: r for r in studies._read_table("common_steps")}
+    assert rows["nine_mu017_penalty"]["extra_steps"] == "1" and rows["nine_mu017_penalty_union"]["extra_steps"] == "0"
+    assert rows["nine_mu017_lcp_lemke_union"]["steps"] == "union"
+
+
 def test_replayed_steps_become_the_nominal_increments_phase_by_phase():
     """:func:`jaxfric.io.batch.replay_steps`: a step ending at k + 1 belongs to phase k, the next to
     phase k + 1; the scene's schedule then has exactly the given steps."""
