@@ -1,5 +1,6 @@
-"""The element tangent's cost, with the F-bar geometric term in closed form (the library) or by automatic
-differentiation (its forward-over-reverse Hessian, as the tangent was assembled before).
+"""The element tangent's cost, with F-bar's gradient and geometric term in closed form (the library) or by
+automatic differentiation of the kinematics (forward, and forward over reverse, as the tangent was
+assembled before).
 
     python experiments/bench_element_tangent.py [--mesh 300x3] [--element ans] [--rounds 15]
 
@@ -33,8 +34,8 @@ OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "bench
 
 
 def tangent_with_ad_geometric_term(material, formulation, dN_dX, dN_dX_center, weight, u_e, states):
-    """:func:`jaxfric.fem.element.element_force_and_tangent` for ``fbar``/``ans`` with the geometric term
-    as the forward-over-reverse Hessian of the kinematics."""
+    """:func:`jaxfric.fem.element.element_force_and_tangent` for ``fbar``/``ans`` with dF_bar/du by
+    forward mode and the geometric term as the forward-over-reverse Hessian of the kinematics."""
     def kinematics(v):
         return el._kinematics(formulation, dN_dX, dN_dX_center, weight, v.reshape(4, 2), jnp.zeros(0))
 
@@ -74,7 +75,8 @@ def main(argv=None) -> int:
     calls = {
         "tangent_closed_form": (batched(el.element_force_and_tangent), (u_e, states)),
         "tangent_ad": (batched(tangent_with_ad_geometric_term), (u_e, states)),
-        "geometric_term_closed_form": (jax.jit(jax.vmap(el._fbar_geometric_term)), (S, dN, dN0, u_e)),
+        "geometric_term_closed_form": (jax.jit(jax.vmap(
+            lambda S_e, d, d0, u: el._fbar_geometric_term(S_e, el._fbar_parts(d, d0, u), d))), (S, dN, dN0, u_e)),
         "geometric_term_ad": (jax.jit(jax.vmap(ad_term)), (S, dN, dN0, w, u_e)),
     }
     out = {name: jax.block_until_ready(fn(*a)) for name, (fn, a) in calls.items()}

@@ -128,11 +128,12 @@ def test_element_tangent_is_the_derivative_of_its_force(formulation):
 
 @pytest.mark.parametrize("formulation", ["fbar", "ans"])
 def test_fbar_geometric_term_is_the_hessian_of_the_kinematics(formulation):
-    """The closed form of the F-bar tangent's geometric term (:func:`jaxfric.fem.element._fbar_geometric_term`)
-    equals the forward-over-reverse derivative of the element's kinematics, on distorted elements under
+    """The closed forms of F-bar's gradient dF_bar/du and of its tangent's geometric term
+    (:func:`jaxfric.fem.element._fbar_geometric_term`) equal the forward and the forward-over-reverse
+    derivatives of the element's kinematics, on distorted elements under
     large random displacements, and where an inverted point guards the ratio J_0 / J (no term there)."""
     from jaxfric.fem.assembly import mesh_geometry
-    from jaxfric.fem.element import _fbar_geometric_term, _kinematics
+    from jaxfric.fem.element import _fbar_geometric_term, _fbar_gradient, _fbar_parts, _kinematics
 
     rng = np.random.default_rng(3)
     mesh = jf.strip_mesh(0.0, 3.0, 0.0, 0.6, 6, 2)
@@ -148,8 +149,20 @@ def test_fbar_geometric_term_is_the_hessian_of_the_kinematics(formulation):
             return jnp.sum(S_e * _kinematics(formulation, dN_e, dN0_e, w_e, v.reshape(4, 2), jnp.zeros(0))[0])
         return jax.jacfwd(jax.grad(term))(u_e.ravel())
 
+    def closed_form(S_e, dN_e, dN0_e, u_e):
+        parts = _fbar_parts(dN_e, dN0_e, u_e)
+        return _fbar_geometric_term(S_e, parts, dN_e), parts.Fbar, _fbar_gradient(parts, dN_e)
+
+    def kinematics_by_ad(dN_e, dN0_e, w_e, u_e):
+        def Fbar(v):
+            return _kinematics(formulation, dN_e, dN0_e, w_e, v.reshape(4, 2), jnp.zeros(0))[0]
+        return Fbar(u_e.ravel()), jax.jacfwd(Fbar)(u_e.ravel())
+
     want = jax.vmap(by_ad)(S, dN, dN0, geo.weight, u)
-    got = jax.vmap(_fbar_geometric_term)(S, dN, dN0, u)
+    got, Fbar, dFbar = jax.vmap(closed_form)(S, dN, dN0, u)
+    Fbar_ad, dFbar_ad = jax.vmap(kinematics_by_ad)(dN, dN0, geo.weight, u)
+    np.testing.assert_allclose(Fbar, Fbar_ad, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(dFbar, dFbar_ad, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(dFbar_ad))))
     J = jax.vmap(lambda d, v: jnp.linalg.det(jnp.eye(2) + jnp.einsum("ai,gaj->gij", v, d)))(dN, u)
     assert bool(jnp.any(J[0] <= 0)), "element 0 must have an inverted point"
     for e in range(mesh.n_elements):

@@ -107,6 +107,7 @@ at 20 % compression of the block of ``tests/test_element_ans.py``, and during th
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -316,39 +317,68 @@ def _det_derivatives(F, dN):
     return grad.reshape(*grad.shape[:-2], 8), jnp.einsum("...bj,jn,...cn->...bc", dN, _EPS2, dN)
 
 
-def _fbar_geometric_term(S, dN_dX, dN_dX_center, u_e):
-    """The (8, 8) Hessian over the element dofs of sum_g S_g : F_bar_g(u_e) with the S_g held fixed:
-    the geometric part of the F-bar tangent (``fbar``, ``ans``).
+class _FbarParts(NamedTuple):
+    """F-bar's kinematics at the Gauss points of one element with their derivatives over the dofs."""
 
-    F_bar_g = r_g F_g with F_g linear in the dofs and r_g = (J_0 / J_g)^(1/2). With s_g = S_g : F_g
-    (linear, gradient a_g), dr = r dl and d2r = r (dl (x) dl + d2l) for l = ln r = (ln J_0 - ln J_g) / 2,
-    the Hessian is
+    F: jax.Array        # (g, 2, 2) compatible gradients, linear in the dofs
+    Fbar: jax.Array     # (g, 2, 2) r F
+    r: jax.Array        # (g,) (J_0 / J)^(1/2), 1 where guarded
+    dl: jax.Array       # (g, 8) d ln r, 0 where guarded
+    ok: jax.Array       # (g,) not guarded (J > 0 and J_0 > 0)
+    J: jax.Array        # (g,) det F (1 where guarded)
+    dJ: jax.Array       # (g, 8)
+    M: jax.Array        # (g, 4, 4) of d2J (:func:`_det_derivatives`)
+    J0: jax.Array       # () det F at the centroid (1 where not positive)
+    dJ0: jax.Array      # (8,)
+    M0: jax.Array       # (4, 4)
+    det_min: jax.Array  # () smallest det F at the points and the centroid
 
-        sum_g c_g (dl_g (x) dl_g + d2l_g) + r_g (dl_g (x) a_g + a_g (x) dl_g),    c_g = s_g r_g,
 
-    with d2l_g = (d2J_0 / J_0 - dJ_0 (x) dJ_0 / J_0^2 - d2J_g / J_g + dJ_g (x) dJ_g / J_g^2) / 2 from the
-    determinants' derivatives (:func:`_det_derivatives`), summed over the points before the outer products
-    are formed. A point where :func:`deformation_gradients` guards the ratio (an inverted element) has
-    r = 1 and no such term. The same matrix as the forward-over-reverse derivative of the F-bar kinematics
-    (``tests/test_element_ans.py``) at less cost."""
+def _fbar_parts(dN_dX, dN_dX_center, u_e) -> _FbarParts:
+    """:func:`deformation_gradients` of ``fbar``/``ans`` with the determinants' derivatives: F is linear in
+    the dofs, F_bar = r F with r = (J_0 / J)^(1/2) and ln r = (ln J_0 - ln J) / 2."""
     eye = jnp.eye(2)
     F = eye + jnp.einsum("ai,gaj->gij", u_e, dN_dX)
     F0 = eye + u_e.T @ dN_dX_center
     J, J0 = det2(F), det2(F0)
     ok = (J > 0) & (J0 > 0)
     J_safe, J0_safe = jnp.where(ok, J, 1.0), jnp.where(J0 > 0, J0, 1.0)
-    r = jnp.where(ok, jnp.sqrt(J0_safe / J_safe), 0.0)   # 0: no term at a guarded point
+    r = jnp.where(ok, jnp.sqrt(J0_safe / J_safe), 1.0)
     dJ, M = _det_derivatives(F, dN_dX)                    # (g, 8), (g, 4, 4)
     dJ0, M0 = _det_derivatives(F0, dN_dX_center)          # (8,), (4, 4)
-    dl = 0.5 * (dJ0[None, :] / J0_safe - dJ / J_safe[:, None])
-    c = jnp.einsum("gij,gij->g", S, F) * r
-    a = jnp.einsum("gkj,gbj->gbk", S, dN_dX).reshape(-1, 8)
-    ra = r[:, None] * a
-    c0 = jnp.sum(c) / J0_safe
-    M_sum = jnp.kron(c0 * M0 - jnp.einsum("g,gbc->bc", c / J_safe, M), _EPS2)
-    H = (dl.T @ (c[:, None] * dl) + dl.T @ ra + ra.T @ dl
-         + 0.5 * (M_sum - c0 / J0_safe * jnp.outer(dJ0, dJ0) + dJ.T @ ((c / J_safe ** 2)[:, None] * dJ)))
-    return H
+    dl = jnp.where(ok[:, None], 0.5 * (dJ0[None, :] / J0_safe - dJ / J_safe[:, None]), 0.0)
+    return _FbarParts(F, r[:, None, None] * F, r, dl, ok, J_safe, dJ, M, J0_safe, dJ0, M0,
+                      jnp.minimum(jnp.min(J), J0))
+
+
+def _fbar_gradient(parts: _FbarParts, dN_dX) -> jax.Array:
+    """dF_bar / du, (g, 2, 2, 8): r dF/du + F (x) r dl, with dF_ij/du_bk = delta_ik dN_bj."""
+    dF = jnp.einsum("ik,gbj->gijbk", jnp.eye(2), dN_dX).reshape(*parts.F.shape, 8)
+    return parts.r[:, None, None, None] * dF + parts.Fbar[..., None] * parts.dl[:, None, None, :]
+
+
+def _fbar_geometric_term(S, parts: _FbarParts, dN_dX) -> jax.Array:
+    """The (8, 8) Hessian over the element dofs of sum_g S_g : F_bar_g(u) with the S_g held fixed: the
+    geometric part of the F-bar tangent (``fbar``, ``ans``).
+
+    With s_g = S_g : F_g (linear, gradient a_g), dr = r dl and d2r = r (dl (x) dl + d2l) for
+    l = ln r = (ln J_0 - ln J_g) / 2, the Hessian is
+
+        sum_g c_g (dl_g (x) dl_g + d2l_g) + r_g (dl_g (x) a_g + a_g (x) dl_g),    c_g = s_g r_g,
+
+    with d2l_g = (d2J_0 / J_0 - dJ_0 (x) dJ_0 / J_0^2 - d2J_g / J_g + dJ_g (x) dJ_g / J_g^2) / 2 from the
+    determinants' derivatives (:func:`_det_derivatives`), summed over the points before the outer products
+    are formed. A point where the ratio is guarded (an inverted element) has F_bar = F, linear, and no such
+    term. The same matrix as the forward-over-reverse derivative of the F-bar kinematics
+    (``tests/test_element_ans.py``) at less cost."""
+    r = jnp.where(parts.ok, parts.r, 0.0)
+    dl, dJ, J, J0 = parts.dl, parts.dJ, parts.J, parts.J0
+    c = jnp.einsum("gij,gij->g", S, parts.F) * r
+    ra = r[:, None] * jnp.einsum("gkj,gbj->gbk", S, dN_dX).reshape(-1, 8)
+    c0 = jnp.sum(c) / J0
+    M_sum = jnp.kron(c0 * parts.M0 - jnp.einsum("g,gbc->bc", c / J, parts.M), _EPS2)
+    return (dl.T @ (c[:, None] * dl) + dl.T @ ra + ra.T @ dl
+            + 0.5 * (M_sum - c0 / J0 * jnp.outer(parts.dJ0, parts.dJ0) + dJ.T @ ((c / J ** 2)[:, None] * dJ)))
 
 
 def _value_and_jacfwd(fn, x):
@@ -483,14 +513,18 @@ def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight
         return _kinematics(formulation, dN_dX, dN_dX_center, weight, v[:8].reshape(4, 2), v[8:])
 
     v = jnp.concatenate([u_e.ravel(), alpha])
-    Fb, det_min, dF_dv = _value_and_jacfwd(kinematics, v)  # dF_dv: (gp, 2, 2, 8 + n_alpha)
+    if formulation in ("fbar", "ans"):
+        parts = _fbar_parts(dN_dX, dN_dX_center, u_e)
+        Fb, det_min, dF_dv = parts.Fbar, parts.det_min, _fbar_gradient(parts, dN_dX)
+    else:
+        Fb, det_min, dF_dv = _value_and_jacfwd(kinematics, v)  # dF_dv: (gp, 2, 2, 8 + n_alpha)
     dP_dF, (P, tau, new_states) = jax.vmap(jax.jacfwd(_piola(material), has_aux=True))(Fb, states)
     new_states = _with_enhanced(new_states, alpha)
     wP = weight[:, None, None] * P
     f_e = jnp.einsum("gij,gija->a", wP, dF_dv[..., :8])
     K_e = jnp.einsum("g,gija,gijkl,gklb->ab", weight, dF_dv, dP_dF, dF_dv)
     if formulation in ("fbar", "ans"):
-        K_e = K_e + _fbar_geometric_term(wP, dN_dX, dN_dX_center, u_e)
+        K_e = K_e + _fbar_geometric_term(wP, parts, dN_dX)
     elif formulation == "anst":  # F depends on alpha through the fibre F_0: differentiate the kinematics
         # Forward over grad (not jax.hessian, i.e. forward over jacrev): same matrix, measured 2.3x faster.
         K_e = K_e + jax.jacfwd(jax.grad(lambda w: jnp.sum(jax.lax.stop_gradient(wP) * kinematics(w)[0])))(v)
