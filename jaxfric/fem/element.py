@@ -14,8 +14,9 @@ element because it keeps the displacement-only data structure (same unknowns, sa
 stiffness) and works with any material law written as ``update(F, state)``.
 
 Internal force: the virtual work ``sum_gp w_gp P_bar : dF_bar/du`` with P_bar = tau F_bar^-T, obtained
-by pulling P_bar back through the map u -> F_bar with a JAX VJP. The element tangent is the forward-mode
-Jacobian of that force, which makes it consistent with the return mapping by construction.
+by pulling P_bar back through the map u -> F_bar with a JAX VJP. The element tangent is the exact
+derivative of that force (:func:`element_force_and_tangent`), with the material's part a forward-mode
+derivative of the return mapping, which makes it consistent with the return mapping by construction.
 
 ``formulation="ans"``: F-bar on assumed natural strains through the thickness. A bilinear element
 x(xi, eta) = x_0 + a_1 xi + a_2 eta + h xi eta bent along xi (the strip's length) has
@@ -495,16 +496,19 @@ def element_force(material, formulation, dN_dX, dN_dX_center, weight, u_e, state
 def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight, u_e, states):
     """As :func:`element_force`, plus the (8, 8) element tangent d f_e / d u_e (dofs node-major).
 
-    The tangent is the exact derivative of f_e = sum_g w_g (dF_g/du)^T P_g, assembled by the chain rule
-    from three automatic derivatives, so that the material is pushed forward along 4 directions (the
-    components of F_bar) instead of 8 (the element dofs):
+    The tangent is the exact derivative of f_e = sum_g w_g (dF_g/du)^T P_g, assembled by the chain rule,
+    so that the material is pushed forward along 4 directions (the components of F_bar) instead of 8
+    (the element dofs):
 
         K_e = sum_g w_g [ (dF_g/du)^T (dP_g/dF_g) (dF_g/du) + P_g : d2F_g/du2 ]
 
-    dP/dF by ``jacfwd`` of the point law (consistent with the return mapping), dF/du by ``jacfwd`` of
-    the kinematics, and the F-bar geometric term as the Hessian of u -> sum_g w_g P_g : F_g(u) with P
-    held fixed (zero for plain Q4, whose F is linear in u). For ``eas`` F is affine in (u, alpha) and
-    the tangent is the condensed ``K_uu - K_ua K_aa^-1 K_au`` at the converged alpha.
+    dP/dF by ``jacfwd`` of the point law (consistent with the return mapping). For ``fbar`` and ``ans``,
+    dF/du and the geometric term (the Hessian of u -> sum_g w_g P_g : F_g(u) with P held fixed) in
+    closed form from the determinants' derivatives (:func:`_fbar_geometric_term`: about 0.7 times the
+    element cost of differentiating the kinematics, ``experiments/bench_element_tangent.py``); for the
+    others by ``jacfwd`` of the kinematics and, for ``anst``, ``jacfwd`` over ``grad`` (zero for plain
+    Q4 and ``eas``, whose F is affine in (u, alpha)). With enhanced parameters the tangent is the
+    condensed ``K_uu - K_ua K_aa^-1 K_au`` at the converged alpha.
     """
 
     alpha = _condensed(material, formulation, dN_dX, dN_dX_center, weight, u_e, states)
