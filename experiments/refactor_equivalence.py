@@ -61,19 +61,36 @@ def record(folder: str, only: str | None = None) -> None:
               f"compile {result.compile_s:.1f} s, solve {result.wall_s:.1f} s", flush=True)
 
 
+FORCES = ("drawing_force", "clamping_force")
+
+
+def force_difference(a: dict, b: dict) -> float:
+    """Largest difference of the drawing and clamping forces, each over its largest magnitude in ``a``, at
+    the step ends both runs share (times equal to 1e-12): runs that round-off sends onto different step
+    sequences are still compared where they meet."""
+    ta, tb = np.round(np.asarray(a["time"], float), 12), np.round(np.asarray(b["time"], float), 12)
+    common = np.intersect1d(ta, tb)
+    ia, ib = np.isin(ta, common), np.isin(tb, common)
+    return max(float(np.max(np.abs(a[k][ia] - b[k][ib]), initial=0.0)) / max(float(np.max(np.abs(a[k]))), 1e-300)
+               for k in FORCES)
+
+
 def compare_case(a: dict, b: dict) -> dict:
-    """Largest scaled difference over the columns both runs have, and whether their steps agree."""
+    """Largest scaled difference over the columns both runs have, and whether their steps agree; the
+    forces' difference where their steps meet (:func:`force_difference`) and both runs' Newton iterations."""
     same_steps = a["time"].shape == b["time"].shape and bool(np.array_equal(a["time"], b["time"]))
+    extra = {"force_diff": force_difference(a, b), "newton_iters_before": int(np.sum(a["newton_iters"])),
+             "newton_iters_after": int(np.sum(b["newton_iters"]))}
     worst, column = 0.0, ""
     for key in sorted(set(a) & set(b)):
         x, y = np.asarray(a[key], float), np.asarray(b[key], float)
         if x.shape != y.shape:
-            return {"same_steps": False, "max_scaled_diff": np.inf, "column": key}
+            return {"same_steps": False, "max_scaled_diff": np.inf, "column": key, **extra}
         scale = max(np.max(np.abs(x), initial=0.0), np.max(np.abs(y), initial=0.0), 1e-300)
         diff = float(np.max(np.abs(x - y), initial=0.0)) / scale
         if diff > worst:
             worst, column = diff, key
-    return {"same_steps": same_steps, "max_scaled_diff": worst, "column": column}
+    return {"same_steps": same_steps, "max_scaled_diff": worst, "column": column, **extra}
 
 
 def compare(before: str, after: str, out_csv: str | None = None) -> list:
@@ -89,7 +106,8 @@ def compare(before: str, after: str, out_csv: str | None = None) -> list:
     if out_csv is not None:
         os.makedirs(os.path.dirname(out_csv) or ".", exist_ok=True)
         with open(out_csv, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=["case", "rows", "same_steps", "max_scaled_diff", "column"])
+            writer = csv.DictWriter(f, fieldnames=["case", "rows", "same_steps", "max_scaled_diff", "column",
+                                                   "force_diff", "newton_iters_before", "newton_iters_after"])
             writer.writeheader()
             writer.writerows(rows)
     return rows
