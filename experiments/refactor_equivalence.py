@@ -21,6 +21,7 @@ import sys
 import numpy as np
 
 import jaxfric
+from jaxfric.io.batch import matching_rows
 from jaxfric.scenes import ALGORITHMS, make, scene_names, variants
 
 # Coarse meshes and short strokes: the clamping phase and the start of the draw (where contact opens,
@@ -66,11 +67,9 @@ FORCES = ("drawing_force", "clamping_force")
 
 def force_difference(a: dict, b: dict) -> float:
     """Largest difference of the drawing and clamping forces, each over its largest magnitude in ``a``, at
-    the step ends both runs share (times equal to 1e-12): runs that round-off sends onto different step
-    sequences are still compared where they meet."""
-    ta, tb = np.round(np.asarray(a["time"], float), 12), np.round(np.asarray(b["time"], float), 12)
-    common = np.intersect1d(ta, tb)
-    ia, ib = np.isin(ta, common), np.isin(tb, common)
+    the step ends both runs share (:func:`jaxfric.io.batch.matching_rows`): runs that round-off sends onto
+    different step sequences are still compared where they meet."""
+    ia, ib = matching_rows(a["time"], b["time"])
     return max(float(np.max(np.abs(a[k][ia] - b[k][ib]), initial=0.0)) / max(float(np.max(np.abs(a[k]))), 1e-300)
                for k in FORCES)
 

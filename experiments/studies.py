@@ -45,7 +45,7 @@ import numpy as np
 
 from jaxfric import scenes
 from jaxfric.contact.formulations import ALGORITHMS
-from jaxfric.io.batch import phase_curve, run_case, write_csv
+from jaxfric.io.batch import matching_rows, phase_curve, run_case, write_csv
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.join(HERE, "results", "studies")
@@ -740,15 +740,13 @@ def _common_row(name: str, variant: str, algorithm: str, c: dict, plan: dict, st
         fs, fp = s.get("steady_drawing_force"), plan["summary"].get("steady_drawing_force")
         row["rel_diff_steady"] = _r((fs - fp) / abs(fp)) if fs is not None and fp else None
         # The rows of this run that end where the plan's steps end (all of them, unless it stopped).
-        k = np.clip(np.searchsorted(h["time"], p["time"] - 1e-9), 0, len(h["time"]) - 1)
-        hit = np.abs(h["time"][k] - p["time"]) < 1e-9
-        k, ref = k[hit], {col: p[col][hit] for col in p}
+        ip, k = matching_rows(p["time"], h["time"])
         scale = float(np.max(np.abs(p["drawing_force"])) + np.max(np.abs(p["clamping_force"])))
-        row["force_diff"] = _r(max(float(np.max(np.abs(h[col][k] - ref[col])))
+        row["force_diff"] = _r(max(float(np.max(np.abs(h[col][k] - p[col][ip])))
                                    for col in ("drawing_force", "clamping_force")) / scale)
-        differ = (h["n_active"][k] != ref["n_active"]) | (h["n_slip"][k] != ref["n_slip"])
+        differ = (h["n_active"][k] != p["n_active"][ip]) | (h["n_slip"][k] != p["n_slip"][ip])
         row["status_differ"] = _r(float(np.mean(differ)))
-        row["common_rows"] = int(hit.sum())
+        row["common_rows"] = int(ip.size)
     if algorithm == "lcp_lemke" and "ssn_iters" in h:
         row["refined_steps"] = int(np.sum(h["ssn_iters"] > 0))
     row["device"] = s.get("device")

@@ -220,16 +220,29 @@ def deformation_gradients(dN_dX, dN_dX_center, u_e, formulation: str):
     ``formulation="fbar"`` or ``"ans"`` the returned gradients are F_bar = (J_0/J)^(1/2) F. Also returns
     the smallest of det F at the Gauss points and the centroid, which is <= 0 for an inverted element.
     """
-    eye = jnp.eye(2)
-    F = eye + jnp.einsum("ai,gaj->gij", u_e, dN_dX)
-    J = det2(F)
-    J0 = det2(eye + u_e.T @ dN_dX_center)
+    F, F0, J, J0 = _compatible(dN_dX, dN_dX_center, u_e)
     det_min = jnp.minimum(jnp.min(J), J0)
     if formulation in ("q4", "eas", "anst"):  # eas, anst: the compatible part; see _kinematics
         return F, det_min
-    # Guard the ratio so an inverted element gives a finite (flagged) value, not NaN.
-    ratio = jnp.where((J > 0) & (J0 > 0), J0 / jnp.where(J > 0, J, 1.0), 1.0)
-    return jnp.sqrt(ratio)[:, None, None] * F, det_min
+    return _fbar_ratio(J, J0)[3][:, None, None] * F, det_min
+
+
+def _compatible(dN_dX, dN_dX_center, u_e):
+    """F = I + sum_a u_a (x) dN_a at the points (g, 2, 2) and at the centroid (2, 2), and their
+    determinants."""
+    eye = jnp.eye(2)
+    F = eye + jnp.einsum("ai,gaj->gij", u_e, dN_dX)
+    F0 = eye + u_e.T @ dN_dX_center
+    return F, F0, det2(F), det2(F0)
+
+
+def _fbar_ratio(J, J0):
+    """F-bar's factor r = (J_0 / J)^(1/2) per point, guarded so that an inverted element gives a finite
+    (flagged) value, not NaN: ``(ok, J_safe, J0_safe, r)`` with r = 1 where not ``ok`` (J or J_0 <= 0) and
+    the determinants replaced by 1 where they cannot divide."""
+    ok = (J > 0) & (J0 > 0)
+    J_safe, J0_safe = jnp.where(ok, J, 1.0), jnp.where(J0 > 0, J0, 1.0)
+    return ok, J_safe, J0_safe, jnp.where(ok, jnp.sqrt(J0_safe / J_safe), 1.0)
 
 
 def _centroid_jacobian_inverse(dN_dX_center) -> jax.Array:
@@ -338,13 +351,8 @@ class _FbarParts(NamedTuple):
 def _fbar_parts(dN_dX, dN_dX_center, u_e) -> _FbarParts:
     """:func:`deformation_gradients` of ``fbar``/``ans`` with the determinants' derivatives: F is linear in
     the dofs, F_bar = r F with r = (J_0 / J)^(1/2) and ln r = (ln J_0 - ln J) / 2."""
-    eye = jnp.eye(2)
-    F = eye + jnp.einsum("ai,gaj->gij", u_e, dN_dX)
-    F0 = eye + u_e.T @ dN_dX_center
-    J, J0 = det2(F), det2(F0)
-    ok = (J > 0) & (J0 > 0)
-    J_safe, J0_safe = jnp.where(ok, J, 1.0), jnp.where(J0 > 0, J0, 1.0)
-    r = jnp.where(ok, jnp.sqrt(J0_safe / J_safe), 1.0)
+    F, F0, J, J0 = _compatible(dN_dX, dN_dX_center, u_e)
+    ok, J_safe, J0_safe, r = _fbar_ratio(J, J0)
     dJ, M = _det_derivatives(F, dN_dX)                    # (g, 8), (g, 4, 4)
     dJ0, M0 = _det_derivatives(F0, dN_dX_center)          # (8,), (4, 4)
     dl = jnp.where(ok[:, None], 0.5 * (dJ0[None, :] / J0_safe - dJ / J_safe[:, None]), 0.0)
@@ -516,11 +524,11 @@ def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight
     def kinematics(v):  # v: the element dofs (node-major), then alpha
         return _kinematics(formulation, dN_dX, dN_dX_center, weight, v[:8].reshape(4, 2), v[8:])
 
-    v = jnp.concatenate([u_e.ravel(), alpha])
     if formulation in ("fbar", "ans"):
         parts = _fbar_parts(dN_dX, dN_dX_center, u_e)
         Fb, det_min, dF_dv = parts.Fbar, parts.det_min, _fbar_gradient(parts, dN_dX)
     else:
+        v = jnp.concatenate([u_e.ravel(), alpha])
         Fb, det_min, dF_dv = _value_and_jacfwd(kinematics, v)  # dF_dv: (gp, 2, 2, 8 + n_alpha)
     dP_dF, (P, tau, new_states) = jax.vmap(jax.jacfwd(_piola(material), has_aux=True))(Fb, states)
     new_states = _with_enhanced(new_states, alpha)

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-__all__ = ["read_history", "phase_curve", "replay_steps", "run_case", "stale", "write_csv"]
+__all__ = ["read_history", "phase_curve", "matching_rows", "replay_steps", "run_case", "stale", "write_csv"]
 
 
 def read_history(path: str) -> dict:
@@ -96,6 +96,16 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
     npz = os.path.join(out, "contact.npz")
     return {"summary": summary, "history": read_history(hist) if os.path.exists(hist) else {},
             "contact": dict(np.load(npz, allow_pickle=False)) if os.path.exists(npz) else {}, "dir": out}
+
+
+def matching_rows(t_a, t_b, tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """Indices ``(ia, ib)`` of the rows of two runs' increasing ``time`` columns that end at the same
+    pseudo-time (within ``tol``): where two step sequences meet, e.g. a run and its replay that cut some
+    steps."""
+    t_a, t_b = np.asarray(t_a, float), np.asarray(t_b, float)
+    k = np.clip(np.searchsorted(t_b, t_a - tol), 0, len(t_b) - 1)
+    hit = np.abs(t_b[k] - t_a) < tol
+    return np.flatnonzero(hit), k[hit]
 
 
 def replay_steps(scene, times):
