@@ -1,5 +1,6 @@
 """Cost of a forward-mode derivative along a whole load path: ``python experiments/bench_jvp.py
-[--scene nine] [--variant mu017] [--mesh 40x2] [--adaptive] [--h 1e-5] [--no-fd] [--tag T] [--set NAME=VALUE ...]``.
+[--scene nine] [--variant mu017] [--algorithm penalty] [--mesh 40x2] [--adaptive] [--h 1e-5] [--no-fd] [--tag T]
+[--set NAME=VALUE ...]``.
 
 Differentiates the final drawing force of the scene with respect to the friction coefficient of its
 frictional tools (``jax.jvp`` through the load loop: each converged step by the implicit function
@@ -32,6 +33,7 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scene", default="nine")
     p.add_argument("--variant", default="mu017")
+    p.add_argument("--algorithm", default="penalty", help="penalty, auglag, lcp_ssn or lcp_lemke")
     p.add_argument("--mesh", default="40x2")
     p.add_argument("--adaptive", action="store_true", help="adaptive steps instead of the nominal ones")
     p.add_argument("--h", type=float, default=1e-5, help="central-difference step in mu")
@@ -40,7 +42,7 @@ def main(argv=None) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[])
     a = p.parse_args(argv)
     extra = dict(s.split("=", 1) for s in a.overrides)
-    scene = scenes.make(a.scene, a.variant, "penalty", {"mesh": a.mesh, **extra})
+    scene = scenes.make(a.scene, a.variant, a.algorithm, {"mesh": a.mesh, **extra})
     model = scene.model
     frictional = [k for k, t in enumerate(model.tools) if t.frictional]
     mu0 = float(model.tools[frictional[0]].mu[-1])
@@ -69,7 +71,8 @@ def main(argv=None) -> None:
     _, df = rows["jvp"][2]
     h = a.h
     fd = float("nan") if a.no_fd else (primal(mu + h)[0] - primal(mu - h)[0]) / (2 * h)
-    row = {"scene": a.scene, "variant": scene.variant, "mesh": a.mesh, "steps": "adaptive" if a.adaptive else "fixed",
+    row = {"scene": a.scene, "variant": scene.variant, "algorithm": a.algorithm, "mesh": a.mesh,
+           "steps": "adaptive" if a.adaptive else "fixed",
            "mu": mu0, "h": h, "code": int(code),
            "drawing_force": float(f), "dF_dmu_jvp": float(df), "dF_dmu_central_diff": float(fd),
            "rel_diff": abs(float(df) - float(fd)) / max(abs(float(fd)), 1e-300),

@@ -289,8 +289,6 @@ def _csv(tmp_path, content=GOOD, name="m.csv", encoding="utf-8"):
 
 
 @pytest.mark.parametrize("args, needle", [
-    (["--param", "mu", "--algorithm", "lcp_ssn"], "'algorithm'"),
-    (["--param", "mu", "--algorithm", "lcp_lemke"], "'algorithm'"),
     (["--param", "mu", "--window", "1e-12"], "'window'"),
     (["--param", "mu", "--window", "1e-300"], "'window'"),
     (["--param", "mu", "--grid", "mu=0:1:1000000000"], "--grid"),
@@ -360,7 +358,6 @@ def test_measurement_with_a_byte_order_mark(tmp_path):
     ({"xtol": "a"}, "'xtol'"),
     ({"xtol": -1.0}, "'xtol'"),
     ({"newton": "x"}, "'newton'"),
-    ({"algorithm": "lcp_ssn"}, "'algorithm'"),
 ])
 def test_fit_api_bad_input_names_the_field(no_simulation, tmp_path, kwargs, field):
     args = {"params": ["mu"], "overrides": {"mesh": "4x1"}, "progress": False, **kwargs}

@@ -24,6 +24,10 @@ smallest entry over 2h) every column agrees to 5e-6 (``experiments/smoothing.py`
 their tool-geometry columns need a smaller h, see ``REL_H``); with the exact law they are expected
 failures for the reasons in ``KNOWN``.
 
+Cases ``*_exact`` run with exact contact (``lcp_ssn``), whose steps are differentiated on their
+converged active set (:mod:`jaxfric.contact.exact_derivative`); there too a central difference must
+not cross a status switch, so h is chosen below the nearest one (``REL_H``).
+
 Each scene runs a short path at a coarse mesh; all are ``slow`` (``make test-all``): even the flat
 die compiles four replays (90 s on two cores), more than the 10-minute fast suite can hold.
 """
@@ -60,22 +64,31 @@ CASES = {
                              ["R", "H", "mu", "F_clamp"], NewtonOptions(rtol=1e-11, atol=1e-9, max_iterations=60)),
     "bead_smoothed": ("th090_mu017", {"mesh": "60x2", "s_draw": 0.5, "smoothing": 10.0},
                       ["R_r", "mu_roller", "F_clamp", "E"], NewtonOptions(rtol=1e-12, atol=1e-8, max_iterations=60)),
+    # Exact contact (lcp_ssn), differentiated on each step's converged active set
+    # (jaxfric.contact.exact_derivative): the exact law's switches are the pairs' status changes, so h
+    # is chosen below the nearest one (REL_H).
+    "flat_die_exact": ("const_force", {"mesh": "12x1", "U_draw": 0.01}, ["mu", "F_clamp", "E", "sigma_y"], TIGHT),
+    "nine_exact": ("mu017", {"mesh": "40x2", "U_draw": 1.0}, ["mu", "R1", "stroke", "sigma_y"], CURVED),
 }
+ALGORITHM = {"flat_die_exact": "lcp_ssn", "nine_exact": "lcp_ssn"}
 # Relative steps h / |p| other than 1e-4, by case, and by parameter within a case. The tool-geometry
 # columns differ from their differences at h = 1e-4 |p| by truncation (the force is strongly curved
 # in the geometry), not by a wrong derivative: blankholder R and H (smoothed law) by 0.6 % and 0.14 %
 # of their values at 1e-4, 3e-8 of the row at 1e-5; bead R_r 2.2e-5 of the row at 1e-4, 4.8e-6 at
 # 1e-5. The other columns keep 1e-4: at 1e-5 the blankholder's clamping-force
 # round-off (~4e-10 N/mm, its Newton tolerance) over 2h reaches 1.4e-4 of its row in the mu column.
-REL_H = {"nine_smoothed": 1e-6, "blankholder_smoothed": {"R": 1e-5, "H": 1e-5}, "bead_smoothed": {"R_r": 1e-5}}
+# nine_exact: at h = 1e-4 |p| the differences cross status switches (R1: 2.7e-2 of the row, mu 8e-4),
+# at 1e-5 R1 and stroke still do (1.1e-3, 1.8e-3); at 1e-6 both agree to 1e-8, mu to 2e-8 at 1e-5.
+REL_H = {"nine_smoothed": 1e-6, "blankholder_smoothed": {"R": 1e-5, "H": 1e-5}, "bead_smoothed": {"R_r": 1e-5},
+         "nine_exact": {"mu": 1e-5, "R1": 1e-6, "stroke": 1e-6}}
 # Differences along the adaptive replay (the fixed one fails at p +/- h there; see _check).
-ADAPTIVE_FD = {"nine", "nine_smoothed"}
+ADAPTIVE_FD = {"nine", "nine_smoothed", "nine_exact"}
 
 
 def _check(case):
     variant, overrides, names, newton = CASES[case]
-    scene = case.split("_smoothed")[0]
-    par = parameterize(scene, names, variant=variant, overrides=overrides)
+    scene = case.split("_smoothed")[0].split("_exact")[0]
+    par = parameterize(scene, names, variant=variant, algorithm=ALGORITHM.get(case, "penalty"), overrides=overrides)
     forward, backward = path_function(par, newton=newton), path_function(par, newton=newton, reverse=True)
 
     def outputs(p, f=forward):
@@ -118,6 +131,12 @@ def _check(case):
 @pytest.mark.slow  # 90 s on two cores (four compiled replays); the fast suite keeps test_derivatives.py
 def test_flat_die_derivatives_of_every_parameter():
     _check("flat_die")
+
+
+@pytest.mark.slow  # the flat die about 2 min, the Nine about 6 min on two cores
+@pytest.mark.parametrize("case", ["flat_die_exact", "nine_exact"])
+def test_exact_contact_derivatives_of_every_parameter(case):
+    _check(case)
 
 
 KNOWN = {

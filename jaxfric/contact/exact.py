@@ -60,10 +60,11 @@ Convergence (spec 1.7 step 7): the bulk residual with the contact forces of the 
 ``f_int - f_c(p)`` at the new iterate, passes the Newton test of :mod:`jaxfric.numerics.newton` (residual and
 increment), and no pair changed its status (open / stick / slip from the forces, spec section 0).
 
-Not differentiable: exact complementarity has no derivative where a pair changes status, and the
-derivative of the converged step on a fixed status would need the active-set Jacobian. Gradients use
-the penalty or augmented Lagrangian laws (with their optional smoothing); differentiating a run with
-:class:`~jaxfric.contact.rigid.Complementarity` raises.
+Derivatives (forward and reverse mode): a converged step is differentiated by the implicit function
+theorem on its final active set, with the matrix of the semismooth Newton pass
+(:mod:`jaxfric.contact.exact_derivative`): exact wherever no pair sits on a status switch, the final
+piece's one-sided derivative where one does, and non-finite (not wrong) where a closed candidate node has
+a prescribed dof.
 """
 
 from __future__ import annotations
@@ -73,8 +74,10 @@ from typing import Any, ClassVar, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
 
 from ..numerics.newton import (
+    SOLUTION_NAME,
     AbstractNewtonProblem,
     Evaluation,
     NewtonOptions,
@@ -85,6 +88,7 @@ from ..numerics.newton import (
 )
 from .exact_active_set import active_set_step, contact_frames, semismooth_merit
 from .exact_condensed import contact_newton_step
+from .exact_derivative import exact_step_tangents
 from .exact_iterate import Iterate, iterate_residual, linearize_iterate, pair_status
 from .rigid import pair_mu
 
@@ -198,6 +202,14 @@ def exact_solve(args, x0, x_ref, *, options: NewtonOptions, law):
 
 @exact_solve.def_jvp
 def _exact_solve_jvp(primals, tangents, *, options, law):
-    raise NotImplementedError(
-        "derivatives of a run with exact contact (Complementarity, algorithms lcp_lemke / lcp_ssn) are not "
-        "defined; differentiate with Penalty or AugmentedLagrangian (optionally with smoothing) instead")
+    args, x0, x_ref = primals
+    solution, stats = exact_solve(args, x0, x_ref, options=options, law=law)
+    # The converged point and its contact forces are all the derivative needs: named as the penalty
+    # path's solution (SOLUTION_NAME), so that a checkpointed load loop keeps them and its backward pass
+    # does not run the Newton loop again.
+    x_star = checkpoint_name(solution.x, SOLUTION_NAME)
+    _, _, c = solution.aux
+    p_star = checkpoint_name(jnp.stack([c["rn"], c["rt"]], -1), SOLUTION_NAME)
+    x_dot, aux_dot = exact_step_tangents(args, tangents[0], x_star, p_star, _contact_out)
+    solution = solution._replace(x=x_star)
+    return (solution, stats), (NewtonSolution(x_dot, aux_dot, None, None, None, None), None)

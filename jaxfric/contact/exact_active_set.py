@@ -4,7 +4,7 @@ the merit of the line search (:mod:`jaxfric.contact.exact`)."""
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -33,7 +33,8 @@ from .exact_iterate import (
 from .rigid import pair_mu, pair_nodes
 from .system import _constrain_rows
 
-__all__ = ["active_set_step", "contact_frames", "semismooth_merit", "Frames"]
+__all__ = ["active_set_step", "contact_frames", "semismooth_merit", "Frames", "PieceData", "piece_data", "classify",
+           "piece_system"]
 
 
 # ---- semismooth Newton inside the global Newton loop (solver "ssn") --------------------------------
@@ -81,6 +82,7 @@ class Frames(NamedTuple):
 def contact_frames(it: Iterate, args) -> tuple[Frames, BlockTridiag]:
     """The frames and constants at the iterate, and the tangent with kappa rows on prescribed dofs."""
     c = args.contact
+    assert it.K is not None   # a linearised iterate
     band = proximity_band(it, c.tools, None)
     nodes, pairs = band.nodes, band.pairs
     valid, normal = band_normals(it, band)
@@ -143,6 +145,107 @@ def semismooth_merit(x, it: Iterate, args, hint, fr: Frames) -> jax.Array:
     return total
 
 
+class PieceData(NamedTuple):
+    """What the semismooth system of an iterate is built from, before an active set is chosen
+    (:func:`piece_data`): per candidate node (``frames`` order) its contact force from equilibrium
+    in its pair's frame, gap and slip, and their derivatives."""
+
+    fr: Frames
+    K: BlockTridiag          # the tangent with kappa rows on prescribed dofs
+    f_tilde: jax.Array       # (n_dofs,) :func:`equilibrium_force`
+    vals: jax.Array          # (m, 4) per pair (n . f, t . f, gap, slip); GAP_FAR where it projects on nothing
+    d_u: jax.Array           # (m, 4, 2) their derivatives in the pair's node displacement
+    d_q: jax.Array           # (m, 4) and in its tool's position
+    R_N: jax.Array           # (n_u,) per candidate node
+    R_T: jax.Array
+    gap: jax.Array
+    slip: jax.Array
+    driven: Any              # (mine, dofs, v, r_q, e_dot_n, C_row) of the force-driven tool, or None
+
+
+def piece_data(it: Iterate, args, x, hint, frames=None) -> PieceData:
+    """:class:`PieceData` at the iterate ``it`` (at x), with ``hint`` (m, 2) the contact forces of the
+    prescribed dofs' rows (:func:`equilibrium_force`); ``frames``: :func:`contact_frames` at ``it`` when the
+    caller has it already."""
+    c = args.contact
+    n = args.mesh.n_dofs
+    fr, K = contact_frames(it, args) if frames is None else frames
+    nodes, pairs, valid = fr.nodes, fr.pairs, fr.valid
+    f_tilde = equilibrium_force(it, args, x, hint, fr.kappa)
+    f_nodes = f_tilde.reshape(-1, 2)
+    vals, d_u, d_q = _pair_local(it, f_nodes[pair_nodes(c.tools)])
+    valid_all = it.valid[:, None]
+    vals = jnp.where(valid_all, vals, jnp.array([0.0, 0.0, GAP_FAR, 0.0]))
+    d_u = jnp.where(valid_all[..., None], d_u, 0.0)
+    d_q = jnp.where(valid_all, d_q, 0.0)
+    R_N = jnp.where(valid, vals[pairs, 0], f_nodes[nodes] @ jnp.array([0.0, 1.0]))
+    R_T = jnp.where(valid, vals[pairs, 1], f_nodes[nodes] @ jnp.array([-1.0, 0.0]))
+    gap, slip = vals[pairs, 2], jnp.where(fr.mu > 0, vals[pairs, 3], 0.0)
+    if len(args.force_idx) > 1:
+        raise NotImplementedError("exact contact supports at most one force-driven tool per scene")
+    driven = None
+    if args.force_idx:
+        mine, dofs, v, r_q = driven_rows(args, fr, x, f_tilde, n)
+        e_dot_n = jnp.where(mine, fr.normal @ c.tools[args.force_idx[0]].drive, 0.0)[:, None]
+        C_row = jnp.where(c.force_mask[args.force_idx[0]], K.transpose().matvec(v), 0.0)
+        driven = (mine, dofs, v, r_q, e_dot_n, C_row)
+    return PieceData(fr, K, f_tilde, vals, d_u, d_q, R_N, R_T, gap, slip, driven)
+
+
+def classify(d: PieceData, args, R_N, R_T, g, s) -> jax.Array:
+    """The active set (open / stick / slip with its sign) of forces (R_N, R_T), gaps and slips of the
+    candidate nodes; a force-driven tool keeps touching the sheet (:func:`keep_tools_touching`)."""
+    fr = d.fr
+    state, _, sig_n = alart_curnier_residual(R_N, R_T, g, s, fr.mu, fr.c_n, fr.c_t)
+    if d.driven is not None:
+        force_driven = args.contact.force_mask[args.force_idx[0]]
+        state = jnp.where(force_driven, keep_tools_touching(state, sig_n, d.driven[4]), state)
+    return state
+
+
+def piece_system(d: PieceData, args, state, mu=None, constrained=None, x=None):
+    """The semismooth system on the active set ``state``: its matrix (BlockTridiag, Bordered with a
+    force-driven tool) and its residual F (the equilibrium rows with each candidate node's two rows
+    replaced by C_a = W_F (n, t)^T f~_a + W_K (g, s), then the tool's row), so that the increment solves
+    ``M dx = -F``. ``mu`` (n_u,): the candidates' friction coefficients, ``d.fr.mu`` by default.
+    ``constrained`` (n_u,) bool, with the iterate ``x``: candidates whose second row (the slip law) is
+    replaced by the row of their one prescribed dof, kappa (u_i - u_presc,i)
+    (:mod:`jaxfric.contact.exact_derivative`)."""
+    c = args.contact
+    fr, K = d.fr, d.K
+    n = args.mesh.n_dofs
+    nodes, pairs, rotation = fr.nodes, fr.pairs, fr.rotation
+    nb, bs = K.diag.shape[0], K.diag.shape[1]
+    ny1 = bs // 2
+    col, loc = nodes // ny1, nodes % ny1
+    w_f, w_k = piece_jacobian(state, fr.mu if mu is None else mu, fr.c_n, fr.c_t)
+    A = jnp.einsum("uij,ukj->uik", w_f, rotation)                    # W_F R^T
+    local = jnp.einsum("uij,ujk->uik", w_f, d.d_u[pairs, :2]) + jnp.einsum("uij,ujk->uik", w_k, d.d_u[pairs, 2:])
+    C_rows = jnp.einsum("uij,uj->ui", w_f, jnp.stack([d.R_N, d.R_T], -1)) + \
+        jnp.einsum("uij,uj->ui", w_k, jnp.stack([d.gap, d.slip], -1))
+    if constrained is not None:
+        e = args.mask[:n].reshape(-1, 2)[nodes].astype(A.dtype)          # the prescribed dof of each node
+        A = A.at[:, 1, :].set(jnp.where(constrained[:, None], e, A[:, 1, :]))
+        local = local.at[:, 1, :].set(jnp.where(constrained[:, None], 0.0, local[:, 1, :]))
+        row = fr.kappa * (x[:n] - args.values)
+        C_rows = C_rows.at[:, 1].set(jnp.where(constrained, jnp.sum(e * row.reshape(-1, 2)[nodes], -1),
+                                               C_rows[:, 1]))
+    T = jnp.broadcast_to(jnp.eye(2), (n // 2, 2, 2)).at[nodes].set(A)
+    J = _row_transform(K, T)
+    Jd = J.diag.reshape(nb, ny1, 2, ny1, 2).at[col, loc, :, loc, :].add(local)
+    J = BlockTridiag(J.lower, Jd.reshape(nb, bs, bs), J.upper)
+    F = d.f_tilde.reshape(-1, 2).at[nodes].set(C_rows).reshape(-1)
+    if d.driven is None:
+        return J, F
+    mine, dofs, _, r_q, _, C_row = d.driven
+    force_driven = c.force_mask[args.force_idx[0]]
+    b_col = jnp.einsum("uij,uj->ui", w_f, d.d_q[pairs, :2]) + jnp.einsum("uij,uj->ui", w_k, d.d_q[pairs, 2:])
+    B = jnp.zeros(n).at[dofs].set(jnp.where(mine[:, None], b_col, 0.0).reshape(-1))
+    B = jnp.where(force_driven, B, 0.0)
+    M = Bordered(A=J, B=B[:, None], C=C_row[None, :], D=jnp.where(force_driven, 0.0, 1.0).reshape(1, 1))
+    return M, jnp.concatenate([F, r_q[None]])
+
+
 def active_set_step(it: Iterate, args, x, p_prev, law, hint, frames=None):
     """One iteration of semismooth Newton on the whole step (solver ``"ssn"``): the increment (du, dq),
     the pair forces it predicts (m, 2), the pairs used, the solver stats; same contract as
@@ -155,74 +258,30 @@ def active_set_step(it: Iterate, args, x, p_prev, law, hint, frames=None):
     rows are replaced by C_a = W_F p_a + W_K (g_N, s) (open: p = 0; stick: g = s = 0; slip: g = 0 and
     R_T = mu xi R_N): a row combination of the bulk tangent plus a 2 x 2 block of the node's own
     kinematics, so the matrix keeps its block-tridiagonal structure and each active-set pass costs one
-    block-Thomas solve, like a penalty iteration. The force-driven tool's row is sum_a e_q . f~_a = P
-    over its candidates. ``hint`` gives f_c^prev and the first active set (the last converged forces at
-    a step's first iteration); ``p_prev`` is not used (the signature is the condensed step's).
-    ``frames``: the result of :func:`contact_frames` at ``it`` when the caller has it already.
+    block-Thomas solve, like a penalty iteration (:func:`piece_system`). The force-driven tool's row is
+    sum_a e_q . f~_a = P over its candidates. ``hint`` gives f_c^prev and the first active set (the last
+    converged forces at a step's first iteration); ``p_prev`` is not used (the signature is the condensed
+    step's). ``frames``: the result of :func:`contact_frames` at ``it`` when the caller has it already.
     """
-    c = args.contact
     n = args.mesh.n_dofs
-    n_nodes = n // 2
     m = it.gap.shape[0]
-    all_nodes = pair_nodes(c.tools)
-    fr, K = contact_frames(it, args) if frames is None else frames
-    nodes, pairs, valid, normal, rotation = fr.nodes, fr.pairs, fr.valid, fr.normal, fr.rotation
-    f_tilde = equilibrium_force(it, args, x, hint, fr.kappa)
-    f_nodes = f_tilde.reshape(-1, 2)
-
-    vals, d_u, d_q = _pair_local(it, f_nodes[all_nodes])
-    valid_all = it.valid[:, None]
-    vals = jnp.where(valid_all, vals, jnp.array([0.0, 0.0, GAP_FAR, 0.0]))
-    d_u = jnp.where(valid_all[..., None], d_u, 0.0)
-    d_q = jnp.where(valid_all, d_q, 0.0)
-    R_N, R_T = jnp.where(valid, vals[pairs, 0], f_nodes[nodes] @ jnp.array([0.0, 1.0])), \
-        jnp.where(valid, vals[pairs, 1], f_nodes[nodes] @ jnp.array([-1.0, 0.0]))
-    gap, slip, mu = vals[pairs, 2], jnp.where(fr.mu > 0, vals[pairs, 3], 0.0), fr.mu
-    c_n, c_t = fr.c_n, fr.c_t
-    nb, bs = K.diag.shape[0], K.diag.shape[1]
-    ny1 = bs // 2
-    col, loc = nodes // ny1, nodes % ny1
-    if len(args.force_idx) > 1:
-        raise NotImplementedError("exact contact supports at most one force-driven tool per scene")
-    driven = bool(args.force_idx)
-    if driven:
-        force_driven = c.force_mask[args.force_idx[0]]
-        mine, dofs, v, r_q = driven_rows(args, fr, x, f_tilde, n)
-        e_dot_n = jnp.where(mine, normal @ c.tools[args.force_idx[0]].drive, 0.0)[:, None]
-        C_row = jnp.where(force_driven, K.transpose().matvec(v), 0.0)
-
-    def classify(R_N, R_T, g, s):
-        state, _, sig_n = alart_curnier_residual(R_N, R_T, g, s, mu, c_n, c_t)
-        if driven:
-            state = jnp.where(force_driven, keep_tools_touching(state, sig_n, e_dot_n), state)
-        return state
+    d = piece_data(it, args, x, hint, frames)
+    fr, K = d.fr, d.K
+    nodes, pairs, valid, rotation, mu = fr.nodes, fr.pairs, fr.valid, fr.rotation, fr.mu
+    gap = d.gap
 
     def solve(state):
         """The increment on the active set ``state``, and the forces, gap and slip it predicts."""
-        w_f, w_k = piece_jacobian(state, mu, c_n, c_t)
-        # Rows of the candidate nodes: C_a = W_F (n, t)^T f~_a + W_K (g, s).
-        A = jnp.einsum("uij,ukj->uik", w_f, rotation)                    # W_F R^T
-        local = jnp.einsum("uij,ujk->uik", w_f, d_u[pairs, :2]) + jnp.einsum("uij,ujk->uik", w_k, d_u[pairs, 2:])
-        C_rows = jnp.einsum("uij,uj->ui", w_f, jnp.stack([R_N, R_T], -1)) + \
-            jnp.einsum("uij,uj->ui", w_k, jnp.stack([gap, slip], -1))
-        T = jnp.broadcast_to(jnp.eye(2), (n_nodes, 2, 2)).at[nodes].set(A)
-        J = _row_transform(K, T)
-        Jd = J.diag.reshape(nb, ny1, 2, ny1, 2).at[col, loc, :, loc, :].add(local)
-        J = BlockTridiag(J.lower, Jd.reshape(nb, bs, bs), J.upper)
-        F = f_tilde.reshape(-1, 2).at[nodes].set(C_rows).reshape(-1)
-        if driven:
-            b_col = jnp.einsum("uij,uj->ui", w_f, d_q[pairs, :2]) + jnp.einsum("uij,uj->ui", w_k, d_q[pairs, 2:])
-            B = jnp.zeros(n).at[dofs].set(jnp.where(mine[:, None], b_col, 0.0).reshape(-1))
-            B = jnp.where(force_driven, B, 0.0)
-            M = Bordered(A=J, B=B[:, None], C=C_row[None, :], D=jnp.where(force_driven, 0.0, 1.0).reshape(1, 1))
-            dx = bordered_solve(M, -jnp.concatenate([F, r_q[None]]))
-            du, dq_pairs = dx[:n], jnp.where(mine, dx[n], 0.0)
-        else:
-            du = block_tridiag_solve(J, -F)
+        M, F = piece_system(d, args, state)
+        if d.driven is None:
+            du = block_tridiag_solve(M, -F)
             dx, dq_pairs = du, jnp.zeros(nodes.shape[0])
+        else:
+            dx = bordered_solve(M, -F)
+            du, dq_pairs = dx[:n], jnp.where(d.driven[0], dx[n], 0.0)
         du_a = du.reshape(-1, 2)[nodes]
         df = K.matvec(du).reshape(-1, 2)[nodes]
-        linear = (vals[pairs] + jnp.einsum("uij,uj->ui", d_u[pairs], du_a) + d_q[pairs] * dq_pairs[:, None])
+        linear = (d.vals[pairs] + jnp.einsum("uij,uj->ui", d.d_u[pairs], du_a) + d.d_q[pairs] * dq_pairs[:, None])
         # Forces: the node force f~ in the frame, both moved along the increment.
         p_lin = linear[:, :2] + jnp.einsum("uji,uj->ui", rotation, df)
         p_lin = jnp.where(valid[:, None], p_lin, 0.0)
@@ -235,7 +294,7 @@ def active_set_step(it: Iterate, args, x, p_prev, law, hint, frames=None):
     # converged step's) with this iterate's gaps: on the three-cylinder bench 18.6 passes per step
     # against 25.8 when read off this iterate's own (unbalanced) forces.
     h = jnp.where(valid[:, None], hint[pairs], 0.0)
-    state0 = classify(h[:, 0], h[:, 1], gap, slip)
+    state0 = classify(d, args, h[:, 0], h[:, 1], gap, d.slip)
 
     # One solve in the traced program (its first pass takes state0): each copy of the block solve
     # costs compile time.
@@ -245,13 +304,15 @@ def active_set_step(it: Iterate, args, x, p_prev, law, hint, frames=None):
         force) instead of opening: opened, it keeps penetrating and closes again, and stick <-> open
         cycles without end (Nine 60 x 2 at half the nominal increments, B's first touch: R_N = -1.5e-4
         N/mm closed, a penetration of 2.7e-5 mm open, every outer iteration of every cut step)."""
-        new = classify(p_l[:, 0], p_l[:, 1], g_l, s_l)
+        new = classify(d, args, p_l[:, 0], p_l[:, 1], g_l, s_l)
         slip = jnp.where(p_l[:, 1] >= 0.0, SLIP_POS, SLIP_NEG)
         return jnp.where((state == STICK) & (new == OPEN) & (gap < 0.0) & (mu > 0.0), slip, new)
 
+    law_max = law.ssn_max_iter
+
     def more(carry):
         i, state, _, p_l, g_l, s_l = carry
-        return (i == 0) | ((i < law.ssn_max_iter) & jnp.any(next_state(state, p_l, g_l, s_l) != state))
+        return (i == 0) | ((i < law_max) & jnp.any(next_state(state, p_l, g_l, s_l) != state))
 
     def again(carry):
         i, state, _, p_l, g_l, s_l = carry

@@ -56,6 +56,7 @@ class _Condensed(NamedTuple):
 def _condense(it: Iterate, args, x, band: Band, normal, f_c_prev) -> _Condensed:
     n = args.mesh.n_dofs
     K = it.K
+    assert K is not None   # a linearised iterate
     diag = jnp.abs(jax.vmap(jnp.diagonal)(K.diag).reshape(-1))
     J = _constrain_rows(K, args.mask, KAPPA * diag)
     b = jnp.where(args.mask, KAPPA * diag * (args.values - x[:n]) - f_c_prev.reshape(-1), -it.f_int.reshape(-1))

@@ -9,14 +9,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..fem.assembly import internal_force_and_tangent, shared_trace
+from ..fem.assembly import internal_force, internal_force_and_tangent, shared_trace
 from ..numerics.linalg import BlockTridiag
 from .rigid import ContactStep, pair_nodes, split_pairs
 from .status import contact_status
 from .tools import project
 
-__all__ = ["KAPPA", "REFINE_ITER", "GAP_FAR", "Iterate", "linearize_iterate", "iterate_residual", "pair_status",
-           "pair_forces", "pair_tools", "tangents", "iterate_tool_positions", "Band", "proximity_band",
+__all__ = ["KAPPA", "REFINE_ITER", "GAP_FAR", "Iterate", "linearize_iterate", "iterate_values", "iterate_residual",
+           "pair_status", "pair_forces", "pair_tools", "tangents", "iterate_tool_positions", "Band", "proximity_band",
            "band_normals"]
 
 
@@ -29,7 +29,7 @@ class Iterate(NamedTuple):
     """Bulk operators and pair geometry at one Newton iterate."""
 
     f_int: jax.Array      # (n_nodes, 2)
-    K: BlockTridiag       # d f_int / du
+    K: BlockTridiag | None  # d f_int / du (None: the values only, :func:`iterate_values`)
     states: object
     det_min: jax.Array
     q: jax.Array          # (n_t,) tool positions
@@ -55,10 +55,10 @@ def iterate_tool_positions(args, qf) -> jax.Array:
     return c.q_presc.at[idx].set(jnp.where(c.force_mask[idx], qf, c.q_presc[idx]))
 
 
-def _geometry(step: ContactStep, nodes_ref, u, q):
+def _geometry(step: ContactStep, nodes_ref, u, q, derivatives: bool = True):
     """Projection of every pair at (u, q): gap, normal, zeta, the slip since the step start, validity,
     and the derivatives of (normal, gap, slip) with respect to the pair's node displacement and its
-    tool's position, all from one forward-mode pass per pair."""
+    tool's position, all from one forward-mode pass per pair (``derivatives`` False: zeros instead)."""
     out, jac = [], []
     for k, tool in enumerate(step.tools):  # static: tools differ in structure
         idx = np.asarray(tool.candidates)
@@ -70,7 +70,10 @@ def _geometry(step: ContactStep, nodes_ref, u, q):
                              increment=increment)
                 return jnp.concatenate([pr.normal, pr.gap[None], pr.zeta_increment[None]]), pr
 
-            return jax.jacfwd(local, has_aux=True)(jnp.concatenate([u_a, q[k][None]]))
+            z = jnp.concatenate([u_a, q[k][None]])
+            if not derivatives:
+                return jnp.zeros((4, 3)), local(z)[1]
+            return jax.jacfwd(local, has_aux=True)(z)
 
         J, pr = jax.vmap(one)(nodes_ref[idx], u[idx], step.u_ref[k])
         out.append(pr)
@@ -88,6 +91,17 @@ def linearize_iterate(x, args) -> Iterate:
     assert a.tangent is not None
     gap, normal, zeta, slip, valid, jac = _geometry(args.contact, args.mesh.nodes, u, q)
     return Iterate(a.f_int, a.tangent, a.states, a.det_min, q, gap, normal, zeta, slip, valid, jac)
+
+
+def iterate_values(x, args) -> Iterate:
+    """The iterate's values without its derivatives: the internal forces and material states, the pairs'
+    geometry (``K`` None, ``jac`` zeros); what the residual at x is a function of."""
+    n = args.mesh.n_dofs
+    u = x[:n].reshape(-1, 2)
+    q = iterate_tool_positions(args, x[n:])
+    a = internal_force(args.mesh, args.material, args.formulation, args.geo, u, args.states)
+    gap, normal, zeta, slip, valid, jac = _geometry(args.contact, args.mesh.nodes, u, q, derivatives=False)
+    return Iterate(a.f_int, None, a.states, a.det_min, q, gap, normal, zeta, slip, valid, jac)
 
 
 def tangents(normal):

@@ -333,7 +333,7 @@ class Complementarity(AbstractContactFormulation):
     warm_start: ClassVar[bool] = True
     unsearched_retry: ClassVar[bool] = False
     solver_stats: ClassVar[tuple] = ("lcp_pivots", "ssn_iters", "ssn_fallbacks")
-    differentiable: ClassVar[bool] = False
+    differentiable: ClassVar[bool] = True
     stabilized: ClassVar[bool] = False
 
     def __check_init__(self):

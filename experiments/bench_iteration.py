@@ -1,0 +1,151 @@
+"""Where one Newton iteration of the Nine's exact-contact run goes: its parts timed one by one.
+
+    python experiments/bench_iteration.py [--u0 20] [--mesh 300x3] [--variant mu017] [--steps 6]
+                                          [--set KEY=VALUE ...] [--out CSV]
+
+Runs the Nine (``lcp_ssn``, the scene's defaults) to U = u0 mm, then times, at the state of a drawing
+step's converged solution (the program pieces compiled apart, median process CPU time of 15 calls):
+
+- ``elements``: the element forces and consistent tangents, assembled (block-tridiagonal);
+- ``elements_force``: the element forces alone (what a line search's trial needs);
+- ``pairs``: every candidate pair's projection and its forward derivative;
+- ``evaluate``: one point of the Newton loop (elements, pairs, residual, the line search's merit);
+- ``direction``: one direction of the semismooth Newton (the frames, the active-set passes, each a
+  block-Thomas solve, and the merit at its start);
+- ``solve``: one block-Thomas solve of the bare tangent;
+- ``pass``: one pass of the Newton loop (an evaluation and a direction);
+- ``step``: a whole nominal drawing step (solve_step) over its Newton iterations, for ``--steps`` steps
+  from the secant predictor (``per_iteration``: the step's time over its iterations).
+
+The columns are milliseconds; ``share`` is the part's time over the whole step's time per iteration.
+One XLA thread is assumed (``XLA_FLAGS=--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1``,
+pinned with ``taskset``): the parts are then timed as they run inside the step.
+Writes ``results/bench_iteration.csv``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from benchutil import write_rows  # noqa: E402
+from jaxfric import scenes  # noqa: E402
+from jaxfric.contact.exact import ExactContactProblem  # noqa: E402
+from jaxfric.contact.exact_active_set import contact_frames, semismooth_merit  # noqa: E402
+from jaxfric.contact.exact_iterate import _geometry  # noqa: E402
+from jaxfric.fem.assembly import internal_force, internal_force_and_tangent  # noqa: E402
+from jaxfric.loadpath.model import tool_positions  # noqa: E402
+from jaxfric.loadpath.simulate import simulate  # noqa: E402
+from jaxfric.loadpath.step import StepContext, solve_step, step_args, unknowns  # noqa: E402
+from jaxfric.numerics.linalg import block_tridiag_solve  # noqa: E402
+from jaxfric.numerics.newton import NewtonOptions, newton_pass, newton_start  # noqa: E402
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def cpu_ms(fn, *args, repeat: int = 15) -> float:
+    """Median process CPU time (ms) of ``fn(*args)`` after one warm-up (compile) call."""
+    jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(repeat):
+        t0 = time.process_time()
+        jax.block_until_ready(fn(*args))
+        times.append(time.process_time() - t0)
+    return 1e3 * float(np.median(times))
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--u0", type=float, default=20.0, help="drawing displacement to start from (mm)")
+    ap.add_argument("--mesh", default="300x3")
+    ap.add_argument("--variant", default="mu017")
+    ap.add_argument("--steps", type=int, default=6, help="drawing steps timed whole")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--label", default="", help="written in the CSV's first column")
+    ap.add_argument("--out", default=os.path.join(HERE, "results", "bench_iteration.csv"))
+    a = ap.parse_args(argv)
+    overrides = {"mesh": a.mesh}
+    for text in a.overrides:
+        field, _, value = text.partition("=")
+        overrides[field] = scenes.parse_override("nine", field, value)
+
+    scene = scenes.make("nine", a.variant, "lcp_ssn", overrides)
+    config, model = scene.config, scene.model
+    short = scenes.make("nine", a.variant, "lcp_ssn", {**overrides, "U_draw": a.u0})
+    sim = eqx.filter_jit(lambda m: simulate(m, control=short.control))(short.model)
+    if int(sim.code) != 0:
+        raise SystemExit(f"the run to U = {a.u0} mm did not converge (code {int(sim.code)})")
+    ctx, opts = StepContext.build(model), NewtonOptions()
+    dt = config.dU / config.U_draw
+    state = eqx.tree_at(lambda s: s.time, sim.final, jnp.asarray(1.0 + a.u0 / config.U_draw))
+
+    # Whole steps from the secant predictor.
+    step = eqx.filter_jit(lambda st, t, g: solve_step(model, st, 1, t, opts, ctx, guess=g))
+    prev, iters, step_ms = None, [], []
+    for s in range(a.steps + 2):
+        t_target = float(state.time) + dt
+        guess = (state.u, state.contact.q) if prev is None else \
+            (2 * state.u - prev.u, 2 * state.contact.q - prev.contact.q)
+        jax.block_until_ready(step(state, t_target, guess))   # compiled on the first call
+        t0 = time.process_time()
+        sol, new = jax.block_until_ready(step(state, t_target, guess))
+        if s >= 2:   # the first two steps: compilation and the predictor's start
+            step_ms.append(1e3 * (time.process_time() - t0))
+            iters.append(int(sol.iterations))
+        if int(sol.code) != 0:
+            raise SystemExit(f"step {s} did not converge (code {int(sol.code)})")
+        prev, state = state, new
+    per_iteration = float(np.sum(step_ms) / np.sum(iters))
+
+    # The parts, at the last step's converged solution, as data of the step that follows it.
+    t_target = float(state.time) + dt
+    args, _, _ = step_args(model, state, 1, t_target, ctx)
+    x = unknowns(model, state.u, tool_positions(state))
+    problem = ExactContactProblem(model.contact, opts)
+    c0 = newton_start(problem, x, args, opts)
+    c1 = eqx.filter_jit(lambda c, ar: newton_pass(c, ar, x, problem, opts))(c0, args)   # evaluated x
+    u = state.u
+    parts = {
+        "elements": (eqx.filter_jit(lambda ar: internal_force_and_tangent(
+            ar.mesh, ar.material, ar.formulation, ar.geo, u, ar.states)), args),
+        "elements_force": (eqx.filter_jit(lambda ar: internal_force(
+            ar.mesh, ar.material, ar.formulation, ar.geo, u, ar.states)), args),
+        "pairs": (eqx.filter_jit(lambda ar: _geometry(ar.contact, ar.mesh.nodes, u, tool_positions(state))), args),
+        "evaluate": (eqx.filter_jit(lambda ar: problem.evaluate(x, c1.trial, ar)), args),
+        "direction": (eqx.filter_jit(lambda ar: problem.direction(x, c1.point, ar, jnp.array(False))), args),
+        "frames": (eqx.filter_jit(lambda ar: contact_frames(c1.point.state.it, ar)), args),
+        "merit": (eqx.filter_jit(lambda ar: semismooth_merit(x, c1.point.state.it, ar, c1.point.state.p,
+                                                             contact_frames(c1.point.state.it, ar)[0])), args),
+        "pass": (eqx.filter_jit(lambda c, ar: newton_pass(c, ar, x, problem, opts)), c1, args),
+    }
+    K = c1.point.state.it.K
+    parts["solve"] = (eqx.filter_jit(block_tridiag_solve), K, jnp.ones(K.diag.shape[0] * K.diag.shape[1]))
+
+    passes = int(eqx.filter_jit(lambda ar: problem.direction(x, c1.point, ar, jnp.array(False)).stats[1])(args))
+    print(f"the direction timed alone takes {passes} active-set passes")
+    rows = [{"label": a.label, "part": "step", "ms": round(float(np.mean(step_ms)), 3),
+             "per_iteration": round(per_iteration, 3), "share": 1.0,
+             "iterations": round(float(np.mean(iters)), 2)}]
+    for name, (fn, *fn_args) in parts.items():
+        ms = cpu_ms(fn, *fn_args)
+        rows.append({"label": a.label, "part": name, "ms": round(ms, 3), "per_iteration": "",
+                     "share": round(ms / per_iteration, 3), "iterations": ""})
+    m = int(sum(len(t.candidates) for t in model.tools))
+    print(f"Nine {a.variant} {a.mesh} at U = {a.u0 + a.steps * config.dU:.1f} mm, {m} candidate pairs, "
+          f"{len(iters)} steps of {np.mean(iters):.2f} Newton iterations, {per_iteration:.2f} ms per iteration")
+    for r in rows:
+        print(f"  {r['part']:>15}: {r['ms']:9.3f} ms  ({r['share']:.2f} of an iteration)")
+    write_rows(a.out, rows)
+
+
+if __name__ == "__main__":
+    main()

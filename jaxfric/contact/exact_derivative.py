@@ -1,0 +1,120 @@
+"""Derivatives of a converged exact-contact step by the implicit function theorem on its active set.
+
+A step converged by :mod:`jaxfric.contact.exact` (``lcp_ssn`` or ``lcp_lemke``) solves, on its final
+active set, the semismooth system of :func:`jaxfric.contact.exact_active_set.piece_system`:
+
+    Phi(x, args) = 0:  the equilibrium rows f_int(x) = 0 of the free dofs, kappa (u - u_presc) = 0 on the
+    prescribed ones, each candidate node's two rows replaced by its Alart-Curnier piece
+    C_a = W_F (n, t)^T f~_a + W_K (g_N, s) (open: the node's force is zero; stick: g_N = s = 0; slip:
+    g_N = 0 and R_T = mu xi R_N), and the force-driven tool's balance.
+
+On that piece Phi is smooth, so where no pair sits on a status switch the converged x*(args) is
+differentiable and ``dPhi/dx dx* = -dPhi/dargs dargs``; dPhi/dx is the matrix the semismooth Newton
+pass assembles (the block-tridiagonal tangent with the candidates' rows combined, bordered by the
+driven tool's row), so the derivative costs one linearisation and one structured solve per step, as
+the penalty path's (:func:`jaxfric.numerics.newton.newton_solve`). The contact forces, tool forces,
+stresses and history follow by a forward derivative of the step's outputs along (dx*, dargs).
+
+Held constant (their derivatives multiply zeros at the solution): the Alart-Curnier constants c_N, c_T
+(they scale g_N and s, which vanish on closed pieces), the kappa of the prescribed rows (which scales
+u - u_presc = 0), and each candidate node's pair. Friction coefficients, tool positions and dimensions,
+material parameters and the prescribed values carry their derivatives.
+
+A candidate node with one prescribed dof (the flat die's corner D) carries, in the semismooth rows, the
+previous iterate's contact force as the constraint's reaction, a fixed point the piece alone does not
+differentiate. Slipping, its rows are taken apart: g_N = 0, and the prescribed dof's own row; its
+contact force then follows from the equilibrium of its free dof with R_T = mu xi R_N. Sticking, or
+with both dofs prescribed, the reaction and the contact force are not separable: the derivative is
+reported as non-finite instead of wrong. Where a pair sits on a status switch the derivative is that of
+the final piece (one-sided).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+
+from ..numerics.linalg import linear_solve
+from .alart_curnier import OPEN, SLIP_NEG, SLIP_POS, STICK
+from .exact_active_set import Frames, classify, contact_frames, piece_data, piece_system
+from .exact_iterate import Iterate, iterate_residual, iterate_values, linearize_iterate, pair_status, tangents
+from .rigid import pair_mu
+
+__all__ = ["exact_step_tangents"]
+
+
+def _frames_with_friction(fr: Frames, args) -> Frames:
+    """``fr`` with its friction coefficients read from ``args`` (so that they carry derivatives)."""
+    return fr._replace(mu=jnp.where(fr.valid, pair_mu(args.contact.tools, args.contact.mu)[fr.pairs], 0.0))
+
+
+def _prescribed_dofs(args, fr: Frames) -> jax.Array:
+    """(n_u,) how many of each candidate node's dofs are prescribed in this step."""
+    n = args.mesh.n_dofs
+    return jnp.sum(args.mask[:n].reshape(-1, 2)[fr.nodes], axis=1)
+
+
+def _constrained(args, fr: Frames, state) -> jax.Array:
+    """(n_u,) the slipping candidates with one prescribed dof (module docstring)."""
+    return (_prescribed_dofs(args, fr) == 1) & ((state == SLIP_POS) | (state == SLIP_NEG))
+
+
+def _piece_residual(x, args, hint, frames, K, state):
+    """Phi(x, args) on the active set ``state`` (module docstring)."""
+    fr = _frames_with_friction(frames, args)
+    d = piece_data(iterate_values(x, args), args, x, hint, (fr, K))
+    return piece_system(d, args, state, fr.mu, _constrained(args, fr, state), x)[1]
+
+
+def _outputs(x, args, hint, frames, K, state, contact_out):
+    """The step's outputs (:meth:`jaxfric.contact.exact.ExactContactProblem.aux`) as functions of (x, args) on
+    the active set ``state``: each closed candidate's force is its equilibrium force in its frame (with
+    one prescribed dof: from its free dof's equilibrium and the slip law)."""
+    fr = _frames_with_friction(frames, args)
+    it = iterate_values(x, args)
+    d = piece_data(it, args, x, hint, (fr, K))
+    m = it.gap.shape[0]
+    closed = (state != OPEN)[:, None]
+    p_nodes = jnp.stack([d.R_N, d.R_T], -1)
+    n = args.mesh.n_dofs
+    free = 1.0 - args.mask[:n].reshape(-1, 2)[fr.nodes].astype(x.dtype)          # the free dof of each node
+    xi = jnp.where(state == SLIP_NEG, -1.0, 1.0)
+    normal = jnp.where(fr.valid[:, None], it.normal[fr.pairs], fr.normal)
+    along = jnp.sum(free * (normal + (fr.mu * xi)[:, None] * tangents(normal)), -1)
+    f_free = jnp.sum(free * d.f_tilde.reshape(-1, 2)[fr.nodes], -1)
+    r_n = f_free / jnp.where(along == 0.0, 1.0, along)
+    p_nodes = jnp.where(_constrained(args, fr, state)[:, None], jnp.stack([r_n, fr.mu * xi * r_n], -1), p_nodes)
+    p = jnp.zeros((m, 2)).at[fr.pairs].set(jnp.where(closed, p_nodes, 0.0))
+    _, tool_f = iterate_residual(x, it, p, args)
+    status = pair_status(p, pair_mu(args.contact.tools, args.contact.mu))
+    return it.f_int, it.states, contact_out(it, p, tool_f, status)
+
+
+def exact_step_tangents(args, args_dot, x_star, p_star, contact_out):
+    """Tangents (x_dot, outputs_dot) of a converged exact-contact step at ``x_star`` with contact forces
+    ``p_star`` (m, 2), along the tangent ``args_dot`` of its data (None leaves: no change).
+    ``contact_out(it, p, tool_f, status)``: the contact outputs' layout (:mod:`jaxfric.contact.exact`)."""
+    it: Iterate = linearize_iterate(x_star, args)
+    frames, K = contact_frames(it, args)
+    d = piece_data(it, args, x_star, p_star, (frames, K))
+    fr = d.fr
+    h = jnp.where(fr.valid[:, None], p_star[fr.pairs], 0.0)
+    state = classify(d, args, h[:, 0], h[:, 1], d.gap, d.slip)
+    matrix = piece_system(d, args, state, constrained=_constrained(args, fr, state), x=x_star)[0]
+    # Not separable from a reaction: a closed candidate that sticks with a prescribed dof, or has two.
+    count = _prescribed_dofs(args, fr)
+    undetermined = jnp.any((state != OPEN) & ((count == 2) | ((count == 1) & (state == STICK))))
+
+    diff, static = eqx.partition(args, eqx.is_inexact_array)
+    diff_dot = jtu.tree_map(lambda a, t: None if a is None else (jnp.zeros_like(a) if t is None else t),
+                            diff, args_dot, is_leaf=lambda v: v is None)
+    held = (p_star, frames, K, state)
+
+    _, r_dot = jax.jvp(lambda dd: _piece_residual(x_star, eqx.combine(dd, static), *held), (diff,), (diff_dot,))
+    x_dot = -linear_solve(matrix, r_dot)
+    x_dot = jnp.where(undetermined, jnp.nan, x_dot)
+    _, out_dot = jax.jvp(lambda x, dd: _outputs(x, eqx.combine(dd, static), *held, contact_out),
+                         (x_star, diff), (x_dot, diff_dot))
+    return x_dot, out_dot
