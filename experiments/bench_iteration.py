@@ -11,11 +11,13 @@ step's converged solution (the program pieces compiled apart, median process CPU
 - ``pairs``: every candidate pair's projection and its forward derivative;
 - ``evaluate``: one point of the Newton loop (elements, pairs, residual, the line search's merit);
 - ``direction``: one direction of the semismooth Newton (the frames, the active-set passes, each a
-  block-Thomas solve, and the merit at its start);
+  block-Thomas solve, and the merit at its start), taken at the converged point with its own forces as
+  the hint, and ``direction_per_pass``: that time over its active-set passes (``passes``);
+- ``frames``, ``merit``: the candidates' frames and the line search's merit, parts of the direction;
 - ``solve``: one block-Thomas solve of the bare tangent;
-- ``pass``: one pass of the Newton loop (an evaluation and a direction);
 - ``step``: a whole nominal drawing step (solve_step) over its Newton iterations, for ``--steps`` steps
-  from the secant predictor (``per_iteration``: the step's time over its iterations).
+  from the secant predictor (``per_iteration``: the step's time over its iterations; ``passes``: the
+  active-set passes per Newton iteration of these steps).
 
 The columns are milliseconds; ``share`` is the part's time over the whole step's time per iteration.
 One XLA thread is assumed (``XLA_FLAGS=--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1``,
@@ -90,7 +92,7 @@ def main(argv=None) -> None:
 
     # Whole steps from the secant predictor.
     step = eqx.filter_jit(lambda st, t, g: solve_step(model, st, 1, t, opts, ctx, guess=g))
-    prev, iters, step_ms = None, [], []
+    prev, iters, step_ms, passes = None, [], [], []
     for s in range(a.steps + 2):
         t_target = float(state.time) + dt
         guess = (state.u, state.contact.q) if prev is None else \
@@ -101,6 +103,7 @@ def main(argv=None) -> None:
         if s >= 2:   # the first two steps: compilation and the predictor's start
             step_ms.append(1e3 * (time.process_time() - t0))
             iters.append(int(sol.iterations))
+            passes.append(int(sol.stats[1]))
         if int(sol.code) != 0:
             raise SystemExit(f"step {s} did not converge (code {int(sol.code)})")
         prev, state = state, new
@@ -125,23 +128,27 @@ def main(argv=None) -> None:
         "frames": (eqx.filter_jit(lambda ar: contact_frames(c1.point.state.it, ar)), args),
         "merit": (eqx.filter_jit(lambda ar: semismooth_merit(x, c1.point.state.it, ar, c1.point.state.p,
                                                              contact_frames(c1.point.state.it, ar)[0])), args),
-        "pass": (eqx.filter_jit(lambda c, ar: newton_pass(c, ar, x, problem, opts)), c1, args),
     }
     K = c1.point.state.it.K
     parts["solve"] = (eqx.filter_jit(block_tridiag_solve), K, jnp.ones(K.diag.shape[0] * K.diag.shape[1]))
 
-    passes = int(eqx.filter_jit(lambda ar: problem.direction(x, c1.point, ar, jnp.array(False)).stats[1])(args))
-    print(f"the direction timed alone takes {passes} active-set passes")
+    n_passes = int(eqx.filter_jit(lambda ar: problem.direction(x, c1.point, ar, jnp.array(False)).stats[1])(args))
     rows = [{"label": a.label, "part": "step", "ms": round(float(np.mean(step_ms)), 3),
              "per_iteration": round(per_iteration, 3), "share": 1.0,
-             "iterations": round(float(np.mean(iters)), 2)}]
+             "iterations": round(float(np.mean(iters)), 2), "passes": round(np.sum(passes) / np.sum(iters), 2)}]
     for name, (fn, *fn_args) in parts.items():
         ms = cpu_ms(fn, *fn_args)
         rows.append({"label": a.label, "part": name, "ms": round(ms, 3), "per_iteration": "",
-                     "share": round(ms / per_iteration, 3), "iterations": ""})
+                     "share": round(ms / per_iteration, 3), "iterations": "",
+                     "passes": n_passes if name == "direction" else ""})
+        if name == "direction":
+            rows.append({"label": a.label, "part": "direction_per_pass", "ms": round(ms / n_passes, 3),
+                         "per_iteration": "", "share": round(ms / n_passes / per_iteration, 3), "iterations": "",
+                         "passes": ""})
     m = int(sum(len(t.candidates) for t in model.tools))
     print(f"Nine {a.variant} {a.mesh} at U = {a.u0 + a.steps * config.dU:.1f} mm, {m} candidate pairs, "
-          f"{len(iters)} steps of {np.mean(iters):.2f} Newton iterations, {per_iteration:.2f} ms per iteration")
+          f"{len(iters)} steps of {np.mean(iters):.2f} Newton iterations and {np.sum(passes) / np.sum(iters):.2f} "
+          f"active-set passes per iteration, {per_iteration:.2f} ms per iteration")
     for r in rows:
         print(f"  {r['part']:>15}: {r['ms']:9.3f} ms  ({r['share']:.2f} of an iteration)")
     write_rows(a.out, rows)
