@@ -39,7 +39,7 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from benchutil import write_rows  # noqa: E402
+from benchutil import median_time, write_rows  # noqa: E402
 from jaxfric import scenes  # noqa: E402
 from jaxfric.contact.exact import ExactContactProblem  # noqa: E402
 from jaxfric.contact.exact_active_set import contact_frames, semismooth_merit  # noqa: E402
@@ -52,17 +52,6 @@ from jaxfric.numerics.linalg import block_tridiag_solve  # noqa: E402
 from jaxfric.numerics.newton import NewtonOptions, newton_pass, newton_start  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-
-
-def cpu_ms(fn, *args, repeat: int = 15) -> float:
-    """Median process CPU time (ms) of ``fn(*args)`` after one warm-up (compile) call."""
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeat):
-        t0 = time.process_time()
-        jax.block_until_ready(fn(*args))
-        times.append(time.process_time() - t0)
-    return 1e3 * float(np.median(times))
 
 
 def main(argv=None) -> None:
@@ -137,7 +126,7 @@ def main(argv=None) -> None:
              "per_iteration": round(per_iteration, 3), "share": 1.0,
              "iterations": round(float(np.mean(iters)), 2), "passes": round(np.sum(passes) / np.sum(iters), 2)}]
     for name, (fn, *fn_args) in parts.items():
-        ms = cpu_ms(fn, *fn_args)
+        ms = 1e3 * median_time(fn, *fn_args, repeat=15, clock=time.process_time)
         rows.append({"label": a.label, "part": name, "ms": round(ms, 3), "per_iteration": "",
                      "share": round(ms / per_iteration, 3), "iterations": "",
                      "passes": n_passes if name == "direction" else ""})
