@@ -312,7 +312,8 @@ class Complementarity(AbstractContactFormulation):
     """Exact contact (spec 1.7, algorithms ``lcp_lemke`` and ``lcp_ssn``): at every Newton iterate the
     contact conditions of the linearised problem are solved exactly; no penalty, no penetration beyond
     the Newton tolerance (:mod:`jaxfric.contact.exact`). Its multipliers (the last converged forces) only
-    guess the first active set; it is not differentiable.
+    guess the first active set. Its steps are differentiated on their converged active set
+    (:mod:`jaxfric.contact.exact_derivative`).
 
     Attributes:
         solver (static):
