@@ -115,6 +115,30 @@ def test_exact_contact_reverse_mode_equals_forward_mode():
     np.testing.assert_allclose(grad, [FORCE, MU], rtol=1e-8)
 
 
+@pytest.mark.slow  # two compiled programs (90 s)
+def test_derivative_of_a_sticking_node_with_a_prescribed_dof_is_reported_not_wrong():
+    """The die clamps with friction while the strip's right end is held in x: the corner sticks with a
+    prescribed dof, so its contact force cannot be told from the constraint's reaction, and the
+    derivative comes out NaN in forward and reverse mode (jaxfric.contact.exact_derivative)."""
+    from jaxfric.contact.rigid import Force, RigidTool
+    from jaxfric.contact.tools import Tool
+
+    def reaction(force):
+        mesh = jf.strip_mesh(0.0, 4.0, 0.0, 0.395, 20, 2)
+        material = jf.J2Material(E=69004.0, nu=0.3, sigma_y=80.55923, A=10000.0, n=0.216)
+        die = Tool.line((-2.0, 0.395), (6.0, 0.395), normal_side="right")
+        tool = RigidTool("die", die, drive=(0.0, -1.0), candidates=mesh.top, controls=(Force(force, start=0.0),),
+                         mu=(MU,))
+        bcs = [jf.DirichletBC(mesh.bottom, components=(1,)), jf.DirichletBC(mesh.right, components=(0,))]
+        model = jf.StripModel(mesh, material, (jf.Phase("clamp", bcs, 5),), tools=(tool,),
+                              contact=Complementarity("ssn"))
+        return jf.simulate_fixed(model).history.observed["reaction_right"][5, 0]
+
+    value, tangent = jax.jit(lambda f: jax.jvp(reaction, (f,), (1.0,)))(FORCE)
+    assert np.isfinite(float(value)) and np.isnan(float(tangent))
+    assert np.isnan(float(jax.jit(jax.grad(reaction))(FORCE)))
+
+
 def _at_common_times(a, b, name):
     common, i, j = np.intersect1d(a.history["time"], b.history["time"], return_indices=True)
     return common, a.history[name][i], b.history[name][j]

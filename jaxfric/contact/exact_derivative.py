@@ -113,8 +113,8 @@ def exact_step_tangents(args, args_dot, x_star, p_star, contact_out):
     held = (p_star, frames, K, state)
 
     _, r_dot = jax.jvp(lambda dd: _piece_residual(x_star, eqx.combine(dd, static), *held), (diff,), (diff_dot,))
-    x_dot = -linear_solve(matrix, r_dot)
-    x_dot = jnp.where(undetermined, jnp.nan, x_dot)
+    # A NaN factor, not a NaN value: the map stays linear, so reverse mode reports it too.
+    x_dot = -linear_solve(matrix, r_dot) * jnp.where(undetermined, jnp.nan, 1.0)
     _, out_dot = jax.jvp(lambda x, dd: _outputs(x, eqx.combine(dd, static), *held, contact_out),
                          (x_star, diff), (x_dot, diff_dot))
     return x_dot, out_dot
