@@ -69,8 +69,12 @@ CASES = {
     # is chosen below the nearest one (REL_H).
     "flat_die_exact": ("const_force", {"mesh": "12x1", "U_draw": 0.01}, ["mu", "F_clamp", "E", "sigma_y"], TIGHT),
     "nine_exact": ("mu017", {"mesh": "40x2", "U_draw": 1.0}, ["mu", "R1", "stroke", "sigma_y"], CURVED),
+    "bead_exact": ("th090_mu017", {"mesh": "60x2", "s_draw": 0.5}, ["R_r", "mu_roller", "F_clamp", "E"],
+                   NewtonOptions(rtol=1e-12, atol=1e-8, max_iterations=60)),
+    "blankholder_exact": ("shape3", {"element_length": 2.0, "U_pull": 1.0}, ["R", "H", "mu", "F_clamp"],
+                          NewtonOptions(rtol=1e-11, atol=1e-9, max_iterations=60)),
 }
-ALGORITHM = {"flat_die_exact": "lcp_ssn", "nine_exact": "lcp_ssn"}
+ALGORITHM = {case: "lcp_ssn" for case in CASES if case.endswith("_exact")}
 # Relative steps h / |p| other than 1e-4, by case, and by parameter within a case. The tool-geometry
 # columns differ from their differences at h = 1e-4 |p| by truncation (the force is strongly curved
 # in the geometry), not by a wrong derivative: blankholder R and H (smoothed law) by 0.6 % and 0.14 %
@@ -133,8 +137,22 @@ def test_flat_die_derivatives_of_every_parameter():
     _check("flat_die")
 
 
+KNOWN_EXACT = {
+    "bead_exact": "the fixed-step replay stops (result code 1) at the tolerances the differences need; along "
+                  "the adaptive replay forward mode agrees with central differences to 6e-6 of the row with h = "
+                  "1e-5 |p| (R_r, mu_roller), 1e-6 |p| (F_clamp) and 1e-4 |p| (E); other h cross status switches",
+    "blankholder_exact": "the pulled end's nodes (both dofs prescribed) are candidates of the tools and lie under "
+                         "them: their contact force cannot be told from the reaction, so the derivatives are "
+                         "reported NaN (jaxfric.contact.exact_derivative)",
+}
+
+
 @pytest.mark.slow  # the flat die about 2 min, the Nine about 6 min on two cores
-@pytest.mark.parametrize("case", ["flat_die_exact", "nine_exact"])
+@pytest.mark.parametrize("case", [
+    "flat_die_exact", "nine_exact",
+    pytest.param("bead_exact", marks=pytest.mark.xfail(reason=KNOWN_EXACT["bead_exact"], strict=True)),
+    pytest.param("blankholder_exact", marks=pytest.mark.xfail(reason=KNOWN_EXACT["blankholder_exact"], strict=True)),
+])
 def test_exact_contact_derivatives_of_every_parameter(case):
     _check(case)
 
