@@ -203,12 +203,11 @@ def classify(d: PieceData, args, R_N, R_T, g, s) -> jax.Array:
     return state
 
 
-def piece_system(d: PieceData, args, state, mu=None, constrained=None, x=None):
+def piece_system(d: PieceData, args, state, constrained=None, x=None):
     """The semismooth system on the active set ``state``: its matrix (BlockTridiag, Bordered with a
     force-driven tool) and its residual F (the equilibrium rows with each candidate node's two rows
     replaced by C_a = W_F (n, t)^T f~_a + W_K (g, s), then the tool's row), so that the increment solves
-    ``M dx = -F``. ``mu`` (n_u,): the candidates' friction coefficients, ``d.fr.mu`` by default.
-    ``constrained`` (n_u,) bool, with the iterate ``x``: candidates whose second row (the slip law) is
+    ``M dx = -F``. ``constrained`` (n_u,) bool, with the iterate ``x``: candidates whose second row (the slip law) is
     replaced by the row of their one prescribed dof, kappa (u_i - u_presc,i)
     (:mod:`jaxfric.contact.exact_derivative`)."""
     c = args.contact
@@ -218,7 +217,7 @@ def piece_system(d: PieceData, args, state, mu=None, constrained=None, x=None):
     nb, bs = K.diag.shape[0], K.diag.shape[1]
     ny1 = bs // 2
     col, loc = nodes // ny1, nodes % ny1
-    w_f, w_k = piece_jacobian(state, fr.mu if mu is None else mu, fr.c_n, fr.c_t)
+    w_f, w_k = piece_jacobian(state, fr.mu, fr.c_n, fr.c_t)
     A = jnp.einsum("uij,ukj->uik", w_f, rotation)                    # W_F R^T
     local = jnp.einsum("uij,ujk->uik", w_f, d.d_u[pairs, :2]) + jnp.einsum("uij,ujk->uik", w_k, d.d_u[pairs, 2:])
     C_rows = jnp.einsum("uij,uj->ui", w_f, jnp.stack([d.R_N, d.R_T], -1)) + \
@@ -308,11 +307,9 @@ def active_set_step(it: Iterate, args, x, p_prev, law, hint, frames=None):
         slip = jnp.where(p_l[:, 1] >= 0.0, SLIP_POS, SLIP_NEG)
         return jnp.where((state == STICK) & (new == OPEN) & (gap < 0.0) & (mu > 0.0), slip, new)
 
-    law_max = law.ssn_max_iter
-
     def more(carry):
         i, state, _, p_l, g_l, s_l = carry
-        return (i == 0) | ((i < law_max) & jnp.any(next_state(state, p_l, g_l, s_l) != state))
+        return (i == 0) | ((i < law.ssn_max_iter) & jnp.any(next_state(state, p_l, g_l, s_l) != state))
 
     def again(carry):
         i, state, _, p_l, g_l, s_l = carry

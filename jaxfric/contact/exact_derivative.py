@@ -65,7 +65,7 @@ def _piece_residual(x, args, hint, frames, K, state):
     """Phi(x, args) on the active set ``state`` (module docstring)."""
     fr = _frames_with_friction(frames, args)
     d = piece_data(iterate_values(x, args), args, x, hint, (fr, K))
-    return piece_system(d, args, state, fr.mu, _constrained(args, fr, state), x)[1]
+    return piece_system(d, args, state, _constrained(args, fr, state), x)[1]
 
 
 def _outputs(x, args, hint, frames, K, state, contact_out):

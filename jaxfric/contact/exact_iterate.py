@@ -82,26 +82,25 @@ def _geometry(step: ContactStep, nodes_ref, u, q, derivatives: bool = True):
     return cat("gap"), cat("normal"), cat("zeta"), cat("zeta_increment"), cat("valid"), jnp.concatenate(jac)
 
 
-@shared_trace     # the loop's shapes (filter_eval_shape before the loop) and its body: one trace
-def linearize_iterate(x, args) -> Iterate:
+def _iterate(x, args, derivatives: bool) -> Iterate:
     n = args.mesh.n_dofs
     u = x[:n].reshape(-1, 2)
     q = iterate_tool_positions(args, x[n:])
-    a = internal_force_and_tangent(args.mesh, args.material, args.formulation, args.geo, u, args.states)
-    assert a.tangent is not None
-    gap, normal, zeta, slip, valid, jac = _geometry(args.contact, args.mesh.nodes, u, q)
+    assemble = internal_force_and_tangent if derivatives else internal_force
+    a = assemble(args.mesh, args.material, args.formulation, args.geo, u, args.states)
+    gap, normal, zeta, slip, valid, jac = _geometry(args.contact, args.mesh.nodes, u, q, derivatives)
     return Iterate(a.f_int, a.tangent, a.states, a.det_min, q, gap, normal, zeta, slip, valid, jac)
+
+
+@shared_trace     # the loop's shapes (filter_eval_shape before the loop) and its body: one trace
+def linearize_iterate(x, args) -> Iterate:
+    return _iterate(x, args, derivatives=True)
 
 
 def iterate_values(x, args) -> Iterate:
     """The iterate's values without its derivatives: the internal forces and material states, the pairs'
     geometry (``K`` None, ``jac`` zeros); what the residual at x is a function of."""
-    n = args.mesh.n_dofs
-    u = x[:n].reshape(-1, 2)
-    q = iterate_tool_positions(args, x[n:])
-    a = internal_force(args.mesh, args.material, args.formulation, args.geo, u, args.states)
-    gap, normal, zeta, slip, valid, jac = _geometry(args.contact, args.mesh.nodes, u, q, derivatives=False)
-    return Iterate(a.f_int, None, a.states, a.det_min, q, gap, normal, zeta, slip, valid, jac)
+    return _iterate(x, args, derivatives=False)
 
 
 def tangents(normal):
