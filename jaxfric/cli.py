@@ -76,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("scene", help="flat_die, bead, nine or blankholder")
     run.add_argument("--variant", action=_Once, help="scene variant (default: the scene's first)")
     # Exact contact by default: no gap, no penalty to choose, and the cheapest run on the Nine and
-    # blankholder scenes. ``fit`` keeps penalty: it needs derivatives, which exact contact has not.
+    # blankholder scenes; ``fit`` too, whose derivatives it gives by the implicit function theorem.
     run.add_argument("--algorithm", action=_Once, default="lcp_ssn",
                      help=f"one of {', '.join(ALGORITHMS)} (default lcp_ssn)")
     run.add_argument("--mesh", action=_Once, metavar="NXxNY",
@@ -103,15 +103,15 @@ def build_parser() -> argparse.ArgumentParser:
     fit = sub.add_parser("fit", help="identify parameters from a measured drawing-force curve",
                          description="Fit scene config values (e.g. mu, R1) to a measured drawing-force curve "
                                      "(CSV with drawing_displacement and drawing_force; a history.csv of "
-                                     "'jaxfric run' is valid) by Levenberg-Marquardt; writes fit.json, "
+                                     "'jaxfric run' is valid) by bounded least squares; writes fit.json, "
                                      "fit_history.csv and fit.png.")
     fit.add_argument("scene", help="flat_die, bead, nine or blankholder")
     fit.add_argument("--data", action=_Once, required=True, metavar="CSV", help="measured curve")
     fit.add_argument("--param", action=_Once, required=True, metavar="NAME[,NAME...]",
                      help="config fields to fit, e.g. mu,R1")
     fit.add_argument("--variant", action=_Once, help="scene variant (default: the scene's first)")
-    fit.add_argument("--algorithm", action=_Once, default="penalty",
-                     help=f"one of {', '.join(ALGORITHMS)} (default penalty)")
+    fit.add_argument("--algorithm", action=_Once, default="lcp_ssn",
+                     help=f"one of {', '.join(ALGORITHMS)} (default lcp_ssn)")
     fit.add_argument("--mesh", action=_Once, metavar="NXxNY", help="elements along x and through the thickness")
     fit.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
                      help="override a config field; for a fitted field this is its start value")
@@ -119,9 +119,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="bounds of a fitted parameter (default [0, inf))")
     fit.add_argument("--grid", action="append", default=[], metavar="NAME=LOW:HIGH:N",
                      help="global stage: adaptive runs at N equally spaced values of NAME (every --grid "
-                          "combined), Levenberg-Marquardt from the best interpolated point")
+                          "combined), least squares from the best interpolated point")
     fit.add_argument("--starts", action=_Once, type=int, default=1, metavar="K",
-                     help="with --grid: Levenberg-Marquardt from the K lowest local minima of the "
+                     help="with --grid: least squares from the K lowest local minima of the "
                           "interpolated misfit, the best fit kept (default 1)")
     fit.add_argument("--window", action=_Once, type=float, metavar="MM",
                      help="fit the mean force over windows of this length instead of every point")

@@ -25,8 +25,8 @@ FLAT = ["flat_die", "--variant", "const_force", "--mesh", "24x1"]
 @pytest.fixture(scope="module")
 def flat_history(tmp_path_factory):
     out = tmp_path_factory.mktemp("flat_run")
-    # The fit's model (penalty, its default) generates the data: "run" defaults to exact contact.
-    assert main(["run", *FLAT, "--algorithm", "penalty", "--quiet", "--out", str(out)]) == 0
+    # The fit's model (exact contact, the default of "run" and "fit") generates the data.
+    assert main(["run", *FLAT, "--quiet", "--out", str(out)]) == 0
     return os.path.join(out, "history.csv")
 
 

@@ -21,18 +21,25 @@ does not survive a change of 1e-3 in mu on the Nine test. Every such cut is a sm
 in the parameters, so the replays allow more Newton iterations per step than the planning run
 (``REPLAY_ITERATIONS``, against the scene's 25): on the Nine test at 100 x 2 (mu, R1) moved from (0.12,
 5.2) to (0.134, 5.243) cut 15 frozen steps with 25 iterations and 5 with 60; at (0.17, 5.5), 24 and
-11. When the fit has converged on one sequence, the adaptive run is
-repeated at the optimum and the fit continues on the new sequence until the sequence no longer changes,
-so the answer is the parameters at which the ordinary adaptive run (``jaxfric run``) reproduces the
-data best.
+11. When the fit has converged on one sequence, the adaptive run is repeated at the optimum: where it
+takes other steps, its misfit and the last Jacobian (sequences a few steps apart have nearly the same
+Jacobian) give a Gauss-Newton step, and adaptive runs follow these steps until one moves no parameter
+by more than the stopping tolerance (below). Each adaptive run reuses one compiled program, where a
+new sequence would compile a new curve; only when ``max_replans`` such runs do not settle is the fit
+repeated on the last run's sequence. The answer is then the parameters at which the ordinary adaptive
+run (``jaxfric run``) reproduces the data best, to the accuracy the data resolve.
 
-**The optimiser.** Levenberg-Marquardt (Gauss-Newton with Marquardt's scaled damping) on the residuals
-r = F_sim(x_k; p) - F_k, with the Jacobian from forward-mode differentiation through the whole loading
-path (one ``jax.jacfwd``: the primal plus n tangents per simulation). For a handful of parameters and a
-few hundred smooth residuals this converges quadratically near the optimum in a few simulations, where
-L-BFGS (gradient-only) would need many more, each costing a full simulation; and J^T J gives the
-Gauss-Newton covariance for free. Bounds are kept by projecting every trial point on the box
-(``optax.projections.projection_box``); updates are applied with ``optax.apply_updates``.
+**The optimiser.** ``scipy.optimize.least_squares`` (trust-region reflective, bounded) on the
+residuals r = F_sim(x_k; p) - F_k, with the Jacobian from forward-mode differentiation through the whole
+loading path (one ``jax.jacfwd``: the primal plus n tangents per simulation). For a handful of
+parameters and a few hundred smooth residuals this converges quadratically near the optimum in a few
+simulations, where L-BFGS (gradient-only) would need many more, each costing a full simulation; and
+J^T J gives the Gauss-Newton covariance for free. **Stopping**: when the Gauss-Newton step from the
+current point moves every parameter by at most ``STOP_FRACTION`` (a tenth) of its standard error there
+(never less than ``xtol`` relative), or when the solver's trial steps shrink below that without
+decreasing the misfit (the replays' discretisation noise, a few 1e-5 in mu on the Nine at 100 x 2,
+which no step of the optimiser can resolve): a further change could not be told apart from the
+uncertainty the fit reports.
 
 **Uncertainty.** With independent measurement errors of equal variance, cov(p) = s^2 (J^T J)^-1 with
 s^2 = |r|^2 / (m - n) at the optimum; ``stderr`` is the square root of its diagonal and the 95 %
@@ -53,10 +60,7 @@ import sys
 import time
 from collections.abc import Callable, Mapping
 
-import jax
-import jax.numpy as jnp
 import numpy as np
-import optax
 
 from ..contact.formulations import ALGORITHMS, DIFFERENTIABLE_ALGORITHMS
 from ..numerics._checks import check_int, check_positive
@@ -87,7 +91,7 @@ class FitError(RuntimeError):
     """The simulation at the start values fails: the fit cannot begin (not an input error)."""
 
 
-def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str = "penalty",
+def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str = "lcp_ssn",
         overrides: dict | None = None, bounds: dict | None = None, window: float | None = None,
         newton: NewtonOptions | None = None, max_iter: int = 30, xtol: float = 1e-7,
         max_replans: int = 4, substeps: int = 1, grid: dict | None = None, starts: int = 1,
@@ -104,26 +108,28 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
             consecutive windows of about that length, measured and simulated alike. On a coarse mesh
             the simulated force ripples as nodes pass over a curved tool (node spacing = period); a
             window of a few node spacings fits the trend, not the ripple.
-        max_iter: Levenberg-Marquardt trials (accepted or not) per step sequence; when they run out,
-            the fit re-plans at the best point so far (while ``max_replans`` allows).
-        xtol: converged when an accepted step changes every p_i by at most xtol (|p_i| + xtol).
-        max_replans: adaptive runs at the optimum, to settle the step sequence. 0: fit on the
-            sequence planned at the start values (cheaper; the answer then carries the difference
-            between that sequence and the one an adaptive run at the optimum would take).
+        max_iter: least-squares trials (simulations, accepted or not) per step sequence; when they run
+            out, the fit stops unconverged.
+        xtol: the smallest stopping tolerance, relative: a step of p_i by at most xtol (|p_i| + xtol)
+            ends the fit even where the standard errors vanish (noise-free data from the model itself;
+            module docstring, stopping).
+        max_replans: adaptive runs at the optimum, to settle the step sequence (module docstring). 0:
+            fit on the sequence planned at the start values (cheaper; the answer then carries the
+            difference between that sequence and the one an adaptive run at the optimum would take).
         substeps: replay every planned step as this many equal steps (1: as planned). Smaller
             replayed steps converge at parameter values further from the plan's without being cut,
             and every cut is a small jump of the fitted curve; the replays cost that many times more,
             and the fitted model is then the run with the finer steps.
-        grid: {name: increasing values}: a global stage before Levenberg-Marquardt. The adaptive run
+        grid: {name: increasing values}: a global stage before the least-squares fit. The adaptive run
             at every point of the grid (the product of the axes; a fitted parameter the grid does not
             name stays at its start value), the observations interpolated multilinearly between the
-            points, and Levenberg-Marquardt started from the minimum of the interpolated misfit
+            points, and the least-squares fit started from the minimum of the interpolated misfit
             instead of the start values. For misfits with several local minima, as where two
             parameters compensate each other and the model's discretisation ripples along the valley
             they leave (mu and R1 on the Nine test). The runs are kept for later fits of the same
             scene and grid (other measurements, e.g. noise draws, cost no simulation;
             :data:`GRID_RUNS`).
-        starts: with a grid, Levenberg-Marquardt from up to this many local minima of the
+        starts: with a grid, least squares from up to this many local minima of the
             interpolated misfit (lowest first, distinct basins:
             :func:`jaxfric.identification.fit_global.surrogate_minima`); the fit with the lowest misfit is the result
             (its ``start``), the others are kept in ``local_fits``. Where the interpolation error of the grid is larger
@@ -158,7 +164,7 @@ class _Problem:
         scene, algorithm, overrides: as given to :func:`fit`; names: the fitted parameters.
         par: the parameterisation; meas: the measurement; edges: window edges (mm) or None;
             observed: the measured observations (force at every point, or window means).
-        lo, hi: (n,) bounds; project: the projection of a point on them.
+        lo, hi: (n,) bounds.
         newton, max_iter, xtol, max_replans, substeps: as given to :func:`fit`.
         model_key: what the simulations depend on besides the parameters (the key of the caches).
         say: prints a progress line (or nothing).
@@ -174,7 +180,6 @@ class _Problem:
     observed: np.ndarray
     lo: np.ndarray
     hi: np.ndarray
-    project: Callable
     newton: NewtonOptions | None
     max_iter: int
     xtol: float
@@ -225,11 +230,10 @@ def _prepare(scene: str, data, names: tuple, *, variant, algorithm, overrides, b
     par = parameterize(scene, names, variant=variant, algorithm=algorithm, overrides=overrides)
     lo, hi = _bounds(names, par.p0, bounds)
     axes = grid_axes(grid, names, lo, hi) if grid else None
-    project = jax.jit(lambda p: optax.projections.projection_box(p, jnp.asarray(lo), jnp.asarray(hi)))
     say = (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)
     model_key = (scene, names, par.scene.variant, algorithm, repr(sorted((overrides or {}).items())), newton)
     problem = _Problem(scene=scene, algorithm=algorithm, overrides=dict(overrides or {}), names=names, par=par,
-                       meas=meas, edges=edges, observed=observed, lo=lo, hi=hi, project=project, newton=newton,
+                       meas=meas, edges=edges, observed=observed, lo=lo, hi=hi, newton=newton,
                        max_iter=max_iter, xtol=xtol, max_replans=max_replans, substeps=substeps,
                        model_key=model_key, say=say)
     return problem, axes
@@ -308,10 +312,10 @@ def _grid_runs(problem: _Problem, axes: list, points: np.ndarray) -> tuple[np.nd
     return obs, rows
 
 
-# ---- the local stage: Levenberg-Marquardt on frozen step sequences ------------------------------------
+# ---- the local stage: least squares on frozen step sequences ------------------------------------------
 
 def _local_stage(problem: _Problem, starts_at: list) -> tuple[dict, list]:
-    """Levenberg-Marquardt from every start (:func:`_local_fit`): the outcome of the lowest misfit
+    """Least squares from every start (:func:`_local_fit`): the outcome of the lowest misfit
     and all outcomes, in the order of the starts. A start other than the first that cannot be
     simulated is left out; the first one's :class:`FitError` is the fit's."""
     outcomes = []
@@ -329,36 +333,41 @@ def _local_stage(problem: _Problem, starts_at: list) -> tuple[dict, list]:
 
 
 def _local_fit(problem: _Problem, p_start: np.ndarray, number: int, count: int) -> dict:
-    """Levenberg-Marquardt from ``p_start`` (start ``number`` of ``count``) on the step sequence
-    planned there, re-planning at the optimum until the sequence settles (module docstring).
+    """Least squares from ``p_start`` (start ``number`` of ``count``) on the step sequence planned there,
+    then the adaptive runs at the optimum until it stops moving (module docstring).
 
-    Returns {cur (the last accepted point, :func:`_evaluate`), converged, message, p_start,
-    start_force, iterations (a row per trial), number}. Raises :class:`FitError` when the start
-    values do not simulate.
+    Returns {cur (the final point, :func:`_evaluate`'s fields), converged, message, p_start, start_force,
+    iterations (a row per simulation), number}. Raises :class:`FitError` when the start values do not
+    simulate.
     """
     names = problem.names
     problem.say(f"fit {problem.scene}: planning the step sequence at "
                 + ", ".join(f"{n} = {v:g}" for n, v in zip(names, p_start)))
-    curve, failure = _planned(problem, p_start)
-    if curve is None:
+    history, failure = _adaptive(problem, p_start)
+    if history is None:
         raise FitError(f"the simulation at the start values does not complete: {failure}")
+    curve, key = _curve(problem, history)
     cur = _evaluate(problem, curve, p_start.copy())
     if not math.isfinite(cur["cost"]):
         raise FitError(f"the replayed step sequence fails at the start values ({describe(cur['code'])})")
     start_force = cur["pointwise"]
-    iterations = [{"iteration": 0, "accepted": True, "cost": cur["cost"], "damping": 1e-3,
-                   **dict(zip(names, cur["p"].tolist()))}]
-    replans = 0
+    iterations = [_row(problem, 0, "replay", True, cur)]
+    compiled = 0
     while True:
-        cur, settled, message = _trials(problem, curve, cur, iterations)
-        again, converged, message = _replan(problem, curve, cur, settled, message, replans)
-        if again is None:
+        cur, message = _trials(problem, curve, cur, iterations)
+        if message or problem.max_replans == 0:
+            converged, history = not message, None
             break
-        replans += 1
-        problem.replans += 1
-        problem.say(f"  re-planned the step sequence at the optimum ({len(again.times)} steps, was {len(curve.times)})")
-        curve = again
+        cur, converged, message, history = _settle(problem, key, cur, iterations)
+        if converged or history is None or compiled >= problem.max_replans:
+            break
+        # The optimum still moves with the adaptive run's steps: fit again on its sequence.
+        compiled += 1
+        curve, key = _curve(problem, history)
+        problem.say("  fitting again on the step sequence of the adaptive run at the optimum "
+                    f"({len(curve.times)} steps)")
         cur = _evaluate(problem, curve, cur["p"])
+        iterations.append(_row(problem, len(iterations), "replay", True, cur))
         if not math.isfinite(cur["cost"]):
             message = f"the re-planned step sequence fails at the fitted values ({describe(cur['code'])})"
             break
@@ -369,78 +378,160 @@ def _local_fit(problem: _Problem, p_start: np.ndarray, number: int, count: int) 
             "start_force": start_force, "iterations": iterations, "number": number}
 
 
-def _trials(problem: _Problem, curve: Curve, cur: dict, iterations: list) -> tuple[dict, bool, str]:
-    """Up to ``max_iter`` Levenberg-Marquardt trials on one step sequence from ``cur`` (damping from
-    1e-3; a row per trial appended to ``iterations``, numbered on from its last). Returns the last
-    accepted point, whether the trials settled (a step below ``xtol``, a zero misfit, or the damping
-    beyond 1e12, which also gives a message) and that message ("" otherwise)."""
-    names, damping = problem.names, 1e-3
-    for _ in range(problem.max_iter):
-        k = len(iterations)
-        dp = _lm_step(cur["jac"], cur["r"], damping)
-        trial = np.asarray(problem.project(optax.apply_updates(jnp.asarray(cur["p"]), jnp.asarray(dp))))
-        new = _evaluate(problem, curve, trial)
-        accepted = new["cost"] <= cur["cost"]
-        iterations.append({"iteration": k, "accepted": bool(accepted), "cost": new["cost"], "damping": damping,
-                           **dict(zip(names, trial.tolist()))})
-        problem.say(f"  trial {k}: misfit {new['cost']:.6g} ({'accepted' if accepted else 'rejected'}, "
-                    f"{new['cuts']} cutbacks) at " + ", ".join(f"{n} = {v:.10g}" for n, v in zip(names, trial)))
+class _Settled(Exception):
+    """Raised by the least-squares objective when the solver's next trial moves no parameter by more
+    than its stopping tolerance: the trust region has shrunk below what the data resolve."""
+
+
+def _trials(problem: _Problem, curve: Curve, cur: dict, iterations: list) -> tuple[dict, str]:
+    """Bounded least squares (``scipy.optimize.least_squares``, trust-region reflective, the Jacobian
+    from the replay's forward-mode derivative) on one step sequence from ``cur``, stopped by
+    :func:`_converged` or when the solver's trial steps fall below the same tolerance (the misfit no
+    longer decreasing along steps the data cannot resolve: the sequence's discretisation noise), or
+    after ``max_iter`` trials. A row per trial is appended to ``iterations``. Returns the last
+    accepted point and "" or, where the trials ran out, why."""
+    from scipy.optimize import least_squares
+
+    names, best, calls = problem.names, {"point": cur}, [0]
+
+    def objective(p):
+        point = best["point"]
+        calls[0] += 1
+        if np.array_equal(p, point["p"]):
+            return point["r"]
+        if calls[0] > 1 and np.all(np.abs(p - point["p"]) <= _tolerance(problem, point)):
+            raise _Settled
+        # (the first call is the start, which least_squares moves off a bound it lies on: evaluated)
+        new = _evaluate(problem, curve, np.asarray(p, float).copy())
+        accepted = new["cost"] < point["cost"] or calls[0] == 1  # least_squares': a decrease of the misfit
+        iterations.append(_row(problem, len(iterations), "replay", accepted, new))
+        verdict = "accepted" if accepted else "rejected"
+        problem.say(f"  trial {len(iterations) - 1}: misfit {new['cost']:.6g} ({verdict}, {new['cuts']} cutbacks) at "
+                    + ", ".join(f"{n} = {v:.10g}" for n, v in zip(names, p)))
         if accepted:
-            moved = np.abs(trial - cur["p"])
-            cur, damping = new, max(damping / 3.0, 1e-9)
-            if np.all(moved <= problem.xtol * (np.abs(trial) + problem.xtol)) or cur["cost"] == 0.0:
-                return cur, True, ""
-        else:
-            damping *= 10.0
-            if damping > 1e12:
-                return cur, True, "no decrease of the misfit even with very small steps (damping > 1e12)"
-    return cur, False, ""
+            best["point"] = new
+        return new["r"] if math.isfinite(new["cost"]) else np.full_like(point["r"], np.nan)
+
+    def jacobian(p):
+        return best["point"]["jac"]  # called at accepted points only, the last one evaluated
+
+    def stop(intermediate_result):
+        if _converged(problem, best["point"]):
+            raise StopIteration
+
+    if _converged(problem, cur):
+        return cur, ""
+    try:
+        out = least_squares(objective, cur["p"], jac=jacobian, bounds=(problem.lo, problem.hi), method="trf",
+                            x_scale="jac", xtol=problem.xtol, ftol=None, gtol=None, max_nfev=problem.max_iter + 1,
+                            callback=stop)
+        ran_out = out.status == 0
+    except _Settled:
+        ran_out = False
+    cur = best["point"]
+    return cur, (f"no convergence in {problem.max_iter} trials on one step sequence" if ran_out else "")
 
 
-def _replan(problem: _Problem, curve: Curve, cur: dict, settled: bool, message: str,
-            replans: int) -> tuple[Curve | None, bool, str]:
-    """After the trials on ``curve`` (``replans`` re-plans so far): the curve of the adaptive run at
-    the optimum when the fit goes on there, else None, whether it converged and why it stopped."""
-    # Trials that stall on one sequence (a replay that cuts a step at some trial points moves the
-    # curve by a small jump, which Levenberg-Marquardt cannot step over) still moved the point:
-    # re-plan there while re-plans are left.
-    stalled = not settled
-    if stalled and replans >= problem.max_replans:
-        return None, False, f"no convergence in {problem.max_iter} trials on this step sequence"
-    if message:
-        return None, False, message
-    if problem.max_replans == 0:
-        return None, True, ""
-    # Re-plan at the optimum: the answer must hold for the adaptive run at these values.
-    again, failure = _planned(problem, cur["p"])
-    if again is None:
-        return None, False, f"the adaptive run at the fitted values does not complete: {failure}"
-    if again.same_plan(curve):
-        return None, not stalled, (f"no convergence in {problem.max_iter} trials on the step sequence of the "
-                                   "adaptive run at the fitted values" if stalled else "")
-    if replans >= problem.max_replans:
-        return None, False, f"the step sequence still changed after {problem.max_replans} re-plans"
-    return again, False, ""
+def _settle(problem: _Problem, key: tuple, cur: dict, iterations: list) -> tuple[dict, bool, str, dict | None]:
+    """The adaptive run at the optimum ``cur`` of the sequence whose curve has the key ``key``, and
+    Gauss-Newton steps on the adaptive runs with ``cur``'s Jacobian (the sequences differ by a few
+    steps, their Jacobians by little) until a step falls within :func:`_tolerance`: then the adaptive
+    run reproduces the data best there, to the accuracy the data resolve. At most ``max_replans``
+    adaptive runs; each is a row of ``iterations``. Returns (the final point, converged, message, the
+    last adaptive run's history when the steps did not settle, to fit on its sequence, else None)."""
+    point, p, history = cur, cur["p"], None
+    for k in range(problem.max_replans):
+        history, failure = _adaptive(problem, p)
+        problem.replans += 1
+        if history is None:
+            return point, False, f"the adaptive run at the fitted values does not complete: {failure}", None
+        if k == 0 and _curve_key(problem, history) == key:
+            problem.say("  the adaptive run at the optimum takes the fitted step sequence")
+            return point, True, "", None
+        r = observations(history, problem.meas.displacement, problem.edges) - problem.observed
+        point = {**point, "p": p, "r": r, "cost": 0.5 * float(r @ r),
+                 "pointwise": observations(history, problem.meas.displacement, None)}
+        iterations.append(_row(problem, len(iterations), "adaptive", True, point))
+        step = _gauss_newton_step(problem, point)
+        problem.say(f"  adaptive run at the optimum: misfit {point['cost']:.6g}, Gauss-Newton step "
+                    + ", ".join(f"{n} {d:+.3g}" for n, d in zip(problem.names, step)))
+        if np.all(np.abs(step) <= _tolerance(problem, point)):
+            return point, True, "", None
+        p = point["p"] + step
+    return point, False, (f"the optimum still moved with the adaptive run's steps after {problem.max_replans} "
+                          "adaptive runs"), history
 
 
-def _planned(problem: _Problem, p: np.ndarray) -> tuple[Curve | None, str]:
-    """A curve on the step sequence of the adaptive run at ``p`` (compiled once per sequence: kept in
-    :data:`CURVES`); None and the reason if the run fails. Raises ValueError when
-    the measurement reaches beyond the simulated stroke."""
+STOP_FRACTION = 0.1  # a step moving every parameter by at most this fraction of its standard error ends the fit
+
+
+def _covariance(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Gauss-Newton covariance s^2 (J^T J)^-1, s^2 = |r|^2 / (m - n) (module docstring); inf where
+    J^T J is singular."""
+    m, n = jac.shape
+    try:
+        return (r @ r) / max(m - n, 1) * np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return np.full((n, n), np.inf)
+
+
+def _tolerance(problem: _Problem, point: dict) -> np.ndarray:
+    """Per parameter, the step below which the fit stops: ``STOP_FRACTION`` of its standard error at
+    ``point``, and never below ``xtol`` (|p_i| + ``xtol``) (noise-free data from the model itself, whose
+    standard errors vanish at the optimum)."""
+    err = np.sqrt(np.maximum(np.diag(_covariance(point["jac"], point["r"])), 0.0))
+    return np.maximum(STOP_FRACTION * err, problem.xtol * (np.abs(point["p"]) + problem.xtol))
+
+
+def _gauss_newton_step(problem: _Problem, point: dict) -> np.ndarray:
+    """The Gauss-Newton step from ``point`` (least-squares solution of J dp = -r), shortened to stay
+    inside the bounds."""
+    step = np.linalg.lstsq(point["jac"], -point["r"], rcond=None)[0]
+    return np.clip(point["p"] + step, problem.lo, problem.hi) - point["p"]
+
+
+def _converged(problem: _Problem, point: dict) -> bool:
+    """Whether the Gauss-Newton step from ``point`` moves no parameter by more than :func:`_tolerance`
+    (or the misfit is zero)."""
+    return point["cost"] == 0.0 or bool(np.all(np.abs(_gauss_newton_step(problem, point))
+                                               <= _tolerance(problem, point)))
+
+
+def _row(problem: _Problem, k: int, run: str, accepted: bool, point: dict) -> dict:
+    """A row of the fit's history: the simulation ``k`` (``run``: "replay" of the frozen sequence or
+    "adaptive" run), whether it was accepted, its misfit and parameters."""
+    return {"iteration": k, "run": run, "accepted": bool(accepted), "cost": point["cost"],
+            **dict(zip(problem.names, np.asarray(point["p"]).tolist()))}
+
+
+def _adaptive(problem: _Problem, p: np.ndarray) -> tuple[dict | None, str]:
+    """The history of the adaptive run at ``p``, or None and why it failed. Raises ValueError when the
+    measurement reaches beyond the simulated stroke."""
     res = adaptive_run(problem.par, p, problem.newton)
     problem.simulations += 1
     if not res.converged:
         return None, res.message
-    history, meas, edges = res.history, problem.meas, problem.edges
-    top = float(np.max(history["drawing_displacement"]))
-    if meas.displacement[-1] > top * (1 + 1e-12):
-        raise ValueError(f"measurement {meas.source!r} reaches drawing_displacement {meas.displacement[-1]:g} "
-                         f"mm, beyond the simulated stroke {top:g} mm (raise the scene's stroke field)")
-    key = (*problem.model_key, history["time"].tobytes(), meas.displacement.tobytes(),
-           None if edges is None else edges.tobytes(), problem.substeps)
-    curve = CURVES.get(key, lambda: Curve(problem.par, refined_plan(history, problem.substeps), meas.displacement,
-                                          edges, problem.newton))
-    return curve, ""
+    top = float(np.max(res.history["drawing_displacement"]))
+    if problem.meas.displacement[-1] > top * (1 + 1e-12):
+        raise ValueError(f"measurement {problem.meas.source!r} reaches drawing_displacement "
+                         f"{problem.meas.displacement[-1]:g} mm, beyond the simulated stroke {top:g} mm (raise the "
+                         "scene's stroke field)")
+    return res.history, ""
+
+
+def _curve_key(problem: _Problem, history: dict) -> tuple:
+    """What a compiled curve along ``history``'s step sequence depends on (its key in :data:`CURVES`)."""
+    edges = problem.edges
+    return (*problem.model_key, np.asarray(history["time"]).tobytes(), problem.meas.displacement.tobytes(),
+            None if edges is None else edges.tobytes(), problem.substeps)
+
+
+def _curve(problem: _Problem, history: dict) -> tuple[Curve, tuple]:
+    """The curve along the step sequence of ``history`` (compiled once per sequence: kept in
+    :data:`CURVES`) and its key there."""
+    key = _curve_key(problem, history)
+    return CURVES.get(key, lambda: Curve(problem.par, refined_plan(history, problem.substeps),
+                                         problem.meas.displacement, problem.edges, problem.newton)), key
 
 
 def _evaluate(problem: _Problem, curve: Curve, p: np.ndarray) -> dict:
@@ -451,14 +542,6 @@ def _evaluate(problem: _Problem, curve: Curve, p: np.ndarray) -> dict:
     r = obs - problem.observed
     cost = 0.5 * float(r @ r) if code == Result.SUCCESS and np.all(np.isfinite(r)) else math.inf
     return {"p": p, "r": r, "jac": jac, "pointwise": pointwise, "cost": cost, "code": code, "cuts": cuts}
-
-
-def _lm_step(jac, r, damping):
-    """Levenberg-Marquardt step: (J^T J + damping diag(J^T J)) dp = -J^T r."""
-    a = jac.T @ jac
-    d = np.diag(a).copy()
-    d[d <= 0] = 1.0
-    return np.linalg.solve(a + damping * np.diag(d), -jac.T @ r)
 
 
 # ---- the result --------------------------------------------------------------------------------------
@@ -472,11 +555,7 @@ def _result(problem: _Problem, best: dict, outcomes: list, grid_rows: list, t_st
     names, cur = problem.names, best["cur"]
     p, r, jac = cur["p"], cur["r"], cur["jac"]
     m, n = len(r), len(names)
-    s2 = 2.0 * cur["cost"] / max(m - n, 1)
-    try:
-        cov = s2 * np.linalg.inv(jac.T @ jac)
-    except np.linalg.LinAlgError:
-        cov = np.full((n, n), np.inf)
+    cov = _covariance(jac, r)
     err = np.sqrt(np.maximum(np.diag(cov), 0.0))
     q = float(student_t.ppf(0.975, max(m - n, 1)))
     return FitResult(

@@ -1,6 +1,6 @@
 """The global stage of an identification (:func:`jaxfric.identification.fit.fit` with a ``grid``): the grid of
 parameter values at which adaptive runs are made, and the minima of the misfit of the observations
-interpolated multilinearly between them, from which Levenberg-Marquardt starts.
+interpolated multilinearly between them, from which the least-squares fit starts.
 """
 
 from __future__ import annotations

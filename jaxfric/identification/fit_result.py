@@ -32,7 +32,8 @@ class FitResult:
             planning runs and frozen-sequence runs, each frozen-sequence run with its n forward-mode tangents);
             n_replans: adaptive runs after the first.
         wall_s: total wall time (s), compilation included; converged; message.
-        iterations: per accepted or rejected trial, a dict (iteration, accepted, cost, damping, params).
+        iterations: per simulation of the local stage, a dict (iteration, run: "replay" of the frozen
+            sequence or "adaptive" run at the optimum, accepted, cost, params).
         measurement: the :class:`Measurement`; fitted_force, start_force: simulated force at the
             measured displacements (pointwise, whatever ``window``), at the optimum and at the start.
         grid: the global stage (``grid`` argument): per grid point, a dict of its parameters, its
@@ -149,7 +150,7 @@ def _plot(result: FitResult, path: str) -> None:
     its = [row for row in result.iterations if row["accepted"] and row.get("start", kept) == kept]
     bx.semilogy([row["iteration"] for row in its], [max(row["cost"], 1e-300) for row in its], "o-", color="k",
                 label="misfit |r|^2/2 (accepted)")
-    bx.set_xlabel("Levenberg-Marquardt trial")
+    bx.set_xlabel("simulation of the fit (frozen-sequence replays, then adaptive runs)")
     bx.set_ylabel("misfit (N/mm)^2")
     bx.grid(alpha=0.3)
     cx = bx.twinx()
@@ -170,7 +171,7 @@ def _plot(result: FitResult, path: str) -> None:
 
 def _plot_grid(result: FitResult, live: list, ax) -> None:
     """The global stage: misfit of every grid run (log colour; x: failed run) and the path of the
-    Levenberg-Marquardt iterates from the chosen start."""
+    least-squares iterates from the chosen start."""
     import matplotlib.colors as mcolors
 
     rows = result.grid
@@ -193,7 +194,7 @@ def _plot_grid(result: FitResult, live: list, ax) -> None:
         if bad:
             ax.plot([r[a] for r in bad], [r[b] for r in bad], "x", color="0.5", label="run failed")
         ax.plot([r[a] for r in its], [r[b] for r in its], ".-", color="tab:red", ms=4, lw=1,
-                label="Levenberg-Marquardt iterates")
+                label="least-squares iterates")
         ax.plot(result.start[a], result.start[b], "s", mfc="none", color="tab:blue",
                 label="start (interpolated minimum)")
         ax.figure.colorbar(sc, ax=ax, label="misfit (N/mm)^2")
