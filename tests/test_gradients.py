@@ -26,7 +26,8 @@ failures for the reasons in ``KNOWN``.
 
 Cases ``*_exact`` run with exact contact (``lcp_ssn``), whose steps are differentiated on their
 converged active set (:mod:`jaxfric.contact.exact_derivative`); there too a central difference must
-not cross a status switch, so h is chosen below the nearest one (``REL_H``).
+not cross a status switch, so h is chosen below the nearest one (``REL_H``), and checked: at p +/- h
+every row's counts of closed and slipping pairs must equal those at p.
 
 Each scene runs a short path at a coarse mesh; all are ``slow`` (``make test-all``): even the flat
 die compiles four replays (90 s on two cores), more than the 10-minute fast suite can hold.
@@ -73,8 +74,12 @@ CASES = {
                    NewtonOptions(rtol=1e-12, atol=1e-8, max_iterations=60)),
     "blankholder_exact": ("shape3", {"element_length": 2.0, "U_pull": 1.0}, ["R", "H", "mu", "F_clamp"],
                           NewtonOptions(rtol=1e-11, atol=1e-9, max_iterations=60)),
+    # The augmented Lagrangian, whose penalty (1e7 N/mm/mm, a hundredth of the flat die's) leaves
+    # penetrations above the target gap, so its steps augment: reverse mode through its Uzawa loop.
+    "flat_die_auglag": ("const_force", {"mesh": "12x1", "U_draw": 0.01, "eps_n": 1e7, "eps_t": 1e7,
+                                        "target_gap": 1e-8}, ["mu", "F_clamp", "E", "sigma_y"], TIGHT),
 }
-ALGORITHM = {case: "lcp_ssn" for case in CASES if case.endswith("_exact")}
+ALGORITHM = {**{case: "lcp_ssn" for case in CASES if case.endswith("_exact")}, "flat_die_auglag": "auglag"}
 # Relative steps h / |p| other than 1e-4, by case, and by parameter within a case. The tool-geometry
 # columns differ from their differences at h = 1e-4 |p| by truncation (the force is strongly curved
 # in the geometry), not by a wrong derivative: blankholder R and H (smoothed law) by 0.6 % and 0.14 %
@@ -91,17 +96,18 @@ ADAPTIVE_FD = {"nine", "nine_smoothed", "nine_exact"}
 
 def _check(case):
     variant, overrides, names, newton = CASES[case]
-    scene = case.split("_smoothed")[0].split("_exact")[0]
+    scene = case.split("_smoothed")[0].split("_exact")[0].split("_auglag")[0]
     par = parameterize(scene, names, variant=variant, algorithm=ALGORITHM.get(case, "penalty"), overrides=overrides)
     forward, backward = path_function(par, newton=newton), path_function(par, newton=newton, reverse=True)
 
     def outputs(p, f=forward):
         h, code = f(p)
         last = h.n_rows - 1
-        return jnp.stack([h.observed["drawing_force"][last], h.observed["clamping_force"][last]]), code
+        forces = jnp.stack([h.observed["drawing_force"][last], h.observed["clamping_force"][last]])
+        return forces, code, jnp.stack([h.observed["n_active"], h.observed["n_slip"]])
 
     p0 = jnp.asarray(par.p0)
-    value, code = jax.jit(outputs)(p0)
+    value, code, _ = jax.jit(outputs)(p0)
     assert int(code) == 0
     # A replay that stops early returns the rows before the failure: its derivatives would be those of
     # another quantity, so the replay must complete before any comparison.
@@ -120,12 +126,18 @@ def _check(case):
     # replay could cut a step at one of them and change the path). On Nine the fixed replay fails at
     # R1 +/- h (a step at the edge of Newton's convergence), so there the adaptive replay is used.
     primal = jax.jit(lambda p: outputs(p, along))
+    status = np.asarray(primal(p0)[2])
     fd = np.zeros_like(jac_fwd)
     for i, name in enumerate(names):
         rel = REL_H.get(case, 1e-4)
         h = (rel.get(name, 1e-4) if isinstance(rel, dict) else rel) * abs(float(p0[i]))
-        (up, c1), (down, c2) = primal(p0.at[i].add(h)), primal(p0.at[i].add(-h))
+        (up, c1, s1), (down, c2, s2) = primal(p0.at[i].add(h)), primal(p0.at[i].add(-h))
         assert int(c1) == 0 and int(c2) == 0, f"{scene}: replay fails at {name} +/- h"
+        if ALGORITHM.get(case) == "lcp_ssn":
+            # Exact contact: the difference must not cross a status switch (the derivative is that of
+            # the converged active set). Checked on the closed and slipping counts of every row.
+            changed = np.flatnonzero(np.any((np.asarray(s1) != status) | (np.asarray(s2) != status), axis=0))
+            assert changed.size == 0, f"{scene}: {name} +/- {h:.3g} changes pair statuses at rows {changed[:8]}"
         fd[:, i] = (np.asarray(up) - np.asarray(down)) / (2 * h)
     assert np.all(np.isfinite(fd)) and np.any(jac_fwd != 0)
     np.testing.assert_allclose(jac_fwd / scale, fd / scale, atol=1e-5,
@@ -135,6 +147,13 @@ def _check(case):
 @pytest.mark.slow  # 90 s on two cores (four compiled replays); the fast suite keeps test_derivatives.py
 def test_flat_die_derivatives_of_every_parameter():
     _check("flat_die")
+
+
+@pytest.mark.slow  # about 3 min on one core
+def test_augmented_lagrangian_derivatives_in_forward_and_reverse_mode():
+    """The Uzawa loop of every step is a scan of known length (jaxfric.contact.formulations), so
+    reverse mode differentiates it like penalty's steps."""
+    _check("flat_die_auglag")
 
 
 KNOWN_EXACT = {

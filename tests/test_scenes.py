@@ -213,12 +213,13 @@ def test_nine_geometry():
         assert abs(centre[k][1] + radius[k]) < 1e-12
     np.testing.assert_allclose(_gaps(tools["B"], [[11.97, t]]), 0.0, atol=1e-12)
     np.testing.assert_allclose(_gaps(tools["A"], [[0.0, 0.0]]), 0.0, atol=1e-12)
-    # Candidates: bottom surface vs A, C, E; top surface vs B, D. B is driven down by the stroke.
+    # Candidates: bottom surface vs A, C, E; top surface vs B, D, less the pulled end's corner (held in
+    # both directions). B is driven down by the stroke.
     mesh = scene.model.mesh
     for k in ("A", "C", "E"):
-        assert tools[k].candidates == tuple(int(a) for a in mesh.bottom)
+        assert tools[k].candidates == tuple(int(a) for a in mesh.bottom if a not in mesh.right)
     for k in ("B", "D"):
-        assert tools[k].candidates == tuple(int(a) for a in mesh.top)
+        assert tools[k].candidates == tuple(int(a) for a in mesh.top if a not in mesh.right)
     np.testing.assert_array_equal(np.asarray(tools["B"].drive), [0.0, -1.0])
     assert float(tools["B"].controls[0].end) == 11.0 and float(tools["B"].controls[1].end) == 0.0
     assert scene.clamping_tool == 1 and scene.instants == ("clamped", "steady", "final")
@@ -307,12 +308,19 @@ def test_blankholder_tools_at_rest():
     t, H = 1.0, 12.0
     # The nose top touches the sheet bottom at x = 0, the lands touch the sheet top, lower lands H below.
     np.testing.assert_allclose(_gaps(lower, [[0.0, 0.0]]), 0.0, atol=1e-12)
-    np.testing.assert_allclose(_gaps(lower, [[-50.0, 0.0], [50.0, 0.0]]), H, atol=1e-12)
+    np.testing.assert_allclose(_gaps(lower, [[-50.0, 0.0], [40.0, 0.0]]), H, atol=1e-12)
     np.testing.assert_allclose(_gaps(upper, [[-30.0, t], [30.0, t]]), 0.0, atol=1e-12)
     # Closure s = H: the lower lands reach y = 0; flanks exist since H > R.
     np.testing.assert_allclose(_gaps(lower, [[-50.0, 0.0]], offset=(0.0, H)), 0.0, atol=1e-12)
-    assert len(lower.geometry.primitives) == 5 and len(make("blankholder", "shape9", overrides=COARSE[
-        "blankholder"]).model.tools[1].geometry.primitives) == 3
+    # Downstream the lower land ends under the upper land's edge, x_g + L = 43.238, in an edge arc of
+    # r_e = 2 mm (centre 2 mm below the land's end): a point on the land's line 1 mm beyond the end is
+    # sqrt(5) - 2 from the arc; the spec's land ("far") goes on.
+    end = blankholder.groove_geometry(scene.config)["x_g"] + 25.0
+    np.testing.assert_allclose(_gaps(lower, [[end + 1.0, 0.0]], offset=(0.0, H)), math.sqrt(5.0) - 2.0, atol=1e-12)
+    far = make("blankholder", "shape6", overrides={**COARSE["blankholder"], "downstream_land": "far"})
+    np.testing.assert_allclose(_gaps(far.model.tools[1], [[50.0, 0.0]], offset=(0.0, H)), 0.0, atol=1e-12)
+    assert len(lower.geometry.primitives) == 6 and len(far.model.tools[1].geometry.primitives) == 5
+    assert len(make("blankholder", "shape9", overrides=COARSE["blankholder"]).model.tools[1].geometry.primitives) == 4
     assert float(lower.controls[0].end) == H and lower.controls[1].start is None
     assert scene.roi == pytest.approx((-28.238, 28.238, -3.0, 17.0), abs=1e-3)
 

@@ -290,11 +290,17 @@ class AugmentedLagrangian(_Regularised):
             code = jnp.where(exhausted, Result.AUGMENTATIONS, new.code).astype(jnp.int32)
             return new._replace(code=code), n_aug + 1, iters + new.iterations, jnp.maximum(hardest, new.iterations)
 
+        def bounded(c, _):
+            return jax.lax.cond(pending(c), body, lambda c: c, c), None
+
         shape = eqx.filter_eval_shape(solve, args, args.contact.lam_n, args.contact.lam_t, x0)
         sol0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shape)
         int0 = jnp.array(0, jnp.int32)
-        sol, n_aug, iters, hardest = jax.lax.while_loop(pending, body,
-                                                        (sol0, jnp.array(-1, jnp.int32), int0, int0))
+        # A scan of the first solve and every allowed augmentation, the passes after the last needed one
+        # skipped, rather than a while_loop: the same passes, and reverse mode (jax.grad through
+        # simulate_fixed) can differentiate a loop of known length.
+        (sol, n_aug, iters, hardest), _ = jax.lax.scan(bounded, (sol0, jnp.array(-1, jnp.int32), int0, int0),
+                                                       length=self.max_augmentations + 1)
         return StepSolution(sol.x, sol.aux, iters, sol.code, sol.residual_norm, sol.residual_history, n_aug,
                             jnp.zeros(3, jnp.int32), hardest)
 

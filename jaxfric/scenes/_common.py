@@ -168,6 +168,23 @@ def n_steps(field: str, length: float, increment: float) -> int:
 
 # ---- per-step columns -------------------------------------------------------------------------------
 
+def movable(nodes, phases) -> np.ndarray:
+    """``nodes`` (the candidates of a tool) less those held in both directions in every phase (a grip, a
+    jaw): such a node cannot move, and a tool touching it would share its reaction with the grip in no
+    determined way (the split moves force between a tool and the grip's reaction, and exact contact has
+    no derivative there), so the tools act on the sheet's movable nodes only."""
+    held = None
+    for phase in phases:
+        both: dict[int, set] = {}
+        for bc in phase.bcs:
+            for n in bc.nodes:
+                both.setdefault(n, set()).update(bc.components)
+        here = {n for n, components in both.items() if components == {0, 1}}
+        held = here if held is None else held & here
+    nodes = np.asarray(nodes).ravel()
+    return nodes[~np.isin(nodes, sorted(held or ()))]
+
+
 def pair_forces(state) -> jnp.ndarray:
     """(m, 2) force on the sheet of every pair, f = R_N n + R_T t with t = (-n_y, n_x) (N/mm)."""
     c = state.contact

@@ -9,7 +9,8 @@ The jaw is a rigid map of all nodes with initial X >= x_jaw:
     x = O + Q(theta) (X - O) + s d(theta),   Q(theta) = [[cos, sin], [-sin, cos]]  (clockwise)
 
 Tools, in order: ``die_up`` (force-driven, e_q = (0, -1), candidates: top surface), ``die_lo`` (fixed,
-bottom surface), ``roller`` (fixed full circle, bottom surface). The clamping tool is ``die_up``.
+bottom surface), ``roller`` (fixed full circle, bottom surface), each less the jaw's nodes, which the jaw
+holds in both directions in every phase (``_common.movable``). The clamping tool is ``die_up``.
 
 Values tagged [chosen] in the spec (section 9), all config fields here:
 - ``t`` = 1.5 mm; strip x in [-100, 100];
@@ -202,10 +203,11 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
     fixed = (Move(0.0, 0.0),) * 3
     mu_c = config.mu_clamp if config.mu_clamp > 0 else 0.0
     mu_r = config.mu_roller if config.mu_roller > 0 else 0.0
-    tools = (RigidTool("die_up", upper, (0.0, -1.0), mesh.top,
+    top, bottom = cm.movable(mesh.top, phases), cm.movable(mesh.bottom, phases)  # not the jaw's nodes
+    tools = (RigidTool("die_up", upper, (0.0, -1.0), top,
                        (Force(P, start=0.0), Force(P, start=P), Force(P, start=P)), mu_c, frictional=mu_c > 0),
-             RigidTool("die_lo", lower, (0.0, 1.0), mesh.bottom, fixed, mu_c, frictional=mu_c > 0),
-             RigidTool("roller", roller, (0.0, 1.0), mesh.bottom, fixed, mu_r, frictional=mu_r > 0))
+             RigidTool("die_lo", lower, (0.0, 1.0), bottom, fixed, mu_c, frictional=mu_c > 0),
+             RigidTool("roller", roller, (0.0, 1.0), bottom, fixed, mu_r, frictional=mu_r > 0))
 
     eps_t = cm.resolve_eps_t(config, max(config.mu_clamp, config.mu_roller))
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,

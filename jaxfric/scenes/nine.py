@@ -7,8 +7,9 @@ and E (below, radius R2). The strip is fed through a frictionless entry guide, a
 that ends before A (see below).
 
 Tools, in order: ``A, B, C, D, E`` (full circles), then with the guide ``guide_top, guide_bottom`` (flat
-faces with rounded lips). Candidates: bottom-surface nodes vs A, C, E; top-surface nodes vs B, D; the
-nodes that can enter the channel vs its faces. B is displacement-driven (e_q = (0, -1)); the rest are
+faces with rounded lips). Candidates: bottom-surface nodes vs A, C, E; top-surface nodes vs B, D (less
+the pulled right end's corners, held in both directions: ``_common.movable``); the nodes that can enter
+the channel vs its faces. B is displacement-driven (e_q = (0, -1)); the rest are
 fixed.
 
 Values tagged [chosen] in the spec (section 9), all config fields here:
@@ -248,7 +249,7 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
         seam = 0.5 * math.pi if above[name] else -0.5 * math.pi
         geometry = Tool.circle(centres[name], radii[name], d_capture=config.d_capture, seam=seam)
         drive = (0.0, -1.0) if above[name] else (0.0, 1.0)
-        candidates = mesh.top if above[name] else mesh.bottom
+        candidates = cm.movable(mesh.top if above[name] else mesh.bottom, phases)
         stroke = config.stroke if name == "B" else 0.0
         controls = (Move(0.0, stroke), Move(0.0, 0.0))
         # A tool of mu = 0 is declared frictionless: no friction term is built for it.
