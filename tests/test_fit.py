@@ -364,3 +364,57 @@ def test_fit_api_bad_input_names_the_field(no_simulation, tmp_path, kwargs, fiel
     with pytest.raises((ValueError, TypeError)) as info:
         fit("flat_die", _csv(tmp_path), args.pop("params"), **args)
     assert field in str(info.value) and "\n" not in str(info.value), str(info.value)
+
+
+class _ExponentialCurve:
+    """A stand-in for :class:`jaxfric.identification.fit_curve.Curve`: F(x) = A exp(-k x), its Jacobian
+    in (A, k), and a staircase of height ``step`` added to F (the discretisation noise of a replay,
+    which no Jacobian sees). Counts its evaluations."""
+
+    def __init__(self, x, step=0.0):
+        self.x, self.step, self.calls = x, step, 0
+
+    def __call__(self, p):
+        self.calls += 1
+        a, k = p
+        e = np.exp(-k * self.x)
+        f = a * e
+        if self.step:
+            f = f + self.step * (np.floor(1e4 * a) % 2)
+        return f, np.stack([e, -a * self.x * e], axis=1), f, 0, 0
+
+
+def _problem(observed, **kwargs):
+    from jaxfric.identification import fit as fitting
+
+    defaults = dict(scene="test", algorithm="lcp_ssn", overrides={}, names=("A", "k"), par=None, meas=None,
+                    edges=None, observed=observed, lo=np.zeros(2), hi=np.full(2, np.inf), newton=None,
+                    max_iter=30, xtol=1e-7, max_replans=0, substeps=1, model_key=(), say=lambda text: None)
+    return fitting._Problem(**{**defaults, **kwargs})
+
+
+@pytest.mark.parametrize("step", [0.0, 1e-3])
+def test_least_squares_stops_within_a_tenth_of_the_standard_error(step):
+    """The local stage (scipy's least_squares) on a nonlinear model with noisy data: it ends within a
+    tenth of a standard error of the least-squares optimum (scipy run to 1e-12 on the smooth model) in
+    a few evaluations, also when the model carries a staircase the Jacobian does not see (then by the
+    solver's trial steps shrinking below that tolerance, not by running out of trials)."""
+    from scipy.optimize import least_squares
+
+    from jaxfric.identification import fit as fitting
+
+    x = np.linspace(0.0, 2.0, 40)
+    rng = np.random.default_rng(5)
+    data = 3.0 * np.exp(-1.3 * x) + 0.02 * rng.standard_normal(x.size)
+    problem = _problem(data)
+    curve = _ExponentialCurve(x, step)
+    cur = fitting._evaluate(problem, curve, np.array([1.0, 0.5]))
+    rows = []
+    end, message = fitting._trials(problem, curve, cur, rows)
+    assert message == ""
+    smooth = _ExponentialCurve(x)
+    best = least_squares(lambda p: smooth(p)[0] - data, [1.0, 0.5], jac=lambda p: smooth(p)[1], xtol=1e-12,
+                         ftol=1e-12, gtol=1e-12).x
+    err = np.sqrt(np.diag(fitting._covariance(end["jac"], end["r"])))
+    assert np.all(np.abs(end["p"] - best) <= 0.1 * err + 2 * step), (end["p"], best, err)
+    assert curve.calls <= 10 and len(rows) == curve.calls - 1
