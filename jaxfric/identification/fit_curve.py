@@ -52,10 +52,6 @@ class Curve:
 
         self._fn = jax.jit(jax.jacfwd(curve, has_aux=True))
 
-    def same_plan(self, other: Curve) -> bool:
-        """Whether ``other`` replays the same step sequence (step end times equal to 1e-12)."""
-        return self.times.shape == other.times.shape and np.allclose(self.times, other.times, rtol=0, atol=1e-12)
-
     def __call__(self, p):
         jac, (obs, pointwise, code, cuts) = self._fn(jnp.asarray(p, jnp.float64))
         return np.asarray(obs), np.asarray(jac), np.asarray(pointwise), int(code), int(cuts)

@@ -24,7 +24,9 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
   lands' friction is that much smaller. Ended with the upper land, the lower one sends the whole
   clamping force through the clamped sheet (upper die 341 and 332 N/mm), and the steady drawing force
   is 182.6 N/mm on shape1 (164.6 with "far") and 142.6 on shape9 (115.6). The spec's own reason for X_far,
-  that the unclamped upstream tail cannot swing below the lands, holds upstream only.
+  that the unclamped upstream tail cannot swing below the lands, holds upstream only. The grip's nodes
+  stay candidates (unlike the Nine's and the bead's, ``_common.movable``), so that "far" is the spec's
+  model exactly; with "clamp" no tool reaches them.
 - sheet extent x_left = -(x_g + L + U_pull + ``upstream_margin``), x_right = x_g + L + ``grip_length``
   (20 and 10 mm) and nx = round((x_right - x_left) / ``element_length``) with 0.5 mm (all derived when
   None; 2 layers ny = 2 [paper]);
