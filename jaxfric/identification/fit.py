@@ -475,11 +475,16 @@ def _covariance(jac: np.ndarray, r: np.ndarray) -> np.ndarray:
         return np.full((n, n), np.inf)
 
 
+def _standard_errors(cov: np.ndarray) -> np.ndarray:
+    """The square roots of the covariance's diagonal (0 where round-off leaves it negative)."""
+    return np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+
 def _tolerance(problem: _Problem, point: dict) -> np.ndarray:
     """Per parameter, the step below which the fit stops: ``STOP_FRACTION`` of its standard error at
     ``point``, and never below ``xtol`` (|p_i| + ``xtol``) (noise-free data from the model itself, whose
     standard errors vanish at the optimum)."""
-    err = np.sqrt(np.maximum(np.diag(_covariance(point["jac"], point["r"])), 0.0))
+    err = _standard_errors(_covariance(point["jac"], point["r"]))
     return np.maximum(STOP_FRACTION * err, problem.xtol * (np.abs(point["p"]) + problem.xtol))
 
 
@@ -556,7 +561,7 @@ def _result(problem: _Problem, best: dict, outcomes: list, grid_rows: list, t_st
     p, r, jac = cur["p"], cur["r"], cur["jac"]
     m, n = len(r), len(names)
     cov = _covariance(jac, r)
-    err = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    err = _standard_errors(cov)
     q = float(student_t.ppf(0.975, max(m - n, 1)))
     return FitResult(
         scene=problem.scene, variant=problem.par.scene.variant, algorithm=problem.algorithm,

@@ -18,7 +18,7 @@ from ..contact.formulations import ALGORITHMS, STIFF_PENALTY_RATIO
 from ..contact.rigid import max_penetration, split_pairs
 from ..contact.status import SLIP
 from ..contact.tools import GAP_OPEN, Arc, Segment, Tool
-from ..fem.loading import Phase, schedule
+from ..fem.loading import Phase, constraint_masks, schedule
 from ..loadpath.controller import STABILIZE, StepControl
 from ..loadpath.model import reactions
 
@@ -168,21 +168,14 @@ def n_steps(field: str, length: float, increment: float) -> int:
 
 # ---- per-step columns -------------------------------------------------------------------------------
 
-def movable(nodes, phases) -> np.ndarray:
+def movable(mesh, nodes, phases) -> np.ndarray:
     """``nodes`` (the candidates of a tool) less those held in both directions in every phase (a grip, a
     jaw): such a node cannot move, and a tool touching it would share its reaction with the grip in no
     determined way (the split moves force between a tool and the grip's reaction, and exact contact has
     no derivative there), so the tools act on the sheet's movable nodes only."""
-    held = None
-    for phase in phases:
-        both: dict[int, set] = {}
-        for bc in phase.bcs:
-            for n in bc.nodes:
-                both.setdefault(n, set()).update(bc.components)
-        here = {n for n, components in both.items() if components == {0, 1}}
-        held = here if held is None else held & here
+    held = np.asarray(constraint_masks(mesh.n_nodes, phases).all(axis=0).reshape(-1, 2).all(axis=1), bool)
     nodes = np.asarray(nodes).ravel()
-    return nodes[~np.isin(nodes, sorted(held or ()))]
+    return nodes[~held[nodes]]
 
 
 def pair_forces(state) -> jnp.ndarray:

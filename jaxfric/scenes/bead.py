@@ -203,7 +203,7 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
     fixed = (Move(0.0, 0.0),) * 3
     mu_c = config.mu_clamp if config.mu_clamp > 0 else 0.0
     mu_r = config.mu_roller if config.mu_roller > 0 else 0.0
-    top, bottom = cm.movable(mesh.top, phases), cm.movable(mesh.bottom, phases)  # not the jaw's nodes
+    top, bottom = cm.movable(mesh, mesh.top, phases), cm.movable(mesh, mesh.bottom, phases)  # not the jaw's nodes
     tools = (RigidTool("die_up", upper, (0.0, -1.0), top,
                        (Force(P, start=0.0), Force(P, start=P), Force(P, start=P)), mu_c, frictional=mu_c > 0),
              RigidTool("die_lo", lower, (0.0, 1.0), bottom, fixed, mu_c, frictional=mu_c > 0),

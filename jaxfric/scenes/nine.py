@@ -249,7 +249,7 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
         seam = 0.5 * math.pi if above[name] else -0.5 * math.pi
         geometry = Tool.circle(centres[name], radii[name], d_capture=config.d_capture, seam=seam)
         drive = (0.0, -1.0) if above[name] else (0.0, 1.0)
-        candidates = cm.movable(mesh.top if above[name] else mesh.bottom, phases)
+        candidates = cm.movable(mesh, mesh.top if above[name] else mesh.bottom, phases)
         stroke = config.stroke if name == "B" else 0.0
         controls = (Move(0.0, stroke), Move(0.0, 0.0))
         # A tool of mu = 0 is declared frictionless: no friction term is built for it.
