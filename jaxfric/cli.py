@@ -1,9 +1,11 @@
-"""Command line: ``jaxfric scenes``, ``jaxfric run SCENE ...`` (outputs spec section 1) and
-``jaxfric fit SCENE --data CSV --param NAMES ...`` (:mod:`jaxfric.identification.fit`).
+"""Command line: ``jaxfric scenes``, ``jaxfric run SCENE ...`` (outputs spec section 1),
+``jaxfric fit SCENE --data CSV --param NAMES ...`` (:mod:`jaxfric.identification.fit`) and
+``jaxfric design SCENE --target N_PER_MM --param NAMES --bounds ...`` (:mod:`jaxfric.identification.design`).
 
     jaxfric scenes
     jaxfric run nine --variant mu017 --algorithm auglag --mesh 150x3 --set U_draw=40 --out runs/x
     jaxfric fit nine --data runs/x/history.csv --param mu --mesh 100x2 --set U_draw=10 --set mu=0.12
+    jaxfric design blankholder --variant shape3 --target 165 --param R,H --bounds R=3:9 --bounds H=6:9.7
 
 ``run`` builds the scene (:func:`jaxfric.scenes.make`), runs it with a progress bar, writes the run
 directory (:func:`jaxfric.io.output.write_run`) and prints where the files are, the steady drawing force,
@@ -13,7 +15,7 @@ few seconds, with ``summary.json`` saying ``converged: false`` and where the run
 writes everything converged and says how to resume (``--resume DIR``); a second SIGINT stops at once.
 Exit status: 0 on success, 1 when the run stopped early or its files could not all be written (what
 converged is still written), 2 for bad input, 3 when a stop request ended the run. Errors are one line
-on stderr, without traceback. ``run``, ``fit`` and ``report`` keep their compiled programs in JAX's
+on stderr, without traceback. ``run``, ``fit``, ``design`` and ``report`` keep their compiled programs in JAX's
 persistent compilation cache (:mod:`jaxfric.io.cache`: ``~/.cache/jaxfric/xla``; ``JAXFRIC_CACHE_DIR=off``
 turns it off), so a second run of the same configuration in a new process compiles nothing.
 """
@@ -127,6 +129,35 @@ def build_parser() -> argparse.ArgumentParser:
                      help="fit the mean force over windows of this length instead of every point")
     fit.add_argument("--out", action=_Once, metavar="DIR", help="output directory (default fits/SCENE/VARIANT)")
     fit.add_argument("--quiet", action="store_true", help="no progress lines")
+    des = sub.add_parser("design", help="tool dimensions for a target restraining force",
+                         description="Find scene config values (a bead's R and H, the Nine's stroke or R1, the "
+                                     "clamping force) within bounds for which the mean drawing force over the "
+                                     "steady window meets a target (or the force meets a target curve), by "
+                                     "bounded least squares on the forward-mode gradient; writes design.json, "
+                                     "design_history.csv and design.png.")
+    des.add_argument("scene", help="flat_die, bead, nine or blankholder")
+    goal = des.add_mutually_exclusive_group(required=True)
+    goal.add_argument("--target", action=_Once, type=float, metavar="N_PER_MM",
+                      help="restraining force: the mean drawing force over the steady window (N/mm)")
+    goal.add_argument("--target-curve", action=_Once, metavar="CSV",
+                      help="target curve (drawing_displacement, drawing_force), as fit's --data")
+    des.add_argument("--param", action=_Once, required=True, metavar="NAME[,NAME...]",
+                     help="config fields to design, e.g. R,H; their start values are the variant's or --set's")
+    des.add_argument("--bounds", action="append", default=[], metavar="NAME=LOW:HIGH",
+                     help="bounds of every designed parameter (required)")
+    des.add_argument("--variant", action=_Once, help="scene variant (default: the scene's first)")
+    des.add_argument("--algorithm", action=_Once, default="lcp_ssn",
+                     help=f"one of {', '.join(ALGORITHMS)} (default lcp_ssn)")
+    des.add_argument("--mesh", action=_Once, metavar="NXxNY", help="elements along x and through the thickness")
+    des.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
+                     help="override a config field; for a designed field this is its start value")
+    des.add_argument("--window", action=_Once, metavar="A:B or MM",
+                     help="--target: the window A:B (mm) of the mean (default the scene's steady_window); "
+                          "--target-curve: fit means over windows of MM instead of every point")
+    des.add_argument("--rtol", action=_Once, type=float, default=1e-3,
+                     help="the target is met within this relative tolerance (default 1e-3)")
+    des.add_argument("--out", action=_Once, metavar="DIR", help="output directory (default designs/SCENE/VARIANT)")
+    des.add_argument("--quiet", action="store_true", help="no progress lines")
     report = sub.add_parser("report", help="studies across many runs (accuracy-cost)",
                             description="Error against run time: references, the sweep of algorithms, "
                                         "penalties, meshes and steps, Pareto plots and what to pick for "
@@ -200,6 +231,8 @@ def main(argv=None) -> int:
         enable_compilation_cache()
         if args.command == "fit":
             return _fit(args)
+        if args.command == "design":
+            return _design(args)
         if args.command == "report":
             return _report(args)
         return _run(args)
@@ -595,6 +628,60 @@ def _fit(args) -> int:
     if not result.converged:
         return _error(f"fit did not converge (last values written to {out}): {result.message}", EXIT_FAILED)
     return EXIT_OK
+
+
+def _design(args) -> int:
+    _check_scene_args(args)
+    from . import scenes
+    from .identification.design import design, write_design
+    from .identification.fit import FitError
+
+    names = tuple(n.strip() for n in args.param.split(","))
+    if not all(names):
+        raise UsageError(f"--param expects NAME[,NAME...], got {args.param!r}")
+    overrides = _scene_overrides(args)
+    bounds = _bounds(args.bounds, names)
+    variant = args.variant or scenes.default_variant(args.scene)
+    out = os.path.join("designs", args.scene, variant) if args.out is None else args.out
+    if args.target_curve is not None and not os.path.isfile(args.target_curve):
+        raise UsageError(f"--target-curve {args.target_curve!r} is not a file")
+    window = _design_window(args.window, args.target is not None)
+    try:
+        result = design(args.scene, args.target if args.target is not None else args.target_curve, names,
+                        variant=variant, algorithm=args.algorithm, overrides=overrides, bounds=bounds, window=window,
+                        rtol=args.rtol, progress=not args.quiet, ready=lambda: _writable_dir(out))
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    except FitError as err:
+        return _error(f"design failed: {err}", EXIT_FAILED)
+    write_design(result, out)
+    print(f"design directory: {out} (design.json, design_history.csv, design.png)")
+    print(", ".join(f"{n} = {result.params[n]:.6g}" for n in names) + " (start "
+          + ", ".join(f"{n} = {result.start[n]:g}" for n in names) + ")")
+    if result.target is not None:
+        print(f"restraining force {result.force:.6g} N/mm for a target of {result.target:.6g} "
+              f"({100 * (result.force / result.target - 1):+.3g} %; start {result.start_value:.6g}); "
+              + ", ".join(f"dF/d{n} = {v:.4g}" for n, v in result.sensitivity.items()))
+    print(f"{result.n_simulations} simulations, {result.wall_s:.1f} s")
+    if not result.converged:
+        return _error(f"design did not meet the target (last values written to {out}): {result.message}",
+                      EXIT_FAILED)
+    return EXIT_OK
+
+
+def _design_window(text, scalar: bool):
+    """``--window`` of ``design``: A:B (mm) for a restraining force, a length (mm) for a target curve."""
+    if text is None:
+        return None
+    try:
+        if scalar:
+            a, colon, b = text.partition(":")
+            if not colon:
+                raise ValueError
+            return float(a), float(b)
+        return float(text)
+    except ValueError:
+        raise UsageError(f"--window expects {'A:B (mm)' if scalar else 'a length (mm)'}, got {text!r}") from None
 
 
 def _report(args) -> int:

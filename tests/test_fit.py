@@ -390,7 +390,7 @@ def _problem(observed, **kwargs):
     defaults = dict(scene="test", algorithm="lcp_ssn", overrides={}, names=("A", "k"), par=None, meas=None,
                     edges=None, observed=observed, lo=np.zeros(2), hi=np.full(2, np.inf), newton=None,
                     max_iter=30, xtol=1e-7, max_replans=0, substeps=1, model_key=(), say=lambda text: None)
-    return fitting._Problem(**{**defaults, **kwargs})
+    return fitting.Problem(**{**defaults, **kwargs})
 
 
 @pytest.mark.parametrize("step", [0.0, 1e-3])
@@ -418,3 +418,84 @@ def test_least_squares_stops_within_a_tenth_of_the_standard_error(step):
     err = np.sqrt(np.diag(fitting._covariance(end["jac"], end["r"])))
     assert np.all(np.abs(end["p"] - best) <= 0.1 * err + 2 * step), (end["p"], best, err)
     assert curve.calls <= 10 and len(rows) == curve.calls - 1
+
+
+# ---- design (jaxfric design, jaxfric.identification.design) -------------------------------------------
+
+def test_cli_design_meets_a_target_force_and_names_the_reachable_range(tmp_path, capsys):
+    """The flat die's steady force, once the sheet slides, is mu F_clamp (a closed form, not the model):
+    a target of 9 N/mm needs F_clamp = 60 N/mm at mu = 0.15, with dF/dF_clamp = mu. A target of 20 N/mm
+    lies beyond the bounds 10 to 100 N/mm (1.5 to 15 N/mm): the design says so, with that range."""
+    out = tmp_path / "design"
+    code = main(["design", *FLAT, "--target", "9", "--param", "F_clamp", "--bounds", "F_clamp=10:100", "--quiet",
+                 "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    summary = json.loads((out / "design.json").read_text())
+    assert summary["converged"] and summary["message"] == "target met"
+    assert abs(summary["force"] / 9.0 - 1) <= 1e-3 and summary["steady_window"] == [0.02, 0.03]
+    assert summary["params"]["F_clamp"] == pytest.approx(60.0, rel=1e-3)
+    assert summary["sensitivity"]["F_clamp"] == pytest.approx(0.15, rel=1e-6)
+    assert summary["start_force"] == pytest.approx(7.5, rel=1e-6)
+    assert (out / "design.png").stat().st_size > 10_000
+    assert "N/mm for a target of 9 (" in capsys.readouterr().out
+    far = tmp_path / "far"
+    code = main(["design", *FLAT, "--target", "20", "--param", "F_clamp", "--bounds", "F_clamp=10:100", "--quiet",
+                 "--out", str(far)])
+    err = capsys.readouterr().err
+    assert code == 1 and "outside the range reachable within the bounds" in err and err.count("\n") == 1, err
+    summary = json.loads((far / "design.json").read_text())
+    assert not summary["converged"] and summary["params"]["F_clamp"] == pytest.approx(100.0, rel=1e-3)
+    assert summary["reachable"]["low"] == pytest.approx(1.5, rel=1e-6)
+    # At 100 N/mm the force still rises through the elastic stick range early in the window (measured
+    # 14.97 N/mm, 0.2 % under the plateau).
+    assert summary["reachable"]["high"] == pytest.approx(15.0, rel=5e-3)
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--target", "9", "--param", "F_clamp"], "'bounds'"),
+    (["--target", "9", "--param", "F_clamp,mu", "--bounds", "F_clamp=10:100"], "'mu'"),
+    (["--target", "-1", "--param", "F_clamp", "--bounds", "F_clamp=10:100"], "'target'"),
+    (["--target", "9", "--param", "F_clamp", "--bounds", "F_clamp=10:100", "--window", "0.01"], "A:B"),
+    (["--target", "9", "--param", "F_clamp", "--bounds", "F_clamp=10:100", "--window", "0:1"], "'window'"),
+    (["--target", "9", "--param", "F_clamp", "--bounds", "F_clamp=10:100", "--rtol", "2"], "'rtol'"),
+    (["--target", "9", "--param", "F_clamp", "--bounds", "F_clamp=60:100"], "excludes the start value"),
+    (["--target-curve", "none.csv", "--param", "F_clamp", "--bounds", "F_clamp=10:100"], "is not a file"),
+])
+def test_cli_design_refuses_before_making_its_directory(no_simulation, tmp_path, capsys, args, needle):
+    out = tmp_path / "designs" / "o"
+    code = main(["design", *FLAT, "--quiet", "--out", str(out), *args])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert needle in err and err.count("\n") == 1 and "Traceback" not in err, err
+    assert not (tmp_path / "designs").exists()
+
+
+class _TwoDimensionForce:
+    """A stand-in for a bead's restraining force in (R, H), nonlinear and with a cross term: one
+    target, two parameters (a curve of designs meets it)."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def __call__(self, p):
+        self.calls += 1
+        R, H = p
+        f = np.array([100.0 + 12.0 * H - 4.0 * R + 0.3 * H * R - 0.2 * H**2])
+        jac = np.array([[-4.0 + 0.3 * H, 12.0 + 0.3 * R - 0.4 * H]])
+        return f, jac, f, 0, 0
+
+
+def test_design_with_more_parameters_than_targets_stops_once_the_target_is_met():
+    """One restraining force, two dimensions: no standard errors exist (as many parameters as
+    observations or more), so a design stops on its tolerance on the target, in a few evaluations."""
+    from jaxfric.identification import fit as fitting
+
+    target = 165.0
+    problem = _problem(np.array([target]), names=("R", "H"), lo=np.array([3.0, 6.0]), hi=np.array([9.0, 9.7]),
+                       rtol=1e-3, task="design")
+    curve = _TwoDimensionForce()
+    cur = fitting._evaluate(problem, curve, np.array([6.0, 9.0]))
+    end, message = fitting._trials(problem, curve, cur, [])
+    assert message == "" and abs(end["r"][0]) <= 1e-3 * target
+    assert np.all(end["p"] >= problem.lo) and np.all(end["p"] <= problem.hi)
+    assert curve.calls <= 6

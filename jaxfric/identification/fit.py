@@ -141,7 +141,7 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
     :class:`FitError` when the simulation at the start values fails.
     """
     t_start = time.perf_counter()
-    names = _check_arguments(params, algorithm, overrides, bounds, grid, newton, xtol, max_iter, max_replans,
+    names = check_arguments(params, algorithm, overrides, bounds, grid, newton, xtol, max_iter, max_replans,
                              substeps, starts)
     problem, axes = _prepare(scene, data, names, variant=variant, algorithm=algorithm, overrides=overrides,
                              bounds=bounds, window=window, newton=newton, max_iter=max_iter, xtol=xtol,
@@ -150,12 +150,12 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
     if ready is not None:
         ready()
     starts_at, grid_rows = ([problem.par.p0.copy()], []) if axes is None else _global_stage(problem, axes, starts)
-    best, outcomes = _local_stage(problem, starts_at)
+    best, outcomes = local_stage(problem, starts_at)
     return _result(problem, best, outcomes, grid_rows, t_start)
 
 
 @dataclasses.dataclass
-class _Problem:
+class Problem:
     """One call of :func:`fit`: the parameterised scene, the measurement and its observations, the
     options of the local stage, and the counts of simulations and re-plans so far (the only fields
     that change).
@@ -168,6 +168,11 @@ class _Problem:
         newton, max_iter, xtol, max_replans, substeps: as given to :func:`fit`.
         model_key: what the simulations depend on besides the parameters (the key of the caches).
         say: prints a progress line (or nothing).
+        rtol: None for a fit (stopped by the standard errors). A design
+            (:mod:`jaxfric.identification.design`) of targets, not measurements: it stops when every
+            observation is within ``rtol`` of its target, or when the step is below ``xtol``; its
+            standard errors, with as many parameters as targets or more, mean nothing.
+        task: "fit" or "design", the first word of the progress lines.
     """
 
     scene: str
@@ -187,11 +192,13 @@ class _Problem:
     substeps: int
     model_key: tuple
     say: Callable[[str], None]
+    rtol: float | None = None
+    task: str = "fit"
     simulations: int = 0
     replans: int = 0
 
 
-def _check_arguments(params, algorithm, overrides, bounds, grid, newton, xtol, max_iter, max_replans, substeps,
+def check_arguments(params, algorithm, overrides, bounds, grid, newton, xtol, max_iter, max_replans, substeps,
                      starts) -> tuple:
     """Check the arguments of :func:`fit` that need neither the scene nor the measurement; returns
     the fitted names as a tuple (ValueError naming the field)."""
@@ -215,9 +222,9 @@ def _check_arguments(params, algorithm, overrides, bounds, grid, newton, xtol, m
 
 
 def _prepare(scene: str, data, names: tuple, *, variant, algorithm, overrides, bounds, window, newton, max_iter,
-             xtol, max_replans, substeps, grid, starts, progress) -> tuple[_Problem, list | None]:
+             xtol, max_replans, substeps, grid, starts, progress) -> tuple[Problem, list | None]:
     """Read and check the measurement, build the parameterised scene and check the bounds and the
-    grid against it: the :class:`_Problem` and the grid's axes (None without a grid). ValueError
+    grid against it: the :class:`Problem` and the grid's axes (None without a grid). ValueError
     naming the field; nothing is simulated."""
     meas = read_measurement(data)
     if meas.displacement.size < len(names):
@@ -228,18 +235,18 @@ def _prepare(scene: str, data, names: tuple, *, variant, algorithm, overrides, b
     edges = window_edges(meas.displacement, window, len(names))
     observed = meas.force if edges is None else bin_means(meas.displacement, meas.force, edges)
     par = parameterize(scene, names, variant=variant, algorithm=algorithm, overrides=overrides)
-    lo, hi = _bounds(names, par.p0, bounds)
+    lo, hi = check_bounds(names, par.p0, bounds)
     axes = grid_axes(grid, names, lo, hi) if grid else None
     say = (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)
     model_key = (scene, names, par.scene.variant, algorithm, repr(sorted((overrides or {}).items())), newton)
-    problem = _Problem(scene=scene, algorithm=algorithm, overrides=dict(overrides or {}), names=names, par=par,
+    problem = Problem(scene=scene, algorithm=algorithm, overrides=dict(overrides or {}), names=names, par=par,
                        meas=meas, edges=edges, observed=observed, lo=lo, hi=hi, newton=newton,
                        max_iter=max_iter, xtol=xtol, max_replans=max_replans, substeps=substeps,
                        model_key=model_key, say=say)
     return problem, axes
 
 
-def _bounds(names, p0, bounds) -> tuple[np.ndarray, np.ndarray]:
+def check_bounds(names, p0, bounds) -> tuple[np.ndarray, np.ndarray]:
     """(low, high) per fitted parameter: ``bounds`` where given, else [0, inf); each must hold its
     start value ``p0`` (ValueError naming the field ``bounds``)."""
     lo, hi = np.zeros(len(names)), np.full(len(names), np.inf)
@@ -266,7 +273,7 @@ def _bounds(names, p0, bounds) -> tuple[np.ndarray, np.ndarray]:
 
 # ---- the global stage ------------------------------------------------------------------------------
 
-def _global_stage(problem: _Problem, axes: list, starts: int) -> tuple[list, list]:
+def _global_stage(problem: Problem, axes: list, starts: int) -> tuple[list, list]:
     """Adaptive runs on the grid (a parameter the grid does not name at its start value), then the
     starts of the local stage at up to ``starts`` minima of the interpolated misfit: (starts, the
     grid's rows). Raises :class:`FitError` when no run of the grid completes."""
@@ -288,12 +295,12 @@ def _global_stage(problem: _Problem, axes: list, starts: int) -> tuple[list, lis
     return starts_at, grid_rows
 
 
-def _grid_runs(problem: _Problem, axes: list, points: np.ndarray) -> tuple[np.ndarray, list]:
+def _grid_runs(problem: Problem, axes: list, points: np.ndarray) -> tuple[np.ndarray, list]:
     """The adaptive run at every grid point (kept in :data:`GRID_RUNS`): their
     observations (NaN where a run failed) and a row per point (parameters, misfit, converged)."""
     names, observed = problem.names, problem.observed
     runs = GRID_RUNS.get((*problem.model_key, tuple(a.tobytes() for a in axes)), dict)
-    problem.say(f"fit {problem.scene}: global stage, adaptive runs at {len(points)} grid points")
+    problem.say(f"{problem.task} {problem.scene}: global stage, adaptive runs at {len(points)} grid points")
     obs = np.full((len(points), observed.size), np.nan)
     rows = []
     for j, p in enumerate(points):
@@ -314,7 +321,7 @@ def _grid_runs(problem: _Problem, axes: list, points: np.ndarray) -> tuple[np.nd
 
 # ---- the local stage: least squares on frozen step sequences ------------------------------------------
 
-def _local_stage(problem: _Problem, starts_at: list) -> tuple[dict, list]:
+def local_stage(problem: Problem, starts_at: list) -> tuple[dict, list]:
     """Least squares from every start (:func:`_local_fit`): the outcome of the lowest misfit
     and all outcomes, in the order of the starts. A start other than the first that cannot be
     simulated is left out; the first one's :class:`FitError` is the fit's."""
@@ -332,25 +339,25 @@ def _local_stage(problem: _Problem, starts_at: list) -> tuple[dict, list]:
     return best, outcomes
 
 
-def _local_fit(problem: _Problem, p_start: np.ndarray, number: int, count: int) -> dict:
+def _local_fit(problem: Problem, p_start: np.ndarray, number: int, count: int) -> dict:
     """Least squares from ``p_start`` (start ``number`` of ``count``) on the step sequence planned there,
     then the adaptive runs at the optimum until it stops moving (module docstring).
 
     Returns {cur (the final point, :func:`_evaluate`'s fields), converged, message, p_start, start_force,
-    iterations (a row per simulation), number}. Raises :class:`FitError` when the start values do not
-    simulate.
+    start_obs (the simulated observations at the start), iterations (a row per simulation), number}.
+    Raises :class:`FitError` when the start values do not simulate.
     """
     names = problem.names
-    problem.say(f"fit {problem.scene}: planning the step sequence at "
+    problem.say(f"{problem.task} {problem.scene}: planning the step sequence at "
                 + ", ".join(f"{n} = {v:g}" for n, v in zip(names, p_start)))
-    history, failure = _adaptive(problem, p_start)
+    history, failure = adaptive_history(problem, p_start)
     if history is None:
         raise FitError(f"the simulation at the start values does not complete: {failure}")
     curve, key = _curve(problem, history)
     cur = _evaluate(problem, curve, p_start.copy())
     if not math.isfinite(cur["cost"]):
         raise FitError(f"the replayed step sequence fails at the start values ({describe(cur['code'])})")
-    start_force = cur["pointwise"]
+    start_force, start_obs = cur["pointwise"], problem.observed + cur["r"]
     iterations = [_row(problem, 0, "replay", True, cur)]
     compiled = 0
     while True:
@@ -375,7 +382,7 @@ def _local_fit(problem: _Problem, p_start: np.ndarray, number: int, count: int) 
         for row in iterations:
             row["start"] = number + 1
     return {"cur": cur, "converged": converged, "message": message, "p_start": p_start,
-            "start_force": start_force, "iterations": iterations, "number": number}
+            "start_force": start_force, "start_obs": start_obs, "iterations": iterations, "number": number}
 
 
 class _Settled(Exception):
@@ -383,7 +390,7 @@ class _Settled(Exception):
     than its stopping tolerance: the trust region has shrunk below what the data resolve."""
 
 
-def _trials(problem: _Problem, curve: Curve, cur: dict, iterations: list) -> tuple[dict, str]:
+def _trials(problem: Problem, curve: Curve, cur: dict, iterations: list) -> tuple[dict, str]:
     """Bounded least squares (``scipy.optimize.least_squares``, trust-region reflective, the Jacobian
     from the replay's forward-mode derivative) on one step sequence from ``cur``, stopped by
     :func:`_converged` or when the solver's trial steps fall below the same tolerance (the misfit no
@@ -432,7 +439,7 @@ def _trials(problem: _Problem, curve: Curve, cur: dict, iterations: list) -> tup
     return cur, (f"no convergence in {problem.max_iter} trials on one step sequence" if ran_out else "")
 
 
-def _settle(problem: _Problem, key: tuple, cur: dict, iterations: list) -> tuple[dict, bool, str, dict | None]:
+def _settle(problem: Problem, key: tuple, cur: dict, iterations: list) -> tuple[dict, bool, str, dict | None]:
     """The adaptive run at the optimum ``cur`` of the sequence whose curve has the key ``key``, and
     Gauss-Newton steps on the adaptive runs with ``cur``'s Jacobian (the sequences differ by a few
     steps, their Jacobians by little) until a step falls within :func:`_tolerance`: then the adaptive
@@ -441,7 +448,7 @@ def _settle(problem: _Problem, key: tuple, cur: dict, iterations: list) -> tuple
     last adaptive run's history when the steps did not settle, to fit on its sequence, else None)."""
     point, p, history = cur, cur["p"], None
     for k in range(problem.max_replans):
-        history, failure = _adaptive(problem, p)
+        history, failure = adaptive_history(problem, p)
         problem.replans += 1
         if history is None:
             return point, False, f"the adaptive run at the fitted values does not complete: {failure}", None
@@ -455,7 +462,7 @@ def _settle(problem: _Problem, key: tuple, cur: dict, iterations: list) -> tuple
         step = _gauss_newton_step(problem, point)
         problem.say(f"  adaptive run at the optimum: misfit {point['cost']:.6g}, Gauss-Newton step "
                     + ", ".join(f"{n} {d:+.3g}" for n, d in zip(problem.names, step)))
-        if np.all(np.abs(step) <= _tolerance(problem, point)):
+        if _converged(problem, point):
             return point, True, "", None
         p = point["p"] + step
     return point, False, (f"the optimum still moved with the adaptive run's steps after {problem.max_replans} "
@@ -480,36 +487,41 @@ def _standard_errors(cov: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(np.diag(cov), 0.0))
 
 
-def _tolerance(problem: _Problem, point: dict) -> np.ndarray:
+def _tolerance(problem: Problem, point: dict) -> np.ndarray:
     """Per parameter, the step below which the fit stops: ``STOP_FRACTION`` of its standard error at
     ``point``, and never below ``xtol`` (|p_i| + ``xtol``) (noise-free data from the model itself, whose
-    standard errors vanish at the optimum)."""
-    err = _standard_errors(_covariance(point["jac"], point["r"]))
-    return np.maximum(STOP_FRACTION * err, problem.xtol * (np.abs(point["p"]) + problem.xtol))
+    standard errors vanish at the optimum); ``xtol`` alone for a design (``rtol`` set)."""
+    floor = problem.xtol * (np.abs(point["p"]) + problem.xtol)
+    if problem.rtol is not None:
+        return floor
+    return np.maximum(STOP_FRACTION * _standard_errors(_covariance(point["jac"], point["r"])), floor)
 
 
-def _gauss_newton_step(problem: _Problem, point: dict) -> np.ndarray:
+def _gauss_newton_step(problem: Problem, point: dict) -> np.ndarray:
     """The Gauss-Newton step from ``point`` (least-squares solution of J dp = -r), shortened to stay
     inside the bounds."""
     step = np.linalg.lstsq(point["jac"], -point["r"], rcond=None)[0]
     return np.clip(point["p"] + step, problem.lo, problem.hi) - point["p"]
 
 
-def _converged(problem: _Problem, point: dict) -> bool:
+def _converged(problem: Problem, point: dict) -> bool:
     """Whether the Gauss-Newton step from ``point`` moves no parameter by more than :func:`_tolerance`
-    (or the misfit is zero)."""
-    return point["cost"] == 0.0 or bool(np.all(np.abs(_gauss_newton_step(problem, point))
-                                               <= _tolerance(problem, point)))
+    (or the misfit is zero, or, for a design, every observation is within ``rtol`` of its target)."""
+    if point["cost"] == 0.0:
+        return True
+    if problem.rtol is not None and np.all(np.abs(point["r"]) <= problem.rtol * np.abs(problem.observed)):
+        return True
+    return bool(np.all(np.abs(_gauss_newton_step(problem, point)) <= _tolerance(problem, point)))
 
 
-def _row(problem: _Problem, k: int, run: str, accepted: bool, point: dict) -> dict:
+def _row(problem: Problem, k: int, run: str, accepted: bool, point: dict) -> dict:
     """A row of the fit's history: the simulation ``k`` (``run``: "replay" of the frozen sequence or
     "adaptive" run), whether it was accepted, its misfit and parameters."""
     return {"iteration": k, "run": run, "accepted": bool(accepted), "cost": point["cost"],
             **dict(zip(problem.names, np.asarray(point["p"]).tolist()))}
 
 
-def _adaptive(problem: _Problem, p: np.ndarray) -> tuple[dict | None, str]:
+def adaptive_history(problem: Problem, p: np.ndarray) -> tuple[dict | None, str]:
     """The history of the adaptive run at ``p``, or None and why it failed. Raises ValueError when the
     measurement reaches beyond the simulated stroke."""
     res = adaptive_run(problem.par, p, problem.newton)
@@ -524,14 +536,14 @@ def _adaptive(problem: _Problem, p: np.ndarray) -> tuple[dict | None, str]:
     return res.history, ""
 
 
-def _curve_key(problem: _Problem, history: dict) -> tuple:
+def _curve_key(problem: Problem, history: dict) -> tuple:
     """What a compiled curve along ``history``'s step sequence depends on (its key in :data:`CURVES`)."""
     edges = problem.edges
     return (*problem.model_key, np.asarray(history["time"]).tobytes(), problem.meas.displacement.tobytes(),
             None if edges is None else edges.tobytes(), problem.substeps)
 
 
-def _curve(problem: _Problem, history: dict) -> tuple[Curve, tuple]:
+def _curve(problem: Problem, history: dict) -> tuple[Curve, tuple]:
     """The curve along the step sequence of ``history`` (compiled once per sequence: kept in
     :data:`CURVES`) and its key there."""
     key = _curve_key(problem, history)
@@ -539,7 +551,7 @@ def _curve(problem: _Problem, history: dict) -> tuple[Curve, tuple]:
                                          problem.meas.displacement, problem.edges, problem.newton)), key
 
 
-def _evaluate(problem: _Problem, curve: Curve, p: np.ndarray) -> dict:
+def _evaluate(problem: Problem, curve: Curve, p: np.ndarray) -> dict:
     """The curve at ``p``: {p, r (residuals), jac, pointwise (force at the measured points), cost
     (|r|^2 / 2; inf where the replay fails or r is not finite), code, cuts (cutbacks)}."""
     obs, jac, pointwise, code, cuts = curve(p)
@@ -551,7 +563,7 @@ def _evaluate(problem: _Problem, curve: Curve, p: np.ndarray) -> dict:
 
 # ---- the result --------------------------------------------------------------------------------------
 
-def _result(problem: _Problem, best: dict, outcomes: list, grid_rows: list, t_start: float) -> FitResult:
+def _result(problem: Problem, best: dict, outcomes: list, grid_rows: list, t_start: float) -> FitResult:
     """The :class:`FitResult` of the best local fit with its Gauss-Newton uncertainty (module
     docstring), every local fit (``outcomes``) and the global stage's rows; ``t_start``: when
     :func:`fit` was called (``time.perf_counter``)."""
