@@ -15,7 +15,9 @@ is not):
 Every fit is the command a user runs, ``jaxfric fit nine --data CSV --param mu --mesh M --set U_draw=10
 --set mu=0.12 --window 1`` (exact contact, re-planned to the adaptive run at the optimum), through
 :func:`jaxfric.identification.fit.fit`. The ``reference`` curve is fitted at every mesh of ``--meshes``
-(the bias against the fit mesh), the other data at ``--at`` (the recommended fit mesh).
+(the bias against the fit mesh), the other data at ``--at`` (the recommended fit mesh); ``--set
+NAME=VALUE`` changes the fitting model (e.g. ``element=anst``, ``thickness_points=4``), recorded in the
+``fit_settings`` column.
 
 Writes ``experiments/results/fit_bias_mesh.csv`` (a row per fit, after every fit) and ``.png``; the
 data curves are kept in ``experiments/results/fit_bias_mesh/DATA.csv`` (drawing displacement and
@@ -55,7 +57,11 @@ def main(argv=None) -> None:
     ap.add_argument("--at", default="100x2", help="fit mesh of the other data")
     ap.add_argument("--seeds", default="0,1,2", help="noise draws on the reference curve")
     ap.add_argument("--cases", default="", help="only these DATA@MESH cases (comma-separated)")
+    ap.add_argument("--set", dest="settings", action="append", default=[], metavar="NAME=VALUE",
+                    help="a config value of the fitting model (e.g. element=anst), as jaxfric fit's --set")
     a = ap.parse_args(argv)
+    settings = dict(s.split("=", 1) for s in a.settings)
+    label = " ".join(a.settings) or "defaults"
     cases = [("reference", m) for m in a.meshes.split(",")]
     cases += [(f"noise1pct-s{s}", a.at) for s in a.seeds.split(",") if s]
     cases += [(d, a.at) for d in DATA if d != "reference"]
@@ -63,13 +69,15 @@ def main(argv=None) -> None:
         wanted = set(a.cases.split(","))
         cases = [c for c in cases if f"{c[0]}@{c[1]}" in wanted]
     path = os.path.join(RESULTS, "fit_bias_mesh.csv")
-    rows = [r for r in _read(path) if (r["data"], r["fit_mesh"]) not in set(cases)]
+    rows = [r for r in _read(path) if (r["data"], r["fit_mesh"], r["fit_settings"]) not in
+            {(d, m, label) for d, m in cases}]
     for data, mesh in cases:
         measured = _data(data)
-        res = fit("nine", measured, ["mu"], variant="mu017", overrides={"mesh": mesh, "U_draw": STROKE, "mu": 0.12},
-                  window=1.0, progress=True)
+        overrides = {"mesh": mesh, "U_draw": STROKE, "mu": 0.12, **settings}
+        res = fit("nine", measured, ["mu"], variant="mu017", overrides=overrides, window=1.0, progress=True)
         lo, hi = res.ci95["mu"]
-        row = {"data": data, "fit_mesh": mesh, "mu": res.params["mu"], "error": res.params["mu"] - TRUE_MU,
+        row = {"data": data, "fit_mesh": mesh, "fit_settings": label, "mu": res.params["mu"],
+               "error": res.params["mu"] - TRUE_MU,
                "rel_error_pct": 100 * (res.params["mu"] / TRUE_MU - 1), "stderr": res.stderr["mu"], "ci_low": lo,
                "ci_high": hi, "inside": bool(lo <= TRUE_MU <= hi), "residual_rms": res.residual_rms,
                "converged": res.converged, "n_simulations": res.n_simulations, "wall_s": round(res.wall_s, 1)}
@@ -118,12 +126,14 @@ def _plot(rows: list[dict], path: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7.5, 4.2))
-    for data in dict.fromkeys(r["data"] for r in rows):
-        sel = [r for r in rows if r["data"] == data]
+    for data, label in dict.fromkeys((r["data"], r["fit_settings"]) for r in rows):
+        sel = sorted((r for r in rows if (r["data"], r["fit_settings"]) == (data, label)),
+                     key=lambda r: (str(r["fit_mesh"]).split("x")[1], int(str(r["fit_mesh"]).split("x")[0])))
         x = [int(str(r["fit_mesh"]).split("x")[0]) for r in sel]
         mu = np.array([float(r["mu"]) for r in sel])
         half = np.array([float(r["ci_high"]) - float(r["mu"]) for r in sel])
-        ax.errorbar(x, mu, yerr=half, fmt="o-" if data == "reference" else "s", capsize=3, label=data)
+        ax.errorbar(x, mu, yerr=half, fmt="o-" if data == "reference" else "s", capsize=3,
+                    label=data if label == "defaults" else f"{data}, {label}")
     ax.axhline(TRUE_MU, color="k", lw=1, label="truth 0.17")
     ax.axhspan(TRUE_MU - 0.005, TRUE_MU + 0.005, color="0.85", label="goal: within 0.005")
     ax.set_xscale("log")

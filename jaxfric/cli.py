@@ -592,19 +592,27 @@ def parse_grid(specs, names) -> dict:
     return out
 
 
-def _fit(args) -> int:
-    _check_scene_args(args)
+def _parameters(args, folder: str) -> tuple[tuple, dict, dict, str, str]:
+    """What ``fit`` and ``design`` share on the command line: the parameter names, the overrides, the
+    bounds, the variant and the output directory (default ``folder/SCENE/VARIANT``)."""
     from . import scenes
-    from .identification.fit import FitError, fit, write_fit
 
+    _check_scene_args(args)
     names = tuple(n.strip() for n in args.param.split(","))
     if not all(names):
         raise UsageError(f"--param expects NAME[,NAME...], got {args.param!r}")
     overrides = _scene_overrides(args)
     bounds = _bounds(args.bounds, names)
-    grid = parse_grid(args.grid, names)
     variant = args.variant or scenes.default_variant(args.scene)
-    out = os.path.join("fits", args.scene, variant) if args.out is None else args.out
+    out = os.path.join(folder, args.scene, variant) if args.out is None else args.out
+    return names, overrides, bounds, variant, out
+
+
+def _fit(args) -> int:
+    from .identification.fit import FitError, fit, write_fit
+
+    names, overrides, bounds, variant, out = _parameters(args, "fits")
+    grid = parse_grid(args.grid, names)
     if not os.path.isfile(args.data):
         raise UsageError(f"--data {args.data!r} is not a file")
     try:
@@ -631,18 +639,10 @@ def _fit(args) -> int:
 
 
 def _design(args) -> int:
-    _check_scene_args(args)
-    from . import scenes
     from .identification.design import design, write_design
     from .identification.fit import FitError
 
-    names = tuple(n.strip() for n in args.param.split(","))
-    if not all(names):
-        raise UsageError(f"--param expects NAME[,NAME...], got {args.param!r}")
-    overrides = _scene_overrides(args)
-    bounds = _bounds(args.bounds, names)
-    variant = args.variant or scenes.default_variant(args.scene)
-    out = os.path.join("designs", args.scene, variant) if args.out is None else args.out
+    names, overrides, bounds, variant, out = _parameters(args, "designs")
     if args.target_curve is not None and not os.path.isfile(args.target_curve):
         raise UsageError(f"--target-curve {args.target_curve!r} is not a file")
     window = _design_window(args.window, args.target is not None)
