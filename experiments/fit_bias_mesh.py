@@ -17,7 +17,8 @@ Every fit is the command a user runs, ``jaxfric fit nine --data CSV --param mu -
 :func:`jaxfric.identification.fit.fit`. The ``reference`` curve is fitted at every mesh of ``--meshes``
 (the bias against the fit mesh), the other data at ``--at`` (the recommended fit mesh); ``--set
 NAME=VALUE`` changes the fitting model (e.g. ``element=anst``, ``thickness_points=4``), recorded in the
-``fit_settings`` column.
+``fit_settings`` column; ``--model-error step,mesh,layers`` adds the fitting model's own estimate of
+its discretisation error in mu (``jaxfric fit --model-error``) and the interval widened by it.
 
 Writes ``experiments/results/fit_bias_mesh.csv`` (a row per fit, after every fit) and ``.png``; the
 data curves are kept in ``experiments/results/fit_bias_mesh/DATA.csv`` (drawing displacement and
@@ -59,7 +60,11 @@ def main(argv=None) -> None:
     ap.add_argument("--cases", default="", help="only these DATA@MESH cases (comma-separated)")
     ap.add_argument("--set", dest="settings", action="append", default=[], metavar="NAME=VALUE",
                     help="a config value of the fitting model (e.g. element=anst), as jaxfric fit's --set")
+    ap.add_argument("--model-error", default="", metavar="C[,C...]",
+                    help="also carry the fitting model's discretisation error into the interval (step, mesh, "
+                         "layers; jaxfric fit --model-error)")
     a = ap.parse_args(argv)
+    components = tuple(filter(None, a.model_error.split(",")))
     settings = dict(s.split("=", 1) for s in a.settings)
     label = " ".join(a.settings) or "defaults"
     cases = [("reference", m) for m in a.meshes.split(",")]
@@ -69,22 +74,43 @@ def main(argv=None) -> None:
         wanted = set(a.cases.split(","))
         cases = [c for c in cases if f"{c[0]}@{c[1]}" in wanted]
     path = os.path.join(RESULTS, "fit_bias_mesh.csv")
-    rows = [r for r in _read(path) if (r["data"], r["fit_mesh"], r["fit_settings"]) not in
-            {(d, m, label) for d, m in cases}]
+    mine: list[dict] = []
     for data, mesh in cases:
         measured = _data(data)
         overrides = {"mesh": mesh, "U_draw": STROKE, "mu": 0.12, **settings}
-        res = fit("nine", measured, ["mu"], variant="mu017", overrides=overrides, window=1.0, progress=True)
+        res = fit("nine", measured, ["mu"], variant="mu017", overrides=overrides, window=1.0, progress=True,
+                  model_error=components)
         lo, hi = res.ci95["mu"]
         row = {"data": data, "fit_mesh": mesh, "fit_settings": label, "mu": res.params["mu"],
                "error": res.params["mu"] - TRUE_MU,
                "rel_error_pct": 100 * (res.params["mu"] / TRUE_MU - 1), "stderr": res.stderr["mu"], "ci_low": lo,
                "ci_high": hi, "inside": bool(lo <= TRUE_MU <= hi), "residual_rms": res.residual_rms,
-               "converged": res.converged, "n_simulations": res.n_simulations, "wall_s": round(res.wall_s, 1)}
-        rows.append(row)
+               "converged": res.converged, "n_simulations": res.n_simulations, "wall_s": round(res.wall_s, 1),
+               **_model_error_columns(res)}
+        mine.append(row)
         print(" ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
-        write_rows(path, rows)
-    _plot(rows, os.path.join(RESULTS, "fit_bias_mesh.png"))
+        # Merged with the file as it is now (other invocations may have written rows meanwhile).
+        done = {_key(r) for r in mine}
+        rows = [r for r in _read(path) if _key(r) not in done] + mine
+        columns = list(dict.fromkeys(k for r in rows for k in r))
+        write_rows(path, [{k: r.get(k, "") for k in columns} for r in rows])
+    _plot(_read(path), os.path.join(RESULTS, "fit_bias_mesh.png"))
+
+
+def _key(row: dict) -> tuple:
+    return row["data"], row["fit_mesh"], row.get("fit_settings", "defaults")
+
+
+def _model_error_columns(res) -> dict:
+    """The model-error estimate's columns (empty without one): the bias per component and in all, and
+    the interval widened by it."""
+    if res.model_error is None:
+        return {}
+    lo, hi = res.ci95_model["mu"]
+    return {"model_error": "+".join(res.model_error["components"]), "model_bias": res.model_error["bias"]["mu"],
+            **{f"bias_{c}": v["mu"] for c, v in res.model_error["components"].items()},
+            "ci_model_low": lo, "ci_model_high": hi, "inside_model": bool(lo <= TRUE_MU <= hi),
+            "model_error_s": round(res.model_error["wall_s"], 1)}
 
 
 def _data(name: str) -> dict:

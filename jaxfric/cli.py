@@ -127,6 +127,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "interpolated misfit, the best fit kept (default 1)")
     fit.add_argument("--window", action=_Once, type=float, metavar="MM",
                      help="fit the mean force over windows of this length instead of every point")
+    fit.add_argument("--model-error", action=_Once, metavar="C[,C...]",
+                     help="carry the model's discretisation error into the result: step, mesh and/or layers "
+                          "(one adaptive run at the fitted values per component, that discretisation refined); "
+                          "fit.json's model_error and a widened interval")
     fit.add_argument("--out", action=_Once, metavar="DIR", help="output directory (default fits/SCENE/VARIANT)")
     fit.add_argument("--quiet", action="store_true", help="no progress lines")
     des = sub.add_parser("design", help="tool dimensions for a target restraining force",
@@ -619,7 +623,8 @@ def _fit(args) -> int:
         # The output directory is made once fit() has validated the input, before its first simulation.
         result = fit(args.scene, args.data, names, variant=variant, algorithm=args.algorithm,
                      overrides=overrides, bounds=bounds, window=args.window, grid=grid or None,
-                     starts=args.starts, progress=not args.quiet, ready=lambda: _writable_dir(out))
+                     starts=args.starts, progress=not args.quiet, ready=lambda: _writable_dir(out),
+                     model_error=tuple(c.strip() for c in args.model_error.split(",")) if args.model_error else ())
     except ValueError as err:
         raise UsageError(str(err)) from None
     except FitError as err:
@@ -630,6 +635,10 @@ def _fit(args) -> int:
         lo, hi = result.ci95[name]
         print(f"{name} = {result.params[name]:.8g} +/- {result.stderr[name]:.3g} (95 %: [{lo:.6g}, {hi:.6g}]; "
               f"start {result.start[name]:g})")
+        if result.model_error is not None:
+            lo, hi = result.ci95_model[name]
+            print(f"  model's discretisation error: bias {result.model_error['bias'][name]:+.3g}; 95 % with it: "
+                  f"[{lo:.6g}, {hi:.6g}]")
     print(f"residual rms {result.residual_rms:.4g} N/mm over {result.n_points} "
           f"{'points' if result.window is None else 'windows'}; {result.n_simulations} simulations, "
           f"{result.wall_s:.1f} s")

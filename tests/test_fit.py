@@ -37,7 +37,8 @@ def test_cli_fit_recovers_mu_from_a_run_history(flat_history, tmp_path, capsys):
     # full sliding is not linear in mu (measured start: 0.1525).
     out = tmp_path / "fit"
     code = main(["fit", *FLAT, "--data", flat_history, "--param", "mu", "--set", "mu=0.1", "--quiet",
-                 "--bounds", "mu=0:1", "--grid", "mu=0.04:0.3:3", "--starts", "2", "--out", str(out)])
+                 "--bounds", "mu=0:1", "--grid", "mu=0.04:0.3:3", "--starts", "2", "--model-error", "mesh",
+                 "--out", str(out)])
     assert code == 0, capsys.readouterr().err
     summary = json.loads((out / "fit.json").read_text())
     assert summary["converged"]
@@ -56,6 +57,13 @@ def test_cli_fit_recovers_mu_from_a_run_history(flat_history, tmp_path, capsys):
     assert all(float(line.split(",")[1]) > 0 for line in grid[1:])
     assert summary["start"]["mu"] not in (0.04, 0.17, 0.3) and abs(summary["start"]["mu"] - 0.15) < 0.01
     assert summary["start"]["mu"] != pytest.approx(0.15, abs=1e-6)  # interpolated, not the truth itself
+    # The model's error, from the run at twice the elements along: the sliding plateau, mu F_clamp, does
+    # not depend on the mesh, so the error in mu is tiny (measured 3e-8 with data from 48 x 2), and
+    # the widened interval holds the noise-free one.
+    error = summary["model_error"]
+    assert set(error["components"]) == {"mesh"} and abs(error["bias"]["mu"]) < 1e-6
+    (lo, hi), (mlo, mhi) = summary["ci95"]["mu"], error["ci95"]["mu"]
+    assert mlo <= lo < hi <= mhi and error["max_observation_error"] > 0
 
 
 def test_interpolated_minimum_follows_a_narrow_valley_between_grid_points():
@@ -186,6 +194,7 @@ def test_parameterized_model_equals_the_built_model(scene, variant, names):
     (["--param", "mu", "--grid", "mu=0.1:nan:3"], "finite"),
     (["--param", "mu", "--grid", "mu=0:2:3", "--bounds", "mu=0:1"], "leaves the bounds"),
     (["--param", "mu", "--starts", "2"], "needs a grid"),
+    (["--param", "mu", "--model-error", "mesh,bogus"], "'model_error'"),
     (["--param", "mu", "--grid", "mu=0.1:0.2:3", "--starts", "0"], "'starts' must be an integer >= 1"),
 ])
 def test_cli_fit_rejects_bad_input_in_one_line(flat_history, tmp_path, capsys, args, needle):

@@ -67,6 +67,7 @@ from ..numerics._checks import check_int, check_positive
 from ..numerics.lru import LRU
 from ..numerics.newton import NewtonOptions
 from ..numerics.results import Result, describe
+from . import fit_model_error
 from .fit_curve import Curve, refined_plan
 from .fit_data import Measurement, bin_means, curve_columns, observations, read_measurement, window_edges
 from .fit_global import grid_axes, surrogate_minima
@@ -95,7 +96,7 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
         overrides: dict | None = None, bounds: dict | None = None, window: float | None = None,
         newton: NewtonOptions | None = None, max_iter: int = 30, xtol: float = 1e-7,
         max_replans: int = 4, substeps: int = 1, grid: dict | None = None, starts: int = 1,
-        progress: bool = True, ready: Callable[[], None] | None = None) -> FitResult:
+        model_error=(), progress: bool = True, ready: Callable[[], None] | None = None) -> FitResult:
     """Fit the config fields ``params`` of ``scene`` to the measured drawing-force curve ``data``.
 
     Args:
@@ -134,6 +135,10 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
             :func:`jaxfric.identification.fit_global.surrogate_minima`); the fit with the lowest misfit is the result
             (its ``start``), the others are kept in ``local_fits``. Where the interpolation error of the grid is larger
             than the misfit differences between basins, the lowest interpolated minimum need not be in the lowest basin.
+        model_error: components of the model's discretisation error to carry into the result
+            ("step", "mesh", "layers"; :mod:`jaxfric.identification.fit_model_error`): one adaptive run
+            at the fitted values per component, with that discretisation refined; the result's
+            ``model_bias`` and ``ci95_model`` (the interval widened by the bias) follow from them.
         ready: called once the input is validated, before the first simulation (the command line
             makes its output directory there, so that refused input leaves none).
 
@@ -143,6 +148,7 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
     t_start = time.perf_counter()
     names = check_arguments(params, algorithm, overrides, bounds, grid, newton, xtol, max_iter, max_replans,
                              substeps, starts)
+    components = _check_components(model_error)
     problem, axes = _prepare(scene, data, names, variant=variant, algorithm=algorithm, overrides=overrides,
                              bounds=bounds, window=window, newton=newton, max_iter=max_iter, xtol=xtol,
                              max_replans=max_replans, substeps=substeps, grid=grid, starts=starts,
@@ -151,7 +157,14 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
         ready()
     starts_at, grid_rows = ([problem.par.p0.copy()], []) if axes is None else _global_stage(problem, axes, starts)
     best, outcomes = local_stage(problem, starts_at)
-    return _result(problem, best, outcomes, grid_rows, t_start)
+    error = None
+    if components:
+        cur = best["cur"]
+        error = fit_model_error.model_error(
+            scene, problem.par.scene.variant, algorithm, problem.overrides, dict(zip(names, cur["p"].tolist())),
+            cur["jac"], problem.observed + cur["r"], problem.meas.displacement, problem.edges, components, problem.say)
+        problem.simulations += len(components)
+    return _result(problem, best, outcomes, grid_rows, t_start, error)
 
 
 @dataclasses.dataclass
@@ -219,6 +232,15 @@ def check_arguments(params, algorithm, overrides, bounds, grid, newton, xtol, ma
                                ("starts", starts, 1)):
         check_int(name, value, least)
     return tuple(params)
+
+
+def _check_components(model_error) -> tuple:
+    """The model-error components as a tuple of known names, each once (ValueError naming the field)."""
+    items = (model_error,) if isinstance(model_error, str) else tuple(model_error or ())
+    known = fit_model_error.COMPONENTS
+    if any(c not in known for c in items) or len(set(items)) != len(items):
+        raise ValueError(f"field 'model_error' must name each of {', '.join(known)} at most once, got {model_error!r}")
+    return items
 
 
 def _prepare(scene: str, data, names: tuple, *, variant, algorithm, overrides, bounds, window, newton, max_iter,
@@ -563,10 +585,12 @@ def _evaluate(problem: Problem, curve: Curve, p: np.ndarray) -> dict:
 
 # ---- the result --------------------------------------------------------------------------------------
 
-def _result(problem: Problem, best: dict, outcomes: list, grid_rows: list, t_start: float) -> FitResult:
+def _result(problem: Problem, best: dict, outcomes: list, grid_rows: list, t_start: float,
+            error: dict | None) -> FitResult:
     """The :class:`FitResult` of the best local fit with its Gauss-Newton uncertainty (module
-    docstring), every local fit (``outcomes``) and the global stage's rows; ``t_start``: when
-    :func:`fit` was called (``time.perf_counter``)."""
+    docstring), every local fit (``outcomes``), the global stage's rows and the model's error (or None;
+    :func:`jaxfric.identification.fit_model_error.model_error`); ``t_start``: when :func:`fit` was called
+    (``time.perf_counter``)."""
     from scipy.stats import t as student_t
 
     names, cur = problem.names, best["cur"]
@@ -580,6 +604,10 @@ def _result(problem: Problem, best: dict, outcomes: list, grid_rows: list, t_sta
         overrides=problem.overrides, names=names, params=dict(zip(names, p.tolist())),
         stderr=dict(zip(names, err.tolist())),
         ci95={nm: (float(v - q * e), float(v + q * e)) for nm, v, e in zip(names, p, err)},
+        model_error=error,
+        ci95_model=({} if error is None else
+                    {nm: (float(v - q * e - abs(error["bias"][nm])), float(v + q * e + abs(error["bias"][nm])))
+                     for nm, v, e in zip(names, p, err)}),
         start=dict(zip(names, best["p_start"].tolist())),
         bounds={nm: (float(a), float(b)) for nm, a, b in zip(names, problem.lo, problem.hi)},
         window=None if problem.edges is None else float(problem.edges[1] - problem.edges[0]),

@@ -42,6 +42,9 @@ class FitResult:
         local_fits: per start of the local stage (``starts``), a dict of its number (the
             ``start`` column of ``iterations`` when there are several), its start and end
             (parameters), misfit, converged and message; the result is the lowest misfit's.
+        model_error: None, or the model's discretisation error carried into the parameters
+            (:func:`jaxfric.identification.fit_model_error.model_error`: its ``bias`` per parameter, per
+            component, ...); ci95_model: {name: (low, high)}, the 95 % interval widened by |bias|.
     """
 
     scene: str
@@ -70,6 +73,8 @@ class FitResult:
     start_force: np.ndarray
     grid: list = dataclasses.field(default_factory=list)
     local_fits: list = dataclasses.field(default_factory=list)
+    model_error: dict | None = None
+    ci95_model: dict = dataclasses.field(default_factory=dict)
 
 
 def _json_number(v):
@@ -100,6 +105,12 @@ def write_fit(result: FitResult, out: str) -> dict:
         "wall_s": result.wall_s, "converged": result.converged, "message": result.message,
         "measurement": result.measurement.source,
     }
+    if result.model_error is not None:
+        summary["model_error"] = {
+            "bias": result.model_error["bias"], "components": result.model_error["components"],
+            "ci95": {k: [a, b] for k, (a, b) in result.ci95_model.items()},
+            "max_observation_error": float(np.max(np.abs(result.model_error["observation_error"]))),
+            "wall_s": result.model_error["wall_s"]}
     if result.grid:
         summary["global_stage"] = {"points": len(result.grid),
                                    "failed": sum(not row["converged"] for row in result.grid),
