@@ -508,3 +508,13 @@ def test_design_with_more_parameters_than_targets_stops_once_the_target_is_met()
     assert message == "" and abs(end["r"][0]) <= 1e-3 * target
     assert np.all(end["p"] >= problem.lo) and np.all(end["p"] <= problem.hi)
     assert curve.calls <= 6
+
+
+def test_a_target_curve_is_met_relative_to_its_largest_value():
+    """A drawing-force curve starts at zero force: the design's tolerance is relative to the curve's
+    largest value, not pointwise (which no design could meet where the target is 0)."""
+    from jaxfric.identification.fit import met
+
+    targets = np.array([0.0, 50.0, 100.0])
+    assert met(np.array([0.05, -0.09, 0.1]), targets, 1e-3)
+    assert not met(np.array([0.0, 0.0, 0.11]), targets, 1e-3)

@@ -41,7 +41,7 @@ import numpy as np
 
 from .. import scenes
 from ..numerics.newton import NewtonOptions
-from .fit import Problem, adaptive_history, check_arguments, check_bounds, local_stage
+from .fit import Problem, adaptive_history, check_arguments, check_bounds, local_stage, met
 from .fit_data import Measurement, bin_means, observations, read_measurement, window_edges
 from .params import parameterize
 
@@ -115,7 +115,8 @@ def design(scene: str, target, params, *, variant: str | None = None, algorithm:
             admissible dimensions is not a design).
         window: for a restraining force, (a, b) (mm; default the scene's ``steady_window``); for a
             target curve, the windows' length (mm; None: every point), as ``fit``'s.
-        rtol: the target is met when every observation is within rtol of it (relative).
+        rtol: the target is met when every observation is within rtol of it (relative to the
+            largest target, for a curve).
         max_iter, xtol, max_replans, newton: as :func:`jaxfric.identification.fit.fit`'s.
         ready: called once the input is validated, before the first simulation.
 
@@ -132,7 +133,7 @@ def design(scene: str, target, params, *, variant: str | None = None, algorithm:
     if not bounds or unbounded:
         raise ValueError(f"field 'bounds' must give finite (low, high) for every designed parameter; missing for "
                          f"{(unbounded or list(names))[0]!r}")
-    meas, edges, scalar = _targets(par.scene, target, window, len(names))
+    meas, edges, scalar = _targets(par.scene, target, window)
     observed = meas.force if edges is None else bin_means(meas.displacement, meas.force, edges)
     say = (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)
     problem = Problem(scene=scene, algorithm=algorithm, overrides=dict(overrides or {}), names=names, par=par,
@@ -145,14 +146,14 @@ def design(scene: str, target, params, *, variant: str | None = None, algorithm:
         ready()
     best, _ = local_stage(problem, [par.p0.copy()])
     cur = best["cur"]
-    met = bool(np.all(np.abs(cur["r"]) <= rtol * np.abs(observed)))
+    done = met(cur["r"], observed, rtol)
     reachable, message = None, "target met"
-    if not met:
-        worst = int(np.argmax(np.abs(cur["r"]) / np.abs(observed)))
+    if not done:
+        worst = int(np.argmax(np.abs(cur["r"])))
         message = (f"target not met within rtol = {rtol:g}: {observed[worst] + cur['r'][worst]:.6g} N/mm for "
                    f"{observed[worst]:.6g}" + (f" ({best['message']})" if best["message"] else
                                                " (steps below xtol: the closest design the model resolves)"))
-    if scalar and not met:
+    if scalar and not done:
         reachable = _corners(problem, edges)
         if reachable["low"] is not None and not reachable["low"] <= float(observed[0]) <= reachable["high"]:
             message = (f"target {float(observed[0]):.6g} N/mm is outside the range reachable within the bounds, "
@@ -169,13 +170,13 @@ def design(scene: str, target, params, *, variant: str | None = None, algorithm:
         force=float(observed[0] + cur["r"][0]) if scalar else observed + cur["r"],
         start_value=float(best["start_obs"][0]) if scalar else best["start_obs"],
         target_force=meas.force,
-        sensitivity=dict(zip(names, jac[0].tolist())), rtol=float(rtol), converged=met, message=message,
+        sensitivity=dict(zip(names, jac[0].tolist())), rtol=float(rtol), converged=done, message=message,
         reachable=reachable, displacement=meas.displacement, design_force=cur["pointwise"],
         start_force=best["start_force"], n_simulations=problem.simulations, wall_s=time.perf_counter() - t_start,
         iterations=best["iterations"])
 
 
-def _targets(scene: scenes.Scene, target, window, n_params: int) -> tuple[Measurement, np.ndarray | None, bool]:
+def _targets(scene: scenes.Scene, target, window) -> tuple[Measurement, np.ndarray | None, bool]:
     """The targets as a measurement: (measurement, window edges or None, whether it is one restraining
     force). A restraining force becomes a constant curve at :data:`TARGET_POINTS` displacements over
     the whole draw with one window, ``window`` (default the scene's steady window)."""

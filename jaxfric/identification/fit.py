@@ -183,7 +183,7 @@ class Problem:
         say: prints a progress line (or nothing).
         rtol: None for a fit (stopped by the standard errors). A design
             (:mod:`jaxfric.identification.design`) of targets, not measurements: it stops when every
-            observation is within ``rtol`` of its target, or when the step is below ``xtol``; its
+            observation is within ``rtol`` of its target (:func:`met`), or when the step is below ``xtol``; its
             standard errors, with as many parameters as targets or more, mean nothing.
         task: "fit" or "design", the first word of the progress lines.
     """
@@ -531,9 +531,15 @@ def _converged(problem: Problem, point: dict) -> bool:
     (or the misfit is zero, or, for a design, every observation is within ``rtol`` of its target)."""
     if point["cost"] == 0.0:
         return True
-    if problem.rtol is not None and np.all(np.abs(point["r"]) <= problem.rtol * np.abs(problem.observed)):
+    if problem.rtol is not None and met(point["r"], problem.observed, problem.rtol):
         return True
     return bool(np.all(np.abs(_gauss_newton_step(problem, point)) <= _tolerance(problem, point)))
+
+
+def met(r: np.ndarray, targets: np.ndarray, rtol: float) -> bool:
+    """Whether every residual ``r`` is within ``rtol`` of the targets' scale (their largest magnitude:
+    a target curve starts near zero force, where a pointwise relative tolerance means nothing)."""
+    return bool(np.all(np.abs(r) <= rtol * np.max(np.abs(targets))))
 
 
 def _row(problem: Problem, k: int, run: str, accepted: bool, point: dict) -> dict:
