@@ -637,8 +637,9 @@ def _fit(args) -> int:
               f"start {result.start[name]:g})")
         if result.model_error is not None:
             lo, hi = result.ci95_model[name]
-            print(f"  model's discretisation error: bias {result.model_error['bias'][name]:+.3g}; 95 % with it: "
-                  f"[{lo:.6g}, {hi:.6g}]")
+            print(f"  model's discretisation error: bias {result.model_error['bias'][name]:+.3g} ("
+                  + ", ".join(f"{c} {v[name]:+.3g}" for c, v in result.model_error["components"].items())
+                  + f"); 95 % with it: [{lo:.6g}, {hi:.6g}]")
     print(f"residual rms {result.residual_rms:.4g} N/mm over {result.n_points} "
           f"{'points' if result.window is None else 'windows'}; {result.n_simulations} simulations, "
           f"{result.wall_s:.1f} s")

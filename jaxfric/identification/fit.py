@@ -138,7 +138,7 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
         model_error: components of the model's discretisation error to carry into the result
             ("step", "mesh", "layers"; :mod:`jaxfric.identification.fit_model_error`): one adaptive run
             at the fitted values per component, with that discretisation refined; the result's
-            ``model_bias`` and ``ci95_model`` (the interval widened by the bias) follow from them.
+            ``model_error`` and ``ci95_model`` (the interval widened by the components' bias) follow.
         ready: called once the input is validated, before the first simulation (the command line
             makes its output directory there, so that refused input leaves none).
 
@@ -612,7 +612,7 @@ def _result(problem: Problem, best: dict, outcomes: list, grid_rows: list, t_sta
         ci95={nm: (float(v - q * e), float(v + q * e)) for nm, v, e in zip(names, p, err)},
         model_error=error,
         ci95_model=({} if error is None else
-                    {nm: (float(v - q * e - abs(error["bias"][nm])), float(v + q * e + abs(error["bias"][nm])))
+                    {nm: (float(v - q * e - error["bound"][nm]), float(v + q * e + error["bound"][nm]))
                      for nm, v, e in zip(names, p, err)}),
         start=dict(zip(names, best["p_start"].tolist())),
         bounds={nm: (float(a), float(b)) for nm, a, b in zip(names, problem.lo, problem.hi)},

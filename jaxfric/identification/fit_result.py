@@ -44,7 +44,8 @@ class FitResult:
             (parameters), misfit, converged and message; the result is the lowest misfit's.
         model_error: None, or the model's discretisation error carried into the parameters
             (:func:`jaxfric.identification.fit_model_error.model_error`: its ``bias`` per parameter, per
-            component, ...); ci95_model: {name: (low, high)}, the 95 % interval widened by |bias|.
+            component, and ``bound``, the sum of the components' magnitudes); ci95_model: {name: (low,
+            high)}, the 95 % interval widened by that bound.
     """
 
     scene: str
@@ -107,7 +108,8 @@ def write_fit(result: FitResult, out: str) -> dict:
     }
     if result.model_error is not None:
         summary["model_error"] = {
-            "bias": result.model_error["bias"], "components": result.model_error["components"],
+            "bias": result.model_error["bias"], "bound": result.model_error["bound"],
+            "components": result.model_error["components"],
             "ci95": {k: [a, b] for k, (a, b) in result.ci95_model.items()},
             "max_observation_error": float(np.max(np.abs(result.model_error["observation_error"]))),
             "wall_s": result.model_error["wall_s"]}
