@@ -48,7 +48,9 @@ the interval, which holds for the small intervals of a well-posed fit).
 
 The measurement and the fitted observations are :mod:`jaxfric.identification.fit_data`, the compiled curve along a
 frozen sequence :mod:`jaxfric.identification.fit_curve`, the global stage's grid and interpolated misfit
-:mod:`jaxfric.identification.fit_global`, the result and its files :mod:`jaxfric.identification.fit_result`, and what
+:mod:`jaxfric.identification.fit_global`, the model's discretisation error carried into the parameters
+(``model_error``) :mod:`jaxfric.identification.fit_model_error`, the result and its files
+:mod:`jaxfric.identification.fit_result`, and what
 fits keep between calls :data:`CURVES` and :data:`GRID_RUNS`; this module is the driver.
 """
 
@@ -147,7 +149,7 @@ def fit(scene: str, data, params, *, variant: str | None = None, algorithm: str 
     """
     t_start = time.perf_counter()
     names = check_arguments(params, algorithm, overrides, bounds, grid, newton, xtol, max_iter, max_replans,
-                             substeps, starts)
+                            substeps, starts)
     components = _check_components(model_error)
     problem, axes = _prepare(scene, data, names, variant=variant, algorithm=algorithm, overrides=overrides,
                              bounds=bounds, window=window, newton=newton, max_iter=max_iter, xtol=xtol,
@@ -212,7 +214,7 @@ class Problem:
 
 
 def check_arguments(params, algorithm, overrides, bounds, grid, newton, xtol, max_iter, max_replans, substeps,
-                     starts) -> tuple:
+                    starts) -> tuple:
     """Check the arguments of :func:`fit` that need neither the scene nor the measurement; returns
     the fitted names as a tuple (ValueError naming the field)."""
     if isinstance(params, str):
@@ -262,9 +264,9 @@ def _prepare(scene: str, data, names: tuple, *, variant, algorithm, overrides, b
     say = (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)
     model_key = (scene, names, par.scene.variant, algorithm, repr(sorted((overrides or {}).items())), newton)
     problem = Problem(scene=scene, algorithm=algorithm, overrides=dict(overrides or {}), names=names, par=par,
-                       meas=meas, edges=edges, observed=observed, lo=lo, hi=hi, newton=newton,
-                       max_iter=max_iter, xtol=xtol, max_replans=max_replans, substeps=substeps,
-                       model_key=model_key, say=say)
+                      meas=meas, edges=edges, observed=observed, lo=lo, hi=hi, newton=newton,
+                      max_iter=max_iter, xtol=xtol, max_replans=max_replans, substeps=substeps,
+                      model_key=model_key, say=say)
     return problem, axes
 
 
