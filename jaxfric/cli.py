@@ -649,6 +649,8 @@ def _fit(args) -> int:
 
 
 def _design(args) -> int:
+    import numpy as np
+
     from .identification.design import design, write_design
     from .identification.fit import FitError
 
@@ -672,6 +674,10 @@ def _design(args) -> int:
         print(f"restraining force {result.force:.6g} N/mm for a target of {result.target:.6g} "
               f"({100 * (result.force / result.target - 1):+.3g} %; start {result.start_value:.6g}); "
               + ", ".join(f"dF/d{n} = {v:.4g}" for n, v in result.sensitivity.items()))
+    else:
+        gap = float(np.max(np.abs(np.asarray(result.force) - result.targets)))
+        print(f"largest difference from the target curve {gap:.4g} N/mm over {len(result.targets)} "
+              f"{'points' if result.window is None else 'windows'}")
     print(f"{result.n_simulations} simulations, {result.wall_s:.1f} s")
     if not result.converged:
         return _error(f"design did not meet the target (last values written to {out}): {result.message}",

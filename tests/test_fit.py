@@ -431,6 +431,19 @@ def test_least_squares_stops_within_a_tenth_of_the_standard_error(step):
 
 # ---- design (jaxfric design, jaxfric.identification.design) -------------------------------------------
 
+def test_cli_design_meets_a_target_curve(flat_history, tmp_path, capsys):
+    """A target curve (the run at F_clamp = 50 N/mm, every point) from F_clamp = 40: the design is the
+    clamping force that made it."""
+    out = tmp_path / "curve"
+    code = main(["design", *FLAT, "--target-curve", flat_history, "--param", "F_clamp", "--set", "F_clamp=40",
+                 "--bounds", "F_clamp=10:100", "--quiet", "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    summary = json.loads((out / "design.json").read_text())
+    assert summary["converged"] and summary["target"] is None and summary["steady_window"] is None
+    assert summary["params"]["F_clamp"] == pytest.approx(50.0, rel=1e-4)
+    assert "largest difference from the target curve" in capsys.readouterr().out
+
+
 def test_cli_design_meets_a_target_force_and_names_the_reachable_range(tmp_path, capsys):
     """The flat die's steady force, once the sheet slides, is mu F_clamp (a closed form, not the model):
     a target of 9 N/mm needs F_clamp = 60 N/mm at mu = 0.15, with dF/dF_clamp = mu. A target of 20 N/mm

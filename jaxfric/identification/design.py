@@ -60,8 +60,9 @@ class DesignResult:
         target: the restraining force F* (N/mm), or None for a target curve; steady_window: (a, b)
             (mm) of the restraining force (None for a curve); window: the windows' length (mm) of a
             target curve (None: every point, or a restraining force).
-        force: the design's restraining force (the mean over ``window``), or its observations of the
-            target curve; start_value: the same at the start.
+        targets: the fitted targets (the restraining force, or the target curve's points or window
+            means); force: the design's restraining force (the mean over ``window``), or its
+            observations of the target curve; start_value: the same at the start.
         sensitivity: {name: dF/dp} at the design (N/mm per unit of p; for a target curve, of its first
             observation), from the forward-mode Jacobian of the last replay.
         rtol: the relative tolerance on the target; converged: every target met within it (by the
@@ -84,6 +85,7 @@ class DesignResult:
     target: float | None
     steady_window: tuple[float, float] | None
     window: float | None
+    targets: np.ndarray
     force: float | np.ndarray
     start_value: float | np.ndarray
     sensitivity: dict
@@ -167,7 +169,7 @@ def design(scene: str, target, params, *, variant: str | None = None, algorithm:
         target=float(observed[0]) if scalar else None,
         steady_window=(float(edges[0]), float(edges[-1])) if scalar else None,
         window=None if scalar or edges is None else float(edges[1] - edges[0]),
-        force=float(observed[0] + cur["r"][0]) if scalar else observed + cur["r"],
+        targets=observed, force=float(observed[0] + cur["r"][0]) if scalar else observed + cur["r"],
         start_value=float(best["start_obs"][0]) if scalar else best["start_obs"],
         target_force=meas.force,
         sensitivity=dict(zip(names, jac[0].tolist())), rtol=float(rtol), converged=done, message=message,
