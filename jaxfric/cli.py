@@ -111,12 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--data", action=_Once, required=True, metavar="CSV", help="measured curve")
     fit.add_argument("--param", action=_Once, required=True, metavar="NAME[,NAME...]",
                      help="config fields to fit, e.g. mu,R1")
-    fit.add_argument("--variant", action=_Once, help="scene variant (default: the scene's first)")
-    fit.add_argument("--algorithm", action=_Once, default="lcp_ssn",
-                     help=f"one of {', '.join(ALGORITHMS)} (default lcp_ssn)")
-    fit.add_argument("--mesh", action=_Once, metavar="NXxNY", help="elements along x and through the thickness")
-    fit.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
-                     help="override a config field; for a fitted field this is its start value")
+    _model_arguments(fit, "fitted")
     fit.add_argument("--bounds", action="append", default=[], metavar="NAME=LOW:HIGH",
                      help="bounds of a fitted parameter (default [0, inf))")
     fit.add_argument("--grid", action="append", default=[], metavar="NAME=LOW:HIGH:N",
@@ -149,12 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="config fields to design, e.g. R,H; their start values are the variant's or --set's")
     des.add_argument("--bounds", action="append", default=[], metavar="NAME=LOW:HIGH",
                      help="bounds of every designed parameter (required)")
-    des.add_argument("--variant", action=_Once, help="scene variant (default: the scene's first)")
-    des.add_argument("--algorithm", action=_Once, default="lcp_ssn",
-                     help=f"one of {', '.join(ALGORITHMS)} (default lcp_ssn)")
-    des.add_argument("--mesh", action=_Once, metavar="NXxNY", help="elements along x and through the thickness")
-    des.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
-                     help="override a config field; for a designed field this is its start value")
+    _model_arguments(des, "designed")
     des.add_argument("--window", action=_Once, metavar="A:B or MM",
                      help="--target: the window A:B (mm) of the mean (default the scene's steady_window); "
                           "--target-curve: fit means over windows of MM instead of every point")
@@ -594,6 +584,16 @@ def parse_grid(specs, names) -> dict:
             raise UsageError(f"--grid: the grids combined give {points} runs, more than {MAX_GRID_POINTS}")
         out[name] = [low + (high - low) * k / (n - 1) for k in range(n)]
     return out
+
+
+def _model_arguments(parser, what: str) -> None:
+    """The scene model's options of ``fit`` and ``design`` (``what``: "fitted" or "designed")."""
+    parser.add_argument("--variant", action=_Once, help="scene variant (default: the scene's first)")
+    parser.add_argument("--algorithm", action=_Once, default="lcp_ssn",
+                        help=f"one of {', '.join(ALGORITHMS)} (default lcp_ssn)")
+    parser.add_argument("--mesh", action=_Once, metavar="NXxNY", help="elements along x and through the thickness")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
+                        help=f"override a config field; for a {what} field this is its start value")
 
 
 def _parameters(args, folder: str) -> tuple[tuple, dict, dict, str, str]:
