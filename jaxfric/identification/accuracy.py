@@ -264,12 +264,10 @@ def penalty_tangent(scene, result) -> np.ndarray:
 
 # ---- the step size's and the element length's shares of a run's error ----------------------------------
 
-def companion(scene, overrides: dict, what: str, progress: bool = False) -> dict:
-    """``scene`` run again with config ``overrides``, reduced to what :func:`jaxfric.io.output.error_estimate`
-    needs: ``{"steady", "peak", "n_steps", "mesh", "converged"}``. Raises ValueError (one line, naming the
-    run as ``what``) when it does not reach the end of the load path."""
+def companion_run(scene, overrides: dict, what: str, progress: bool = False):
+    """``scene`` run again with config ``overrides``: (the companion scene, its run's result). Raises
+    ValueError (one line, naming the run as ``what``) when it does not reach the end of the load path."""
     from .. import scenes
-    from ..io import instants, output
     from ..loadpath.run import run
 
     config = dataclasses.replace(scene.config, **overrides)
@@ -278,6 +276,15 @@ def companion(scene, overrides: dict, what: str, progress: bool = False) -> dict
                  progress=progress, raise_on_failure=False, label=f"{what} ")
     if not result.converged:
         raise ValueError(f"the {what} did not complete: {result.message}")
+    return other, result
+
+
+def companion(scene, overrides: dict, what: str, progress: bool = False) -> dict:
+    """:func:`companion_run`, reduced to what :func:`jaxfric.io.output.error_estimate` needs: ``{"steady",
+    "peak", "n_steps", "mesh", "converged"}``."""
+    from ..io import instants, output
+
+    other, result = companion_run(scene, overrides, what, progress)
     _, _, values = output.history_table(other, result)
     window, _ = instants.steady_window(other.name, values, other.steady_window)
     return {"steady": instants.steady_drawing_force({**values, "phase_name": values["phase"]}, window),

@@ -1,8 +1,8 @@
 """Tool dimensions for a target drawing force: the inverse problem a bead designer solves.
 
     >>> from jaxfric.identification.design import design, write_design
-    >>> res = design("blankholder", 170.0, ["H"], variant="shape3", bounds={"H": (6.0, 9.7)})
-    >>> res.params, res.force          # {"H": 7.8...}, 170.0...
+    >>> res = design("blankholder", 165.0, ["R", "H"], variant="shape3", bounds={"R": (3.0, 9.0), "H": (6.0, 9.7)})
+    >>> res.params, res.force          # {"R": 4.17..., "H": 9.42...}, 165.01...
     >>> write_design(res, "designs/blankholder")   # design.json, design_history.csv, design.png
 
 **The target.** A restraining force F* (N/mm): the mean drawing force over a window of the draw (the
@@ -33,7 +33,6 @@ import dataclasses
 import itertools
 import math
 import numbers
-import sys
 import time
 from collections.abc import Callable
 
@@ -41,8 +40,8 @@ import numpy as np
 
 from .. import scenes
 from ..numerics.newton import NewtonOptions
-from .fit import Problem, adaptive_history, check_arguments, check_bounds, local_stage, met
-from .fit_data import Measurement, bin_means, observations, read_measurement, window_edges
+from .fit import Problem, adaptive_history, check_arguments, check_bounds, local_stage, met, new_problem
+from .fit_data import Measurement, observations, read_measurement, window_edges
 from .params import parameterize
 
 __all__ = ["DesignResult", "design", "write_design", "TARGET_POINTS"]
@@ -136,14 +135,10 @@ def design(scene: str, target, params, *, variant: str | None = None, algorithm:
         raise ValueError(f"field 'bounds' must give finite (low, high) for every designed parameter; missing for "
                          f"{(unbounded or list(names))[0]!r}")
     meas, edges, scalar = _targets(par.scene, target, window)
-    observed = meas.force if edges is None else bin_means(meas.displacement, meas.force, edges)
-    say = (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)
-    problem = Problem(scene=scene, algorithm=algorithm, overrides=dict(overrides or {}), names=names, par=par,
-                      meas=meas, edges=edges, observed=observed, lo=lo, hi=hi, newton=newton, max_iter=max_iter,
-                      xtol=xtol, max_replans=max_replans, substeps=1,
-                      model_key=(scene, names, par.scene.variant, algorithm, repr(sorted((overrides or {}).items())),
-                                 newton),
-                      say=say, rtol=float(rtol), task="design")
+    problem = new_problem(par, meas, edges, lo, hi, algorithm=algorithm, overrides=overrides, newton=newton,
+                          max_iter=max_iter, xtol=xtol, max_replans=max_replans, substeps=1, progress=progress,
+                          rtol=float(rtol), task="design")
+    observed = problem.observed
     if ready is not None:
         ready()
     best, _ = local_stage(problem, [par.p0.copy()])

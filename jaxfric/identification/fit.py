@@ -257,17 +257,28 @@ def _prepare(scene: str, data, names: tuple, *, variant, algorithm, overrides, b
     if starts > 1 and not grid:
         raise ValueError(f"field 'starts' = {starts} needs a grid (the starts are minima of the global stage)")
     edges = window_edges(meas.displacement, window, len(names))
-    observed = meas.force if edges is None else bin_means(meas.displacement, meas.force, edges)
     par = parameterize(scene, names, variant=variant, algorithm=algorithm, overrides=overrides)
     lo, hi = check_bounds(names, par.p0, bounds)
     axes = grid_axes(grid, names, lo, hi) if grid else None
-    say = (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)
-    model_key = (scene, names, par.scene.variant, algorithm, repr(sorted((overrides or {}).items())), newton)
-    problem = Problem(scene=scene, algorithm=algorithm, overrides=dict(overrides or {}), names=names, par=par,
-                      meas=meas, edges=edges, observed=observed, lo=lo, hi=hi, newton=newton,
-                      max_iter=max_iter, xtol=xtol, max_replans=max_replans, substeps=substeps,
-                      model_key=model_key, say=say)
+    problem = new_problem(par, meas, edges, lo, hi, algorithm=algorithm, overrides=overrides, newton=newton,
+                          max_iter=max_iter, xtol=xtol, max_replans=max_replans, substeps=substeps, progress=progress)
     return problem, axes
+
+
+def new_problem(par: Parameterization, meas: Measurement, edges, lo: np.ndarray, hi: np.ndarray, *, algorithm: str,
+                overrides, newton, max_iter: int, xtol: float, max_replans: int, substeps: int, progress: bool,
+                rtol: float | None = None, task: str = "fit") -> Problem:
+    """The :class:`Problem` of a fit (or, with ``rtol`` and ``task``, a design) of ``par`` to ``meas``:
+    its observations (the measured force, or its means over the windows ``edges``), the key of the
+    caches and the progress printer."""
+    observed = meas.force if edges is None else bin_means(meas.displacement, meas.force, edges)
+    say = (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)
+    scene = par.scene.name
+    model_key = (scene, par.names, par.scene.variant, algorithm, repr(sorted((overrides or {}).items())), newton)
+    return Problem(scene=scene, algorithm=algorithm, overrides=dict(overrides or {}), names=par.names, par=par,
+                   meas=meas, edges=edges, observed=observed, lo=lo, hi=hi, newton=newton, max_iter=max_iter,
+                   xtol=xtol, max_replans=max_replans, substeps=substeps, model_key=model_key, say=say, rtol=rtol,
+                   task=task)
 
 
 def check_bounds(names, p0, bounds) -> tuple[np.ndarray, np.ndarray]:

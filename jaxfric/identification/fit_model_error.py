@@ -36,7 +36,7 @@ import numpy as np
 
 from .. import scenes
 from ..io.output import richardson_error
-from ..loadpath.run import run
+from .accuracy import companion_run
 from .fit_data import observations
 
 __all__ = ["COMPONENTS", "model_error"]
@@ -65,22 +65,14 @@ def model_error(scene: str, variant: str, algorithm: str, overrides: dict, param
     "observation_error": (m,) e, "wall_s"}. Raises ValueError (one line) when a companion does not complete.
     """
     t0 = time.perf_counter()
-    plain = {k: v for k, v in overrides.items() if k != "mesh"}  # the companions set nx or ny themselves
-    if "mesh" in overrides:
-        plain["nx"], plain["ny"] = scenes.parse_mesh(overrides["mesh"])
-    overrides = {**plain, **params}
-    base = scenes.make(scene, variant, algorithm, overrides)
+    base = scenes.make(scene, variant, algorithm, {**overrides, **params})
     names = list(params)
     pinv = np.linalg.pinv(jac)
     total, per = np.zeros_like(fitted), {}
     for c in components:
         refined = COMPONENTS[c](scene, base.config)
         say(f"  model error: the adaptive run at the fitted values with {c} refined ({refined})")
-        other = scenes.make(scene, variant, algorithm, {**overrides, **refined})
-        res = run(other.model, newton=other.newton, control=other.control, observe=other.observe, progress=False,
-                  raise_on_failure=False)
-        if not res.converged:
-            raise ValueError(f"the model-error companion with {c} refined did not complete: {res.message}")
+        _, res = companion_run(base, refined, f"model-error companion with {c} refined")
         e_c = np.array([richardson_error(float(a), float(b), RATIO)
                         for a, b in zip(fitted, observations(res.history, x, edges))])
         total = total + e_c
