@@ -69,6 +69,23 @@ def _share_compiled_programs():
 _SESSION_CACHE = _share_compiled_programs()
 
 
+# The suite's longest files (summed test time, ``make test``'s ``--durations``), run first: pytest-xdist hands
+# out whole files (``--dist loadfile``), by default the files with the most tests first, which left the
+# single 90-second test of test_fit_nine.py to run last on one worker while the other had finished.
+# ``make test`` turns that order off (``--no-loadscope-reorder``) for this one.
+LONGEST_FIRST = ("test_fit.py", "test_contact.py", "test_fit_nine.py", "test_solver.py", "test_resume.py",
+                 "test_scenes.py", "test_exact.py", "test_element_ans.py", "test_accuracy.py",
+                 "test_derivatives.py", "test_experiments.py", "test_original_study.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    """The files of :data:`LONGEST_FIRST` first, in that order, then the others as collected."""
+    def rank(item):
+        name = os.path.basename(str(item.path))
+        return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
+    items.sort(key=rank)   # stable: the order within a file, and of the other files, is kept
+
+
 def pytest_unconfigure(config):
     """The controlling process (not a worker) removes the cache it made."""
     if _SESSION_CACHE and not hasattr(config, "workerinput"):

@@ -3,6 +3,7 @@ Lagrangian, penetration law, Hertz, capstan, objectivity, derivatives, bad input
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -395,13 +396,15 @@ def test_the_stabilised_attempts_damper_acts_on_the_free_dofs_with_its_exact_tan
     state, model = res.simulation.final, scene.model
     ctx = StepContext.build(model)
     t = float(state.time) + 1e-3
-    plain, _, _ = step_args(model, state, state.phase, t, ctx)
     eta = 37.0
-    damped, _, _ = step_args(model, state, state.phase, t, ctx, damping=jnp.asarray(eta))
+    # Compiled as one program each (evaluated op by op, the arguments and linearisations compile
+    # hundreds of small programs).
+    args = eqx.filter_jit(lambda damping: step_args(model, state, state.phase, t, ctx, damping=damping)[0])
+    plain, damped = args(None), args(jnp.asarray(eta))
     x_n = unknowns(model, state.u, tool_positions(state))
     x = x_n + 1e-4 * jnp.sin(jnp.arange(x_n.size, dtype=float))
     n, free = model.mesh.n_dofs, ~np.asarray(plain.mask)
-    lin0, lin1 = linearize(x, plain), linearize(x, damped)
+    lin0, lin1 = eqx.filter_jit(linearize)(x, plain), eqx.filter_jit(linearize)(x, damped)
     expected = np.zeros(x.size)
     expected[:n] = np.where(free, eta * np.asarray(x[:n] - x_n[:n]), 0.0)
     # Equal up to the round-off of the undamped residual's size (the difference cancels it).
@@ -411,6 +414,6 @@ def test_the_stabilised_attempts_damper_acts_on_the_free_dofs_with_its_exact_tan
     extra[np.arange(n), np.arange(n)] = np.where(free, eta, 0.0)
     np.testing.assert_allclose(np.asarray(lin1.jacobian.to_dense() - lin0.jacobian.to_dense()), extra,
                                rtol=0, atol=1e-9 * eta)
-    forward = jax.jacfwd(lambda y: residual(y, damped)[0])(x)
+    forward = eqx.filter_jit(jax.jacfwd(lambda y: residual(y, damped)[0]))(x)
     np.testing.assert_allclose(np.asarray(lin1.jacobian.to_dense()), np.asarray(forward), rtol=1e-8,
                                atol=1e-8 * float(jnp.max(jnp.abs(forward))))

@@ -158,9 +158,10 @@ def test_fbar_geometric_term_is_the_hessian_of_the_kinematics(formulation):
             return _kinematics(formulation, dN_e, dN0_e, w_e, v.reshape(4, 2), jnp.zeros(0))[0]
         return Fbar(u_e.ravel()), jax.jacfwd(Fbar)(u_e.ravel())
 
-    want = jax.vmap(by_ad)(S, dN, dN0, geo.weight, u)
-    got, Fbar, dFbar = jax.vmap(closed_form)(S, dN, dN0, u)
-    Fbar_ad, dFbar_ad = jax.vmap(kinematics_by_ad)(dN, dN0, geo.weight, u)
+    # Compiled (op by op, the batched derivatives compile hundreds of small programs).
+    want = jax.jit(jax.vmap(by_ad))(S, dN, dN0, geo.weight, u)
+    got, Fbar, dFbar = jax.jit(jax.vmap(closed_form))(S, dN, dN0, u)
+    Fbar_ad, dFbar_ad = jax.jit(jax.vmap(kinematics_by_ad))(dN, dN0, geo.weight, u)
     np.testing.assert_allclose(Fbar, Fbar_ad, rtol=0, atol=1e-14)
     np.testing.assert_allclose(dFbar, dFbar_ad, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(dFbar_ad))))
     J = jax.vmap(lambda d, v: jnp.linalg.det(jnp.eye(2) + jnp.einsum("ai,gaj->gij", v, d)))(dN, u)

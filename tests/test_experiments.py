@@ -1,6 +1,8 @@
 """The experiment scripts run at a tiny size (they compute when called, write only under __main__)."""
 
 
+import os
+
 import bench_core  # experiments/ is on the tests' import path (pyproject.toml, pytest's pythonpath)
 
 
@@ -263,3 +265,40 @@ def test_chunk_boundary_cost_is_the_extra_time_per_extra_chunk_plus_the_host_tim
     assert bench_chunks.boundary_cost(rows) == ("a chunk's boundary costs 10.0 ms inside the compiled calls; the "
                                                 "default chunks' boundaries with the host's time between them "
                                                 "1.00 % of the one loop's solve")
+
+
+# ---- experiments/suite_files.py: the suite's files and the workers' schedule (no simulation) ----------
+
+def test_suite_files_model_the_two_workers_and_name_existing_files(tmp_path):
+    import suite_files
+
+    report = tmp_path / "report.xml"
+    cases = [("tests.test_a", 1.0)] * 3 + [("tests.test_b", 9.0), ("tests.test_c", 4.0), ("tests.test_c", 4.0)]
+    rows = "".join(f'<testcase classname="{c}" name="t{k}" time="{t}"/>' for k, (c, t) in enumerate(cases))
+    report.write_text(f"<testsuites><testsuite>{rows}</testsuite></testsuites>")
+    seconds, count = suite_files.file_times(str(report))
+    assert seconds == {"test_a.py": 3.0, "test_b.py": 9.0, "test_c.py": 8.0}
+    assert count == {"test_a.py": 3, "test_b.py": 1, "test_c.py": 2}
+    # Most tests first (a, c, b): b starts last, beside nothing; longest first (b, c, a) balances.
+    assert suite_files.makespan(["test_a.py", "test_c.py", "test_b.py"], seconds) == 12.0
+    assert suite_files.makespan(["test_b.py", "test_c.py", "test_a.py"], seconds) == 11.0
+    # The order make test uses names files that exist (a renamed file would silently lose its place).
+    tests = os.path.dirname(os.path.abspath(__file__))
+    assert all(os.path.isfile(os.path.join(tests, name)) for name in suite_files.longest_first())
+
+
+def test_suite_compile_reads_jax_s_compile_log_and_sorts_programs_by_kind():
+    import suite_compile
+
+    assert suite_compile.parse("Persistent compilation cache hit for jit(f)") is None
+    assert suite_compile.parse("Finished tracing curve for jit in 2.5 sec") == ("trace", "curve", 2.5)
+    assert suite_compile.parse("Finished XLA compilation of jit(<lambda>) in 0.125 sec") == \
+        ("xla", "jit(<lambda>)", 0.125)
+    assert suite_compile.parse("Finished jaxpr to MLIR module conversion jit(add) in 1e-3 sec") == \
+        ("lower", "jit(add)", 1e-3)
+    kinds = [suite_compile.kind(n) for n in ("jit(add)", "jit(broadcast_in_dim)", "jit(curve)", "jit(<lambda>)",
+                                             "jit(_project_all)", "<lambda>")]
+    assert kinds == ["op by op", "op by op", "curve", "other", "other", "other"]
+    per_test, totals = suite_compile.summarise([("t", "xla", "jit(add)", 1.0), ("t", "trace", "jit(add)", 0.5),
+                                                ("u", "xla", "jit(curve)", 2.0)])
+    assert per_test["t"][("op by op", "programs")] == 1 and totals[("curve", "xla")] == 2.0
