@@ -69,10 +69,10 @@ def _share_compiled_programs():
 _SESSION_CACHE = _share_compiled_programs()
 
 
-# The suite's longest files (summed test time, ``make test``'s ``--durations``), run first: pytest-xdist hands
-# out whole files (``--dist loadfile``), by default the files with the most tests first, which left the
-# single 90-second test of test_fit_nine.py to run last on one worker while the other had finished.
-# ``make test`` turns that order off (``--no-loadscope-reorder``) for this one.
+# The suite's longest files (summed test time: ``python experiments/suite_files.py REPORT.xml``), run first.
+# pytest-xdist hands out whole files (``--dist loadfile``), by default the files with the most tests first,
+# which puts the one-test files last (test_fit_nine.py, the longest file, among them), where one worker
+# runs them alone; ``make test`` turns that order off (``--no-loadscope-reorder``) for this one.
 LONGEST_FIRST = ("test_fit.py", "test_contact.py", "test_fit_nine.py", "test_solver.py", "test_resume.py",
                  "test_scenes.py", "test_exact.py", "test_element_ans.py", "test_accuracy.py",
                  "test_derivatives.py", "test_experiments.py", "test_original_study.py")

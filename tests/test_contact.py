@@ -404,7 +404,8 @@ def test_the_stabilised_attempts_damper_acts_on_the_free_dofs_with_its_exact_tan
     x_n = unknowns(model, state.u, tool_positions(state))
     x = x_n + 1e-4 * jnp.sin(jnp.arange(x_n.size, dtype=float))
     n, free = model.mesh.n_dofs, ~np.asarray(plain.mask)
-    lin0, lin1 = eqx.filter_jit(linearize)(x, plain), eqx.filter_jit(linearize)(x, damped)
+    compiled = eqx.filter_jit(linearize)
+    lin0, lin1 = compiled(x, plain), compiled(x, damped)
     expected = np.zeros(x.size)
     expected[:n] = np.where(free, eta * np.asarray(x[:n] - x_n[:n]), 0.0)
     # Equal up to the round-off of the undamped residual's size (the difference cancels it).
