@@ -1,6 +1,10 @@
 """Compile time of a scene's run program, split into tracing and XLA's compilation:
 ``python experiments/bench_compile.py [--scene nine] [--variant mu017] [--algorithms lcp_ssn,penalty,auglag]
-[--mesh 300x3]``.
+[--mesh 300x3] [--scene-build]``.
+
+``--scene-build``: instead, the time to build the scene (``jaxfric.scenes.make``) in two fresh processes in
+turn that share a new persistent compilation cache (:mod:`jaxfric.io.cache`, as the command lines enable
+it): the first compiles the programs of the build, the second reads them.
 
 For each algorithm, in a fresh process each (JAX keeps traces and executables for the life of a
 process), prints the seconds spent tracing and lowering the program that :func:`jaxfric.run` compiles
@@ -38,6 +42,34 @@ t = time.perf_counter(); lowered.compile(); compile_s = time.perf_counter() - t
 print(json.dumps({"lower_s": lower, "compile_s": compile_s, "tangent_traces": len(traced)}))
 """
 
+_BUILD = r"""
+import json, sys, time
+import jax
+jax.config.update("jax_enable_x64", True)
+from jaxfric.io.cache import enable_compilation_cache
+enable_compilation_cache(sys.argv[4])
+from jaxfric import scenes
+t = time.perf_counter()
+scenes.make(sys.argv[1], sys.argv[2], "lcp_ssn", {"mesh": sys.argv[3]})
+print(json.dumps({"build_s": time.perf_counter() - t}))
+"""
+
+
+def scene_build(scene: str, variant: str, mesh: str) -> list[float]:
+    """Seconds to build the scene in two fresh processes sharing a new compilation cache."""
+    import os
+    import tempfile
+
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR",
+                                                            "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS")}
+    with tempfile.TemporaryDirectory() as folder:
+        times = []
+        for _ in range(2):
+            out = subprocess.run([sys.executable, "-c", _BUILD, scene, variant, mesh, folder], env=env,
+                                 capture_output=True, text=True, check=True)
+            times.append(json.loads(out.stdout.strip().splitlines()[-1])["build_s"])
+    return times
+
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -45,7 +77,13 @@ def main(argv=None) -> int:
     parser.add_argument("--variant", default="mu017")
     parser.add_argument("--algorithms", default="lcp_ssn,penalty,auglag")
     parser.add_argument("--mesh", default="300x3")
+    parser.add_argument("--scene-build", action="store_true", help="time the scene's build, compiled then cached")
     args = parser.parse_args(argv)
+    if args.scene_build:
+        first, second = scene_build(args.scene, args.variant, args.mesh)
+        print(f"{args.scene} {args.variant} {args.mesh}: scene built in {first:.2f} s compiling, "
+              f"{second:.2f} s from the compilation cache")
+        return 0
     for algorithm in args.algorithms.split(","):
         out = subprocess.run([sys.executable, "-c", _CHILD, args.scene, args.variant, algorithm, args.mesh],
                              capture_output=True, text=True, check=True)

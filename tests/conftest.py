@@ -59,6 +59,9 @@ def pytest_configure(config):
 def _share_compiled_programs():
     """One compilation cache for the test run, set in the environment before JAX starts (the workers and the
     command lines that tests run inherit it). Returns the folder to remove at the end, if made here."""
+    # The command lines keep every program (jaxfric.io.cache); the suite keeps JAX's default, programs that
+    # took a second or more to compile, as it was measured with (docs/results.md, test suite run time).
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1.0")
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         return None
     folder = tempfile.mkdtemp(prefix="jaxfric-tests-xla-")
