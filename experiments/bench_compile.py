@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
+import tempfile
 
 _CHILD = r"""
 import json, sys, time
@@ -57,9 +59,6 @@ print(json.dumps({"build_s": time.perf_counter() - t}))
 
 def scene_build(scene: str, variant: str, mesh: str) -> list[float]:
     """Seconds to build the scene in two fresh processes sharing a new compilation cache."""
-    import os
-    import tempfile
-
     env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR",
                                                             "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS")}
     with tempfile.TemporaryDirectory() as folder:

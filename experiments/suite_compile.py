@@ -130,10 +130,10 @@ def main() -> None:
     with open(OUT, "w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(["test", "total_s", *columns])
-        rows = sorted(per_test.items(), key=lambda kv: -sum(v for (k, s), v in kv[1].items() if s != "programs"))
-        for test, c in rows:
-            total = sum(v for (k, s), v in c.items() if s != "programs")
-            writer.writerow([test, f"{total:.2f}", *(f"{c[(k, s)]:.2f}" for k in kinds for s in stages),
+        seconds = {test: sum(v for (_, s), v in c.items() if s != "programs") for test, c in per_test.items()}
+        for test in sorted(seconds, key=lambda t: -seconds[t]):
+            c = per_test[test]
+            writer.writerow([test, f"{seconds[test]:.2f}", *(f"{c[(k, s)]:.2f}" for k in kinds for s in stages),
                              *(int(c[(k, "programs")]) for k in kinds)])
     grand = sum(totals.values())
     print(f"{len(records)} records, {grand:.0f} s of tracing, lowering and XLA compilation")
