@@ -82,10 +82,7 @@ def run_case(case: str, out: str, extra: tuple = ()) -> dict:
     from jaxfric.identification import accuracy
 
     path = os.path.join(out, f"{case}.json")
-    done = {}
-    if os.path.exists(path):
-        with open(path) as f:
-            done = json.load(f)
+    done = read_record(path)
     scene_name, variant, overrides = CASES[case]
     scene = scenes.make(scene_name, variant, "lcp_ssn", overrides)
     for name in RUNS + tuple(extra):
@@ -94,10 +91,32 @@ def run_case(case: str, out: str, extra: tuple = ()) -> dict:
         print(f"{case}: {name}", file=sys.stderr, flush=True)
         check = accuracy.companion(scene, _overrides(scene, name), f"{case} {name}", progress=False)
         done[name] = {"steady": check["steady"], "n_steps": check["n_steps"], "mesh": list(check["mesh"])}
-        with open(path + ".tmp", "w") as f:
-            json.dump(done, f, indent=1)
-        os.replace(path + ".tmp", path)
+        write_record(path, done)
     return done
+
+
+def read_record(path: str) -> dict:
+    """The runs recorded in ``path`` (JSON, run name -> figures), or none."""
+    if not os.path.exists(path):
+        return {}
+    with open(path) as f:
+        return json.load(f)
+
+
+def write_record(path: str, done: dict) -> None:
+    """Write the runs ``done`` to ``path`` whole or not at all (a temporary file renamed over it), so that
+    an interrupted study resumes from the last run written."""
+    with open(path + ".tmp", "w") as f:
+        json.dump(done, f, indent=1)
+    os.replace(path + ".tmp", path)
+
+
+def write_csv(path: str, rows: list[dict]) -> None:
+    """``rows`` as a CSV table, floats to 6 significant digits."""
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()} for r in rows)
 
 
 def richardson(f1: float, f2: float, f4: float) -> tuple[float, float]:
@@ -179,10 +198,7 @@ def main(argv=None) -> int:
     rows = [summarise(case, done[case]) for case in CASES if case in done and all(k in done[case] for k in RUNS)]
     os.makedirs(RESULTS, exist_ok=True)
     path = os.path.join(RESULTS, "error_estimates.csv")
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()} for r in rows)
+    write_csv(path, rows)
     for r in rows:
         print(f"{r['case']:26s} F {r['force']:9.4f}  true {r['true_pct']:+7.3f} %  estimate {r['estimate_pct']:6.3f} %"
               f" (fine {r['estimate_fine_pct']:6.3f} %)  along {r['true_along_pct']:+.3f} / est {r['est_mesh_pct']:.3f}"

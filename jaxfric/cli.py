@@ -96,7 +96,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--error-estimate", action=_Once, type=_estimates, default=(), metavar="WHAT",
                      help="basic (default): from the run's penetration, force scatter and Newton tolerance "
                           "(not the discretisation's error); or a comma list of: step (the run again with half "
-                          "the nominal increments, about twice the cost), mesh (on half the elements along the "
+                          "the nominal increments, or half the target of --set step_error, about twice the "
+                          "cost), mesh (on half the elements along the "
                           "strip, about half the cost; overstates the error where that mesh is coarse) or "
                           "mesh_fine (on twice the elements, two to three times the cost; within 1 to 2 times "
                           "the error where it halves per halving), layers (twice the layers, about twice the "

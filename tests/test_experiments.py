@@ -1,6 +1,7 @@
 """The experiment scripts run at a tiny size (they compute when called, write only under __main__)."""
 
 
+import math
 import os
 
 import bench_core  # experiments/ is on the tests' import path (pyproject.toml, pytest's pythonpath)
@@ -207,6 +208,24 @@ def test_richardson_limit_uses_the_observed_ratio_and_stops_where_changes_do_not
     assert q == pytest.approx(4.0) and limit == pytest.approx(10.0)
     # Changes that grow or change sign: no extrapolation, the finest value.
     assert error_estimates.richardson(10.0, 10.5, 9.0) == (9.0, pytest.approx(-0.5 / 1.5))
+
+
+def test_step_error_control_rows_measure_each_run_against_the_step_limit():
+    import step_error_control
+
+    # A first-order ladder F = 100 - 8 h (h: the increment's factor): limit 100.
+    runs = {name: {"steady": 100.0 - 8.0 * f, "steps": int(10 / f), "newton": int(50 / f), "cutbacks": 0,
+                   "cpu_s": 1.0 / f} for name, f in step_error_control.FIXED.items()}
+    runs["error_0.01"] = {"steady": 99.5, "steps": 30, "newton": 120, "cutbacks": 1, "cpu_s": 3.0}
+    rows = {r["run"]: r for r in step_error_control.rows_of("case", runs)}
+    assert rows["fixed_1"]["step_limit"] == pytest.approx(100.0) and rows["fixed_1"]["q_step"] == pytest.approx(2.0)
+    assert rows["fixed_1"]["error_pct"] == pytest.approx(-8.0)
+    assert rows["error_0.01"]["error_pct"] == pytest.approx(-0.5) and rows["error_0.01"]["step_error"] == 0.01
+    assert rows["error_0.01"]["error_over_tol"] == pytest.approx(0.5)
+    assert math.isnan(rows["fixed_1/2"]["step_error"])
+    # 0.5 % lies beyond the quarter (2 %, 200 iterations): along the half-quarter segment (4 %, 100),
+    # iterations doubling with every halving of the error: 800
+    assert rows["error_0.01"]["fixed_newton_same_error"] == pytest.approx(800.0)
 
 
 def test_error_estimate_summary_compares_the_run_s_estimate_with_its_reference():

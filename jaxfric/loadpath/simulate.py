@@ -45,6 +45,7 @@ from .step import (
     step_state,
     unknowns,
 )
+from .step_error import FlowMemory
 
 __all__ = ["History", "Simulation", "LoadPathState", "Chunk", "begin", "advance", "restart", "simulate",
            "simulate_flat", "simulate_fixed"]
@@ -199,12 +200,15 @@ class LoadPathState(eqx.Module):
         ctrl: the step controller's state (increment, cuts, result code: ``Result.CONTINUE`` while the
             load path goes on).
         rows: () int32 history rows so far (1 + accepted steps).
+        flow: the last accepted step's plastic flow, for the step error estimate
+            (:class:`~jaxfric.loadpath.step_error.FlowMemory`; empty unless ``StepControl.step_error``).
     """
 
     state: SimState
     predictor: _Predictor
     ctrl: ControllerState
     rows: jax.Array
+    flow: FlowMemory
 
 
 class Chunk(eqx.Module):
@@ -246,7 +250,8 @@ def _controller(model: StripModel, control: StepControl) -> Controller:
 def _start(model: StripModel, ctrl: Controller) -> LoadPathState:
     state0 = initial_state(model)
     return LoadPathState(state=state0, predictor=_Predictor.empty(state0),
-                         ctrl=ctrl.init(state0.u, tool_positions(state0)), rows=jnp.array(1, jnp.int32))
+                         ctrl=ctrl.init(state0.u, tool_positions(state0)), rows=jnp.array(1, jnp.int32),
+                         flow=FlowMemory.empty(state0.material, ctrl.control.step_error > 0))
 
 
 def _init_loop(model: StripModel, ctrl: Controller, observe: Callable) -> _Loop:
@@ -270,19 +275,24 @@ def _damping(ctrl: Controller, p: LoadPathState):
 
 
 def _after_attempt(model: StripModel, ctrl: Controller, c: _Loop, sol: StepSolution, new_state: SimState, t_try,
-                   observe: Callable, fixed, snapshot: Callable | None = None) -> _Loop:
+                   observe: Callable, fixed, weight, snapshot: Callable | None = None) -> _Loop:
     """The loop after an attempt: the step recorded (with its snapshot, in a chunk) if accepted, the
     controller adapted. ``fixed``: the prescribed dofs of the attempt's phase (the damper's energy is
-    taken over the others)."""
+    taken over the others); ``weight``: (n_el, gp) the points' reference areas (the step error's)."""
     p = c.path
     energy = jnp.zeros(())
     if ctrl.stabilized:
         du = (new_state.u - p.state.u).reshape(-1)
         energy = _damping(ctrl, p) * jnp.sum(jnp.where(fixed, 0.0, du**2))
     predicted = p.predictor.used(p.state, new_state.phase, retry=p.ctrl.cuts > 0)
+    error, flow = jnp.array(-1.0), p.flow
+    if p.flow.on:
+        error, increment = p.flow.estimate(weight, model.material, p.state, new_state)
     out = Outcome(sol.code, sol.iterations, sol.hardest, sol.stats, sol.residual_norm, new_state.u,
-                  tool_positions(new_state), predicted)
+                  tool_positions(new_state), predicted, error)
     ok, iters, stats = ctrl.tally(p.ctrl, out)
+    if p.flow.on:
+        flow = p.flow.after(ok, p.state, new_state, increment)
     slot = c.history.n_rows
     history = _record(c.history, slot, ok, new_state, iters, p.ctrl.cuts, sol.augmentations, stats, predicted,
                       observe(model, new_state), energy)
@@ -292,7 +302,7 @@ def _after_attempt(model: StripModel, ctrl: Controller, c: _Loop, sol: StepSolut
     path = LoadPathState(state=_select(ok, new_state, p.state),
                          predictor=p.predictor.after(ok, p.state, new_state, predicted),
                          ctrl=ctrl.adapt(p.ctrl, p.state.time, t_try, out, p.rows),
-                         rows=p.rows + ok.astype(jnp.int32))
+                         rows=p.rows + ok.astype(jnp.int32), flow=flow)
     return _Loop(path=path, history=history, snapshots=snapshots)
 
 
@@ -311,7 +321,8 @@ def _attempt_body(model: StripModel, ctrl: Controller, newton: NewtonOptions, ct
         sol, new_state = solve_step(model, p.state, phase, t_try, newton, ctx, guess=guess, search=~p.ctrl.plain,
                                     soften=p.ctrl.stages.soft if ctrl.continuation else None,
                                     damping=_damping(ctrl, p))
-        return _after_attempt(model, ctrl, c, sol, new_state, t_try, observe, ctx.masks[phase], snapshot)
+        return _after_attempt(model, ctrl, c, sol, new_state, t_try, observe, ctx.masks[phase], ctx.geo.weight,
+                              snapshot)
 
     return body
 
@@ -391,7 +402,8 @@ def restart(model: StripModel, path: LoadPathState, time, *, control: StepContro
     fresh = ctrl.init(state.u, tool_positions(state))
     fresh = eqx.tree_at(lambda c: (c.seg, c.dt), fresh, (seg.astype(jnp.int32), ctrl.seg_dt[seg]))
     state = eqx.tree_at(lambda s: s.time, state, time)
-    return LoadPathState(state=state, predictor=_Predictor.empty(state), ctrl=fresh, rows=path.rows)
+    return LoadPathState(state=state, predictor=_Predictor.empty(state), ctrl=fresh, rows=path.rows,
+                         flow=FlowMemory.empty(state.material, ctrl.control.step_error > 0))
 
 
 def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
@@ -433,7 +445,8 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
         done = nc.code != Result.CONTINUE
         sol = from_newton(newton_result(nc, problem, args))
         new_state = step_state(model, args, sol, t_try, phase, q_start, f_start)
-        c = _select(done, _after_attempt(model, ctrl, c, sol, new_state, t_try, observe, ctx.masks[phase]), c)
+        c = _select(done, _after_attempt(model, ctrl, c, sol, new_state, t_try, observe, ctx.masks[phase],
+                                         ctx.geo.weight), c)
         return _select(done, (c,) + attempt(c), (c, t_try, phase, nc))
 
     t0, phase0, guess0 = _next_attempt(ctrl, init.path)

@@ -47,6 +47,9 @@ MAX_STEPS_DOC = ("size of the history buffer in accepted steps; a run that fills
 STABILIZE_DOC = ("the step controller's damper where a step fails at the smallest increment: eta = stabilize E "
                  "(N/mm per mm) on every free node's increment, then 100 eta; the energy it takes is reported "
                  "(jaxfric.loadpath.controller.StepControl). 0: a run stops there instead [chosen]")
+STEP_ERROR_DOC = ("increments by the estimate of each step's time-discretisation error: the target of the relative "
+                  "error of a step's plastic work (jaxfric.loadpath.step_error); 0: the nominal increments "
+                  "(spec 1.9) [chosen]")
 ELEMENTS = ("fbar", "ans", "anst", "eas")  # plain Q4 locks in plastic flow: kept for elastic checks only
 ELEMENT_DOC = ("element formulation (jaxfric.fem.element): 'fbar' F-bar Q4, 'ans' F-bar with assumed "
                "natural strain through the thickness (no parasitic shear), 'anst' assumed natural strain with "
@@ -266,10 +269,12 @@ class ContactSnapshot(eqx.Module):
 
 # ---- JSON description ----------------------------------------------------------------------------
 
-def step_control(phases, max_steps: int | None = None, stabilize: float = STABILIZE) -> StepControl:
+def step_control(phases, max_steps: int | None = None, stabilize: float = STABILIZE,
+                 step_error: float = 0.0) -> StepControl:
     """The spec's step controller (section 1.9: StepControl defaults) with a history buffer of
-    ``max_steps`` rows, by default 10x the nominal step count + 200, and the damper ``stabilize``
-    (:class:`StepControl`) where a step fails at the smallest increment.
+    ``max_steps`` rows, by default 10x the nominal step count + 200, the damper ``stabilize``
+    (:class:`StepControl`) where a step fails at the smallest increment, and with ``step_error`` > 0 the
+    increments chosen by the step error estimate.
 
     Why 10x: the controller halves the increment on a failure and grows it back (x1.5) only after two
     consecutive steps of at most 6 Newton iterations, so a phase whose steps regularly need 7 or more
@@ -279,7 +284,8 @@ def step_control(phases, max_steps: int | None = None, stabilize: float = STABIL
     such limit (it stops only below nominal / 2**10): a run that needs more rows (the Nine with a
     penalty of 1e6, about 20x its nominal steps) sets ``max_steps``.
     """
-    return StepControl(max_steps=max_steps or 10 * schedule(phases).n_nominal_steps + 200, stabilize=stabilize)
+    return StepControl(max_steps=max_steps or 10 * schedule(phases).n_nominal_steps + 200, stabilize=stabilize,
+                       step_error=step_error)
 
 
 def schedule_entry(phase: Phase, control: str, variable: str, unit: str, start: float | None,

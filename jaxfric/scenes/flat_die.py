@@ -73,6 +73,7 @@ class FlatDieConfig:
     max_augmentations: int = cm.spec_field(20, "-", cm.MAX_AUGMENTATIONS_DOC)
     max_steps: int | None = cm.spec_field(None, "-", cm.MAX_STEPS_DOC)
     stabilize: float = cm.spec_field(cm.STABILIZE, "-", cm.STABILIZE_DOC)
+    step_error: float = cm.spec_field(0.0, "-", cm.STEP_ERROR_DOC)
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(None, "-", cm.BAND_DOC)
@@ -120,7 +121,7 @@ class FlatDieObserve(eqx.Module):
 
 def _check(config: FlatDieConfig) -> None:
     cm.check_config(config, positive=("L", "h", "die_overhang", "U_draw", "U_fine", "dU_fine", "dU"),
-                    nonnegative=("stabilize", "mu", "F_clamp"), integers=("nx", "ny", "band", "n_clamp"),
+                    nonnegative=("stabilize", "step_error", "mu", "F_clamp"), integers=("nx", "ny", "band", "n_clamp"),
                     choices={"draw_control": ("force", "position")}, lengths=("L", "h", "die_overhang"))
 
 
@@ -184,7 +185,7 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
     return Scene(
         name=NAME, variant=variant, algorithm=algorithm, config=config, model=model, observe=observe,
         snapshot=cm.ContactSnapshot(),
-        control=cm.step_control(phases, config.max_steps, config.stabilize),
+        control=cm.step_control(phases, config.max_steps, config.stabilize, config.step_error),
         phase_names=PHASES, tool_names=TOOLS, clamping_tool=0, instants=INSTANTS,
         steady_window=tuple(float(v) for v in config.steady_window),
         roi=(-1.0, L + 1.0, -0.1, h + 0.1), y_scale=20.0, parameters=parameters)
