@@ -1,7 +1,11 @@
 """Where one Newton iteration of the Nine's exact-contact run goes: its parts timed one by one.
 
-    python experiments/bench_iteration.py [--u0 20] [--mesh 300x3] [--variant mu017] [--steps 6]
+    python experiments/bench_iteration.py [--u0 20] [--mesh 300x3 ...] [--variant mu017] [--steps 6]
                                           [--set KEY=VALUE ...] [--out CSV]
+
+With several meshes (``--mesh 300x3 600x3 1200x3 1200x6 2400x6 --u0 2 --out
+results/bench_iteration_scaling.csv``) the rows of each, with its elements, unknowns and candidate pairs:
+the cost per iteration against the problem's size.
 
 Runs the Nine (``lcp_ssn``, the scene's defaults) to U = u0 mm, then times, at the state of a drawing
 step's converged solution (the program pieces compiled apart, median process CPU time of 15 calls):
@@ -57,32 +61,39 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--u0", type=float, default=20.0, help="drawing displacement to start from (mm)")
-    ap.add_argument("--mesh", default="300x3")
+    ap.add_argument("--mesh", nargs="+", default=["300x3"])
     ap.add_argument("--variant", default="mu017")
     ap.add_argument("--steps", type=int, default=6, help="drawing steps timed whole")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--label", default="", help="written in the CSV's first column")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "bench_iteration.csv"))
     a = ap.parse_args(argv)
-    overrides = {"mesh": a.mesh}
-    for text in a.overrides:
-        field, _, value = text.partition("=")
-        overrides[field] = scenes.parse_override("nine", field, value)
+    rows = []
+    for mesh in a.mesh:
+        overrides = {"mesh": mesh}
+        for text in a.overrides:
+            field, _, value = text.partition("=")
+            overrides[field] = scenes.parse_override("nine", field, value)
+        rows += bench(a.variant, overrides, a.u0, a.steps, a.label)
+    write_rows(a.out, rows)
 
-    scene = scenes.make("nine", a.variant, "lcp_ssn", overrides)
+
+def bench(variant: str, overrides: dict, u0: float, steps: int, label: str = "") -> list[dict]:
+    """The rows of one mesh (module docstring)."""
+    scene = scenes.make("nine", variant, "lcp_ssn", overrides)
     config, model = scene.config, scene.model
-    short = scenes.make("nine", a.variant, "lcp_ssn", {**overrides, "U_draw": a.u0})
+    short = scenes.make("nine", variant, "lcp_ssn", {**overrides, "U_draw": u0})
     sim = eqx.filter_jit(lambda m: simulate(m, control=short.control))(short.model)
     if int(sim.code) != 0:
-        raise SystemExit(f"the run to U = {a.u0} mm did not converge (code {int(sim.code)})")
+        raise SystemExit(f"the run to U = {u0} mm did not converge (code {int(sim.code)})")
     ctx, opts = StepContext.build(model), NewtonOptions()
     dt = config.dU / config.U_draw
-    state = eqx.tree_at(lambda s: s.time, sim.final, jnp.asarray(1.0 + a.u0 / config.U_draw))
+    state = eqx.tree_at(lambda s: s.time, sim.final, jnp.asarray(1.0 + u0 / config.U_draw))
 
     # Whole steps from the secant predictor.
     step = eqx.filter_jit(lambda st, t, g: solve_step(model, st, 1, t, opts, ctx, guess=g))
     prev, iters, step_ms, passes = None, [], [], []
-    for s in range(a.steps + 2):
+    for s in range(steps + 2):
         t_target = float(state.time) + dt
         guess = (state.u, state.contact.q) if prev is None else \
             (2 * state.u - prev.u, 2 * state.contact.q - prev.contact.q)
@@ -122,25 +133,27 @@ def main(argv=None) -> None:
     parts["solve"] = (eqx.filter_jit(block_tridiag_solve), K, jnp.ones(K.diag.shape[0] * K.diag.shape[1]))
 
     n_passes = int(eqx.filter_jit(lambda ar: problem.direction(x, c1.point, ar, jnp.array(False)).stats[1])(args))
-    rows = [{"label": a.label, "part": "step", "ms": round(float(np.mean(step_ms)), 3),
+    m = int(sum(len(t.candidates) for t in model.tools))
+    size = {"mesh": f"{model.mesh.nx}x{model.mesh.ny}", "elements": int(model.mesh.n_elements),
+            "dofs": int(model.mesh.n_dofs), "pairs": m}
+    rows = [{"label": label, **size, "part": "step", "ms": round(float(np.mean(step_ms)), 3),
              "per_iteration": round(per_iteration, 3), "share": 1.0,
              "iterations": round(float(np.mean(iters)), 2), "passes": round(np.sum(passes) / np.sum(iters), 2)}]
     for name, (fn, *fn_args) in parts.items():
         ms = 1e3 * median_time(fn, *fn_args, repeat=15, clock=time.process_time)
-        rows.append({"label": a.label, "part": name, "ms": round(ms, 3), "per_iteration": "",
+        rows.append({"label": label, **size, "part": name, "ms": round(ms, 3), "per_iteration": "",
                      "share": round(ms / per_iteration, 3), "iterations": "",
                      "passes": n_passes if name == "direction" else ""})
         if name == "direction":
-            rows.append({"label": a.label, "part": "direction_per_pass", "ms": round(ms / n_passes, 3),
+            rows.append({"label": label, **size, "part": "direction_per_pass", "ms": round(ms / n_passes, 3),
                          "per_iteration": "", "share": round(ms / n_passes / per_iteration, 3), "iterations": "",
                          "passes": ""})
-    m = int(sum(len(t.candidates) for t in model.tools))
-    print(f"Nine {a.variant} {a.mesh} at U = {a.u0 + a.steps * config.dU:.1f} mm, {m} candidate pairs, "
+    print(f"Nine {variant} {size['mesh']} at U = {u0 + steps * config.dU:.1f} mm, {m} candidate pairs, "
           f"{len(iters)} steps of {np.mean(iters):.2f} Newton iterations and {np.sum(passes) / np.sum(iters):.2f} "
           f"active-set passes per iteration, {per_iteration:.2f} ms per iteration")
     for r in rows:
         print(f"  {r['part']:>15}: {r['ms']:9.3f} ms  ({r['share']:.2f} of an iteration)")
-    write_rows(a.out, rows)
+    return rows
 
 
 if __name__ == "__main__":

@@ -123,11 +123,12 @@ def test_increments_by_the_error_estimate_are_smallest_where_the_flow_turns_and_
     np.testing.assert_array_equal(_end_reaction(off), _end_reaction(nominal))
 
 
-def test_the_step_check_of_a_run_by_the_error_estimate_halves_its_target_with_the_increments():
+def test_halved_increments_of_a_run_by_the_error_estimate_halve_its_target_too():
+    """scenes.scaled_steps (the step check of --error-estimate step, the fit's step component)."""
     from jaxfric import scenes
-    from jaxfric.identification.accuracy import step_check_overrides
 
     plain = scenes.make("nine", "mu017", "lcp_ssn", {"mesh": "20x2"})
-    assert step_check_overrides(plain) == {"dq_clamp": 0.05, "dU": 0.05}
+    assert scenes.scaled_steps("nine", plain.config, 0.5) == {"dq_clamp": 0.05, "dU": 0.05}
     controlled = scenes.make("nine", "mu017", "lcp_ssn", {"mesh": "20x2", "step_error": 0.01})
-    assert step_check_overrides(controlled) == {"dq_clamp": 0.05, "dU": 0.05, "step_error": 0.005}
+    assert scenes.scaled_steps("nine", controlled.config, 0.5) == {"dq_clamp": 0.05, "dU": 0.05,
+                                                                    "step_error": 0.005}

@@ -46,8 +46,7 @@ import numpy as np
 from ..io.batch import phase_curve, run_case, stale
 
 __all__ = ["TESTS", "QUICK_TESTS", "Test", "cases", "error_measures", "collect", "test_rows", "read_rows",
-           "mesh_label", "MEASURES", "LEVELS", "penalty_tangent", "companion", "step_check", "step_check_overrides",
-           "mesh_check",
+           "mesh_label", "MEASURES", "LEVELS", "penalty_tangent", "companion", "step_check", "mesh_check",
            "layers_check", "reference_overrides"]
 
 REF_GAP = 1e-8          # mm, target gap of the reference's augmented Lagrangian
@@ -294,29 +293,17 @@ def companion(scene, overrides: dict, what: str, progress: bool = False) -> dict
 
 
 def step_check(scene, progress: bool = False) -> dict:
-    """The run of ``scene`` again with every nominal increment halved (:func:`jaxfric.scenes.scaled_steps`)
-    and, where its increments follow the step error estimate, its target halved,
-    reduced to what :func:`jaxfric.io.output.error_estimate` needs for its ``step`` component:
-    ``{"steady": steady drawing force or None, "peak": peak drawing force, "n_steps", "mesh", "converged",
-    "ratio": 0.5}``. Costs about twice the run (and a compilation). Raises ValueError (one line) when it
-    does not reach the end of the load path.
+    """The run of ``scene`` again with every nominal increment halved (:func:`jaxfric.scenes.scaled_steps`;
+    with ``step_error``, its target halved too), reduced to what :func:`jaxfric.io.output.error_estimate`
+    needs for its ``step`` component: ``{"steady": steady drawing force or None, "peak": peak drawing
+    force, "n_steps", "mesh", "converged", "ratio": 0.5}``. Costs about twice the run (and a
+    compilation). Raises ValueError (one line) when it does not reach the end of the load path.
     """
-    check = companion(scene, step_check_overrides(scene), "step check (half increments)", progress)
-    return {**check, "ratio": 0.5}
-
-
-def step_check_overrides(scene) -> dict:
-    """The config overrides of :func:`step_check`'s companion: every nominal increment halved and, where
-    the increments follow the step error estimate (``step_error`` > 0, :class:`StepControl`), its target
-    halved, which halves a first-order step error as halving fixed increments does (docs/results.md,
-    increments by the step error); the nominal increments alone hardly move such a run."""
     from .. import scenes
 
-    overrides = scenes.scaled_steps(scene.name, scene.config, 0.5)
-    tol = getattr(scene.config, "step_error", 0.0)
-    if tol > 0:
-        overrides["step_error"] = 0.5 * tol
-    return overrides
+    check = companion(scene, scenes.scaled_steps(scene.name, scene.config, 0.5),
+                      "step check (half increments)", progress)
+    return {**check, "ratio": 0.5}
 
 
 def mesh_check(scene, progress: bool = False, finer: bool = False) -> dict:

@@ -67,13 +67,18 @@ def config_fields(name: str) -> list:
 
 def scaled_steps(name: str, config, factor: float) -> dict:
     """Config overrides that scale the nominal increments of ``config`` (a scene's config dataclass) by
-    ``factor``: increments are multiplied by it, step counts divided by it (rounded up, at least 1)."""
+    ``factor``: increments are multiplied by it, step counts divided by it (rounded up, at least 1), and
+    where the increments follow the step error estimate (``step_error`` > 0) its target too, which
+    scales a first-order step error as the increments do (the nominal increments alone hardly move such
+    a run: docs/results.md, increments by the step error)."""
     if not (isinstance(factor, (int, float)) and math.isfinite(factor) and factor > 0):
         raise ValueError(f"field 'factor' must be a finite number > 0, got {factor!r}")
     out = {}
     for field in _module(name).STEP_FIELDS:
         value = getattr(config, field)
         out[field] = max(1, math.ceil(value / factor)) if isinstance(value, int) else value * factor
+    if getattr(config, "step_error", 0.0) > 0:
+        out["step_error"] = config.step_error * factor
     return out
 
 
