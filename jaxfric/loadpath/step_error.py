@@ -86,10 +86,6 @@ def plastic_step_error(increment, previous, weight, yield_stress, scale) -> tupl
     return 0.5 * scale * jnp.sum(w * size * turn), jnp.sum(w * size)
 
 
-def _ratio(error, work):
-    return jnp.where(work > 0, error / jnp.where(work > 0, work, 1.0), 0.0)
-
-
 class FlowMemory(eqx.Module):
     """What the estimate keeps of the last accepted step: its plastic increments, pseudo-time increment
     and phase. Empty arrays (shape (0,)) where the run does not estimate its step error, so that such
@@ -109,7 +105,7 @@ class FlowMemory(eqx.Module):
     def empty(cls, material, on: bool) -> FlowMemory:
         """Before the first step; ``material``: the batched point states (their shape), ``on``: static,
         whether the run estimates its step error."""
-        shape = jax.tree_util.tree_leaves(material.eqps)[0].shape + (4,) if on else (0,)
+        shape = material.eqps.shape + (4,) if on else (0,)
         return cls(jnp.zeros(shape), jnp.array(0.0), jnp.array(0, jnp.int32))
 
     @property
@@ -125,7 +121,8 @@ class FlowMemory(eqx.Module):
         scale = jnp.where(same_phase, 2.0 * dt / jnp.where(same_phase, self.dt + dt, 1.0), 1.0)
         error, work = plastic_step_error(increment, self.increment, geo_weight,
                                          material_law.yield_stress(new.material.eqps), scale)
-        return jnp.where(self.dt > 0, _ratio(error, work), -1.0), increment
+        eta = jnp.where(work > 0, error / jnp.where(work > 0, work, 1.0), 0.0)
+        return jnp.where(self.dt > 0, eta, -1.0), increment
 
     def after(self, ok, old, new, increment) -> FlowMemory:
         """The memory after an attempt from ``old`` to ``new`` with plastic ``increment``, accepted if
