@@ -68,18 +68,20 @@ def main(argv=None) -> None:
     ap.add_argument("--label", default="", help="written in the CSV's first column")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "bench_iteration.csv"))
     a = ap.parse_args(argv)
+    extra = {}
+    for text in a.overrides:
+        field, _, value = text.partition("=")
+        extra[field] = scenes.parse_override("nine", field, value)
     rows = []
     for mesh in a.mesh:
-        overrides = {"mesh": mesh}
-        for text in a.overrides:
-            field, _, value = text.partition("=")
-            overrides[field] = scenes.parse_override("nine", field, value)
         try:
-            rows += bench(a.variant, overrides, a.u0, a.steps, a.label)
+            rows += bench(a.variant, {"mesh": mesh, **extra}, a.u0, a.steps, a.label)
         except RuntimeError as err:   # a mesh whose timed steps do not converge: said, and the others kept
             print(f"{mesh}: {err}", flush=True)
             continue
         write_rows(a.out, rows)   # after every mesh: a long scaling run keeps what it measured
+    if not rows:
+        raise SystemExit("no mesh was measured")
 
 
 def bench(variant: str, overrides: dict, u0: float, steps: int, label: str = "") -> list[dict]:
