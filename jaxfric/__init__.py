@@ -18,6 +18,7 @@ from .contact.formulations import (  # noqa: E402
 from .contact.rigid import Force, Move, RigidTool  # noqa: E402
 from .contact.status import OPEN, SLIP, STICK, contact_status  # noqa: E402
 from .contact.tools import Tool  # noqa: E402
+from .fem.kinematic import KinematicJ2Material  # noqa: E402
 from .fem.loading import Affine, DirichletBC, Motion, Phase, Ramp, RigidMotion  # noqa: E402
 from .fem.material import J2Material, MaterialState, von_mises  # noqa: E402
 from .fem.mesh import StripMesh, graded_coordinates, strip_mesh  # noqa: E402
@@ -46,7 +47,7 @@ __all__ = [
     "OPEN", "STICK", "SLIP", "contact_status",
     "BlockTridiag", "Bordered", "block_tridiag_solve", "bordered_solve", "dense_solve", "linear_solve",
     "Affine", "DirichletBC", "Motion", "Phase", "Ramp", "RigidMotion",
-    "J2Material", "MaterialState", "von_mises",
+    "J2Material", "KinematicJ2Material", "MaterialState", "von_mises",
     "StripMesh", "graded_coordinates", "strip_mesh",
     "NewtonOptions", "Result", "SimulationError", "MemoryBudgetError", "RunResult", "Checkpoint", "run",
     "SimState", "Simulation", "StepControl", "StripModel", "default_observe", "initial_state",

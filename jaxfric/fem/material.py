@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxfric.numerics.tensor import inv2, safe_norm, sym2_exp, sym2_log
 
-__all__ = ["MaterialState", "J2Material", "von_mises"]
+__all__ = ["MaterialState", "J2Material", "von_mises", "trial_log_strain"]
 
 _SQRT_3_2 = math.sqrt(1.5)
 _NEWTON_RTOL = 1e-12  # |R| <= 1e-12 sigma_y, spec section 1.2
@@ -46,18 +46,26 @@ class MaterialState(eqx.Module):
         enhanced: (n,) the enhanced parameters of the point's element (:mod:`jaxfric.fem.element`,
             ``formulation="anst"`` or ``"eas"``), kept with the history so that the next step's local
             solve starts from them; the law passes them through; None for the other formulations.
+        back: (m, 3, 3) the back stresses of :class:`~jaxfric.fem.kinematic.KinematicJ2Material` (MPa,
+            block diagonal, in the reference orientation); None for the isotropic law.
     """
 
     cp_inv: jax.Array
     cp_inv_zz: jax.Array
     eqps: jax.Array
     enhanced: jax.Array | None = None
+    back: jax.Array | None = None
 
 
 def von_mises(tau: jax.Array) -> jax.Array:
     """Von Mises equivalent stress q = sqrt(3/2) |dev tau| of a (3, 3) stress (MPa); kink-safe at 0."""
     dev = tau - (jnp.trace(tau) / 3.0) * jnp.eye(3, dtype=tau.dtype)
     return _SQRT_3_2 * safe_norm(dev)
+
+
+def trial_log_strain(F: jax.Array, state: MaterialState) -> tuple[jax.Array, jax.Array]:
+    """The trial elastic log strain eps_tr = 1/2 ln(F C_p,n^-1 F^T): its in-plane block (2, 2) and zz entry."""
+    return 0.5 * sym2_log(F @ state.cp_inv @ F.T), 0.5 * jnp.log(state.cp_inv_zz)
 
 
 def _is_concrete(x) -> bool:
@@ -195,9 +203,7 @@ class J2Material(eqx.Module):
         kappa, G = self.bulk_modulus, self.shear_modulus
 
         # Trial elastic state (eq. b^e_tr = f b^e_n f^T, written with C_p^-1).
-        be_trial = F @ state.cp_inv @ F.T
-        eps_trial = 0.5 * sym2_log(be_trial)
-        eps_trial_zz = 0.5 * jnp.log(state.cp_inv_zz)
+        eps_trial, eps_trial_zz = trial_log_strain(F, state)
         trace = jnp.trace(eps_trial) + eps_trial_zz
         dev_trial = eps_trial - (trace / 3.0) * jnp.eye(2, dtype=F.dtype)
         dev_trial_zz = eps_trial_zz - trace / 3.0

@@ -18,13 +18,15 @@ from ..contact.formulations import ALGORITHMS, STIFF_PENALTY_RATIO
 from ..contact.rigid import max_penetration, split_pairs
 from ..contact.status import SLIP
 from ..contact.tools import GAP_OPEN, Arc, Segment, Tool
+from ..fem.kinematic import KinematicJ2Material
 from ..fem.loading import Phase, constraint_masks, schedule
+from ..fem.material import J2Material
 from ..loadpath.controller import STABILIZE, StepControl
 from ..loadpath.model import reactions
 
 __all__ = ["spec_field", "check_config", "check_steady_window", "check_variant", "check_algorithm", "pair_forces",
            "tool_resultants", "contact_columns", "phase_progress", "ContactSnapshot", "n_steps",
-           "schedule_entry", "friction_table", "material_dict", "config_dict", "end_reaction",
+           "schedule_entry", "friction_table", "material", "material_dict", "config_dict", "end_reaction",
            "resolve_eps_t", "step_control", "stiff_penalty"]
 
 
@@ -58,6 +60,14 @@ ELEMENT_DOC = ("element formulation (jaxfric.fem.element): 'fbar' F-bar Q4, 'ans
 THICKNESS_POINTS_DOC = ("Gauss points through each element's thickness (2: the 2 x 2 rule; more integrate the "
                         "stress through the thickness more finely at the cost of more material evaluations; "
                         "jaxfric.fem.element.gauss_rule) [chosen]")
+C_KIN_DOC = ("moduli C_i of the Armstrong-Frederick back stresses, comma-separated, one per back stress "
+             "(jaxfric.fem.kinematic); empty: isotropic hardening only [paper]")
+GAMMA_KIN_DOC = ("recall rates gamma_i of the back stresses, one per C_i (0: linear Prager rule); the isotropic "
+                 "radius is the monotonic curve less the back stresses' saturation, so monotonic loading keeps "
+                 "the curve of sigma_y, A, n, Q_voce, b_voce [chosen]")
+Q_VOCE_DOC = ("Voce terms Q_j (1 - exp(-b_j eqps)) added to the power law's monotonic curve, comma-separated "
+              "(either sign; jaxfric.fem.kinematic); empty: the power law alone [paper]")
+B_VOCE_DOC = "rates b_j of the Voce terms, one per Q_j [chosen]"
 MAX_NOMINAL_STEPS = 1_000_000  # per phase: an increment that needs more is a typo, not a study
 # A dimension of the sheet or a tool beyond 1 km is a typo; far beyond it the tool chains no longer close
 # in float64 (an edge radius of 1e300 mm next to a 1 mm sheet) and derived lengths overflow.
@@ -110,6 +120,14 @@ def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=No
         if v not in allowed:
             raise _bad(name, v, f"choose one of {', '.join(map(repr, allowed))}")
     # Every scene carries the material of spec 1.2, the contact constants of spec 1.5-1.6 and an element.
+    if len(config.C_kin) != len(config.gamma_kin):
+        raise _bad("gamma_kin", config.gamma_kin, f"give one recall rate per modulus C_kin ({len(config.C_kin)})")
+    if len(config.Q_voce) != len(config.b_voce):
+        raise _bad("b_voce", config.b_voce, f"give one rate per Voce term Q_voce ({len(config.Q_voce)})")
+    for name in ("C_kin", "gamma_kin", "Q_voce", "b_voce"):
+        for v in getattr(config, name):
+            if not (_number(name, v) >= 0 or name == "Q_voce"):
+                raise _bad(name, getattr(config, name), "every entry must be >= 0")
     if config.element not in ELEMENTS:
         raise _bad("element", config.element, f"choose one of {', '.join(map(repr, ELEMENTS))}")
     if not -1.0 < _number("nu", config.nu) < 0.5:
@@ -309,9 +327,28 @@ def friction_table(tool_names, phase_names, mu) -> dict:
     return {t: {p: float(mu[k][j]) for j, p in enumerate(phase_names)} for k, t in enumerate(tool_names)}
 
 
+def material(config):
+    """The scene's material law: spec 1.2's isotropic J2Material, or with back stresses (``C_kin``,
+    ``gamma_kin``) or Voce terms (``Q_voce``, ``b_voce``) the KinematicJ2Material whose monotonic curve is
+    the power law plus the Voce terms, the back stresses taking their saturation out of its radius. A
+    ValueError names the field of a radius that would not stay positive."""
+    iso = (config.E, config.nu, config.sigma_y, config.A, config.n)
+    if not (config.C_kin or config.Q_voce):
+        return J2Material(*iso)
+    try:
+        return KinematicJ2Material(*iso, C=config.C_kin, gamma=config.gamma_kin, Q=config.Q_voce, b=config.b_voce,
+                                   keep_monotonic=True)
+    except ValueError as error:
+        raise _bad("C_kin", config.C_kin, str(error).removeprefix("KinematicJ2Material: ")) from None
+
+
 def material_dict(config) -> dict:
-    return {"E": float(config.E), "nu": float(config.nu), "sigma_y": float(config.sigma_y),
-            "A": float(config.A), "n": float(config.n)}
+    out: dict = {"E": float(config.E), "nu": float(config.nu), "sigma_y": float(config.sigma_y),
+                 "A": float(config.A), "n": float(config.n)}
+    for name in ("C_kin", "gamma_kin", "Q_voce", "b_voce"):
+        if getattr(config, name):
+            out[name] = [float(v) for v in getattr(config, name)]
+    return out
 
 
 def config_dict(config) -> dict:

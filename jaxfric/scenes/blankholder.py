@@ -88,7 +88,6 @@ from ..contact.formulations import formulation
 from ..contact.rigid import Force, Move, RigidTool
 from ..contact.tools import Arc, Segment, Tool
 from ..fem.loading import DirichletBC, Phase, Ramp
-from ..fem.material import J2Material
 from ..fem.mesh import strip_mesh
 from ..loadpath.model import StripModel
 from ..numerics.newton import NewtonOptions
@@ -146,6 +145,10 @@ class BlankholderConfig:
     sigma_y: float = cm.spec_field(139.0, "MPa", "initial yield stress [paper]")
     A: float = cm.spec_field(127.32852, "-", "hardening coefficient in sigma_y (1 + A eqps)^n [paper]")
     n: float = cm.spec_field(0.28, "-", "hardening exponent [paper]")
+    C_kin: tuple = cm.spec_field((), "MPa", cm.C_KIN_DOC)
+    gamma_kin: tuple = cm.spec_field((), "-", cm.GAMMA_KIN_DOC)
+    Q_voce: tuple = cm.spec_field((), "MPa", cm.Q_VOCE_DOC)
+    b_voce: tuple = cm.spec_field((), "-", cm.B_VOCE_DOC)
     eps_n: float = cm.spec_field(1e5, "N/mm/mm", "normal penalty [chosen]")
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [chosen]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
@@ -310,7 +313,7 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
     eps_t = cm.resolve_eps_t(config, config.mu)
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations, stiff_above=cm.stiff_penalty(config))
-    material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
+    material = cm.material(config)
     model = StripModel(mesh, material, phases, tools=tools, contact=law, formulation=config.element,
                        thickness_points=config.thickness_points)
     observe = BlankholderObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)),

@@ -30,7 +30,6 @@ from ..contact.formulations import formulation
 from ..contact.rigid import Force, Move, RigidTool
 from ..contact.tools import Tool
 from ..fem.loading import DirichletBC, Phase, Ramp
-from ..fem.material import J2Material
 from ..fem.mesh import strip_mesh
 from ..loadpath.model import StripModel
 from . import _common as cm
@@ -67,6 +66,10 @@ class FlatDieConfig:
     sigma_y: float = cm.spec_field(80.55923, "MPa", "initial yield stress [paper]")
     A: float = cm.spec_field(10000.0, "-", "hardening coefficient in sigma_y (1 + A eqps)^n [paper]")
     n: float = cm.spec_field(0.216, "-", "hardening exponent [paper]")
+    C_kin: tuple = cm.spec_field((), "MPa", cm.C_KIN_DOC)
+    gamma_kin: tuple = cm.spec_field((), "-", cm.GAMMA_KIN_DOC)
+    Q_voce: tuple = cm.spec_field((), "MPa", cm.Q_VOCE_DOC)
+    b_voce: tuple = cm.spec_field((), "-", cm.B_VOCE_DOC)
     eps_n: float = cm.spec_field(1e9, "N/mm/mm", "normal penalty [paper]")
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n = 1.5e8 [paper]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
@@ -158,7 +161,7 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
     eps_t = cm.resolve_eps_t(config, config.mu)
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations, stiff_above=cm.stiff_penalty(config))
-    material = J2Material(config.E, config.nu, config.sigma_y, config.A, config.n)
+    material = cm.material(config)
     model = StripModel(mesh, material, phases, tools=(tool,), contact=law, formulation=config.element,
                        thickness_points=config.thickness_points)
     observe = FlatDieObserve(right=tuple(int(a) for a in mesh.right), U_draw=float(config.U_draw))
