@@ -3,6 +3,7 @@
     python experiments/bench_sweep.py [--scene flat_die] [--variant const_force] [--members 16]
                                       [--mesh NXxNY] [--set NAME=VALUE ...] [--chunk N]
                                       [--singles K] [--csv PATH] [--solver thomas|cyclic]
+                                      [--devices N]
 
 Runs ``members`` friction coefficients evenly spaced in [0.05, 0.3] as one compiled vmapped simulation
 (:func:`jaxfric.loadpath.sweep.sweep`) and as single runs (:func:`jaxfric.loadpath.run.run`, compiled once), checks that
@@ -12,7 +13,9 @@ ratios and the device. ``--chunk N``: the sweep's element chunk per member (defa
 for a CPU cache). ``--singles K``: time only K evenly spaced members as single runs (the mean and the
 agreement check over those; for a device where single runs are slow). ``--solver``: the
 block-tridiagonal solve every program here traces (:func:`jaxfric.numerics.linalg.block_solver`; default
-``auto``: ``cyclic`` on a GPU, ``thomas`` on a CPU).
+``auto``: ``cyclic`` on a GPU, ``thomas`` on a CPU). ``--devices N``: spread the sweep's members over the
+first N devices (:func:`jaxfric.loadpath.sweep.sweep`'s ``devices``; default all). On a CPU, JAX sees
+N devices with ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` in the environment.
 
 ``--iteration``: instead, time one Newton iteration (linearisation and solve) of all members at once
 (vmapped) against one member's, at the converged final state of member 0: what batching costs per
@@ -51,9 +54,12 @@ def main(argv=None) -> None:
     p.add_argument("--singles", type=int, default=None, help="number of members also run singly")
     p.add_argument("--csv", default=None, help="where to write the row")
     p.add_argument("--solver", choices=BLOCK_SOLVERS, default="auto", help="block-tridiagonal solve")
+    p.add_argument("--devices", type=int, default=None, help="devices the sweep spreads its members over")
     a = p.parse_args(argv)
     if a.members < 1 or (a.singles is not None and not 1 <= a.singles <= a.members):
         p.error("--members must be >= 1 and --singles in 1..members")
+    if a.devices is not None and not 1 <= a.devices <= len(jax.devices()):
+        p.error(f"--devices must lie in 1..{len(jax.devices())} (the devices JAX sees)")
     extra = dict(s.split("=", 1) for s in a.overrides)
     if a.mesh:
         extra["mesh"] = a.mesh
@@ -66,8 +72,11 @@ def main(argv=None) -> None:
 def bench(a, built) -> None:
     if a.iteration:
         return iteration_cost(built, a.chunk)
-    out = sweep([s.model for s in built], control=built[0].control, observe=built[0].observe, chunk=a.chunk)
-    print(f"sweep of {a.members}: compile {out.compile_s:.2f} s, solve {out.wall_s:.2f} s", flush=True)
+    devices = None if a.devices is None else jax.devices()[:a.devices]
+    out = sweep([s.model for s in built], control=built[0].control, observe=built[0].observe, chunk=a.chunk,
+                devices=devices)
+    print(f"sweep of {a.members} over {out.n_devices} device(s): compile {out.compile_s:.2f} s, "
+          f"solve {out.wall_s:.2f} s", flush=True)
     k = a.members if a.singles is None else a.singles
     chosen = sorted(set(np.linspace(0, a.members - 1, k).round().astype(int).tolist()))
     singles, compile_single, worst, iters = [], None, 0.0, []
@@ -83,7 +92,8 @@ def bench(a, built) -> None:
             worst = max(worst, float(np.max(np.abs(h[name] - r.history[name]))) / scale)
     mean_single = float(np.mean(singles))
     row = {"scene": a.scene, "variant": built[0].variant, "mesh": f"{built[0].model.mesh.nx}x{built[0].model.mesh.ny}",
-           "members": a.members, "sweep_compile_s": round(out.compile_s, 3), "sweep_wall_s": round(out.wall_s, 3),
+           "members": a.members, "devices": out.n_devices, "sweep_compile_s": round(out.compile_s, 3),
+           "sweep_wall_s": round(out.wall_s, 3),
            "single_compile_s": round(compile_single, 3), "single_wall_s_mean": round(mean_single, 3),
            "single_wall_s_max": round(max(singles), 3), "singles_run": len(chosen),
            # The loop of all members' single runs, measured or (with --singles) estimated from the mean.

@@ -106,3 +106,48 @@ def test_sweep_with_the_cyclic_solve_equals_the_thomas_runs():
             a, b = batched[name], single.history[name]
             scale = max(float(np.max(np.abs(b))), 1e-300)
             assert float(np.max(np.abs(a - b))) <= 1e-10 * scale, (name, i)
+
+
+_SHARDED = """
+import json, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+import numpy as np
+from jaxfric import scenes
+from jaxfric.loadpath.sweep import sweep
+overrides, mus = json.loads(sys.argv[1])
+built = [scenes.make("flat_die", "const_force", "penalty", {**overrides, "mu": m}) for m in mus]
+models, control, observe = [s.model for s in built], built[0].control, built[0].observe
+sharded = sweep(models, control=control, observe=observe)
+placed = sweep(models, control=control, observe=observe, devices=jax.devices()[:1])
+worst = 0.0
+for i in range(len(mus)):
+    a, b = sharded.history(i), placed.history(i)
+    for name in ("time", "newton_iters", "drawing_force", "clamping_force"):
+        assert a[name].shape == b[name].shape, name
+        scale = max(float(np.max(np.abs(b[name]))), 1e-300)
+        worst = max(worst, float(np.max(np.abs(a[name] - b[name]))) / scale)
+print(json.dumps({"devices": len(jax.devices()), "n_devices": sharded.n_devices, "worst": worst,
+                  "converged": [sharded.converged(i) for i in range(len(mus))],
+                  "final": [float(sharded.history(i)["drawing_force"][-1]) for i in range(len(mus))]}))
+"""
+
+
+def test_sweep_sharded_over_two_host_devices_equals_the_one_device_sweep():
+    """Three members over two CPU devices (XLA's forced host device count, in a child process since it
+    is read when JAX starts): padded to four, two per device, each device running its own loop under
+    shard_map. The histories equal the one-device sweep's to 1e-10 of each column's scale (the two
+    programs batch different member counts, so they may round differently)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"))
+    done = subprocess.run([sys.executable, "-c", _SHARDED, json.dumps([OVERRIDES, MUS])], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out["devices"] == 2 and out["n_devices"] == 2
+    assert all(out["converged"]) and out["worst"] <= 1e-10, out
+    assert out["final"][0] < out["final"][1] < out["final"][2]

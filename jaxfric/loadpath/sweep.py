@@ -35,6 +35,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from ..fem.assembly import ELEMENT_CHUNK, element_chunk
 from ..numerics.linalg import on_gpu
@@ -88,12 +90,14 @@ class SweepResult:
         simulation: the batched :class:`~jaxfric.loadpath.simulate.Simulation` (leading axis: member).
         n_members: number of members.
         compile_s, wall_s: compilation and solve time of the whole sweep (s).
+        n_devices: the devices the members were spread over.
     """
 
     simulation: Simulation
     n_members: int
     compile_s: float
     wall_s: float
+    n_devices: int = 1
 
     def converged(self, i: int) -> bool:
         return int(self.simulation.code[i]) == 0
@@ -119,34 +123,87 @@ def default_chunk(n_members: int) -> int:
 
 def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions(),
           control: StepControl = StepControl(), observe: Callable = default_observe,
-          flat: bool | None = None, chunk: int | None = None) -> SweepResult:
+          flat: bool | None = None, chunk: int | None = None,
+          devices: Sequence[jax.Device] | None = None) -> SweepResult:
     """Run ``models`` (one structure, different values) as one vmapped adaptive simulation.
 
     ``observe`` must be a static (hashable) function, as for :func:`jaxfric.loadpath.run.run`. No progress bar
     (the members advance at different paces). ``flat``: one Newton iteration per loop pass
     (:func:`jaxfric.loadpath.simulate.simulate_flat`), so that no member waits for another's attempt; the
     default where the law allows it (penalty, or no tools). The results are the same either way.
-    ``chunk``: elements per chunk of the element loop, per member (default :func:`default_chunk`).
+    ``chunk``: elements per chunk of the element loop, per member (default :func:`default_chunk` of the
+    members on one device).
+
+    ``devices``: the devices the members are spread over (default ``jax.devices()``: every device of
+    every process, with ``jax.distributed`` initialised beforehand on several hosts). With more than one,
+    the members are split into equal blocks along a one-axis device mesh (``jax.sharding.Mesh``, axis
+    ``members``) and each device runs the vmapped loop of its own block under ``jax.shard_map``: its own
+    while loop, which ends when its slowest member does, with no communication between devices until the
+    histories are gathered. A member count that the devices do not divide is padded with copies of the
+    last member, whose results are dropped. One device: the plain vmapped program.
     """
     if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
         raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
+    devices = list(jax.devices() if devices is None else devices)
+    if not devices:
+        raise ValueError("field 'devices' must name at least one device")
     values, axes, (treedef, static) = stack_models(models)
     first = models[0]
     if flat is None:
         flat = first.contact is None or not first.tools or first.contact.one_newton_solve
     loop = simulate_flat if flat else simulate
+    n_dev = min(len(devices), len(models))
+    per_device = -(-len(models) // n_dev)
 
     def one(v):
         model = eqx.combine(jax.tree_util.tree_unflatten(treedef, v), static)
         return loop(model, newton=newton, control=control, observe=observe)
 
+    batched = jax.vmap(one, in_axes=(axes,))
+    if n_dev > 1:
+        values, program = _sharded(batched, values, axes, devices[:n_dev], per_device * n_dev)
+    else:
+        program = batched
     t0 = time.perf_counter()
     # On a CPU, chunks n times smaller under vmap over n members (16 flat-die members: one batched
     # iteration 2x cheaper, docs/results.md).
-    with element_chunk(default_chunk(len(models)) if chunk is None else chunk):
-        compiled = jax.jit(jax.vmap(one, in_axes=(axes,))).lower(values).compile()
+    with element_chunk(default_chunk(per_device) if chunk is None else chunk):
+        compiled = jax.jit(program).lower(values).compile()
     compile_s = time.perf_counter() - t0
     t1 = time.perf_counter()
     sim = jax.block_until_ready(compiled(values))
+    if n_dev > 1:
+        sim = jax.tree_util.tree_map(lambda x: _gathered(x)[:len(models)], sim)
     return SweepResult(simulation=sim, n_members=len(models), compile_s=compile_s,
-                       wall_s=time.perf_counter() - t1)
+                       wall_s=time.perf_counter() - t1, n_devices=n_dev)
+
+
+def _sharded(batched: Callable, values: list, axes: list, devices: list, n_padded: int):
+    """``batched`` (vmapped over the members) as a program over a one-axis mesh of ``devices``: the
+    batched leaves padded to ``n_padded`` members (copies of the last) and placed in blocks along the
+    mesh, the shared leaves replicated."""
+    mesh = Mesh(np.asarray(devices), ("members",))
+    split, whole = NamedSharding(mesh, P("members")), NamedSharding(mesh, P())
+
+    def pad(v, ax):
+        if ax is None:
+            return jax.device_put(v, whole)
+        extra = n_padded - v.shape[0]
+        if extra:
+            v = jnp.concatenate([v, jnp.repeat(v[-1:], extra, axis=0)])
+        return jax.device_put(v, split)
+
+    placed = [pad(v, ax) for v, ax in zip(values, axes, strict=True)]
+    specs = [P() if ax is None else P("members") for ax in axes]
+    # Each device runs its block's loop alone: the replication checks of shard_map do not apply to a
+    # while loop whose trip count differs between devices.
+    program = jax.shard_map(batched, mesh=mesh, in_specs=(specs,), out_specs=P("members"), check_vma=False)
+    return placed, program
+
+
+def _gathered(x: jax.Array) -> np.ndarray:
+    """A member-sharded result as one host array; with several processes, every process's blocks."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+    return np.asarray(x)
