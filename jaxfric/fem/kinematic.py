@@ -54,6 +54,15 @@ softening of the radius. As in J2Material, the Newton loop runs without gradient
 step taken with gradients on gives the implicit-function derivative; the consistent tangent is the
 element code's forward derivative of :meth:`update`.
 
+**A published steel fit** (:data:`S355J2N`): Hartloper, de Castro e Sousa & Lignos, "Constitutive modeling
+of structural steels: nonlinear isotropic/kinematic hardening material model and its calibration", J.
+Struct. Eng. (ASCE), doi:10.1061/(ASCE)ST.1943-541X.0002964, fit two Chaboche back stresses and an
+isotropic law sigma_y + Q_inf (1 - exp(-b p)) - D_inf (1 - exp(-a p)) (their "updated Voce", whose D_inf
+term is the yield plateau's drop) to cyclic coupon tests of twelve structural steels, with the back-stress
+rule written as here; the S355J2+N 25 mm plate's values as tabulated in the OpenSees documentation of the
+model (``UVCuniaxial``). Its isotropic law is this law's radius with ``keep_monotonic=False``; the source
+gives no Poisson's ratio.
+
 Units: MPa for E, sigma_y, C_i, Q_j and the stresses; A, n, gamma_i, b_j and the strains dimensionless.
 Verified (``tests/test_kinematic.py``): plane-strain tension-compression cycles against the closed-form
 Armstrong-Frederick response, the tangent against central differences, objectivity, and the isotropic law
@@ -72,7 +81,12 @@ import numpy as np
 from ..numerics.tensor import inv2, safe_norm, sym2_exp
 from .material import J2Material, MaterialState, trial_log_strain
 
-__all__ = ["KinematicJ2Material", "polar_rotation", "to_plane", "from_plane"]
+__all__ = ["KinematicJ2Material", "S355J2N", "polar_rotation", "to_plane", "from_plane"]
+
+# Hartloper et al.'s S355J2+N (25 mm plate) fit (module docstring): E, sigma_y = f_y in MPa; the isotropic
+# law as Voce terms (Q_inf, b) and (-D_inf, a); two back stresses (C_i MPa, gamma_i).
+S355J2N = {"E": 197410.0, "sigma_y": 338.80, "Q": (134.34, -133.75), "b": (14.71, 229.25),
+           "C": (26242.00, 2445.30), "gamma": (199.04, 11.66)}
 
 _SQRT_3_2 = math.sqrt(1.5)
 _SQRT_2_3 = math.sqrt(2.0 / 3.0)
@@ -201,10 +215,18 @@ class KinematicJ2Material(eqx.Module):
         """The isotropic radius sigma_R(eqps) of the yield surface, MPa (module docstring)."""
         return self.monotonic_curve(eqps) - self.back_saturation(eqps)
 
+    @property
+    def n_back(self) -> int:
+        """m, the number of back stresses (static)."""
+        return int(self.C.shape[0])
+
     def init_state(self) -> MaterialState:
-        """Virgin state: C_p^-1 = I, eqps = 0, every back stress 0 ((m, 3, 3), reference orientation)."""
+        """Virgin state: C_p^-1 = I, eqps = 0, every back stress 0 ((m, 3, 3), reference orientation;
+        None when m = 0, so that the element loops batch no empty arrays)."""
         state = self.isotropic.init_state()
-        return eqx.tree_at(lambda s: s.back, state, jnp.zeros((self.C.shape[0], 3, 3), jnp.float64),
+        if self.n_back == 0:
+            return state
+        return eqx.tree_at(lambda s: s.back, state, jnp.zeros((self.n_back, 3, 3), jnp.float64),
                            is_leaf=lambda x: x is None)
 
     def _residual(self, dg, dev_trial, back_trial, eqps_n):
@@ -226,16 +248,17 @@ class KinematicJ2Material(eqx.Module):
             tau: (3, 3) Kirchhoff stress (MPa), block diagonal.
             new_state: history at t_{n+1}.
         """
-        if state.back is None:
-            raise ValueError("KinematicJ2Material.update: the point state has no back stresses; start it from "
-                             "this law's init_state()")
+        if (state.back is None) != (self.n_back == 0):
+            raise ValueError("KinematicJ2Material.update: the point state's back stresses do not match the "
+                             "law's; start it from this law's init_state()")
+        back_n = jnp.zeros((0, 3, 3), F.dtype) if state.back is None else state.back
         kappa, G = self.bulk_modulus, self.shear_modulus
         eps_trial, eps_trial_zz = trial_log_strain(F, state)
         trace = jnp.trace(eps_trial) + eps_trial_zz
         eye3 = jnp.eye(3, dtype=F.dtype)
         dev_trial = 2.0 * G * (to_plane(eps_trial, eps_trial_zz) - (trace / 3.0) * eye3)   # dev tau_tr
         R = polar_rotation(F)
-        back_trial = jnp.einsum("ij,mjk,lk->mil", R, state.back, R)
+        back_trial = jnp.einsum("ij,mjk,lk->mil", R, back_n, R)
 
         f_trial = _SQRT_3_2 * safe_norm(dev_trial - jnp.sum(back_trial, axis=0)) - self.yield_stress(state.eqps)
         plastic = f_trial > _YIELD_TOL * self.yield_stress(state.eqps)
@@ -263,7 +286,8 @@ class KinematicJ2Material(eqx.Module):
             cp_inv_zz=jnp.where(plastic, jnp.exp(2.0 * eps_ezz), state.cp_inv_zz),
             eqps=state.eqps + dg,
             enhanced=state.enhanced,
-            back=jnp.where(plastic, jnp.einsum("ji,mjk,kl->mil", R, back, R), state.back),
+            back=None if state.back is None else jnp.where(plastic, jnp.einsum("ji,mjk,kl->mil", R, back, R),
+                                                           state.back),
         )
         return tau, new_state
 
