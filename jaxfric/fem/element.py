@@ -286,7 +286,9 @@ def initial_point_state(material, formulation: str):
     (zero: the undeformed element)."""
     n = N_ENHANCED.get(formulation, 0)
     state = material.init_state()
-    return eqx.tree_at(lambda s: s.enhanced, state, jnp.zeros(n, jnp.float64)) if n else state
+    if not n:
+        return state
+    return eqx.tree_at(lambda s: s.enhanced, state, jnp.zeros(n, jnp.float64), is_leaf=lambda x: x is None)
 
 
 def _with_enhanced(states, alpha):
@@ -294,7 +296,8 @@ def _with_enhanced(states, alpha):
     if alpha.size == 0:
         return states
     n_points = jax.tree_util.tree_leaves(states)[0].shape[0]
-    return eqx.tree_at(lambda s: s.enhanced, states, jnp.broadcast_to(alpha, (n_points, alpha.size)))
+    return eqx.tree_at(lambda s: s.enhanced, states, jnp.broadcast_to(alpha, (n_points, alpha.size)),
+                       is_leaf=lambda x: x is None)
 
 
 def _kinematics(formulation, dN_dX, dN_dX_center, weight, u_e, alpha):

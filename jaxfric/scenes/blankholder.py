@@ -164,8 +164,12 @@ class BlankholderConfig:
     thickness_points: int = cm.spec_field(2, "-", cm.THICKNESS_POINTS_DOC)
     F_clamp: float = cm.spec_field(300.0, "N/mm", "clamping force on the lower tool [chosen]")
     U_pull: float = cm.spec_field(55.0, "mm", "pull of the right end during draw [chosen]")
-    lock_control: str = cm.spec_field("force", "-", "lower tool during draw: 'force' (P = F_clamp) or "
-                                                    "'position' (s = H) [chosen]")
+    lock_control: str = cm.spec_field("force", "-", "lower tool during draw: 'force' (P = F_clamp), "
+                                                    "'position' (held where the lock left it) or 'depth' "
+                                                    "(closed to `closure` and held there, no lock force: "
+                                                    "the bead alone, for bead cards) [chosen]")
+    closure: float | None = cm.spec_field(None, "mm", "with lock_control='depth': the lower tool's stroke, "
+                                                      "0 < closure <= H (the bead's penetration); None: H")
     ds_close: float = cm.spec_field(0.05, "mm", "nominal increment of the stroke in close [chosen]")
     n_lock: int = cm.spec_field(10, "-", "steps of the lock force ramp [chosen]")
     dU: float = cm.spec_field(0.1, "mm", "nominal increment of the pull [chosen]")
@@ -230,11 +234,11 @@ class BlankholderObserve(eqx.Module):
 
 def _check(config: BlankholderConfig) -> None:
     cm.check_config(config, positive=("H", "R", "r", "Rp", "L", "t", "r_e", "element_length", "U_pull", "ds_close",
-                                      "dU"),
+                                      "dU", "closure"),
                     nonnegative=("stabilize", "step_error", "mu", "F_clamp", "upstream_margin", "grip_length",
                                  "land_margin", "clearance"),
                     integers=("nx", "ny", "band", "n_lock", "newton_iterations"),
-                    choices={"lock_control": ("force", "position"), "downstream_land": ("clamp", "far")},
+                    choices={"lock_control": ("force", "position", "depth"), "downstream_land": ("clamp", "far")},
                     lengths=("H", "R", "r", "Rp", "L", "t", "r_e", "x_left", "x_right", "upstream_margin",
                              "grip_length", "land_margin", "clearance"))
     if config.R > config.H:
@@ -244,6 +248,12 @@ def _check(config: BlankholderConfig) -> None:
     if not config.H < config.Rp:
         raise ValueError(f"config field 'H' = {config.H!r} leaves no room for the sheet under the groove "
                          f"(Rp = {config.Rp!r}): need H + t < t + Rp")
+    if config.closure is not None:
+        if config.lock_control != "depth":
+            raise ValueError(f"config field 'closure' = {config.closure!r} needs lock_control='depth' (it is "
+                             f"{config.lock_control!r})")
+        if not config.closure <= config.H:
+            raise ValueError(f"config field 'closure' = {config.closure!r} must lie in (0, H = {config.H!r}]")
     x_left, x_right, _ = sheet_extent(config)
     if not x_right > x_left:
         raise ValueError(f"config field 'x_right' = {x_right!r} must exceed x_left = {x_left!r}")
@@ -297,7 +307,9 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
 
     hold = DirichletBC(mesh.right, (0, 1))
     pull = DirichletBC(mesh.right, (0, 1), Ramp((0.0, 0.0), (config.U_pull, 0.0)))
-    phases = (Phase("close", [hold], cm.n_steps("ds_close", config.H, config.ds_close)),
+    depth = config.lock_control == "depth"
+    stroke = config.H if config.closure is None else config.closure
+    phases = (Phase("close", [hold], cm.n_steps("ds_close", stroke, config.ds_close)),
               Phase("lock", [hold], config.n_lock),
               Phase("draw", [pull], cm.n_steps("dU", config.U_pull, config.dU)))
 
@@ -305,10 +317,11 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
     # The die is set `clearance` above the sheet (along its e_q = (0, -1)) and held there (module doc).
     fixed = (Move(-config.clearance, -config.clearance), Move(0.0, 0.0), Move(0.0, 0.0))
     draw = Force(config.F_clamp, start=config.F_clamp) if config.lock_control == "force" else Move(0.0, 0.0)
+    lock = Move(0.0, 0.0) if depth else Force(config.F_clamp)  # 'depth': held at the closure, no lock force
     tools = (RigidTool("upper", _upper_die(config, x_g, groove["alpha"]), (0.0, -1.0), mesh.top, fixed, mu,
                        frictional=mu > 0),
              RigidTool("lower", _lower_tool(config, x_far), (0.0, 1.0), mesh.bottom,
-                       (Move(0.0, config.H), Force(config.F_clamp), draw), mu, frictional=mu > 0))
+                       (Move(0.0, stroke), lock, draw), mu, frictional=mu > 0))
 
     eps_t = cm.resolve_eps_t(config, config.mu)
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
@@ -335,11 +348,14 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
                     "d_capture": config.d_capture},
         "mesh": {"nx": nx, "ny": config.ny},
         "schedule": [
-            cm.schedule_entry(phases[0], "displacement of the lower tool", "s", "mm", 0.0, config.H),
-            {**cm.schedule_entry(phases[1], "force on the lower tool", "P", "N/mm", None, config.F_clamp),
-             "start": "reaction at the end of close"},
+            cm.schedule_entry(phases[0], "displacement of the lower tool", "s", "mm", 0.0, stroke),
+            (cm.schedule_entry(phases[1], "displacement of the lower tool (held)", "s", "mm", stroke, stroke)
+             if depth else
+             {**cm.schedule_entry(phases[1], "force on the lower tool", "P", "N/mm", None, config.F_clamp),
+              "start": "reaction at the end of close"}),
             {**cm.schedule_entry(phases[2], "displacement of the right end", "U", "mm", 0.0, config.U_pull),
-             "lower": "force-driven, P = F_clamp" if config.lock_control == "force" else "held at s = H"},
+             "lower": {"force": "force-driven, P = F_clamp", "position": "held where the lock left it",
+                       "depth": f"held at s = {stroke:g}"}[config.lock_control]},
         ],
     }
     return Scene(
