@@ -153,6 +153,29 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the target is met within this relative tolerance (default 1e-3)")
     des.add_argument("--out", action=_Once, metavar="DIR", help="output directory (default designs/SCENE/VARIANT)")
     des.add_argument("--quiet", action="store_true", help="no progress lines")
+    card = sub.add_parser("bead-card", help="equivalent drawbead data for stamping codes",
+                          description="Run the blankholder's bead closed to several penetrations and drawn to a "
+                                      "steady state, with and without friction, and write its restraining "
+                                      "force (bending and friction components) and normal force per unit bead "
+                                      "length against penetration, with the sheet's thinning and plastic "
+                                      "strain after the bead: bead_card.k (LS-DYNA *CONTACT_DRAWBEAD and "
+                                      "*DEFINE_CURVE), bead_card.rad (OpenRadioss /INTER/TYPE8), bead_card.csv, "
+                                      "bead_card.json and bead_card.png (jaxfric.cards).")
+    card.add_argument("--variant", action=_Once, default="shape1", help="bead shape, shape1 .. shape9 (default shape1)")
+    card.add_argument("--algorithm", action=_Once, default="lcp_ssn",
+                      help=f"one of {', '.join(ALGORITHMS)} (default lcp_ssn)")
+    card.add_argument("--mesh", action=_Once, metavar="NXxNY", help="elements along x and through the thickness")
+    card.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
+                      help="blankholder config field (repeatable): geometry, t, mu, material; see 'jaxfric scenes'")
+    card.add_argument("--penetrations", action=_Once, default="0.25,0.5,0.75,1", metavar="F[,F...]",
+                      help="penetrations as fractions of the bead height H, in (0, 1] (default 0.25,0.5,0.75,1)")
+    card.add_argument("--derivatives", action=_Once, metavar="NAME[,NAME...]",
+                      help="also the forces' derivatives for these config fields, e.g. R,mu")
+    card.add_argument("--total", action="store_true",
+                      help="LS-DYNA: LCIDRF is the whole restraining force and FS = FD = 0 (default: its "
+                           "bending component, the contact adding mu times the normal force)")
+    card.add_argument("--out", action=_Once, metavar="DIR", help="output directory (default cards/VARIANT)")
+    card.add_argument("--quiet", action="store_true", help="no progress lines")
     report = sub.add_parser("report", help="studies across many runs (accuracy-cost)",
                             description="Error against run time: references, the sweep of algorithms, "
                                         "penalties, meshes and steps, Pareto plots and what to pick for "
@@ -230,6 +253,8 @@ def main(argv=None) -> int:
             return _design(args)
         if args.command == "report":
             return _report(args)
+        if args.command == "bead-card":
+            return _bead_card(args)
         return _run(args)
     except UsageError as err:
         return _error(err, EXIT_USAGE)
@@ -699,6 +724,50 @@ def _design_window(text, scalar: bool):
         return float(text)
     except ValueError:
         raise UsageError(f"--window expects {'A:B (mm)' if scalar else 'a length (mm)'}, got {text!r}") from None
+
+
+def _bead_card(args) -> int:
+    import json
+
+    import numpy as np
+
+    from .cards import bead_card, write_card
+    from .io.output import json_ready
+    from .numerics.results import SimulationError
+
+    overrides = _overrides(args.overrides)
+    if args.mesh is not None:
+        overrides["mesh"] = args.mesh
+    try:
+        fractions = [float(v) for v in args.penetrations.split(",")]
+    except ValueError:
+        raise UsageError(f"--penetrations expects comma-separated fractions of H, got {args.penetrations!r}") from None
+    names = tuple(n.strip() for n in args.derivatives.split(",")) if args.derivatives else ()
+    out = os.path.join("cards", args.variant) if args.out is None else args.out
+    try:
+        card = bead_card(args.variant, penetrations=fractions, overrides=overrides, algorithm=args.algorithm,
+                         derivatives=names, progress=None if args.quiet else print,
+                         ready=lambda: _writable_dir(out))
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    except SimulationError as err:
+        return _error(f"bead card failed: {err}", EXIT_FAILED)
+    paths = write_card(card, out, total=args.total)
+    summary = {k: v for k, v in card.__dict__.items()}
+    summary["friction_force"] = card.friction_force
+    with open(os.path.join(out, "bead_card.json"), "w") as fh:
+        json.dump(json_ready(summary), fh, indent=1)
+    print(f"bead card directory: {out} ({', '.join(os.path.basename(p) for p in paths.values())}, bead_card.json)")
+    print(f"at full depth {card.depth:g} mm: restraining force {card.restraining_force[-1]:.5g} N/mm (bending "
+          f"{card.bending_force[-1]:.5g}, friction {card.friction_force[-1]:.5g}; scatter {card.scatter[-1]:.2g}), "
+          f"normal force {card.normal_force[-1]:.5g} N/mm, " + (
+              f"thinning {100 * card.thinning[-1]:.3g} %" if np.isfinite(card.thinning[-1]) else
+              "thinning n/a (no sheet has passed the whole bead yet: a longer U_pull)"))
+    for name, d in card.derivatives.items():
+        print(f"d/d{name} at full depth: restraining {d['restraining_force'][-1]:.5g}, normal "
+              f"{d['normal_force'][-1]:.5g} (N/mm per unit of {name})")
+    print(f"{len(card.penetration) - 1} penetrations, solve {card.wall_s:.1f} s")
+    return EXIT_OK
 
 
 def _report(args) -> int:

@@ -14,7 +14,7 @@ LAYERS = (
     ("fem",),
     ("contact",),
     ("loadpath",),
-    ("scenes", "identification", "io"),
+    ("scenes", "identification", "io", "cards"),
     ("cli", "__main__", "__init__"),
 )
 LAYER = {name: k for k, names in enumerate(LAYERS) for name in names}

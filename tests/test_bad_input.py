@@ -184,6 +184,18 @@ CLI_CASES = [
     pytest.param(["run", "flat_die", "--mesh", "4x1", "--mesh", "8x1"], "--mesh: given twice", id="mesh-twice"),
     # the report validates before it makes its directory
     pytest.param(["report", "accuracy-cost", "--test", "nope"], "--test 'nope'", id="report-test=nope"),
+    # bead cards: bad penetrations, fields the card sets itself, bad config, unknown derivatives
+    pytest.param(["bead-card", "--penetrations", "0.5,1.5"], "'penetrations'", id="card-penetration>1"),
+    pytest.param(["bead-card", "--penetrations", "half"], "--penetrations", id="card-penetration-text"),
+    pytest.param(["bead-card", "--set", "closure=2"], "'closure'", id="card-closure"),
+    pytest.param(["bead-card", "--set", "mu=-0.1"], "'mu'", id="card-mu<0"),
+    pytest.param(["bead-card", "--variant", "shape10"], "'shape10'", id="card-variant"),
+    pytest.param(["bead-card", "--derivatives", "Q"], "'Q'", id="card-derivative"),
+    # kinematic hardening: one rate per modulus, a radius that stays positive
+    pytest.param(["run", "nine", "--set", "C_kin=2000,100", "--set", "gamma_kin=20"], "'gamma_kin'",
+                 id="kin-counts"),
+    pytest.param(["run", "nine", "--set", "C_kin=20000", "--set", "gamma_kin=20"], "'C_kin'", id="kin-radius"),
+    pytest.param(["run", "nine", "--set", "Q_voce=100"], "'b_voce'", id="voce-counts"),
 ]
 
 

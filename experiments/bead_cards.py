@@ -1,0 +1,133 @@
+"""Bead cards of the blankholder's nine bead shapes: ``python experiments/bead_cards.py``.
+
+    python experiments/bead_cards.py [--only shapeN ...] [--table] [--kinematic]
+
+Per shape (spec Table 7, the paper's aluminium sheet, mu = 0.15, the spec mesh, ``lcp_ssn``): the card of
+:func:`jaxfric.cards.bead_card` at 0.25, 0.5, 0.75 and 1 times the bead height (with the derivatives for
+R, t and mu on shape3), written as ``experiments/results/bead_cards/<shape>/bead_card.{k,rad,csv,png,json}``,
+and its consistency check: the full-depth bead (``lock_control=depth``) drawn the spec's whole 55 mm with
+the spec's steady window [35, 55] mm, against the card's full-depth point (35 mm pulled, window [25, 35]
+mm), within that run's error estimate. ``--kinematic``: shape1's card again with one Armstrong-Frederick
+back stress (``C_kin=2000, gamma_kin=20``, the same monotonic curve; :mod:`jaxfric.fem.kinematic`), into
+``bead_cards/shape1_kinematic``.
+
+The table (``experiments/results/bead_cards.csv``) has, per shape, the full-depth forces, thinning and
+plastic strain, the consistency run's force and error estimate; the figure
+(``experiments/results/bead_cards.png``) the restraining and normal forces of every shape against the
+penetration as a fraction of its height. ``--only`` computes some shapes (to spread them over processes),
+``--table`` only reads back what is on disk.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+import jaxfric as jf
+from benchutil import write_rows
+from jaxfric import scenes
+from jaxfric.cards import bead_card, write_card
+from jaxfric.io import output
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+OUT = os.path.join(HERE, "results", "bead_cards")
+SHAPES = tuple(f"shape{k}" for k in range(1, 10))
+DERIVATIVES = {"shape3": ("R", "t", "mu")}
+KINEMATIC = {"C_kin": (2000.0,), "gamma_kin": (20.0,)}
+
+
+def compute(name: str, overrides: dict | None = None, label: str | None = None) -> None:
+    """The card of shape ``name`` and its consistency run, into ``OUT/<label>``."""
+    label = label or name
+    out = os.path.join(OUT, label)
+    card = bead_card(name, overrides=overrides, derivatives=DERIVATIVES.get(label, ()),
+                     progress=lambda line: print(line, file=sys.stderr, flush=True))
+    write_card(card, out)
+    summary = dict(card.__dict__, friction_force=card.friction_force)
+    scene = scenes.make("blankholder", name, "lcp_ssn", {**(overrides or {}), "lock_control": "depth"})
+    result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                    progress=False)
+    run_dir = os.path.join(out, "full_depth_run")
+    output.write_run(scene, result, run_dir, tag="bead_cards", figures=False)
+    with open(os.path.join(run_dir, "summary.json")) as fh:
+        run_summary = json.load(fh)
+    summary["consistency"] = {"steady_drawing_force": run_summary["steady_drawing_force"],
+                              "error_estimate": run_summary["error_estimate"]["absolute"],
+                              "steady_window": run_summary["steady_window"]}
+    for f in os.listdir(run_dir):  # keep its summary only: the history is long and the card is the result
+        if f != "summary.json":
+            os.remove(os.path.join(run_dir, f))
+    with open(os.path.join(out, "bead_card.json"), "w") as fh:
+        json.dump(output.json_ready(summary), fh, indent=1)
+
+
+def row(label: str) -> dict:
+    with open(os.path.join(OUT, label, "bead_card.json")) as fh:
+        s = json.load(fh)
+    check = s["consistency"]
+    full = s["restraining_force"][-1]
+    out = {"shape": label, "H": s["depth"], "restraining_force": full, "bending_force": s["bending_force"][-1],
+           "friction_force": s["friction_force"][-1], "normal_force": s["normal_force"][-1],
+           "scatter": s["scatter"][-1], "thinning": s["thinning"][-1], "eqps_after": s["eqps_after"][-1],
+           "eqps_after_max": s["eqps_after_max"][-1],
+           "full_run_force": check["steady_drawing_force"], "full_run_error": check["error_estimate"],
+           "difference": full - check["steady_drawing_force"]}
+    for name, d in s["derivatives"].items():
+        out[f"dF_d{name}"] = d["restraining_force"][-1]
+        out[f"dN_d{name}"] = d["normal_force"][-1]
+    return out
+
+
+def figure(labels: list[str], path: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), constrained_layout=True)
+    colours = plt.get_cmap("tab10")
+    for k, label in enumerate(labels):
+        with open(os.path.join(OUT, label, "bead_card.json")) as fh:
+            s = json.load(fh)
+        d = np.asarray(s["penetration"]) / s["depth"]
+        style = {"color": colours(k % 10), "ls": "--" if label.endswith("_kinematic") else "-", "marker": "o"}
+        axes[0].plot(d, s["restraining_force"], label=label, **style)
+        axes[1].plot(d, s["normal_force"], label=label, **style)
+    for ax, what in zip(axes, ("restraining force", "normal (opening) force"), strict=True):
+        ax.set(xlabel="penetration / bead height H", ylabel=f"{what} (N/mm)", title=f"bead cards: {what}")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8, ncols=2)
+    fig.savefig(path, dpi=110)
+    print(f"written {path}")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--only", nargs="+", choices=SHAPES)
+    p.add_argument("--kinematic", action="store_true", help="shape1's card with a back stress")
+    p.add_argument("--table", action="store_true", help="only read back the cards on disk")
+    a = p.parse_args(argv)
+    if not a.table:
+        for name in a.only or ([] if a.kinematic else SHAPES):
+            compute(name)
+        if a.kinematic:
+            compute("shape1", KINEMATIC, "shape1_kinematic")
+        if a.only or a.kinematic:
+            return 0
+    labels = [s for s in (*SHAPES, "shape1_kinematic") if os.path.exists(os.path.join(OUT, s, "bead_card.json"))]
+    if not labels:
+        print("no card on disk", file=sys.stderr)
+        return 1
+    rows = [row(label) for label in labels]
+    for r in rows:
+        print(r)
+    write_rows(os.path.join(HERE, "results", "bead_cards.csv"), rows)
+    figure(labels, os.path.join(HERE, "results", "bead_cards.png"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

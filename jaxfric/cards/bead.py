@@ -1,0 +1,240 @@
+"""Equivalent drawbead data for stamping codes: the bead's forces per unit length against its penetration.
+
+    >>> card = bead_card("shape3", penetrations=(0.25, 0.5, 0.75, 1.0))
+    >>> card.restraining_force, card.normal_force        # N/mm, one entry per penetration (0 first)
+
+A stamping simulation replaces a drawbead by a line that restrains the sheet drawn across it; its code
+wants the restraining force and the normal (opening) force per unit bead length as functions of the
+bead's penetration (LS-DYNA's ``*CONTACT_DRAWBEAD``; ``../shared/spec/drawbead_cards.md``). They come
+from plane-strain runs of the bead: the blankholder scene with ``lock_control="depth"``, the male bead
+closed to each penetration d (the lower tool's stroke from first contact, 0 < d <= H) and held there
+while the sheet is pulled to a steady draw, without the lands' lock force (the binder's own friction
+is the 3D model's contact). Per penetration:
+
+- restraining force: the steady drawing force (N/mm); its bending-unbending part is the same run with
+  mu = 0 (the frictionless bead), the friction part the difference;
+- normal force: the steady force on the lower tool (N/mm), the bead's opening force;
+- after the bead (the columns that started upstream of the groove and now lie over the downstream
+  land): the sheet's thinning 1 - h / t from its current thickness h, and its equivalent plastic strain
+  (mean over the columns' points, and the largest);
+- with ``derivatives``: the derivatives of the restraining and normal forces for config fields of the
+  scene (geometry R, r, Rp, H, the sheet's t, friction mu, ...), by forward mode along the run's own
+  step sequence (:func:`jaxfric.identification.params.path_function`).
+
+Schedule [chosen]: every penetration closes in the same number of steps as the full depth does at the
+scene's ``ds_close`` (so that all of them share one compiled program: the closure is a value, not
+structure), then the pull ``U_pull`` = 35 mm with the steady window [25, 35] mm. Measured on shape1 at
+the spec mesh (``lcp_ssn``, full depth, a 55 mm pull): the drawing force averages 141.25, 142.39, 142.47,
+142.38 and 142.32 N/mm over U in [20, 25], [25, 30], [30, 35], [35, 45] and [45, 55] mm, so [25, 35]
+gives the spec window's steady value within 0.1 %, inside the run's scatter estimate (0.63 %).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import scenes
+from ..identification.params import parameterize, path_function
+from ..io.instants import steady_drawing_force, steady_rows
+from ..loadpath.run import run
+from ..scenes.blankholder import BlankholderConfig, groove_geometry
+
+__all__ = ["BeadCard", "bead_card", "card_overrides", "DEFAULT_PENETRATIONS", "CARD_PULL", "CARD_WINDOW"]
+
+DEFAULT_PENETRATIONS = (0.25, 0.5, 0.75, 1.0)  # fractions of the bead height H [chosen]
+CARD_PULL = 35.0                               # mm of pull per penetration [chosen: module docstring]
+CARD_WINDOW = (25.0, 35.0)                     # mm, its steady window [chosen]
+
+
+@dataclasses.dataclass(frozen=True)
+class BeadCard:
+    """A bead's equivalent data per unit length, against its penetration (the first entry: 0, no contact).
+
+    Attributes:
+        variant: the blankholder variant (bead shape); ``overrides``: the config values set on it.
+        depth: the bead's full depth H (mm): DBDTH of LS-DYNA, DEPTH of OpenRadioss.
+        thickness: the sheet's thickness t (mm); ``mu``: its friction coefficient on the tools.
+        penetration: (k,) mm. Every force below is N/mm (per unit bead length), (k,).
+        restraining_force, bending_force: the steady drawing force, with friction and with mu = 0.
+        normal_force, normal_force_bending: the steady force on the lower tool, likewise.
+        scatter: the restraining force's standard deviation over the steady window (N/mm): the card's
+            error estimate from the steady regime (the runs' discretisation error is not in it).
+        thinning: 1 - h / t of the sheet after the bead (-); eqps_after, eqps_after_max: its equivalent
+            plastic strain there, mean and largest.
+        derivatives: {field: {"restraining_force": (k,), "normal_force": (k,)}} per unit of the field
+            (empty without ``derivatives``; 0 at penetration 0).
+        wall_s: the runs' solve time (s).
+    """
+
+    variant: str
+    overrides: dict
+    depth: float
+    thickness: float
+    mu: float
+    penetration: np.ndarray
+    restraining_force: np.ndarray
+    bending_force: np.ndarray
+    normal_force: np.ndarray
+    normal_force_bending: np.ndarray
+    scatter: np.ndarray
+    thinning: np.ndarray
+    eqps_after: np.ndarray
+    eqps_after_max: np.ndarray
+    derivatives: dict = dataclasses.field(default_factory=dict)
+    wall_s: float = 0.0
+
+    @property
+    def friction_force(self) -> np.ndarray:
+        """The friction part of the restraining force, restraining - bending (N/mm)."""
+        return self.restraining_force - self.bending_force
+
+
+def _config(variant: str, algorithm: str, overrides: dict) -> BlankholderConfig:
+    """The blankholder config of ``variant`` with ``overrides`` and the card's lock mode."""
+    config = scenes.make("blankholder", variant, algorithm, {**overrides, "lock_control": "depth"}).config
+    assert isinstance(config, BlankholderConfig)
+    return config
+
+
+def card_overrides(variant: str, penetration: float, overrides: dict | None = None) -> dict:
+    """The blankholder overrides of one run of a card: the bead closed to ``penetration`` (mm) and held,
+    the card's pull and window, in the closing steps of the full depth (the module docstring)."""
+    base = dict(overrides or {})
+    config = _config(variant, "lcp_ssn", base)
+    n_close = max(1, round(config.H / config.ds_close))
+    out = {"U_pull": CARD_PULL, "steady_window": CARD_WINDOW, **base, "lock_control": "depth",
+           "closure": float(penetration), "ds_close": float(penetration) / n_close}
+    return out
+
+
+def _after_bead(scene, final) -> tuple[float, float, float]:
+    """Thinning, mean and largest eqps of the columns that started upstream of the groove (X < -x_g - r)
+    and lie over the downstream land (x_g + r < x < x_g + L) at the end."""
+    config, mesh = scene.config, scene.model.mesh
+    groove = groove_geometry(config)
+    nx, ny = mesh.nx, mesh.ny
+    nodes = np.asarray(mesh.nodes).reshape(nx + 1, ny + 1, 2)
+    x = nodes + np.asarray(final.u).reshape(nx + 1, ny + 1, 2)
+    X_mid, x_mid = nodes[:, ny // 2, 0], x[:, ny // 2, 0]
+    cols = np.flatnonzero((X_mid < -groove["x_g"] - config.r) & (x_mid > groove["x_g"] + config.r)
+                          & (x_mid < groove["x_g"] + config.L))
+    if cols.size == 0:
+        return math.nan, math.nan, math.nan
+    h = np.linalg.norm(x[cols, ny] - x[cols, 0], axis=-1)
+    eqps = np.asarray(final.material.eqps).reshape(nx, ny, -1)[np.minimum(cols, nx - 1)]
+    return float(1.0 - np.mean(h) / config.t), float(np.mean(eqps)), float(np.max(eqps))
+
+
+def _steady(history: dict, window) -> tuple[float, float, float]:
+    """Steady drawing force, its scatter (standard deviation) and the steady lower-tool force."""
+    values = {"phase": history["phase_name"], "drawing_displacement": history["drawing_displacement"]}
+    drawing = steady_drawing_force({**values, "drawing_force": history["drawing_force"]}, window)
+    normal = steady_drawing_force({**values, "drawing_force": history["clamping_force"]}, window)
+    if drawing is None or normal is None:
+        raise ValueError(f"bead card: no steady window {window} mm in the run (raise U_pull)")
+    rows = steady_rows(history["phase_name"], history["drawing_displacement"], window)
+    return drawing, float(np.std(np.asarray(history["drawing_force"])[rows])), normal
+
+
+def _derivatives(variant, algorithm, overrides, names, history, window) -> dict:
+    """d(steady restraining force, steady normal force) / d(config field), along the run's steps."""
+    par = parameterize("blankholder", names, variant=variant, algorithm=algorithm, overrides=overrides)
+    f = path_function(par, plan=history)
+    u = np.asarray(history["drawing_displacement"])
+    rows = steady_rows(history["phase_name"], u, window)
+    du = np.diff(u[rows])
+
+    def steady(p):
+        h, _ = f(p)
+        out = []
+        for name in ("drawing_force", "clamping_force"):
+            v = h.observed[name][rows]
+            out.append(jnp.sum(0.5 * (v[1:] + v[:-1]) * du) / (u[rows][-1] - u[rows][0]))
+        return jnp.stack(out)
+
+    jac = np.asarray(jax.jacfwd(steady)(jnp.asarray(par.p0)))
+    return {n: (float(jac[0, i]), float(jac[1, i])) for i, n in enumerate(names)}
+
+
+def bead_card(variant: str = "shape1", *, penetrations: Sequence[float] = DEFAULT_PENETRATIONS,
+              absolute: bool = False, overrides: dict | None = None, algorithm: str = "lcp_ssn",
+              derivatives: Sequence[str] = (), progress: Callable[[str], None] | None = None,
+              ready: Callable[[], None] | None = None) -> BeadCard:
+    """The equivalent drawbead data of blankholder ``variant`` (module docstring).
+
+    Args:
+        variant: the bead shape (``shape1`` ... ``shape9``, spec Table 7).
+        penetrations: where to run, as fractions of the bead height H in (0, 1] (``absolute``: in mm).
+        overrides: config values of the blankholder (mesh, material, friction ``mu``, ``t``, geometry);
+            ``lock_control``, ``closure`` and ``ds_close`` are the card's.
+        algorithm: the contact algorithm of the runs.
+        derivatives: config fields to differentiate the forces for (e.g. ``("R", "t", "mu")``).
+        progress: called with one line per run.
+        ready: called once the inputs are checked, before the first run (the command line creates its
+            output directory there, so that bad input leaves none behind).
+
+    Raises ValueError (one line, naming the field) for bad penetrations or overrides, and
+    :class:`~jaxfric.numerics.results.SimulationError` where a run does not complete.
+    """
+    overrides = dict(overrides or {})
+    for name in ("lock_control", "closure", "ds_close"):
+        if name in overrides:
+            raise ValueError(f"field 'overrides': '{name}' is set by the bead card; leave it out")
+    config = _config(variant, algorithm, overrides)
+    values = np.asarray(penetrations, dtype=np.float64).ravel()
+    depths = values if absolute else values * config.H
+    if values.size == 0 or not np.all(np.isfinite(depths) & (depths > 0) & (depths <= config.H * (1 + 1e-12))):
+        raise ValueError(f"field 'penetrations' = {list(values)} is invalid: each must lie in (0, "
+                         f"{'H = ' + format(config.H, 'g') + ' mm' if absolute else '1'}]")
+    depths = np.minimum(np.sort(depths), config.H)
+    for name in derivatives:
+        if name not in {f.name for f in dataclasses.fields(config)}:
+            raise ValueError(f"field 'derivatives': {name!r} is not a config field of the blankholder")
+    if ready is not None:
+        ready()
+    frictions: list[tuple[float, dict]] = [(config.mu, {})] + ([(0.0, {"mu": 0.0})] if config.mu > 0 else [])
+    rows: dict = {k: [0.0] for k in ("F", "Fb", "N", "Nb", "s", "thin", "e", "emax")}
+    derived: dict = {n: ([0.0], [0.0]) for n in derivatives}
+    wall = 0.0
+    for d in depths:
+        for mu, extra in frictions:
+            run_over = card_overrides(variant, d, {**overrides, **extra})
+            scene = scenes.make("blankholder", variant, algorithm, run_over)
+            if progress:
+                progress(f"bead card {variant}: penetration {d:.4g} mm, mu = {mu:g}")
+            result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                         progress=False)
+            wall += result.wall_s
+            history = result.history
+            force, scatter, normal = _steady(history, scene.steady_window)
+            if mu == config.mu:
+                thin, e, emax = _after_bead(scene, result.final)
+                rows["F"].append(force)
+                rows["N"].append(normal)
+                rows["s"].append(scatter)
+                rows["thin"].append(thin)
+                rows["e"].append(e)
+                rows["emax"].append(emax)
+                if derivatives:
+                    for n, (dF, dN) in _derivatives(variant, algorithm, run_over, tuple(derivatives), history,
+                                                    scene.steady_window).items():
+                        derived[n][0].append(dF)
+                        derived[n][1].append(dN)
+            if mu == 0.0:
+                rows["Fb"].append(force)
+                rows["Nb"].append(normal)
+    arr = {k: np.asarray(v) for k, v in rows.items()}
+    return BeadCard(variant=variant, overrides=overrides, depth=float(config.H), thickness=float(config.t),
+                    mu=float(config.mu), penetration=np.concatenate([[0.0], depths]),
+                    restraining_force=arr["F"], bending_force=arr["Fb"], normal_force=arr["N"],
+                    normal_force_bending=arr["Nb"], scatter=arr["s"], thinning=arr["thin"], eqps_after=arr["e"],
+                    eqps_after_max=arr["emax"],
+                    derivatives={n: {"restraining_force": np.asarray(a), "normal_force": np.asarray(b)}
+                                 for n, (a, b) in derived.items()},
+                    wall_s=wall)
