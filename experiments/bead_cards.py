@@ -48,9 +48,12 @@ def compute(name: str, overrides: dict | None = None, label: str | None = None) 
                      progress=lambda line: print(line, file=sys.stderr, flush=True))
     write_card(card, out)
     summary = dict(card.__dict__, friction_force=card.friction_force)
+    with open(os.path.join(out, "bead_card.json"), "w") as fh:  # the card, before its consistency run
+        json.dump(output.json_ready(summary), fh, indent=1)
     scene = scenes.make("blankholder", name, "lcp_ssn", {**(overrides or {}), "lock_control": "depth"})
+    print(f"{label}: consistency run, full depth, the spec's 55 mm", file=sys.stderr, flush=True)
     result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                    progress=False)
+                    snapshot=scene.snapshot, progress=False)
     run_dir = os.path.join(out, "full_depth_run")
     output.write_run(scene, result, run_dir, tag="bead_cards", figures=False)
     with open(os.path.join(run_dir, "summary.json")) as fh:

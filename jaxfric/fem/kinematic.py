@@ -79,7 +79,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..numerics.tensor import inv2, safe_norm, sym2_exp
-from .material import J2Material, MaterialState, trial_log_strain
+from .material import J2Material, MaterialState, scalar_newton, trial_log_strain
 
 __all__ = ["KinematicJ2Material", "S355J2N", "polar_rotation", "to_plane", "from_plane"]
 
@@ -91,9 +91,7 @@ S355J2N = {"E": 197410.0, "sigma_y": 338.80, "Q": (134.34, -133.75), "b": (14.71
 _SQRT_3_2 = math.sqrt(1.5)
 _SQRT_2_3 = math.sqrt(2.0 / 3.0)
 _NEWTON_RTOL = 1e-12  # |R| <= 1e-12 sigma_y, as J2Material
-_NEWTON_MAX_ITER = 50
 _YIELD_TOL = 1e-10
-_STAGNATION = 2.0**-50
 
 
 def polar_rotation(F: jax.Array) -> jax.Array:
@@ -267,7 +265,9 @@ class KinematicJ2Material(eqx.Module):
             return material._residual(dg, dev, back, eqps_n)[0]
 
         inputs = (self, dev_trial, back_trial, state.eqps)
-        dg_star = _newton(residual, jax.lax.stop_gradient(inputs), jax.lax.stop_gradient(self.sigma_y), plastic)
+        frozen = jax.lax.stop_gradient(inputs)
+        dg_star = scalar_newton(lambda dg: jax.value_and_grad(residual)(dg, *frozen),
+                                _NEWTON_RTOL * jax.lax.stop_gradient(self.sigma_y), jnp.zeros((), F.dtype), plastic)
         r, slope = jax.value_and_grad(residual)(dg_star, *inputs)
         dg = jnp.where(plastic, dg_star - r / jnp.where(plastic, slope, -1.0), 0.0)
 
@@ -290,28 +290,3 @@ class KinematicJ2Material(eqx.Module):
                                                            state.back),
         )
         return tau, new_state
-
-
-def _newton(residual, inputs, sigma_y, plastic) -> jax.Array:
-    """Solve residual(dg, *inputs) = 0 for dg >= 0 by Newton from 0 (no gradients; the residual decreases).
-    Stops at |R| <= 1e-12 sigma_y, when the step no longer changes dg, or after _NEWTON_MAX_ITER steps;
-    returns 0 at once where the point is not ``plastic`` (R(0) < 0 there)."""
-    value_and_slope = jax.value_and_grad(residual)
-    tol = _NEWTON_RTOL * sigma_y
-    zero = jnp.zeros((), jnp.float64)
-
-    def not_done(carry):
-        it, dg, r, step = carry
-        moving = jnp.abs(step) > _STAGNATION * jnp.abs(dg)
-        return (jnp.abs(r) > tol) & moving & (it < _NEWTON_MAX_ITER)
-
-    def newton_step(carry):
-        it, dg, r, _ = carry
-        _, slope = value_and_slope(dg, *inputs)
-        step = -r / slope
-        r_new = residual(dg + step, *inputs)
-        return it + 1, dg + step, r_new, step
-
-    r0 = jnp.where(plastic, residual(zero, *inputs), 0.0)
-    init = (jnp.asarray(0, jnp.int32), zero, r0, jnp.asarray(jnp.inf))
-    return jax.lax.while_loop(not_done, newton_step, init)[1]

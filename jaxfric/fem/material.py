@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxfric.numerics.tensor import inv2, safe_norm, sym2_exp, sym2_log
 
-__all__ = ["MaterialState", "J2Material", "von_mises", "trial_log_strain"]
+__all__ = ["MaterialState", "J2Material", "von_mises", "trial_log_strain", "scalar_newton"]
 
 _SQRT_3_2 = math.sqrt(1.5)
 _NEWTON_RTOL = 1e-12  # |R| <= 1e-12 sigma_y, spec section 1.2
@@ -264,9 +264,16 @@ def _newton_return(material: J2Material, q_trial: jax.Array, eqps_n: jax.Array) 
     _NEWTON_MAX_ITER iterations.
     """
     _, sigma_y = material._sigma_y_finite()
-    tol = _NEWTON_RTOL * sigma_y
-    zero = jnp.zeros_like(q_trial)
-    residual0, _ = material._return_residual(zero, q_trial, eqps_n)
+    return scalar_newton(lambda dg: material._return_residual(dg, q_trial, eqps_n), _NEWTON_RTOL * sigma_y,
+                         jnp.zeros_like(q_trial))
+
+
+def scalar_newton(residual_and_slope, tol, zero, active=True) -> jax.Array:
+    """The root of a decreasing scalar function R (``residual_and_slope(dg) -> (R, R')``) by Newton from
+    ``zero`` (no gradients: the return mappings differentiate the converged root by one more step).
+    Stops at |R| <= ``tol``, when a step no longer changes dg (the round-off floor), after
+    _NEWTON_MAX_ITER iterations, or at once where not ``active`` (an elastic point)."""
+    residual0 = jnp.where(active, residual_and_slope(zero)[0], jnp.zeros_like(zero))
 
     def not_done(carry):
         it, dg, residual, step = carry
@@ -276,11 +283,11 @@ def _newton_return(material: J2Material, q_trial: jax.Array, eqps_n: jax.Array) 
 
     def newton_step(carry):
         it, dg, residual, _ = carry
-        _, slope = material._return_residual(dg, q_trial, eqps_n)
+        _, slope = residual_and_slope(dg)
         step = -residual / slope
-        residual, _ = material._return_residual(dg + step, q_trial, eqps_n)
+        residual, _ = residual_and_slope(dg + step)
         return it + 1, dg + step, residual, step
 
-    init = (jnp.asarray(0, jnp.int32), zero, residual0, jnp.full_like(q_trial, jnp.inf))
+    init = (jnp.asarray(0, jnp.int32), zero, residual0, jnp.full_like(zero, jnp.inf))
     _, dg, _, _ = jax.lax.while_loop(not_done, newton_step, init)
     return dg
