@@ -766,6 +766,8 @@ def _bead_card(args) -> int:
     for name, d in card.derivatives.items():
         print(f"d/d{name} at full depth: restraining {d['restraining_force'][-1]:.5g}, normal "
               f"{d['normal_force'][-1]:.5g} (N/mm per unit of {name})")
+    for note in card.notes:
+        print(f"note: {note}")
     print(f"{len(card.penetration) - 1} penetrations, solve {card.wall_s:.1f} s")
     return EXIT_OK
 
