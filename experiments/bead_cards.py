@@ -13,7 +13,8 @@ back stress (``C_kin=2000, gamma_kin=20``, the same monotonic curve; :mod:`jaxfr
 ``bead_cards/shape1_kinematic``.
 
 The table (``experiments/results/bead_cards.csv``) has, per shape, the full-depth forces, thinning and
-plastic strain, the consistency run's force and error estimate; the figure
+plastic strain, the consistency run's force and error estimate (``bead_cards_derivatives.csv``: the
+derivatives per penetration); the figure
 (``experiments/results/bead_cards.png``) the restraining and normal forces of every shape against the
 penetration as a fraction of its height. ``--only`` computes some shapes (to spread them over processes),
 ``--table`` only reads back what is on disk.
@@ -82,10 +83,21 @@ def row(label: str) -> dict:
            "full_run_force": check["steady_drawing_force"], "full_run_error": check["error_estimate"],
            "difference": None if check["steady_drawing_force"] is None else full - check["steady_drawing_force"],
            "full_run_converged": check.get("converged", True), "penalty_runs": len(s.get("notes", []))}
-    for name, d in s["derivatives"].items():
-        out[f"dF_d{name}"] = d["restraining_force"][-1]
-        out[f"dN_d{name}"] = d["normal_force"][-1]
     return out
+
+
+def derivative_rows(label: str) -> list[dict]:
+    """One row per penetration of a card with derivatives: d(restraining, normal force) / d(field)."""
+    with open(os.path.join(OUT, label, "bead_card.json")) as fh:
+        s = json.load(fh)
+    out = []
+    for k, d in enumerate(s["penetration"]):
+        r = {"shape": label, "penetration": d}
+        for name, values in s["derivatives"].items():
+            r[f"dF_d{name}"] = values["restraining_force"][k]
+            r[f"dN_d{name}"] = values["normal_force"][k]
+        out.append(r)
+    return out if s["derivatives"] else []
 
 
 def figure(labels: list[str], path: str) -> None:
@@ -131,6 +143,9 @@ def main(argv=None) -> int:
     for r in rows:
         print(r)
     write_rows(os.path.join(HERE, "results", "bead_cards.csv"), rows)
+    derived = [r for label in labels for r in derivative_rows(label)]
+    if derived:
+        write_rows(os.path.join(HERE, "results", "bead_cards_derivatives.csv"), derived)
     figure(labels, os.path.join(HERE, "results", "bead_cards.png"))
     return 0
 
