@@ -121,7 +121,7 @@ def card_overrides(variant: str, penetration: float, overrides: dict | None = No
     base = dict(overrides or {})
     config = _config(variant, "lcp_ssn", base)
     n_close = max(1, round(config.H / config.ds_close))
-    pull = card_pull(config)
+    pull = float(config.U_pull) if "U_pull" in base else card_pull(config)  # a given pull keeps its window
     out = {"U_pull": pull, "steady_window": (pull - WINDOW, pull), **base, "lock_control": "depth",
            "closure": float(penetration), "ds_close": float(penetration) / n_close}
     return out
