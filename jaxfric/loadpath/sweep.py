@@ -140,7 +140,8 @@ def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions
     ``members``) and each device runs the vmapped loop of its own block under ``jax.shard_map``: its own
     while loop, which ends when its slowest member does, with no communication between devices until the
     histories are gathered. A member count that the devices do not divide is padded with copies of the
-    last member, whose results are dropped. One device: the plain vmapped program.
+    last member, whose results are dropped. One device: the plain vmapped program. Tested on several
+    CPU devices of one process (``tests/test_sweep.py``), not across hosts.
     """
     if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
         raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
