@@ -29,18 +29,14 @@ figure (``.png``) the drawing force against the drawing displacement under all f
 from __future__ import annotations
 
 import argparse
-import csv
-import json
 import os
 import sys
 
 import numpy as np
 
-import jaxfric as jf
 from benchutil import write_rows
-from jaxfric import scenes
 from jaxfric.fem.kinematic import S355J2N
-from jaxfric.io import output
+from jaxfric.io.batch import run_case
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 _S355 = {"E": S355J2N["E"], "nu": 0.3, "sigma_y": S355J2N["sigma_y"], "A": 0.0, "n": 0.0,
@@ -54,29 +50,13 @@ CASES = {"nine_mu000": ("nine", "mu000"), "nine_mu017": ("nine", "mu017"),
          "bead_th090_mu017": ("bead", "th090_mu017")}
 
 
-def _history(out: str) -> dict:
-    """The numeric columns of a run's history, as arrays."""
-    with open(os.path.join(out, "history.csv")) as fh:
-        rows = list(csv.DictReader(fh))
-    return {k: np.array([float(r[k]) for r in rows]) for k in rows[0] if k not in ("phase", "phase_name")}
-
-
 def run_one(case: str, law: str, root: str) -> tuple[dict, dict]:
-    """Run (or read back) ``case`` under ``law``: its summary and history."""
+    """Run (or read back) ``case`` under ``law``: its summary (with the largest eqps) and history."""
     name, variant = CASES[case]
-    out = os.path.join(root, f"{case}_{law}")
-    if not os.path.exists(os.path.join(out, "summary.json")):
-        overrides = dict(SETTINGS[name], **LAWS[law])
-        scene = scenes.make(name, variant, "lcp_ssn", overrides)
-        print(f"{case} {law}: running", file=sys.stderr, flush=True)
-        result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                        snapshot=scene.snapshot, progress=False, raise_on_failure=False)
-        output.write_run(scene, result, out, tag="kinematic_hardening", figures=False)
-    with open(os.path.join(out, "summary.json")) as fh:
-        summary = json.load(fh)
-    contact = np.load(os.path.join(out, "contact.npz"))
-    eqps = max(float(np.max(contact[k])) for k in contact.files if k.endswith("__eqps"))
-    return dict(summary, eqps_max=eqps), _history(out)
+    done = run_case(os.path.join(root, f"{case}_{law}"), name, variant, "lcp_ssn", dict(SETTINGS[name], **LAWS[law]),
+                    tag="kinematic_hardening", log=lambda line: print(line, file=sys.stderr, flush=True))
+    eqps = max(float(np.max(v)) for k, v in done["contact"].items() if k.endswith("__eqps"))
+    return dict(done["summary"], eqps_max=eqps), done["history"]
 
 
 def row(case: str, pair: str, runs: dict) -> dict:
