@@ -29,11 +29,9 @@ import sys
 
 import numpy as np
 
-import jaxfric as jf
 from benchutil import write_rows
-from jaxfric import scenes
 from jaxfric.cards import bead_card, write_card
-from jaxfric.io import output
+from jaxfric.io.batch import run_case
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = os.path.join(HERE, "results", "bead_cards")
@@ -46,29 +44,19 @@ def compute(name: str, overrides: dict | None = None, label: str | None = None) 
     """The card of shape ``name`` and its consistency run, into ``OUT/<label>``."""
     label = label or name
     out = os.path.join(OUT, label)
-    card = bead_card(name, overrides=overrides, derivatives=DERIVATIVES.get(label, ()),
-                     progress=lambda line: print(line, file=sys.stderr, flush=True))
-    write_card(card, out)
-    summary = dict(card.__dict__, friction_force=card.friction_force)
-    with open(os.path.join(out, "bead_card.json"), "w") as fh:  # the card, before its consistency run
-        json.dump(output.json_ready(summary), fh, indent=1)
-    scene = scenes.make("blankholder", name, "lcp_ssn", {**(overrides or {}), "lock_control": "depth"})
-    print(f"{label}: consistency run, full depth, the spec's 55 mm", file=sys.stderr, flush=True)
-    result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                    snapshot=scene.snapshot, progress=False, raise_on_failure=False)
+    log = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    card = bead_card(name, overrides=overrides, derivatives=DERIVATIVES.get(label, ()), progress=log)
     run_dir = os.path.join(out, "full_depth_run")
-    output.write_run(scene, result, run_dir, tag="bead_cards", figures=False)
-    with open(os.path.join(run_dir, "summary.json")) as fh:
-        run_summary = json.load(fh)
-    summary["consistency"] = {"steady_drawing_force": run_summary["steady_drawing_force"],
-                              "error_estimate": run_summary["error_estimate"]["absolute"],
-                              "steady_window": run_summary["steady_window"],
-                              "converged": run_summary["converged"], "message": run_summary["message"]}
+    done = run_case(run_dir, "blankholder", name, "lcp_ssn", {**(overrides or {}), "lock_control": "depth"},
+                    tag="bead_cards", log=log)
     for f in os.listdir(run_dir):  # keep its summary only: the history is long and the card is the result
         if f != "summary.json":
             os.remove(os.path.join(run_dir, f))
-    with open(os.path.join(out, "bead_card.json"), "w") as fh:
-        json.dump(output.json_ready(summary), fh, indent=1)
+    s = done["summary"]
+    check = {"steady_drawing_force": s.get("steady_drawing_force"), "converged": s["converged"],
+             "error_estimate": s.get("error_estimate", {}).get("absolute"), "steady_window": s.get("steady_window"),
+             "message": s["message"]}
+    write_card(card, out, extra={"consistency": check})
 
 
 def row(label: str) -> dict:

@@ -727,12 +727,9 @@ def _design_window(text, scalar: bool):
 
 
 def _bead_card(args) -> int:
-    import json
-
     import numpy as np
 
     from .cards import bead_card, write_card
-    from .io.output import json_ready
     from .numerics.results import SimulationError
 
     overrides = _overrides(args.overrides)
@@ -753,11 +750,7 @@ def _bead_card(args) -> int:
     except SimulationError as err:
         return _error(f"bead card failed: {err}", EXIT_FAILED)
     paths = write_card(card, out, total=args.total)
-    summary = {k: v for k, v in card.__dict__.items()}
-    summary["friction_force"] = card.friction_force
-    with open(os.path.join(out, "bead_card.json"), "w") as fh:
-        json.dump(json_ready(summary), fh, indent=1)
-    print(f"bead card directory: {out} ({', '.join(os.path.basename(p) for p in paths.values())}, bead_card.json)")
+    print(f"bead card directory: {out} ({', '.join(os.path.basename(p) for p in paths.values())})")
     print(f"at full depth {card.depth:g} mm: restraining force {card.restraining_force[-1]:.5g} N/mm (bending "
           f"{card.bending_force[-1]:.5g}, friction {card.friction_force[-1]:.5g}; scatter {card.scatter[-1]:.2g}), "
           f"normal force {card.normal_force[-1]:.5g} N/mm, " + (

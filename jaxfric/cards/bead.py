@@ -114,12 +114,14 @@ def card_pull(config: BlankholderConfig) -> float:
     return max(MIN_PULL, math.floor(2.0 * (groove_geometry(config)["x_g"] + config.r)) + WINDOW)
 
 
-def card_overrides(variant: str, penetration: float, overrides: dict | None = None) -> dict:
+def card_overrides(variant: str, penetration: float, overrides: dict | None = None,
+                   config: BlankholderConfig | None = None) -> dict:
     """The blankholder overrides of one run of a card: the bead closed to ``penetration`` (mm) and held,
     the card's pull and window (where ``overrides`` do not set them), in the closing steps of the full
-    depth (the module docstring)."""
+    depth (the module docstring). ``config``: the blankholder config of ``variant`` with ``overrides``
+    (built here when not given; the friction fields do not enter)."""
     base = dict(overrides or {})
-    config = _config(variant, "lcp_ssn", base)
+    config = _config(variant, "lcp_ssn", base) if config is None else config
     n_close = max(1, round(config.H / config.ds_close))
     pull = float(config.U_pull) if "U_pull" in base else card_pull(config)  # a given pull keeps its window
     out = {"U_pull": pull, "steady_window": (pull - WINDOW, pull), **base, "lock_control": "depth",
@@ -235,7 +237,7 @@ def bead_card(variant: str = "shape1", *, penetrations: Sequence[float] = DEFAUL
     wall, notes = 0.0, []  # type: float, list[str]
     for d in depths:
         for mu, extra in frictions:
-            run_over = card_overrides(variant, d, {**overrides, **extra})
+            run_over = card_overrides(variant, d, {**overrides, **extra}, config)
             scene = scenes.make("blankholder", variant, algorithm, run_over)
             if progress:
                 progress(f"bead card {variant}: penetration {d:.4g} mm, mu = {mu:g}")

@@ -14,7 +14,7 @@
   to Fn and caps the restraining force at Ft, so only the full-depth values enter; the comments say which
   depth and friction they assume.
 - CSV (:func:`csv_table`): every column of the card with its unit in the header, after ``#`` lines of
-  metadata (bead, sheet, friction, units).
+  metadata (bead, sheet, friction, units); JSON (:func:`card_summary`): every field, derivatives included.
 
 Units: the card's, mm and N per mm of bead length (N/mm); a deck in other units scales them (LS-DYNA's
 SFA/SFO, DFSCL).
@@ -23,12 +23,14 @@ SFA/SFO, DFSCL).
 from __future__ import annotations
 
 import io
+import json
 
 import numpy as np
 
+from ..io.output import json_ready
 from .bead import BeadCard
 
-__all__ = ["lsdyna_deck", "radioss_interface", "csv_table", "CSV_COLUMNS", "write_card"]
+__all__ = ["lsdyna_deck", "radioss_interface", "csv_table", "CSV_COLUMNS", "card_summary", "write_card"]
 
 # (header, attribute or function of the card) of the CSV, in order.
 CSV_COLUMNS = (
@@ -127,16 +129,23 @@ def csv_table(card: BeadCard) -> str:
     return buf.getvalue()
 
 
-def write_card(card: BeadCard, out_dir: str, *, total: bool = False) -> dict:
-    """Write ``bead_card.k`` (LS-DYNA), ``bead_card.rad`` (OpenRadioss), ``bead_card.csv`` and
-    ``bead_card.png`` into ``out_dir``; returns {format: path}."""
+def card_summary(card: BeadCard) -> dict:
+    """Every field of the card and its friction part, JSON-ready (``bead_card.json``)."""
+    return json_ready(dict(card.__dict__, friction_force=card.friction_force))
+
+
+def write_card(card: BeadCard, out_dir: str, *, total: bool = False, extra: dict | None = None) -> dict:
+    """Write ``bead_card.k`` (LS-DYNA), ``bead_card.rad`` (OpenRadioss), ``bead_card.csv``,
+    ``bead_card.json`` (:func:`card_summary`, with ``extra`` entries) and ``bead_card.png`` into
+    ``out_dir``; returns {format: path}."""
     import os
 
     os.makedirs(out_dir, exist_ok=True)
-    paths = {name: os.path.join(out_dir, f"bead_card.{ext}")
-             for name, ext in (("lsdyna", "k"), ("radioss", "rad"), ("csv", "csv"), ("figure", "png"))}
+    paths = {name: os.path.join(out_dir, f"bead_card.{ext}") for name, ext in
+             (("lsdyna", "k"), ("radioss", "rad"), ("csv", "csv"), ("json", "json"), ("figure", "png"))}
+    summary = json.dumps({**card_summary(card), **json_ready(extra or {})}, indent=1)
     for name, text in (("lsdyna", lsdyna_deck(card, total=total)), ("radioss", radioss_interface(card)),
-                       ("csv", csv_table(card))):
+                       ("csv", csv_table(card)), ("json", summary)):
         with open(paths[name], "w") as fh:
             fh.write(text)
     _figure(card, paths["figure"])
