@@ -86,11 +86,11 @@ from ..numerics.newton import (
     newton_loop,
     newton_result,
 )
-from .exact_active_set import active_set_step, contact_frames, semismooth_merit
+from .exact_active_set import active_set_step, contact_frames, frames_at_forces, semismooth_merit
 from .exact_condensed import contact_newton_step
 from .exact_derivative import exact_step_tangents
 from .exact_iterate import Iterate, iterate_residual, linearize_iterate, pair_status
-from .rigid import pair_mu
+from .rigid import pair_friction, pair_mu
 
 __all__ = ["ExactContactProblem", "exact_solve"]
 
@@ -145,7 +145,7 @@ class ExactContactProblem(AbstractNewtonProblem):
         pred = trial.data
         it = linearize_iterate(x, args)
         R, _ = iterate_residual(x, it, pred.p, args)
-        status = pair_status(pred.p, pair_mu(args.contact.tools, args.contact.mu))
+        status = pair_status(pred.p, pair_friction(args.contact.tools, args.contact.mu, args.mesh.nodes, pred.p[:, 0]))
         penetrating = it.valid & (it.gap < -10.0 * self.options.du_atol)
         finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in (R, it.f_int, it.K.diag, it.gap)]))
         merit = semismooth_merit(x, it, args, pred.p, pred.frames) if self.searched else None
@@ -174,6 +174,7 @@ class ExactContactProblem(AbstractNewtonProblem):
             return Trial(dx, jnp.array(1.0), jnp.array(jnp.inf), solved, stats, Prediction(p_new, in_band, None))
         # The frames (nodes, constants, kappa rows) serve the direction and the merit alike.
         frames = contact_frames(it, args)
+        frames = (frames_at_forces(frames[0], args, hint), frames[1])
         dx, p_new, in_band, stats, solved = active_set_step(it, args, x, p, self.law, hint, frames=frames)
         merit = semismooth_merit(x, it, args, hint, frames[0])
         return Trial(dx, jnp.array(1.0), merit, solved, stats, Prediction(p_new, in_band, frames[0]))

@@ -30,11 +30,11 @@ from .exact_iterate import (
     proximity_band,
     tangents,
 )
-from .rigid import pair_mu, pair_nodes
+from .rigid import has_pressure_law, pair_friction, pair_mu, pair_nodes
 from .system import _constrain_rows
 
-__all__ = ["active_set_step", "contact_frames", "semismooth_merit", "Frames", "PieceData", "piece_data", "classify",
-           "piece_system"]
+__all__ = ["active_set_step", "contact_frames", "frames_at_forces", "semismooth_merit", "Frames", "PieceData",
+           "piece_data", "classify", "piece_system"]
 
 
 # ---- semismooth Newton inside the global Newton loop (solver "ssn") --------------------------------
@@ -100,6 +100,16 @@ def contact_frames(it: Iterate, args) -> tuple[Frames, BlockTridiag]:
     mu = jnp.where(valid, pair_mu(c.tools, c.mu)[pairs], 0.0)
     return Frames(nodes, pairs, valid, normal, rotation, mu, 0.01 * jnp.abs(K_loc[:, 0, 0]),
                    0.01 * jnp.abs(K_loc[:, 1, 1]), kappa), K
+
+
+def frames_at_forces(fr: Frames, args, p) -> Frames:
+    """``fr`` with the friction coefficients a tool's pressure law gives at the pair forces ``p`` (m, 2)
+    (:mod:`jaxfric.contact.friction`; Coulomb tools keep theirs)."""
+    c = args.contact
+    if not has_pressure_law(c.tools):   # static
+        return fr
+    mu = pair_friction(c.tools, c.mu, args.mesh.nodes, p[:, 0])
+    return fr._replace(mu=jnp.where(fr.valid, mu[fr.pairs], 0.0))
 
 
 def equilibrium_force(it: Iterate, args, x, hint, kappa) -> jax.Array:
@@ -170,6 +180,8 @@ def piece_data(it: Iterate, args, x, hint, frames=None) -> PieceData:
     c = args.contact
     n = args.mesh.n_dofs
     fr, K = contact_frames(it, args) if frames is None else frames
+    # A pressure law's coefficients are those of the forces the last direction predicted (``hint``).
+    fr = frames_at_forces(fr, args, hint)
     nodes, pairs, valid = fr.nodes, fr.pairs, fr.valid
     f_tilde = equilibrium_force(it, args, x, hint, fr.kappa)
     f_nodes = f_tilde.reshape(-1, 2)

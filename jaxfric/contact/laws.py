@@ -56,7 +56,8 @@ def augmented_pair(gap, slip, lambda_n, lambda_t, mu, eps_n, eps_t, valid=True, 
         gap: () normal gap g_N (mm), negative when penetrating.
         slip: () tangential slip s since the multipliers' reference configuration (mm), along t.
         lambda_n, lambda_t: () frozen multipliers (N/mm).
-        mu: () friction coefficient.
+        mu: () friction coefficient, or a function of the pair's normal force R_N (a pressure-dependent
+            law, :mod:`jaxfric.contact.friction`), evaluated at the R_N this law gives.
         eps_n, eps_t: () normal and tangential penalties (N/mm per mm).
         valid: () bool, False when the node projects on no tool primitive (the pair is open).
         smoothing: None for the exact law, or a force scale s > 0 (N/mm) for the smoothed one.
@@ -67,7 +68,7 @@ def augmented_pair(gap, slip, lambda_n, lambda_t, mu, eps_n, eps_t, valid=True, 
     closed = valid & (rn_trial >= 0.0)
     rn = jnp.where(closed, rn_trial, 0.0)
     rt_trial = jnp.where(closed, lambda_t - eps_t * slip, 0.0)
-    limit = mu * rn
+    limit = _coefficient(mu, rn) * rn
     stick = jnp.abs(rt_trial) < limit
     rt = jnp.where(stick, rt_trial, limit * jnp.sign(rt_trial))
     status = jnp.where(closed, jnp.where(stick, STICK, SLIP), OPEN).astype(jnp.int8)
@@ -81,6 +82,12 @@ def _smoothed_pair(gap, slip, lambda_n, lambda_t, mu, eps_n, eps_t, valid, s) ->
     rn_trial = jnp.where(valid, lambda_n - eps_n * gap, 0.0)
     rn = jnp.where(valid, s * jax.nn.softplus(rn_trial / s), 0.0)
     rt_trial = jnp.where(valid, lambda_t - eps_t * slip, 0.0)
+    mu = _coefficient(mu, rn)
     limit = mu * rn
     rt = rt_trial - s * jax.nn.softplus((rt_trial - limit) / s) + s * jax.nn.softplus((-rt_trial - limit) / s)
     return PairForce(rn, rt, contact_status(rn, rt, mu))
+
+
+def _coefficient(mu, rn):
+    """The friction coefficient at normal force ``rn``: ``mu`` itself, or ``mu(rn)`` for a pressure law."""
+    return mu(rn) if callable(mu) else mu

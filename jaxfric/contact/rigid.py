@@ -37,12 +37,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..numerics._checks import check_nonnegative, is_concrete
+from .friction import FrictionLaw, tributary_lengths
 from .laws import augmented_pair
 from .status import OPEN
 from .tools import Tool, project
 
 __all__ = ["Move", "Force", "RigidTool", "ContactState", "ContactStep", "PairResult", "initial_contact_state",
-           "evaluate_pairs", "tool_forces", "split_pairs", "pair_nodes", "pair_mu", "max_penetration"]
+           "evaluate_pairs", "tool_forces", "split_pairs", "pair_nodes", "pair_mu", "pair_friction",
+           "has_pressure_law", "max_penetration"]
 
 
 class Move(eqx.Module):
@@ -92,6 +94,8 @@ class RigidTool(eqx.Module):
             given, False only for a concrete mu of 0 in every phase (a traced mu keeps the term). A tool
             declared frictional with mu = 0 builds the same program as with any other mu, so a
             derivative or a fit can start from mu = 0.
+        friction: None (Coulomb: mu) or a :class:`~jaxfric.contact.friction.FrictionLaw` that makes mu
+            the coefficient at zero pressure of a pressure-dependent law (needs a frictional tool).
     """
 
     name: str = eqx.field(static=True)
@@ -101,8 +105,10 @@ class RigidTool(eqx.Module):
     controls: tuple
     mu: jax.Array
     frictional: bool = eqx.field(static=True)
+    friction: FrictionLaw | None = None
 
-    def __init__(self, name, geometry: Tool, drive, candidates, controls, mu, frictional: bool | None = None):
+    def __init__(self, name, geometry: Tool, drive, candidates, controls, mu, frictional: bool | None = None,
+                 friction: FrictionLaw | None = None):
         self.name = str(name)
         self.geometry = geometry
         self.drive = jnp.asarray(drive, jnp.float64)
@@ -118,6 +124,7 @@ class RigidTool(eqx.Module):
         self.frictional = frictional
         mu = jnp.asarray(mu, jnp.float64)
         self.mu = jnp.broadcast_to(mu, (len(self.controls),)) if mu.ndim == 0 else mu
+        self.friction = friction
 
     def __check_init__(self):
         if self.drive.shape != (2,):
@@ -132,6 +139,12 @@ class RigidTool(eqx.Module):
             raise ValueError(f"tool {self.name!r}: field 'mu' must be a scalar or one value per phase")
         if is_concrete(self.mu) and not np.all(np.isfinite(self.mu) & (np.asarray(self.mu) >= 0)):
             raise ValueError(f"tool {self.name!r}: field 'mu' must be finite and >= 0, got {self.mu}")
+        if self.friction is not None and not isinstance(self.friction, FrictionLaw):
+            raise ValueError(f"tool {self.name!r}: field 'friction' must be None or a FrictionLaw, got "
+                             f"{type(self.friction).__name__}")
+        if self.friction is not None and not self.frictional:
+            raise ValueError(f"tool {self.name!r}: field 'friction' (a pressure-dependent law) on a tool declared "
+                             f"frictionless (frictional=False)")
         if not self.frictional and is_concrete(self.mu) and np.any(np.asarray(self.mu) > 0):
             raise ValueError(f"tool {self.name!r}: field 'mu' = {self.mu} on a tool declared frictionless "
                              f"(frictional=False); declare it frictional or give mu = 0")
@@ -199,14 +212,15 @@ class PairResult(NamedTuple):
     slip: jax.Array       # slip since the reference configuration (mm)
 
 
-def _pair(tool: RigidTool, law, frictional: bool, X, u, q, mu, lam_n, lam_t, u_ref, q_ref):
+def _pair(tool: RigidTool, law, frictional: bool, X, u, q, mu, lam_n, lam_t, u_ref, q_ref, length=None):
     # Relative motion of node and tool since the reference configuration; the slip is the change of zeta
     # it causes, computed from the increment itself (round-off, see jaxfric.contact.tools.project).
     increment = (u - u_ref) - (q - q_ref) * tool.drive
     proj = project(tool.geometry, X, q_ref * tool.drive, displacement=u_ref, increment=increment)
     smoothing = law.smoothing if law.smooth else None
     if frictional:
-        force = augmented_pair(proj.gap, proj.zeta_increment, lam_n, lam_t, mu, law.eps_n, law.eps_t,
+        coefficient = mu if tool.friction is None else (lambda rn: tool.friction.coefficient(mu, rn / length))
+        force = augmented_pair(proj.gap, proj.zeta_increment, lam_n, lam_t, coefficient, law.eps_n, law.eps_t,
                                proj.valid, smoothing)
     else:  # static: a frictionless tool builds no tangential term at all
         force = augmented_pair(proj.gap, 0.0, lam_n, 0.0, 0.0, law.eps_n, 0.0, proj.valid, smoothing)
@@ -229,13 +243,14 @@ def evaluate_pairs(step: ContactStep, nodes_ref: jax.Array, u: jax.Array, q: jax
     for k, tool in enumerate(step.tools):  # static loop: tools differ in structure
         idx = np.asarray(tool.candidates)
 
-        def one(u_a, qk, X_a, lam_n, lam_t, u_ref, tool=tool, k=k):
+        def one(u_a, qk, X_a, lam_n, lam_t, u_ref, length, tool=tool, k=k):
             f, aux = _pair(tool, step.law, tool.frictional, X_a, u_a, qk, step.mu[k], lam_n, lam_t, u_ref,
-                           step.q_ref[k])
+                           step.q_ref[k], length)
             return f, (f, aux)
 
-        args = (u[idx], q[k], nodes_ref[idx], step.lam_n[k], step.lam_t[k], step.u_ref[k])
-        axes = (0, None, 0, 0, 0, 0)
+        lengths = tributary_lengths(nodes_ref[idx]) if tool.friction is not None else jnp.ones(len(idx))
+        args = (u[idx], q[k], nodes_ref[idx], step.lam_n[k], step.lam_t[k], step.u_ref[k], lengths)
+        axes = (0, None, 0, 0, 0, 0, 0)
         if jacobian:  # d f / d x_node = d f / d u_node
             (dfdx, dfdq), (f, aux) = jax.vmap(jax.jacfwd(one, argnums=(0, 1), has_aux=True), axes)(*args)
         else:
@@ -276,6 +291,30 @@ def pair_nodes(tools) -> np.ndarray:
 def pair_mu(tools, mu) -> jax.Array:
     """(m,) friction coefficient of every candidate pair, from ``mu`` per tool (tool after tool)."""
     return jnp.concatenate([jnp.full(len(t.candidates), mu[k]) for k, t in enumerate(tools)])
+
+
+def has_pressure_law(tools) -> bool:
+    """Static: whether any tool carries a pressure-dependent friction law."""
+    return any(t.friction is not None for t in tools)
+
+
+def pair_friction(tools, mu, nodes_ref, rn) -> jax.Array:
+    """(m,) friction coefficient of every candidate pair at normal forces ``rn`` (m,) (N/mm): ``mu`` per
+    tool, through a tool's pressure law where it has one (:mod:`jaxfric.contact.friction`);
+    ``nodes_ref``: the mesh's reference node positions."""
+    base = pair_mu(tools, mu)
+    if not has_pressure_law(tools):
+        return base
+    parts, start = [], 0
+    for k, t in enumerate(tools):   # static loop
+        n_k = len(t.candidates)
+        b = base[start:start + n_k]
+        if t.friction is not None:
+            lengths = tributary_lengths(nodes_ref[np.asarray(t.candidates)])
+            b = t.friction.coefficient(b, jnp.maximum(rn[start:start + n_k], 0.0) / lengths)
+        parts.append(b)
+        start += n_k
+    return jnp.concatenate(parts)
 
 
 def max_penetration(status, gap) -> jax.Array:

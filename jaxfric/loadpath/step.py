@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..contact.formulations import newton_step
-from ..contact.rigid import ContactState, ContactStep, Force, Move, pair_mu, split_pairs
+from ..contact.rigid import ContactState, ContactStep, Force, Move, pair_friction, split_pairs
 from ..contact.status import contact_status
 from ..contact.system import StepArgs, linearize
 from ..fem.assembly import mesh_geometry
@@ -181,7 +181,8 @@ def step_state(model: StripModel, args, sol, t_target, phase, q_start, f_start) 
         kept = {k: v for k, v in c_out.items() if k != "slip"}  # slip is a per-attempt measure only
         # The stored status follows the spec's force thresholds (section 0) for every law, so that the
         # counts of closed and slipping pairs agree with the forces written out.
-        kept["status"] = contact_status(kept["rn"], kept["rt"], pair_mu(model.tools, args.contact.mu))
+        kept["status"] = contact_status(kept["rn"], kept["rt"],
+                                        pair_friction(model.tools, args.contact.mu, model.mesh.nodes, kept["rn"]))
         new_contact = ContactState(q_start=q_start, f_start=f_start, **kept)
     return SimState(u=sol.x[: model.mesh.n_dofs].reshape(-1, 2), material=states, f_int=f_int,
                     time=t_target, phase=phase, contact=new_contact)

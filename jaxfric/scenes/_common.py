@@ -15,7 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..contact.formulations import ALGORITHMS, STIFF_PENALTY_RATIO
-from ..contact.rigid import max_penetration, split_pairs
+from ..contact.friction import PressurePolynomial
+from ..contact.rigid import max_penetration, pair_friction, split_pairs
 from ..contact.status import SLIP
 from ..contact.tools import GAP_OPEN, Arc, Segment, Tool
 from ..fem.kinematic import KinematicJ2Material
@@ -60,6 +61,12 @@ ELEMENT_DOC = ("element formulation (jaxfric.fem.element): 'fbar' F-bar Q4, 'ans
 THICKNESS_POINTS_DOC = ("Gauss points through each element's thickness (2: the 2 x 2 rule; more integrate the "
                         "stress through the thickness more finely at the cost of more material evaluations; "
                         "jaxfric.fem.element.gauss_rule) [chosen]")
+FRICTION_LAWS = ("coulomb", "pressure_polynomial")
+FRICTION_LAW_DOC = ("friction law of the frictional tools: coulomb (mu), or pressure_polynomial: mu(p) = max(mu + "
+                    "mu_p p + mu_pp p^2, 0) with p the nodal contact pressure in MPa, in phases where mu > 0 "
+                    "(jaxfric.contact.friction) [chosen]")
+MU_P_DOC = "linear pressure coefficient of friction_law=pressure_polynomial (OpenRadioss C1) [chosen]"
+MU_PP_DOC = "quadratic pressure coefficient of friction_law=pressure_polynomial (OpenRadioss C4) [chosen]"
 C_KIN_DOC = ("moduli C_i of the Armstrong-Frederick back stresses, comma-separated, one per back stress "
              "(jaxfric.fem.kinematic); empty: isotropic hardening only [paper]")
 GAMMA_KIN_DOC = ("recall rates gamma_i of the back stresses, one per C_i (0: linear Prager rule); the isotropic "
@@ -128,6 +135,14 @@ def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=No
         for v in getattr(config, name):
             if not (_number(name, v) >= 0 or name == "Q_voce"):
                 raise _bad(name, getattr(config, name), "every entry must be >= 0")
+    if config.friction_law not in FRICTION_LAWS:
+        raise _bad("friction_law", config.friction_law, f"choose one of {', '.join(map(repr, FRICTION_LAWS))}")
+    for name in ("mu_p", "mu_pp"):
+        v = _number(name, getattr(config, name))
+        if not np.isfinite(v):
+            raise _bad(name, v, "it must be finite")
+        if v != 0.0 and config.friction_law == "coulomb":
+            raise _bad(name, v, "a pressure term needs --set friction_law=pressure_polynomial")
     if config.element not in ELEMENTS:
         raise _bad("element", config.element, f"choose one of {', '.join(map(repr, ELEMENTS))}")
     if not -1.0 < _number("nu", config.nu) < 0.5:
@@ -269,8 +284,8 @@ class ContactSnapshot(eqx.Module):
     def __call__(self, model, state) -> dict:
         c = state.contact
         projects = c.gap < 0.5 * GAP_OPEN
-        mu = jnp.concatenate([jnp.broadcast_to(t.mu[state.phase], (len(t.candidates),))
-                              for t in model.tools])
+        # Each pair's coefficient at its force (a pressure law's; Coulomb's is the tool's mu).
+        mu = pair_friction(model.tools, [t.mu[state.phase] for t in model.tools], model.mesh.nodes, c.rn)
         drive = jnp.stack([t.drive for t in model.tools])
         return {
             "x": model.mesh.nodes + state.u,
@@ -325,6 +340,14 @@ def schedule_entry(phase: Phase, control: str, variable: str, unit: str, start: 
 def friction_table(tool_names, phase_names, mu) -> dict:
     """{tool: {phase: mu}} from a (n_tools, n_phases) table."""
     return {t: {p: float(mu[k][j]) for j, p in enumerate(phase_names)} for k, t in enumerate(tool_names)}
+
+
+def friction_law(config):
+    """The frictional tools' law: None for Coulomb (``friction_law`` = "coulomb"), else the
+    :class:`~jaxfric.contact.friction.PressurePolynomial` of ``mu_p``, ``mu_pp`` about each tool's mu."""
+    if config.friction_law == "coulomb":
+        return None
+    return PressurePolynomial(config.mu_p, config.mu_pp)
 
 
 def material(config):

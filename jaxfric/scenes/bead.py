@@ -95,6 +95,9 @@ class BeadConfig:
     gamma_kin: tuple = cm.spec_field((), "-", cm.GAMMA_KIN_DOC)
     Q_voce: tuple = cm.spec_field((), "MPa", cm.Q_VOCE_DOC)
     b_voce: tuple = cm.spec_field((), "-", cm.B_VOCE_DOC)
+    friction_law: str = cm.spec_field("coulomb", "-", cm.FRICTION_LAW_DOC)
+    mu_p: float = cm.spec_field(0.0, "1/MPa", cm.MU_P_DOC)
+    mu_pp: float = cm.spec_field(0.0, "1/MPa^2", cm.MU_PP_DOC)
     eps_n: float = cm.spec_field(1e5, "N/mm/mm", "normal penalty [chosen]")
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [chosen]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
@@ -208,10 +211,14 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
     mu_c = config.mu_clamp if config.mu_clamp > 0 else 0.0
     mu_r = config.mu_roller if config.mu_roller > 0 else 0.0
     top, bottom = cm.movable(mesh, mesh.top, phases), cm.movable(mesh, mesh.bottom, phases)  # not the jaw's nodes
+    law = cm.friction_law(config)
     tools = (RigidTool("die_up", upper, (0.0, -1.0), top,
-                       (Force(P, start=0.0), Force(P, start=P), Force(P, start=P)), mu_c, frictional=mu_c > 0),
-             RigidTool("die_lo", lower, (0.0, 1.0), bottom, fixed, mu_c, frictional=mu_c > 0),
-             RigidTool("roller", roller, (0.0, 1.0), bottom, fixed, mu_r, frictional=mu_r > 0))
+                       (Force(P, start=0.0), Force(P, start=P), Force(P, start=P)), mu_c, frictional=mu_c > 0,
+                       friction=law if mu_c > 0 else None),
+             RigidTool("die_lo", lower, (0.0, 1.0), bottom, fixed, mu_c, frictional=mu_c > 0,
+                       friction=law if mu_c > 0 else None),
+             RigidTool("roller", roller, (0.0, 1.0), bottom, fixed, mu_r, frictional=mu_r > 0,
+                       friction=law if mu_r > 0 else None))
 
     eps_t = cm.resolve_eps_t(config, max(config.mu_clamp, config.mu_roller))
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,

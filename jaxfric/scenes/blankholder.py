@@ -149,6 +149,9 @@ class BlankholderConfig:
     gamma_kin: tuple = cm.spec_field((), "-", cm.GAMMA_KIN_DOC)
     Q_voce: tuple = cm.spec_field((), "MPa", cm.Q_VOCE_DOC)
     b_voce: tuple = cm.spec_field((), "-", cm.B_VOCE_DOC)
+    friction_law: str = cm.spec_field("coulomb", "-", cm.FRICTION_LAW_DOC)
+    mu_p: float = cm.spec_field(0.0, "1/MPa", cm.MU_P_DOC)
+    mu_pp: float = cm.spec_field(0.0, "1/MPa^2", cm.MU_PP_DOC)
     eps_n: float = cm.spec_field(1e5, "N/mm/mm", "normal penalty [chosen]")
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [chosen]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
@@ -318,10 +321,11 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
     fixed = (Move(-config.clearance, -config.clearance), Move(0.0, 0.0), Move(0.0, 0.0))
     draw = Force(config.F_clamp, start=config.F_clamp) if config.lock_control == "force" else Move(0.0, 0.0)
     lock = Move(0.0, 0.0) if depth else Force(config.F_clamp)  # 'depth': held at the closure, no lock force
+    law = cm.friction_law(config) if mu > 0 else None
     tools = (RigidTool("upper", _upper_die(config, x_g, groove["alpha"]), (0.0, -1.0), mesh.top, fixed, mu,
-                       frictional=mu > 0),
+                       frictional=mu > 0, friction=law),
              RigidTool("lower", _lower_tool(config, x_far), (0.0, 1.0), mesh.bottom,
-                       (Move(0.0, stroke), lock, draw), mu, frictional=mu > 0))
+                       (Move(0.0, stroke), lock, draw), mu, frictional=mu > 0, friction=law))
 
     eps_t = cm.resolve_eps_t(config, config.mu)
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,

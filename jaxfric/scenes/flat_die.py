@@ -70,6 +70,9 @@ class FlatDieConfig:
     gamma_kin: tuple = cm.spec_field((), "-", cm.GAMMA_KIN_DOC)
     Q_voce: tuple = cm.spec_field((), "MPa", cm.Q_VOCE_DOC)
     b_voce: tuple = cm.spec_field((), "-", cm.B_VOCE_DOC)
+    friction_law: str = cm.spec_field("coulomb", "-", cm.FRICTION_LAW_DOC)
+    mu_p: float = cm.spec_field(0.0, "1/MPa", cm.MU_P_DOC)
+    mu_pp: float = cm.spec_field(0.0, "1/MPa^2", cm.MU_PP_DOC)
     eps_n: float = cm.spec_field(1e9, "N/mm/mm", "normal penalty [paper]")
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n = 1.5e8 [paper]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
@@ -156,7 +159,7 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
     draw = Force(config.F_clamp, start=config.F_clamp) if config.draw_control == "force" else Move(0.0, 0.0)
     mu = (0.0, config.mu) if config.mu > 0 else 0.0
     tool = RigidTool("die", die, (0.0, -1.0), mesh.top, (Force(config.F_clamp, start=0.0), draw), mu,
-                     frictional=config.mu > 0)
+                     frictional=config.mu > 0, friction=cm.friction_law(config) if config.mu > 0 else None)
 
     eps_t = cm.resolve_eps_t(config, config.mu)
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,

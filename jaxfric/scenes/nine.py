@@ -124,6 +124,9 @@ class NineConfig:
     gamma_kin: tuple = cm.spec_field((), "-", cm.GAMMA_KIN_DOC)
     Q_voce: tuple = cm.spec_field((), "MPa", cm.Q_VOCE_DOC)
     b_voce: tuple = cm.spec_field((), "-", cm.B_VOCE_DOC)
+    friction_law: str = cm.spec_field("coulomb", "-", cm.FRICTION_LAW_DOC)
+    mu_p: float = cm.spec_field(0.0, "1/MPa", cm.MU_P_DOC)
+    mu_pp: float = cm.spec_field(0.0, "1/MPa^2", cm.MU_PP_DOC)
     eps_n: float = cm.spec_field(1e5, "N/mm/mm", "normal penalty [paper]")
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [paper]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
@@ -259,7 +262,7 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
         controls = (Move(0.0, stroke), Move(0.0, 0.0))
         # A tool of mu = 0 is declared frictionless: no friction term is built for it.
         tools.append(RigidTool(name, geometry, drive, candidates, controls, mu[name] if mu[name] > 0 else 0.0,
-                               frictional=mu[name] > 0))
+                               frictional=mu[name] > 0, friction=cm.friction_law(config) if mu[name] > 0 else None))
     if channel(config):
         tools += _guide(mesh, config)
     tool_names = tuple(t.name for t in tools)
