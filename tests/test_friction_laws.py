@@ -1,0 +1,131 @@
+"""Pressure-dependent friction (jaxfric.contact.friction): the law, the pressure of a pair, the pair
+force and its tangent, every formulation on the flat die, the parameters' derivatives, and the errors."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxfric import scenes
+from jaxfric.contact.friction import PressurePolynomial, tributary_lengths
+from jaxfric.contact.laws import augmented_pair
+from jaxfric.identification.params import parameterize, path_function
+from jaxfric.loadpath.run import run as run_model
+
+LAW = {"friction_law": "pressure_polynomial", "mu_p": -0.004, "mu_pp": 2e-5}
+SMALL = {"mesh": "24x2"}
+
+
+def run(scene):
+    return run_model(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, progress=False)
+
+
+def test_polynomial_values_clip_and_frictionless_phase():
+    law = PressurePolynomial(-0.01, 1e-4)
+    p = jnp.array([0.0, 5.0, 50.0])
+    np.testing.assert_allclose(law.coefficient(0.15, p), [0.15, 0.15 - 0.05 + 0.0025, 0.0], atol=1e-15)
+    # A phase without friction stays without it, whatever the pressure terms.
+    assert float(law.coefficient(0.0, 3.0)) == 0.0
+    assert PressurePolynomial(0.002).describe() == {"law": "pressure_polynomial", "c_p": 0.002, "c_pp": 0.0}
+
+
+def test_tributary_lengths_of_a_graded_row():
+    x = np.array([0.0, 1.0, 3.0, 6.0])
+    X = np.stack([x, np.zeros_like(x)], -1)
+    np.testing.assert_allclose(tributary_lengths(X), [0.5, 1.5, 2.5, 1.5])
+    assert float(jnp.sum(tributary_lengths(X))) == 6.0
+
+
+def test_pair_law_slips_at_the_pressure_coefficient_and_its_tangent_is_the_derivative():
+    law, length, mu0 = PressurePolynomial(-0.004, 2e-5), 0.5, 0.15
+    eps_n, eps_t = 1e5, 1.5e4
+
+    def force(gap, slip):
+        out = augmented_pair(gap, slip, 0.0, 0.0, lambda rn: law.coefficient(mu0, rn / length), eps_n, eps_t)
+        return jnp.stack([out.normal, out.tangential])
+
+    gap, slip = -2e-4, -1e-3                     # R_N = 20 N/mm, p = 40 MPa; slipping
+    f = force(gap, slip)
+    p = float(f[0]) / length
+    assert float(f[1]) == pytest.approx((mu0 - 0.004 * p + 2e-5 * p * p) * float(f[0]), rel=1e-14)
+    jac = jax.jacfwd(lambda z: force(z[0], z[1]))(jnp.array([gap, slip]))
+    h = 1e-9
+    fd = np.stack([(force(gap + h, slip) - force(gap - h, slip)) / (2 * h),
+                   (force(gap, slip + h) - force(gap, slip - h)) / (2 * h)], -1)
+    np.testing.assert_allclose(jac, fd, rtol=1e-6, atol=1e-6)
+    # d R_T / d gap carries d mu / dp: it differs from Coulomb's mu0 d R_N / d gap.
+    assert abs(float(jac[1, 0]) - np.sign(float(f[1])) * mu0 * float(jac[0, 0])) > 1e2
+
+
+@pytest.fixture(scope="module")
+def flat_die_runs():
+    out = {}
+    for algorithm in ("penalty", "auglag", "lcp_ssn", "lcp_lemke"):
+        out[algorithm] = run(scenes.make("flat_die", None, algorithm, {**SMALL, **LAW}))
+    out["coulomb"] = run(scenes.make("flat_die", None, "lcp_ssn", SMALL))
+    return out
+
+
+def _steady(res):
+    return float(res.history["drawing_force"][-1])
+
+
+def test_every_formulation_meets_the_law_at_its_forces(flat_die_runs):
+    law = PressurePolynomial(LAW["mu_p"], LAW["mu_pp"])
+    ref = _steady(flat_die_runs["lcp_ssn"])
+    for algorithm in ("penalty", "auglag", "lcp_ssn", "lcp_lemke"):
+        res = flat_die_runs[algorithm]
+        assert res.converged, (algorithm, res.message)
+        # The exact algorithms agree to the Newton tolerance, the regularised ones to their penalty's effect.
+        assert _steady(res) == pytest.approx(ref, rel=1e-8 if algorithm.startswith("lcp") else 1e-3), algorithm
+        final = res.final.contact
+        X = np.asarray(res.model.mesh.nodes)[np.asarray(res.model.tools[0].candidates)]
+        rn, rt = np.asarray(final.rn), np.asarray(final.rt)
+        mu = np.asarray(law.coefficient(0.15, rn / np.asarray(tributary_lengths(X))))
+        slip = np.asarray(final.status) == 2
+        assert slip.sum() > 10
+        np.testing.assert_allclose(np.abs(rt[slip]), mu[slip] * rn[slip], rtol=1e-7, atol=1e-9, err_msg=algorithm)
+    # The pressure terms are felt: the decreasing law draws with less force than Coulomb's mu0.
+    assert _steady(flat_die_runs["coulomb"]) - ref > 0.05 * _steady(flat_die_runs["coulomb"])
+
+
+def test_zero_pressure_terms_give_the_coulomb_run(flat_die_runs):
+    res = run(scenes.make("flat_die", None, "lcp_ssn", {**SMALL, "friction_law": "pressure_polynomial"}))
+    np.testing.assert_allclose(res.history["drawing_force"], flat_die_runs["coulomb"].history["drawing_force"],
+                               rtol=1e-12, atol=1e-12)
+
+
+def test_derivatives_of_the_law_parameters_match_central_differences():
+    par = parameterize("flat_die", ["mu", "mu_p"], algorithm="penalty",
+                       overrides={**SMALL, **LAW, "U_draw": 0.01})
+    f = path_function(par)
+
+    def force(p):
+        hist, _ = f(p)
+        return hist.observed["drawing_force"][hist.n_rows - 1]
+
+    p0 = jnp.asarray(par.p0)
+    grad = np.asarray(jax.jacfwd(force)(p0))
+    for i, h in enumerate((1e-6, 1e-7)):
+        e = np.zeros(2)
+        e[i] = h
+        fd = (float(force(p0 + e)) - float(force(p0 - e))) / (2 * h)
+        assert grad[i] == pytest.approx(fd, rel=1e-5), par.names[i]
+    assert grad[0] > 0.0 and grad[1] > 0.0    # either term raised raises the coefficient and the force
+
+
+def test_exact_contact_refuses_derivatives_with_a_pressure_law():
+    par = parameterize("flat_die", ["mu"], algorithm="lcp_ssn", overrides={**SMALL, **LAW, "U_draw": 0.005})
+    f = path_function(par)
+    with pytest.raises(NotImplementedError, match="pressure-dependent friction law"):
+        jax.jvp(lambda p: f(p)[0].observed["drawing_force"], (jnp.asarray(par.p0),), (jnp.ones(1),))
+
+
+@pytest.mark.parametrize("overrides, field", [
+    ({"mu_p": 0.01}, "mu_p"),
+    ({"friction_law": "pressure_polynomial", "mu_pp": float("nan")}, "mu_pp"),
+    ({"friction_law": "stribeck"}, "friction_law"),
+])
+def test_bad_friction_fields_name_the_field(overrides, field):
+    with pytest.raises(ValueError, match=field):
+        scenes.make("flat_die", None, "penalty", {**SMALL, **overrides})
