@@ -1,5 +1,6 @@
-"""Pressure-dependent friction (jaxfric.contact.friction): the law, the pressure of a pair, the pair
-force and its tangent, every formulation on the flat die, the parameters' derivatives, and the errors."""
+"""Friction laws of pressure and speed (jaxfric.contact.friction): the laws, the pressure of a pair, the
+pair force and its tangent, every formulation on the flat die, the speed's limits, the parameters'
+derivatives, and the errors."""
 
 import jax
 import jax.numpy as jnp
@@ -7,12 +8,12 @@ import numpy as np
 import pytest
 
 from jaxfric import scenes
-from jaxfric.contact.friction import PressurePolynomial, tributary_lengths
+from jaxfric.contact.friction import Polynomial, VelocityDecay, sliding_speed, tributary_lengths
 from jaxfric.contact.laws import augmented_pair
 from jaxfric.identification.params import parameterize, path_function
 from jaxfric.loadpath.run import run as run_model
 
-LAW = {"friction_law": "pressure_polynomial", "mu_p": -0.004, "mu_pp": 2e-5}
+LAW = {"friction_law": "polynomial", "mu_p": -0.004, "mu_pp": 2e-5}
 SMALL = {"mesh": "24x2"}
 
 
@@ -20,13 +21,19 @@ def run(scene):
     return run_model(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe, progress=False)
 
 
-def test_polynomial_values_clip_and_frictionless_phase():
-    law = PressurePolynomial(-0.01, 1e-4)
-    p = jnp.array([0.0, 5.0, 50.0])
-    np.testing.assert_allclose(law.coefficient(0.15, p), [0.15, 0.15 - 0.05 + 0.0025, 0.0], atol=1e-15)
-    # A phase without friction stays without it, whatever the pressure terms.
-    assert float(law.coefficient(0.0, 3.0)) == 0.0
-    assert PressurePolynomial(0.002).describe() == {"law": "pressure_polynomial", "c_p": 0.002, "c_pp": 0.0}
+def test_law_values_clip_and_frictionless_phase():
+    law = Polynomial(c_p=-0.01, c_v=0.002, c_pv=1e-4, c_pp=1e-4, c_vv=-1e-5)
+    p, v = jnp.array([0.0, 5.0, 50.0]), jnp.array([0.0, 10.0, 10.0])
+    expected = [0.15, 0.15 - 0.05 + 0.02 + 0.005 + 0.0025 - 0.001, 0.0]
+    np.testing.assert_allclose(law.coefficient(0.15, p, v), expected, atol=1e-15)
+    # A phase without friction stays without it, whatever the law's terms.
+    assert float(law.coefficient(0.0, 3.0, 1.0)) == 0.0
+    assert Polynomial(0.002).describe() == {"law": "polynomial", "c_p": 0.002, "c_v": 0.0, "c_pv": 0.0,
+                                             "c_pp": 0.0, "c_vv": 0.0}
+    decay = VelocityDecay(0.1, 0.5)
+    np.testing.assert_allclose(decay.coefficient(0.2, 7.0, jnp.array([0.0, 2.0, 1e3])),
+                               [0.2, 0.1 + 0.1 * np.exp(-1.0), 0.1], rtol=1e-14)
+    assert float(sliding_speed(-2e-4, 1e-4)) == pytest.approx(2.0) and float(sliding_speed(1e-3, 0.0)) == 0.0
 
 
 def test_tributary_lengths_of_a_graded_row():
@@ -37,11 +44,11 @@ def test_tributary_lengths_of_a_graded_row():
 
 
 def test_pair_law_slips_at_the_pressure_coefficient_and_its_tangent_is_the_derivative():
-    law, length, mu0 = PressurePolynomial(-0.004, 2e-5), 0.5, 0.15
+    law, length, mu0 = Polynomial(c_p=-0.004, c_pp=2e-5), 0.5, 0.15
     eps_n, eps_t = 1e5, 1.5e4
 
     def force(gap, slip):
-        out = augmented_pair(gap, slip, 0.0, 0.0, lambda rn: law.coefficient(mu0, rn / length), eps_n, eps_t)
+        out = augmented_pair(gap, slip, 0.0, 0.0, lambda rn: law.coefficient(mu0, rn / length, 0.0), eps_n, eps_t)
         return jnp.stack([out.normal, out.tangential])
 
     gap, slip = -2e-4, -1e-3                     # R_N = 20 N/mm, p = 40 MPa; slipping
@@ -71,7 +78,7 @@ def _steady(res):
 
 
 def test_every_formulation_meets_the_law_at_its_forces(flat_die_runs):
-    law = PressurePolynomial(LAW["mu_p"], LAW["mu_pp"])
+    law = Polynomial(c_p=LAW["mu_p"], c_pp=LAW["mu_pp"])
     ref = _steady(flat_die_runs["lcp_ssn"])
     for algorithm in ("penalty", "auglag", "lcp_ssn", "lcp_lemke"):
         res = flat_die_runs[algorithm]
@@ -81,7 +88,7 @@ def test_every_formulation_meets_the_law_at_its_forces(flat_die_runs):
         final = res.final.contact
         X = np.asarray(res.model.mesh.nodes)[np.asarray(res.model.tools[0].candidates)]
         rn, rt = np.asarray(final.rn), np.asarray(final.rt)
-        mu = np.asarray(law.coefficient(0.15, rn / np.asarray(tributary_lengths(X))))
+        mu = np.asarray(law.coefficient(0.15, rn / np.asarray(tributary_lengths(X)), 0.0))
         slip = np.asarray(final.status) == 2
         assert slip.sum() > 10
         np.testing.assert_allclose(np.abs(rt[slip]), mu[slip] * rn[slip], rtol=1e-7, atol=1e-9, err_msg=algorithm)
@@ -90,14 +97,28 @@ def test_every_formulation_meets_the_law_at_its_forces(flat_die_runs):
 
 
 def test_zero_pressure_terms_give_the_coulomb_run(flat_die_runs):
-    res = run(scenes.make("flat_die", None, "lcp_ssn", {**SMALL, "friction_law": "pressure_polynomial"}))
+    res = run(scenes.make("flat_die", None, "lcp_ssn", {**SMALL, "friction_law": "polynomial"}))
     np.testing.assert_allclose(res.history["drawing_force"], flat_die_runs["coulomb"].history["drawing_force"],
                                rtol=1e-12, atol=1e-12)
 
 
+def test_speed_limits_of_the_decay_law_are_coulomb_runs():
+    """A decay of 0 is Coulomb's mu; a decay far above 1 / v slides at mu_d (the flat die slides at about
+    draw_speed): both equal Coulomb runs of those coefficients."""
+    coulomb = {mu: _steady(run(scenes.make("flat_die", None, "lcp_ssn", {**SMALL, "mu": mu}))) for mu in (0.15, 0.09)}
+    decay = {"friction_law": "velocity_decay", "mu_d": 0.09}
+    static = _steady(run(scenes.make("flat_die", None, "lcp_ssn", {**SMALL, **decay, "decay": 0.0})))
+    fast = _steady(run(scenes.make("flat_die", None, "penalty", {**SMALL, **decay, "decay": 20.0})))
+    assert static == pytest.approx(coulomb[0.15], rel=1e-10)
+    assert fast == pytest.approx(coulomb[0.09], rel=1e-3)
+    # At a hundredth of the speed the same law has decayed less: the force lies between the two.
+    slow = _steady(run(scenes.make("flat_die", None, "penalty", {**SMALL, **decay, "decay": 20.0, "draw_speed": 0.01})))
+    assert coulomb[0.09] * 1.01 < slow < coulomb[0.15]
+
+
 def test_derivatives_of_the_law_parameters_match_central_differences():
-    par = parameterize("flat_die", ["mu", "mu_p"], algorithm="penalty",
-                       overrides={**SMALL, **LAW, "U_draw": 0.01})
+    par = parameterize("flat_die", ["mu", "mu_p", "mu_v"], algorithm="penalty",
+                       overrides={**SMALL, **LAW, "mu_v": -0.01, "U_draw": 0.01})
     f = path_function(par)
 
     def force(p):
@@ -106,24 +127,27 @@ def test_derivatives_of_the_law_parameters_match_central_differences():
 
     p0 = jnp.asarray(par.p0)
     grad = np.asarray(jax.jacfwd(force)(p0))
-    for i, h in enumerate((1e-6, 1e-7)):
-        e = np.zeros(2)
+    for i, h in enumerate((1e-6, 1e-7, 1e-6)):
+        e = np.zeros(3)
         e[i] = h
         fd = (float(force(p0 + e)) - float(force(p0 - e))) / (2 * h)
         assert grad[i] == pytest.approx(fd, rel=1e-5), par.names[i]
-    assert grad[0] > 0.0 and grad[1] > 0.0    # either term raised raises the coefficient and the force
+    assert np.all(np.abs(grad) > 1.0)    # every parameter is felt (N/mm per unit)
 
 
 def test_exact_contact_refuses_derivatives_with_a_pressure_law():
     par = parameterize("flat_die", ["mu"], algorithm="lcp_ssn", overrides={**SMALL, **LAW, "U_draw": 0.005})
     f = path_function(par)
-    with pytest.raises(NotImplementedError, match="pressure-dependent friction law"):
+    with pytest.raises(NotImplementedError, match="friction law of the pressure or speed"):
         jax.jvp(lambda p: f(p)[0].observed["drawing_force"], (jnp.asarray(par.p0),), (jnp.ones(1),))
 
 
 @pytest.mark.parametrize("overrides, field", [
     ({"mu_p": 0.01}, "mu_p"),
-    ({"friction_law": "pressure_polynomial", "mu_pp": float("nan")}, "mu_pp"),
+    ({"friction_law": "polynomial", "mu_pp": float("nan")}, "mu_pp"),
+    ({"mu_d": 0.1}, "mu_d"),
+    ({"friction_law": "velocity_decay", "decay": -1.0}, "decay"),
+    ({"friction_law": "velocity_decay", "draw_speed": 0.0}, "draw_speed"),
     ({"friction_law": "stribeck"}, "friction_law"),
 ])
 def test_bad_friction_fields_name_the_field(overrides, field):

@@ -90,7 +90,7 @@ from .exact_active_set import active_set_step, contact_frames, frames_at_forces,
 from .exact_condensed import contact_newton_step
 from .exact_derivative import exact_step_tangents
 from .exact_iterate import Iterate, iterate_residual, linearize_iterate, pair_status
-from .rigid import pair_friction, pair_mu
+from .rigid import pair_friction, pair_mu, pair_speeds
 
 __all__ = ["ExactContactProblem", "exact_solve"]
 
@@ -145,7 +145,8 @@ class ExactContactProblem(AbstractNewtonProblem):
         pred = trial.data
         it = linearize_iterate(x, args)
         R, _ = iterate_residual(x, it, pred.p, args)
-        status = pair_status(pred.p, pair_friction(args.contact.tools, args.contact.mu, args.mesh.nodes, pred.p[:, 0]))
+        c = args.contact
+        status = pair_status(pred.p, pair_friction(c.tools, c.mu, args.mesh.nodes, pred.p[:, 0], pair_speeds(c)))
         penetrating = it.valid & (it.gap < -10.0 * self.options.du_atol)
         finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in (R, it.f_int, it.K.diag, it.gap)]))
         merit = semismooth_merit(x, it, args, pred.p, pred.frames) if self.searched else None

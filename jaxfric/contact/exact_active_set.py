@@ -30,7 +30,7 @@ from .exact_iterate import (
     proximity_band,
     tangents,
 )
-from .rigid import has_pressure_law, pair_friction, pair_mu, pair_nodes
+from .rigid import has_friction_law, pair_friction, pair_mu, pair_nodes, pair_speeds
 from .system import _constrain_rows
 
 __all__ = ["active_set_step", "contact_frames", "frames_at_forces", "semismooth_merit", "Frames", "PieceData",
@@ -103,12 +103,12 @@ def contact_frames(it: Iterate, args) -> tuple[Frames, BlockTridiag]:
 
 
 def frames_at_forces(fr: Frames, args, p) -> Frames:
-    """``fr`` with the friction coefficients a tool's pressure law gives at the pair forces ``p`` (m, 2)
-    (:mod:`jaxfric.contact.friction`; Coulomb tools keep theirs)."""
+    """``fr`` with the friction coefficients a tool's friction law gives at the pair forces ``p`` (m, 2)
+    and the last step's speeds (:mod:`jaxfric.contact.friction`; Coulomb tools keep theirs)."""
     c = args.contact
-    if not has_pressure_law(c.tools):   # static
+    if not has_friction_law(c.tools):   # static
         return fr
-    mu = pair_friction(c.tools, c.mu, args.mesh.nodes, p[:, 0])
+    mu = pair_friction(c.tools, c.mu, args.mesh.nodes, p[:, 0], pair_speeds(c))
     return fr._replace(mu=jnp.where(fr.valid, mu[fr.pairs], 0.0))
 
 
@@ -180,7 +180,7 @@ def piece_data(it: Iterate, args, x, hint, frames=None) -> PieceData:
     c = args.contact
     n = args.mesh.n_dofs
     fr, K = contact_frames(it, args) if frames is None else frames
-    # A pressure law's coefficients are those of the forces the last direction predicted (``hint``).
+    # A friction law's coefficients are those of the forces the last direction predicted (``hint``).
     fr = frames_at_forces(fr, args, hint)
     nodes, pairs, valid = fr.nodes, fr.pairs, fr.valid
     f_tilde = equilibrium_force(it, args, x, hint, fr.kappa)

@@ -27,7 +27,7 @@ from .exact_iterate import (
 )
 from .lcp import ForceDrive, lemke_contact_callback, lemke_start
 from .lemke import LemkeStatus
-from .rigid import pair_friction, pair_nodes
+from .rigid import pair_friction, pair_nodes, pair_speeds
 from .system import _constrain_rows
 
 __all__ = ["contact_newton_step"]
@@ -118,8 +118,8 @@ def contact_newton_step(it: Iterate, args, x, p_prev, law, hint):
     valid, normal = band_normals(it, band)
     gap = jnp.where(valid, it.gap[band.pairs], GAP_FAR)
     pair_tool = pair_tools(c.tools)
-    # A pressure law's coefficients are those of the forces the last direction predicted (``hint``).
-    mu = jnp.where(valid, pair_friction(c.tools, c.mu, args.mesh.nodes, hint[:, 0])[band.pairs], 0.0)
+    # A friction law's coefficients are those of the forces the last direction predicted (``hint``).
+    mu = jnp.where(valid, pair_friction(c.tools, c.mu, args.mesh.nodes, hint[:, 0], pair_speeds(c))[band.pairs], 0.0)
     slip = jnp.where(valid & (mu > 0), it.slip[band.pairs], 0.0)
     f_c_prev = jnp.zeros_like(it.f_int).at[pair_nodes(c.tools)].add(pair_forces(it, p_prev))
     cond = _condense(it, args, x, band, normal, f_c_prev)

@@ -40,7 +40,7 @@ from ..numerics.linalg import linear_solve
 from .alart_curnier import OPEN, SLIP_NEG, SLIP_POS, STICK
 from .exact_active_set import Frames, classify, contact_frames, piece_data, piece_system
 from .exact_iterate import Iterate, iterate_residual, iterate_values, linearize_iterate, pair_status, tangents
-from .rigid import has_pressure_law, pair_friction, pair_mu
+from .rigid import has_friction_law, pair_friction, pair_mu, pair_speeds
 
 __all__ = ["exact_step_tangents"]
 
@@ -88,7 +88,8 @@ def _outputs(x, args, hint, frames, K, state, contact_out):
     p_nodes = jnp.where(_constrained(args, fr, state)[:, None], jnp.stack([r_n, fr.mu * xi * r_n], -1), p_nodes)
     p = jnp.zeros((m, 2)).at[fr.pairs].set(jnp.where(closed, p_nodes, 0.0))
     _, tool_f = iterate_residual(x, it, p, args)
-    status = pair_status(p, pair_friction(args.contact.tools, args.contact.mu, args.mesh.nodes, p[:, 0]))
+    c = args.contact
+    status = pair_status(p, pair_friction(c.tools, c.mu, args.mesh.nodes, p[:, 0], pair_speeds(c)))
     return it.f_int, it.states, contact_out(it, p, tool_f, status)
 
 
@@ -96,9 +97,9 @@ def exact_step_tangents(args, args_dot, x_star, p_star, contact_out):
     """Tangents (x_dot, outputs_dot) of a converged exact-contact step at ``x_star`` with contact forces
     ``p_star`` (m, 2), along the tangent ``args_dot`` of its data (None leaves: no change).
     ``contact_out(it, p, tool_f, status)``: the contact outputs' layout (:mod:`jaxfric.contact.exact`)."""
-    if has_pressure_law(args.contact.tools):
-        raise NotImplementedError("derivatives of exact contact (lcp_ssn, lcp_lemke) with a pressure-dependent "
-                                  "friction law are not implemented; use --algorithm penalty or auglag")
+    if has_friction_law(args.contact.tools):
+        raise NotImplementedError("derivatives of exact contact (lcp_ssn, lcp_lemke) with a friction law of the "
+                                  "pressure or speed are not implemented; use --algorithm penalty or auglag")
     it: Iterate = linearize_iterate(x_star, args)
     frames, K = contact_frames(it, args)
     d = piece_data(it, args, x_star, p_star, (frames, K))

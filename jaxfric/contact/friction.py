@@ -1,31 +1,42 @@
-"""Friction coefficients that depend on the contact pressure (issue: pressure-dependent friction).
+"""Friction coefficients that depend on the contact pressure and the sliding speed.
 
 The spec's law is Coulomb's with one coefficient per tool and phase (``RigidTool.mu``). A tool may carry
 a :class:`FrictionLaw` instead, which turns that coefficient mu_0 into a function of the pair's contact
-pressure p:
+pressure p (MPa) and sliding speed v (mm/s), in the forms stamping codes accept:
 
-    PressurePolynomial:   mu(p) = max(mu_0 + c_p p + c_pp p^2, 0)    (0 where mu_0 = 0)
+    Polynomial:     mu = max(mu_0 + c_p p + c_v v + c_pv p v + c_pp p^2 + c_vv v^2, 0)
+    VelocityDecay:  mu = mu_d + (mu_0 - mu_d) exp(-decay v)
 
-the pressure terms of OpenRadioss's generalised viscous law (``/FRICTION`` with ``Ifric`` = 1:
-mu = Fric + C1 p + C2 v + C3 p v + C4 p^2 + C5 v^2, with Fric = mu_0, C1 = c_p, C4 = c_pp and the
-velocity terms zero; :func:`jaxfric.cards.formats.openradioss_friction` writes it). The coefficient is
-clipped at zero, so that a decreasing law never turns friction into a driving force, and a phase whose
-mu_0 is 0 (the flat die's clamp) stays frictionless.
+``Polynomial`` is OpenRadioss's generalised viscous law (``/FRICTION`` with ``Ifric`` = 1: Fric = mu_0,
+C1 = c_p, C2 = c_v, C3 = c_pv, C4 = c_pp, C5 = c_vv), ``VelocityDecay`` LS-DYNA's static and dynamic
+coefficients with an exponential decay (FS = mu_0, FD = mu_d, DC = decay);
+:mod:`jaxfric.cards.friction` writes both. A phase whose mu_0 is 0 (the flat die's clamp) stays
+frictionless, and the polynomial is clipped at zero, so that a falling law never turns friction into a
+driving force.
 
 Pressure. A pair is a node of the sheet's surface against a rigid tool, and its force R_N is per unit
 out-of-plane width (N/mm). Its pressure is R_N over the node's share of the surface,
 p = R_N / l_a (N/mm^2 = MPa), with l_a half the reference lengths of the two surface segments at the
 node (one at the ends of a tool's candidate row: :func:`tributary_lengths`). Reference lengths keep the
-law local to the pair (a current length would couple each pair to its neighbours' displacements); on the
-Nine's 300 x 3 mesh the surface stretches by at most a few per cent in the wraps, which the pressure then
-overstates by as much.
+law local to the pair (a current length would couple each pair to its neighbours' displacements); where
+the surface stretches, the pressure is overstated by the stretch (a few per cent in the Nine's wraps).
 
-Every formulation takes the law: the penalty and augmented-Lagrangian pair laws evaluate mu(R_N / l_a)
-inside the pair force, so the tangent (by forward mode) and the parameters' derivatives carry d mu / dp.
+Speed. The load path is quasi-static in a pseudo-time; a scene gives its drawing phase a duration, the
+drawn length over ``draw_speed`` (``StripModel.phase_seconds``), and a pair's speed is its slip over a
+step divided by the step's duration, v = |Delta s| / Delta t (:func:`sliding_speed`). Phases without a
+duration (clamping, closing) have v = 0: the coefficient there is the static one. A step reads the speeds
+of the step before it (``ContactState.speed``), not its own: with its own, a coefficient that falls with
+speed gives a slipping pair a negative tangential stiffness, R_N dmu/dv / Delta t, and the quasi-static
+problem loses its uniqueness (the flat die with mu falling from 0.15 to 0.09 over 0.05 mm/s stopped 0.1 um
+into its draw, Newton failing at every increment). The lag is one step, which the drawing's steady
+sliding does not feel.
+
+Every formulation takes the law: the penalty and augmented-Lagrangian pair laws evaluate mu(p, v) inside
+the pair force, so the tangent (by forward mode) and the parameters' derivatives carry its derivatives.
 Exact contact (``lcp_ssn``, ``lcp_lemke``) solves each Newton iteration's complementarity problem with
 the coefficients of the forces its last direction predicted, so a converged step meets the law at its
 own forces; its derivatives are not implemented for such a law (the active set's matrix would need the
-d mu / dp terms), and asking for them raises a one-line error.
+d mu terms), and asking for them raises a one-line error.
 """
 
 from __future__ import annotations
@@ -38,50 +49,83 @@ import jax.numpy as jnp
 
 from ..numerics._checks import is_concrete
 
-__all__ = ["FrictionLaw", "PressurePolynomial", "tributary_lengths"]
+__all__ = ["FrictionLaw", "Polynomial", "VelocityDecay", "tributary_lengths", "sliding_speed"]
 
 
 class FrictionLaw(eqx.Module):
-    """A friction coefficient as a function of the contact pressure (module doc)."""
+    """A friction coefficient as a function of contact pressure and sliding speed (module doc)."""
 
     @abc.abstractmethod
-    def coefficient(self, mu0, p) -> jax.Array:
-        """The coefficient at pressure ``p`` (MPa, >= 0) for the tool's Coulomb coefficient ``mu0``."""
+    def coefficient(self, mu0, p, v) -> jax.Array:
+        """The coefficient at pressure ``p`` (MPa, >= 0) and speed ``v`` (mm/s, >= 0) for the tool's
+        Coulomb coefficient ``mu0``."""
 
     @abc.abstractmethod
     def describe(self) -> dict:
         """The law's name and parameters, JSON-ready (summaries and exports)."""
 
-
-class PressurePolynomial(FrictionLaw):
-    """mu(p) = max(mu_0 + c_p p + c_pp p^2, 0), p in MPa (module doc).
-
-    Attributes:
-        c_p: () linear coefficient (1/MPa).
-        c_pp: () quadratic coefficient (1/MPa^2).
-    """
-
-    c_p: jax.Array
-    c_pp: jax.Array
-
-    def __init__(self, c_p=0.0, c_pp=0.0):
-        self.c_p = jnp.asarray(c_p, jnp.float64)
-        self.c_pp = jnp.asarray(c_pp, jnp.float64)
-
-    def __check_init__(self):
-        for name in ("c_p", "c_pp"):
+    def _check_scalars(self, names):
+        for name in names:
             value = getattr(self, name)
             if value.shape != ():
                 raise ValueError(f"field '{name}' must be a scalar, got shape {value.shape}")
             if is_concrete(value) and not bool(jnp.isfinite(value)):
                 raise ValueError(f"field '{name}' must be finite, got {float(value)}")
 
-    def coefficient(self, mu0, p) -> jax.Array:
-        # A phase without friction (mu_0 = 0: the flat die's clamp) stays without it.
-        return jnp.where(mu0 > 0.0, jnp.maximum(mu0 + self.c_p * p + self.c_pp * p * p, 0.0), 0.0)
+
+class Polynomial(FrictionLaw):
+    """mu = max(mu_0 + c_p p + c_v v + c_pv p v + c_pp p^2 + c_vv v^2, 0), p in MPa, v in mm/s; 0 where
+    mu_0 = 0 (module doc). Attributes: the coefficients, () each (1/MPa, s/mm, s/(MPa mm), 1/MPa^2,
+    s^2/mm^2)."""
+
+    c_p: jax.Array
+    c_v: jax.Array
+    c_pv: jax.Array
+    c_pp: jax.Array
+    c_vv: jax.Array
+
+    def __init__(self, c_p=0.0, c_v=0.0, c_pv=0.0, c_pp=0.0, c_vv=0.0):
+        for name, value in zip(("c_p", "c_v", "c_pv", "c_pp", "c_vv"), (c_p, c_v, c_pv, c_pp, c_vv), strict=True):
+            setattr(self, name, jnp.asarray(value, jnp.float64))
+
+    def __check_init__(self):
+        self._check_scalars(("c_p", "c_v", "c_pv", "c_pp", "c_vv"))
+
+    def coefficient(self, mu0, p, v) -> jax.Array:
+        mu = mu0 + self.c_p * p + self.c_v * v + self.c_pv * p * v + self.c_pp * p * p + self.c_vv * v * v
+        return jnp.where(mu0 > 0.0, jnp.maximum(mu, 0.0), 0.0)
 
     def describe(self) -> dict:
-        return {"law": "pressure_polynomial", "c_p": float(self.c_p), "c_pp": float(self.c_pp)}
+        return {"law": "polynomial", **{k: float(getattr(self, k)) for k in ("c_p", "c_v", "c_pv", "c_pp", "c_vv")}}
+
+
+class VelocityDecay(FrictionLaw):
+    """mu = mu_d + (mu_0 - mu_d) exp(-decay v), v in mm/s; 0 where mu_0 = 0 (module doc).
+
+    Attributes:
+        mu_d: () dynamic coefficient (the limit at high speed), >= 0.
+        decay: () decay coefficient (s/mm), >= 0.
+    """
+
+    mu_d: jax.Array
+    decay: jax.Array
+
+    def __init__(self, mu_d, decay):
+        self.mu_d = jnp.asarray(mu_d, jnp.float64)
+        self.decay = jnp.asarray(decay, jnp.float64)
+
+    def __check_init__(self):
+        self._check_scalars(("mu_d", "decay"))
+        for name in ("mu_d", "decay"):
+            value = getattr(self, name)
+            if is_concrete(value) and float(value) < 0.0:
+                raise ValueError(f"field '{name}' must be >= 0, got {float(value)}")
+
+    def coefficient(self, mu0, p, v) -> jax.Array:
+        return jnp.where(mu0 > 0.0, self.mu_d + (mu0 - self.mu_d) * jnp.exp(-self.decay * v), 0.0)
+
+    def describe(self) -> dict:
+        return {"law": "velocity_decay", "mu_d": float(self.mu_d), "decay": float(self.decay)}
 
 
 def tributary_lengths(X) -> jax.Array:
@@ -91,3 +135,8 @@ def tributary_lengths(X) -> jax.Array:
     if seg.shape[0] == 0:
         return jnp.ones(X.shape[0])
     return 0.5 * (jnp.concatenate([seg[:1] * 0.0, seg]) + jnp.concatenate([seg, seg[:1] * 0.0]))
+
+
+def sliding_speed(slip, dt) -> jax.Array:
+    """|slip| / dt (mm/s) for a step of duration ``dt`` (s); 0 where the step has no duration."""
+    return jnp.where(dt > 0.0, jnp.abs(slip) / jnp.where(dt > 0.0, dt, 1.0), 0.0)

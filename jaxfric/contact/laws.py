@@ -56,8 +56,8 @@ def augmented_pair(gap, slip, lambda_n, lambda_t, mu, eps_n, eps_t, valid=True, 
         gap: () normal gap g_N (mm), negative when penetrating.
         slip: () tangential slip s since the multipliers' reference configuration (mm), along t.
         lambda_n, lambda_t: () frozen multipliers (N/mm).
-        mu: () friction coefficient, or a function of the pair's normal force R_N (a pressure-dependent
-            law, :mod:`jaxfric.contact.friction`), evaluated at the R_N this law gives.
+        mu: () friction coefficient, or a function of the pair's normal force R_N (a friction law of the
+            pressure, :mod:`jaxfric.contact.friction`), evaluated at the R_N this law gives.
         eps_n, eps_t: () normal and tangential penalties (N/mm per mm).
         valid: () bool, False when the node projects on no tool primitive (the pair is open).
         smoothing: None for the exact law, or a force scale s > 0 (N/mm) for the smoothed one.

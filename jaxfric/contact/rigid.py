@@ -44,7 +44,7 @@ from .tools import Tool, project
 
 __all__ = ["Move", "Force", "RigidTool", "ContactState", "ContactStep", "PairResult", "initial_contact_state",
            "evaluate_pairs", "tool_forces", "split_pairs", "pair_nodes", "pair_mu", "pair_friction",
-           "has_pressure_law", "max_penetration"]
+           "pair_speeds", "has_friction_law", "max_penetration"]
 
 
 class Move(eqx.Module):
@@ -94,8 +94,8 @@ class RigidTool(eqx.Module):
             given, False only for a concrete mu of 0 in every phase (a traced mu keeps the term). A tool
             declared frictional with mu = 0 builds the same program as with any other mu, so a
             derivative or a fit can start from mu = 0.
-        friction: None (Coulomb: mu) or a :class:`~jaxfric.contact.friction.FrictionLaw` that makes mu
-            the coefficient at zero pressure of a pressure-dependent law (needs a frictional tool).
+        friction: None (Coulomb: mu) or a :class:`~jaxfric.contact.friction.FrictionLaw` of the contact
+            pressure and sliding speed about mu (needs a frictional tool).
     """
 
     name: str = eqx.field(static=True)
@@ -143,7 +143,7 @@ class RigidTool(eqx.Module):
             raise ValueError(f"tool {self.name!r}: field 'friction' must be None or a FrictionLaw, got "
                              f"{type(self.friction).__name__}")
         if self.friction is not None and not self.frictional:
-            raise ValueError(f"tool {self.name!r}: field 'friction' (a pressure-dependent law) on a tool declared "
+            raise ValueError(f"tool {self.name!r}: field 'friction' (a friction law) on a tool declared "
                              f"frictionless (frictional=False)")
         if not self.frictional and is_concrete(self.mu) and np.any(np.asarray(self.mu) > 0):
             raise ValueError(f"tool {self.name!r}: field 'mu' = {self.mu} on a tool declared frictionless "
@@ -167,6 +167,8 @@ class ContactState(eqx.Module):
         gap: (m,) normal gap (mm; GAP_OPEN when the node projects on no primitive).
         normal: (m, 2) tool normal at the projection.
         status: (m,) int8 0 open, 1 stick, 2 slip.
+        speed: (m,) sliding speed over the step (mm/s; 0 in steps without a duration), which a friction
+            law reads in the next step (:mod:`jaxfric.contact.friction`).
     """
 
     q: jax.Array
@@ -179,6 +181,7 @@ class ContactState(eqx.Module):
     gap: jax.Array
     normal: jax.Array
     status: jax.Array
+    speed: jax.Array
 
 
 class ContactStep(eqx.Module):
@@ -195,6 +198,8 @@ class ContactStep(eqx.Module):
     q_presc: jax.Array   # (n_t,) prescribed positions (used where not force-driven)
     force: jax.Array     # (n_t,) prescribed forces (used where force-driven)
     force_mask: jax.Array  # (n_t,) bool: force-driven in this phase
+    dt: Any = 0.0        # () duration of the step (s; 0: none): the pairs' sliding speeds after it
+    speed: tuple = ()    # per tool, (n_k,) sliding speeds of the last step (mm/s), which a friction law reads
 
 
 class PairResult(NamedTuple):
@@ -212,14 +217,14 @@ class PairResult(NamedTuple):
     slip: jax.Array       # slip since the reference configuration (mm)
 
 
-def _pair(tool: RigidTool, law, frictional: bool, X, u, q, mu, lam_n, lam_t, u_ref, q_ref, length=None):
+def _pair(tool: RigidTool, law, frictional: bool, X, u, q, mu, lam_n, lam_t, u_ref, q_ref, length=None, speed=0.0):
     # Relative motion of node and tool since the reference configuration; the slip is the change of zeta
     # it causes, computed from the increment itself (round-off, see jaxfric.contact.tools.project).
     increment = (u - u_ref) - (q - q_ref) * tool.drive
     proj = project(tool.geometry, X, q_ref * tool.drive, displacement=u_ref, increment=increment)
     smoothing = law.smoothing if law.smooth else None
     if frictional:
-        coefficient = mu if tool.friction is None else (lambda rn: tool.friction.coefficient(mu, rn / length))
+        coefficient = mu if tool.friction is None else (lambda rn: tool.friction.coefficient(mu, rn / length, speed))
         force = augmented_pair(proj.gap, proj.zeta_increment, lam_n, lam_t, coefficient, law.eps_n, law.eps_t,
                                proj.valid, smoothing)
     else:  # static: a frictionless tool builds no tangential term at all
@@ -243,14 +248,16 @@ def evaluate_pairs(step: ContactStep, nodes_ref: jax.Array, u: jax.Array, q: jax
     for k, tool in enumerate(step.tools):  # static loop: tools differ in structure
         idx = np.asarray(tool.candidates)
 
-        def one(u_a, qk, X_a, lam_n, lam_t, u_ref, length, tool=tool, k=k):
+        def one(u_a, qk, X_a, lam_n, lam_t, u_ref, length, speed, tool=tool, k=k):
             f, aux = _pair(tool, step.law, tool.frictional, X_a, u_a, qk, step.mu[k], lam_n, lam_t, u_ref,
-                           step.q_ref[k], length)
+                           step.q_ref[k], length, speed)
             return f, (f, aux)
 
-        lengths = tributary_lengths(nodes_ref[idx]) if tool.friction is not None else jnp.ones(len(idx))
-        args = (u[idx], q[k], nodes_ref[idx], step.lam_n[k], step.lam_t[k], step.u_ref[k], lengths)
-        axes = (0, None, 0, 0, 0, 0, 0)
+        law = tool.friction is not None
+        lengths = tributary_lengths(nodes_ref[idx]) if law else jnp.ones(len(idx))
+        speeds = step.speed[k] if law else jnp.zeros(len(idx))
+        args = (u[idx], q[k], nodes_ref[idx], step.lam_n[k], step.lam_t[k], step.u_ref[k], lengths, speeds)
+        axes = (0, None, 0, 0, 0, 0, 0, 0)
         if jacobian:  # d f / d x_node = d f / d u_node
             (dfdx, dfdq), (f, aux) = jax.vmap(jax.jacfwd(one, argnums=(0, 1), has_aux=True), axes)(*args)
         else:
@@ -280,7 +287,7 @@ def initial_contact_state(tools, nodes: jax.Array) -> ContactState:
     m = zeta.shape[0]
     return ContactState(q=zeros_t, q_start=zeros_t, f_start=zeros_t, force=zeros_t, rn=jnp.zeros(m),
                         rt=jnp.zeros(m), zeta=zeta, gap=jnp.concatenate(gaps),
-                        normal=jnp.concatenate(normals), status=jnp.full(m, OPEN, jnp.int8))
+                        normal=jnp.concatenate(normals), status=jnp.full(m, OPEN, jnp.int8), speed=jnp.zeros(m))
 
 
 def pair_nodes(tools) -> np.ndarray:
@@ -293,17 +300,22 @@ def pair_mu(tools, mu) -> jax.Array:
     return jnp.concatenate([jnp.full(len(t.candidates), mu[k]) for k, t in enumerate(tools)])
 
 
-def has_pressure_law(tools) -> bool:
-    """Static: whether any tool carries a pressure-dependent friction law."""
+def has_friction_law(tools) -> bool:
+    """Static: whether any tool carries a friction law (:mod:`jaxfric.contact.friction`)."""
     return any(t.friction is not None for t in tools)
 
 
-def pair_friction(tools, mu, nodes_ref, rn) -> jax.Array:
-    """(m,) friction coefficient of every candidate pair at normal forces ``rn`` (m,) (N/mm): ``mu`` per
-    tool, through a tool's pressure law where it has one (:mod:`jaxfric.contact.friction`);
-    ``nodes_ref``: the mesh's reference node positions."""
+def pair_speeds(step: ContactStep) -> jax.Array:
+    """(m,) the pairs' sliding speeds of the last step (mm/s), tool after tool."""
+    return jnp.concatenate(step.speed) if step.speed else jnp.zeros(sum(len(t.candidates) for t in step.tools))
+
+
+def pair_friction(tools, mu, nodes_ref, rn, speed=None) -> jax.Array:
+    """(m,) friction coefficient of every candidate pair at normal forces ``rn`` (m,) (N/mm) and sliding
+    speeds ``speed`` (m,) (mm/s; None: at rest): ``mu`` per tool, through a tool's friction law where it
+    has one (:mod:`jaxfric.contact.friction`); ``nodes_ref``: the mesh's reference node positions."""
     base = pair_mu(tools, mu)
-    if not has_pressure_law(tools):
+    if not has_friction_law(tools):
         return base
     parts, start = [], 0
     for k, t in enumerate(tools):   # static loop
@@ -311,7 +323,8 @@ def pair_friction(tools, mu, nodes_ref, rn) -> jax.Array:
         b = base[start:start + n_k]
         if t.friction is not None:
             lengths = tributary_lengths(nodes_ref[np.asarray(t.candidates)])
-            b = t.friction.coefficient(b, jnp.maximum(rn[start:start + n_k], 0.0) / lengths)
+            v = 0.0 if speed is None else speed[start:start + n_k]
+            b = t.friction.coefficient(b, jnp.maximum(rn[start:start + n_k], 0.0) / lengths, v)
         parts.append(b)
         start += n_k
     return jnp.concatenate(parts)

@@ -28,7 +28,7 @@ from ..fem.material import J2Material
 from ..fem.mesh import StripMesh
 from ..numerics.linalg import BlockTridiag, Bordered
 from ..numerics.newton import Linearization
-from .rigid import ContactStep, evaluate_pairs, pair_friction, pair_nodes, tool_forces
+from .rigid import ContactStep, evaluate_pairs, pair_friction, pair_nodes, pair_speeds, tool_forces
 from .status import settled_status
 from .tools import GAP_OPEN
 
@@ -192,7 +192,7 @@ def linearize(x, args: StepArgs) -> Linearization:
         negligible = 1e-10 + 1e-8 * jnp.max(jnp.abs(a.f_int))
         status = settled_status(aux_contact["status"], aux_contact["rn"], aux_contact["rt"],
                                 pair_friction(args.contact.tools, args.contact.mu, args.mesh.nodes,
-                                              aux_contact["rn"]), negligible)
+                                              aux_contact["rn"], pair_speeds(args.contact)), negligible)
     # Prescribed dofs: R = x - values, so their Jacobian rows are identity rows.
     J: BlockTridiag | Bordered
     if isinstance(K, Bordered):

@@ -52,6 +52,9 @@ class StripModel(eqx.Module):
             :class:`~jaxfric.contact.formulations.Penalty`,
             :class:`~jaxfric.contact.formulations.AugmentedLagrangian` or
             :class:`~jaxfric.contact.formulations.Complementarity`).
+        phase_seconds: None, or per phase its duration in seconds (static; 0: none): a step's duration is
+            its share of its phase's, which gives the sliding speed of a friction law
+            (:mod:`jaxfric.contact.friction`). None: every phase quasi-static.
     """
 
     mesh: StripMesh
@@ -61,6 +64,7 @@ class StripModel(eqx.Module):
     tools: tuple = ()
     contact: AbstractContactFormulation | None = None
     thickness_points: int = eqx.field(static=True, default=2)
+    phase_seconds: tuple | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if not isinstance(self.mesh, StripMesh):
@@ -74,6 +78,10 @@ class StripModel(eqx.Module):
             raise ValueError(f"field 'thickness_points' must be an integer from 2 to 16, got {self.thickness_points!r}")
         if len(self.phases) == 0 or not all(isinstance(p, Phase) for p in self.phases):
             raise ValueError("field 'phases' must be a non-empty tuple of Phase")
+        if self.phase_seconds is not None and (len(self.phase_seconds) != len(self.phases)
+                                               or not all(np.isfinite(t) and t >= 0 for t in self.phase_seconds)):
+            raise ValueError(f"field 'phase_seconds' must hold one finite duration >= 0 per phase, got "
+                             f"{self.phase_seconds!r}")
         names = [p.name for p in self.phases]
         if len(set(names)) != len(names):
             raise ValueError(f"field 'phases' has repeated phase names: {names}")

@@ -15,7 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..contact.formulations import newton_step
-from ..contact.rigid import ContactState, ContactStep, Force, Move, pair_friction, split_pairs
+from ..contact.friction import sliding_speed
+from ..contact.rigid import ContactState, ContactStep, Force, Move, pair_friction, pair_speeds, split_pairs
 from ..contact.status import contact_status
 from ..contact.system import StepArgs, linearize
 from ..fem.assembly import mesh_geometry
@@ -42,8 +43,9 @@ class StepContext(eqx.Module):
         return cls(model, mesh_geometry(model.mesh, model.thickness_points), masks)
 
 
-def _contact_step(model: StripModel, state: SimState, phase, tau, law) -> tuple:
-    """The contact data of a step in ``phase`` at phase-local time ``tau``, from the last state."""
+def _contact_step(model: StripModel, state: SimState, phase, tau, law, dt=0.0) -> tuple:
+    """The contact data of a step in ``phase`` at phase-local time ``tau``, from the last state; ``dt``:
+    the step's duration in seconds (``StripModel.phase_seconds``)."""
     c = state.contact
     assert c is not None   # a model with tools
     new_phase = phase != state.phase
@@ -72,7 +74,8 @@ def _contact_step(model: StripModel, state: SimState, phase, tau, law) -> tuple:
     lam_n = split_pairs(model.tools, c.rn if law.warm_start else jnp.zeros_like(c.rn))
     step = ContactStep(tools=model.tools, law=law, mu=mu_now, lam_n=lam_n, lam_t=tuple(lam_t),
                        u_ref=_candidates(model, state.u), q_ref=c.q, q_presc=jnp.stack(q_table)[phase],
-                       force=jnp.stack(f_table)[phase], force_mask=jnp.asarray(force_mask)[phase])
+                       force=jnp.stack(f_table)[phase], force_mask=jnp.asarray(force_mask)[phase], dt=dt,
+                       speed=split_pairs(model.tools, c.speed))
     return step, q_start, f_start
 
 
@@ -91,7 +94,10 @@ def step_args(model: StripModel, state: SimState, phase, t_target, ctx: StepCont
     values = prescribed_values(model.mesh.nodes, model.phases, phase, tau)
     contact, q_start, f_start = (None, None, None)
     if model.tools:
-        contact, q_start, f_start = _contact_step(model, state, phase, tau, model.contact)
+        dt = 0.0
+        if model.phase_seconds is not None:   # static
+            dt = (t_target - state.time) * jnp.asarray(model.phase_seconds)[phase]
+        contact, q_start, f_start = _contact_step(model, state, phase, tau, model.contact, dt)
     u_start = None if damping is None else state.u.reshape(-1)
     args = StepArgs(model.mesh, model.material, ctx.geo, state.material, ctx.masks[phase], values,
                     contact, model.formulation, model.force_tools, damping, u_start)
@@ -182,7 +188,9 @@ def step_state(model: StripModel, args, sol, t_target, phase, q_start, f_start) 
         # The stored status follows the spec's force thresholds (section 0) for every law, so that the
         # counts of closed and slipping pairs agree with the forces written out.
         kept["status"] = contact_status(kept["rn"], kept["rt"],
-                                        pair_friction(model.tools, args.contact.mu, model.mesh.nodes, kept["rn"]))
+                                        pair_friction(model.tools, args.contact.mu, model.mesh.nodes, kept["rn"],
+                                                      pair_speeds(args.contact)))
+        kept["speed"] = sliding_speed(c_out["slip"], args.contact.dt)
         new_contact = ContactState(q_start=q_start, f_start=f_start, **kept)
     return SimState(u=sol.x[: model.mesh.n_dofs].reshape(-1, 2), material=states, f_int=f_int,
                     time=t_target, phase=phase, contact=new_contact)

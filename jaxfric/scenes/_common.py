@@ -15,8 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..contact.formulations import ALGORITHMS, STIFF_PENALTY_RATIO
-from ..contact.friction import PressurePolynomial
-from ..contact.rigid import max_penetration, pair_friction, split_pairs
+from ..contact.friction import Polynomial, VelocityDecay
+from ..contact.rigid import has_friction_law, max_penetration, pair_friction, split_pairs
 from ..contact.status import SLIP
 from ..contact.tools import GAP_OPEN, Arc, Segment, Tool
 from ..fem.kinematic import KinematicJ2Material
@@ -61,12 +61,21 @@ ELEMENT_DOC = ("element formulation (jaxfric.fem.element): 'fbar' F-bar Q4, 'ans
 THICKNESS_POINTS_DOC = ("Gauss points through each element's thickness (2: the 2 x 2 rule; more integrate the "
                         "stress through the thickness more finely at the cost of more material evaluations; "
                         "jaxfric.fem.element.gauss_rule) [chosen]")
-FRICTION_LAWS = ("coulomb", "pressure_polynomial")
-FRICTION_LAW_DOC = ("friction law of the frictional tools: coulomb (mu), or pressure_polynomial: mu(p) = max(mu + "
-                    "mu_p p + mu_pp p^2, 0) with p the nodal contact pressure in MPa, in phases where mu > 0 "
-                    "(jaxfric.contact.friction) [chosen]")
-MU_P_DOC = "linear pressure coefficient of friction_law=pressure_polynomial (OpenRadioss C1) [chosen]"
-MU_PP_DOC = "quadratic pressure coefficient of friction_law=pressure_polynomial (OpenRadioss C4) [chosen]"
+FRICTION_LAWS = ("coulomb", "polynomial", "velocity_decay")
+FRICTION_LAW_DOC = ("friction law of the frictional tools, in phases where mu > 0 (jaxfric.contact.friction): "
+                    "coulomb (mu); polynomial: mu = max(mu + mu_p p + mu_v v + mu_pv p v + mu_pp p^2 + mu_vv v^2, "
+                    "0), p the contact pressure (MPa), v the sliding speed (mm/s); velocity_decay: mu = mu_d + "
+                    "(mu - mu_d) exp(-decay v) [chosen]")
+POLYNOMIAL_TERMS = ("mu_p", "mu_v", "mu_pv", "mu_pp", "mu_vv")
+MU_P_DOC = "friction_law=polynomial: coefficient of p (1/MPa; OpenRadioss C1) [chosen]"
+MU_V_DOC = "friction_law=polynomial: coefficient of v (s/mm; OpenRadioss C2) [chosen]"
+MU_PV_DOC = "friction_law=polynomial: coefficient of p v (s/(MPa mm); OpenRadioss C3) [chosen]"
+MU_PP_DOC = "friction_law=polynomial: coefficient of p^2 (1/MPa^2; OpenRadioss C4) [chosen]"
+MU_VV_DOC = "friction_law=polynomial: coefficient of v^2 (s^2/mm^2; OpenRadioss C5) [chosen]"
+MU_D_DOC = "friction_law=velocity_decay: dynamic coefficient (LS-DYNA FD; None: mu, no decay) [chosen]"
+DECAY_DOC = "friction_law=velocity_decay: decay coefficient (s/mm; LS-DYNA DC) [chosen]"
+DRAW_SPEED_DOC = ("drawing speed (mm/s): the drawing phase lasts its stroke over this speed, which gives a friction "
+                  "law its sliding speeds; the other phases have none (v = 0) [chosen]")
 C_KIN_DOC = ("moduli C_i of the Armstrong-Frederick back stresses, comma-separated, one per back stress "
              "(jaxfric.fem.kinematic); empty: isotropic hardening only [paper]")
 GAMMA_KIN_DOC = ("recall rates gamma_i of the back stresses, one per C_i (0: linear Prager rule); the isotropic "
@@ -137,12 +146,20 @@ def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=No
                 raise _bad(name, getattr(config, name), "every entry must be >= 0")
     if config.friction_law not in FRICTION_LAWS:
         raise _bad("friction_law", config.friction_law, f"choose one of {', '.join(map(repr, FRICTION_LAWS))}")
-    for name in ("mu_p", "mu_pp"):
+    for name in POLYNOMIAL_TERMS:
         v = _number(name, getattr(config, name))
         if not np.isfinite(v):
             raise _bad(name, v, "it must be finite")
-        if v != 0.0 and config.friction_law == "coulomb":
-            raise _bad(name, v, "a pressure term needs --set friction_law=pressure_polynomial")
+        if v != 0.0 and config.friction_law != "polynomial":
+            raise _bad(name, v, "a polynomial term needs --set friction_law=polynomial")
+    for name in ("mu_d", "decay"):
+        v = getattr(config, name)
+        if v is not None and not _number(name, v) >= 0.0:
+            raise _bad(name, v, "it must be >= 0")
+        if v is not None and config.friction_law != "velocity_decay":
+            raise _bad(name, v, "it needs --set friction_law=velocity_decay")
+    if not _number("draw_speed", config.draw_speed) > 0.0:
+        raise _bad("draw_speed", config.draw_speed, "it must be > 0")
     if config.element not in ELEMENTS:
         raise _bad("element", config.element, f"choose one of {', '.join(map(repr, ELEMENTS))}")
     if not -1.0 < _number("nu", config.nu) < 0.5:
@@ -284,8 +301,12 @@ class ContactSnapshot(eqx.Module):
     def __call__(self, model, state) -> dict:
         c = state.contact
         projects = c.gap < 0.5 * GAP_OPEN
-        # Each pair's coefficient at its force (a pressure law's; Coulomb's is the tool's mu).
-        mu = pair_friction(model.tools, [t.mu[state.phase] for t in model.tools], model.mesh.nodes, c.rn)
+        # Each pair's coefficient: a slipping pair's is |R_T| / R_N (a friction law's value at its force
+        # and speed), the others' that at rest (Coulomb's: the tool's mu).
+        at_rest = pair_friction(model.tools, [t.mu[state.phase] for t in model.tools], model.mesh.nodes, c.rn)
+        slipping = (c.status == SLIP) & (c.rn > 0.0)
+        mu = at_rest if not has_friction_law(model.tools) else \
+            jnp.where(slipping, jnp.abs(c.rt) / jnp.where(slipping, c.rn, 1.0), at_rest)
         drive = jnp.stack([t.drive for t in model.tools])
         return {
             "x": model.mesh.nodes + state.u,
@@ -343,11 +364,23 @@ def friction_table(tool_names, phase_names, mu) -> dict:
 
 
 def friction_law(config):
-    """The frictional tools' law: None for Coulomb (``friction_law`` = "coulomb"), else the
-    :class:`~jaxfric.contact.friction.PressurePolynomial` of ``mu_p``, ``mu_pp`` about each tool's mu."""
+    """The frictional tools' law (:mod:`jaxfric.contact.friction`) about each tool's mu: None for
+    Coulomb, the :class:`Polynomial` of ``mu_p`` .. ``mu_vv``, or the :class:`VelocityDecay` of ``mu_d``
+    (None: mu) and ``decay`` (None: 0)."""
     if config.friction_law == "coulomb":
         return None
-    return PressurePolynomial(config.mu_p, config.mu_pp)
+    if config.friction_law == "polynomial":
+        return Polynomial(*(getattr(config, name) for name in POLYNOMIAL_TERMS))
+    mu_d = config.mu if config.mu_d is None else config.mu_d
+    return VelocityDecay(mu_d, 0.0 if config.decay is None else config.decay)
+
+
+def phase_seconds(config, phases, stroke: float) -> tuple | None:
+    """The phases' durations (``StripModel.phase_seconds``): the phase named "draw" lasts ``stroke`` (mm)
+    over ``draw_speed``, the others none; None without a friction law (nothing reads them)."""
+    if config.friction_law == "coulomb":
+        return None
+    return tuple(float(stroke) / float(config.draw_speed) if p.name == "draw" else 0.0 for p in phases)
 
 
 def material(config):

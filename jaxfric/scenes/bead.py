@@ -97,7 +97,13 @@ class BeadConfig:
     b_voce: tuple = cm.spec_field((), "-", cm.B_VOCE_DOC)
     friction_law: str = cm.spec_field("coulomb", "-", cm.FRICTION_LAW_DOC)
     mu_p: float = cm.spec_field(0.0, "1/MPa", cm.MU_P_DOC)
+    mu_v: float = cm.spec_field(0.0, "s/mm", cm.MU_V_DOC)
+    mu_pv: float = cm.spec_field(0.0, "s/(MPa mm)", cm.MU_PV_DOC)
     mu_pp: float = cm.spec_field(0.0, "1/MPa^2", cm.MU_PP_DOC)
+    mu_vv: float = cm.spec_field(0.0, "s^2/mm^2", cm.MU_VV_DOC)
+    mu_d: float | None = cm.spec_field(None, "-", cm.MU_D_DOC)
+    decay: float | None = cm.spec_field(None, "s/mm", cm.DECAY_DOC)
+    draw_speed: float = cm.spec_field(1.0, "mm/s", cm.DRAW_SPEED_DOC)
     eps_n: float = cm.spec_field(1e5, "N/mm/mm", "normal penalty [chosen]")
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [chosen]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
@@ -225,7 +231,8 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
                       config.max_augmentations, stiff_above=cm.stiff_penalty(config))
     material = cm.material(config)
     model = StripModel(mesh, material, phases, tools=tools, contact=law, formulation=config.element,
-                       thickness_points=config.thickness_points)
+                       thickness_points=config.thickness_points,
+                       phase_seconds=cm.phase_seconds(config, phases, config.s_draw))
     observe = BeadObserve(jaw=tuple(int(a) for a in jaw), tail=int(mesh.node_index(0, 0)), theta=theta,
                           s_draw=float(config.s_draw))
 

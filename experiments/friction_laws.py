@@ -1,0 +1,227 @@
+"""A pressure-dependent friction law identified from drawing curves: ``python experiments/friction_laws.py``.
+
+    python experiments/friction_laws.py [--root DIR] [--noise 0.005] [--seed 1]
+
+The flat die (spec section 2, ``const_force``) at four clamping forces, 25, 50, 100 and 200 N/mm, so the
+contact pressures span 0 to about 30 MPa. The "measured" curves (drawing force against drawing
+displacement) are made with one law, friction falling with pressure, mu(p) = 0.18 - 0.004 p (p in MPa;
+``--set friction_law=pressure_polynomial --set mu=0.18 --set mu_p=-0.004``), by exact contact
+(``lcp_ssn``) at the reference discretisation, twice the elements along and through the thickness (480 x
+4). The fits run on the penalty path (the spec's eps_N = 1e9) at the spec mesh (240 x 2), so neither the
+algorithm nor the mesh of the data is the fitting model's:
+
+- ``law``: (mu, mu_p) jointly, from the four curves at once;
+- ``coulomb``: a constant mu from the same curves, what a Coulomb fit gets wrong;
+- ``law_noisy``: (mu, mu_p) again with Gaussian noise of ``--noise`` times each curve's largest force
+  added to every point (seeded).
+
+Each fit is ``scipy.optimize.least_squares`` (trust region, bounded) on the residuals of all curves, with
+the Jacobian by forward mode through each curve's whole loading path (one compiled path function takes
+the clamping force as a third, fixed, parameter; ``jaxfric.identification.params``), and the 95 %
+intervals of the Gauss-Newton covariance s^2 (J^T J)^-1 with Student's t. Writes
+``experiments/results/friction_laws.csv`` (one row per fit), ``friction_laws_curves.csv`` (data and fitted
+curves), ``friction_laws.png`` (the curves, the steady force against the clamping force, mu against p)
+and, for the law fit, the OpenRadioss ``/FRICTION`` card and the mu(p) table
+(``experiments/results/friction_laws/friction.rad``, ``friction.csv``). Reference runs go under
+``--root`` (default ``runs/friction_laws``; a second call reads them back).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy import optimize, stats  # noqa: E402
+
+from benchutil import write_rows  # noqa: E402
+from jaxfric.cards.friction import friction_csv, radioss_friction  # noqa: E402
+from jaxfric.contact.friction import PressurePolynomial  # noqa: E402
+from jaxfric.identification.params import parameterize, path_function  # noqa: E402
+from jaxfric.io.batch import run_case  # noqa: E402
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+RESULTS = os.path.join(HERE, "results")
+CLAMPS = (25.0, 50.0, 100.0, 200.0)
+TRUTH = {"mu": 0.18, "mu_p": -0.004}
+LAW = {"friction_law": "pressure_polynomial"}
+REFERENCE_MESH = "480x4"
+START = {"mu": 0.15, "mu_p": 0.0}
+BOUNDS = {"mu": (0.0, 1.0), "mu_p": (-0.05, 0.05)}
+
+
+def reference_curves(root: str) -> dict:
+    """Per clamping force, the measured curve (displacement, force) of the reference discretisation."""
+    out = {}
+    for F in CLAMPS:
+        done = run_case(os.path.join(root, f"reference_F{F:g}"), "flat_die", "const_force", "lcp_ssn",
+                        {**LAW, **TRUTH, "F_clamp": F, "mesh": REFERENCE_MESH}, tag="friction_laws",
+                        log=lambda line: print(line, file=sys.stderr, flush=True))
+        if not done["summary"]["converged"]:
+            raise SystemExit(f"reference run at F_clamp = {F:g} did not converge: {done['summary']['message']}")
+        h = done["history"]
+        keep = np.asarray(h["drawing_displacement"]) > 0
+        out[F] = (np.asarray(h["drawing_displacement"])[keep], np.asarray(h["drawing_force"])[keep])
+    return out
+
+
+class JointModel:
+    """The fitting model's curves at every clamping force, from one compiled path function whose
+    parameters are ``names`` plus the clamping force."""
+
+    def __init__(self, names: tuple, overrides: dict, data: dict):
+        self.names = names
+        self.par = parameterize("flat_die", [*names, "F_clamp"], variant="const_force", algorithm="penalty",
+                                overrides={**overrides, **{k: START[k] for k in names}, "F_clamp": CLAMPS[1]})
+        path = path_function(self.par)
+        self.data = data
+
+        def curve(theta, F, u):
+            hist, code = path(jnp.concatenate([theta, jnp.array([F])]))
+            U, force = hist.observed["drawing_displacement"], hist.observed["drawing_force"]
+            rows = jnp.arange(U.shape[0]) < hist.n_rows
+            # Rows past the last are padding: push their displacements beyond every measured one.
+            U = jnp.where(rows, U, 1e9 + jnp.arange(U.shape[0]))
+            return jnp.interp(u, U, force), code
+
+        self._curve = jax.jit(curve)
+        self._jac = jax.jit(jax.jacfwd(lambda th, F, u: curve(th, F, u)[0]))
+        self.evaluations = 0
+
+    def curves(self, theta) -> dict:
+        out = {}
+        for F, (u, _) in self.data.items():
+            values, code = self._curve(jnp.asarray(theta), F, jnp.asarray(u))
+            if int(code) != 0:
+                where = dict(zip(self.names, np.asarray(theta).tolist()))
+                raise RuntimeError(f"the replay at F_clamp = {F:g}, {where} stopped (code {int(code)})")
+            out[F] = np.asarray(values)
+        self.evaluations += 1
+        return out
+
+    def residual(self, theta, measured) -> np.ndarray:
+        c = self.curves(theta)
+        return np.concatenate([c[F] - measured[F] for F in CLAMPS])
+
+    def jacobian(self, theta) -> np.ndarray:
+        return np.concatenate([np.asarray(self._jac(jnp.asarray(theta), F, jnp.asarray(self.data[F][0])))
+                               for F in CLAMPS])
+
+
+def fit(model: JointModel, measured: dict) -> dict:
+    """Bounded least squares on every curve at once; the estimate, its standard errors and intervals."""
+    t0 = time.perf_counter()
+    x0 = np.array([START[k] for k in model.names])
+    lo, hi = np.array([BOUNDS[k][0] for k in model.names]), np.array([BOUNDS[k][1] for k in model.names])
+    sol = optimize.least_squares(lambda th: model.residual(th, measured), x0, jac=model.jacobian, bounds=(lo, hi),
+                                 x_scale="jac", xtol=1e-10, ftol=1e-12, gtol=1e-12)
+    J, r = model.jacobian(sol.x), model.residual(sol.x, measured)
+    dof = r.size - sol.x.size
+    s2 = float(r @ r) / dof
+    cov = s2 * np.linalg.inv(J.T @ J)
+    stderr = np.sqrt(np.diag(cov))
+    t = float(stats.t.ppf(0.975, dof))
+    return {"x": sol.x, "stderr": stderr, "lo": sol.x - t * stderr, "hi": sol.x + t * stderr,
+            "rms": float(np.sqrt(np.mean(r**2))), "max_misfit": float(np.max(np.abs(r))), "nfev": int(sol.nfev),
+            "seconds": time.perf_counter() - t0, "status": int(sol.status)}
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--root", default=os.path.join("runs", "friction_laws"))
+    ap.add_argument("--noise", type=float, default=0.005,
+                    help="noise of the noisy fit, times each curve's largest force")
+    ap.add_argument("--seed", type=int, default=1)
+    a = ap.parse_args(argv)
+
+    data = reference_curves(a.root)
+    rng = np.random.default_rng(a.seed)
+    noisy = {F: f + a.noise * np.max(np.abs(f)) * rng.standard_normal(f.shape) for F, (_, f) in data.items()}
+    clean = {F: f for F, (_, f) in data.items()}
+    law_model = JointModel(("mu", "mu_p"), LAW, data)
+    coulomb_model = JointModel(("mu",), {}, data)
+
+    fits = {"law": (law_model, clean), "coulomb": (coulomb_model, clean), "law_noisy": (law_model, noisy)}
+    rows, results = [], {}
+    for name, (model, measured) in fits.items():
+        res = fit(model, measured)
+        results[name] = res
+        row = {"fit": name, "parameters": " ".join(model.names)}
+        for k, key in enumerate(model.names):
+            row.update({key: res["x"][k], f"{key}_stderr": res["stderr"][k], f"{key}_lo95": res["lo"][k],
+                        f"{key}_hi95": res["hi"][k], f"{key}_truth": TRUTH[key],
+                        f"{key}_in_interval": bool(res["lo"][k] <= TRUTH[key] <= res["hi"][k])})
+        row.update({"rms_misfit": res["rms"], "max_misfit": res["max_misfit"], "evaluations": res["nfev"],
+                    "seconds": round(res["seconds"], 1)})
+        rows.append(row)
+        print(name, {k: v for k, v in row.items() if not k.endswith("_truth")}, flush=True)
+    keys = []
+    for row in rows:
+        keys += [k for k in row if k not in keys]
+    write_rows(os.path.join(RESULTS, "friction_laws.csv"), [{k: row.get(k, "") for k in keys} for row in rows])
+
+    fitted = {"law": law_model.curves(results["law"]["x"]), "coulomb": coulomb_model.curves(results["coulomb"]["x"])}
+    with open(os.path.join(RESULTS, "friction_laws_curves.csv"), "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["F_clamp (N/mm)", "drawing displacement (mm)", "measured force (N/mm)",
+                    "law fit (N/mm)", "coulomb fit (N/mm)"])
+        for F in CLAMPS:
+            for u, f, g, c in zip(data[F][0], data[F][1], fitted["law"][F], fitted["coulomb"][F], strict=True):
+                w.writerow([F, f"{u:.10g}", f"{f:.10g}", f"{g:.10g}", f"{c:.10g}"])
+
+    out = os.path.join(RESULTS, "friction_laws")
+    os.makedirs(out, exist_ok=True)
+    mu, mu_p = results["law"]["x"]
+    law = PressurePolynomial(mu_p)
+    with open(os.path.join(out, "friction.rad"), "w") as fh:
+        fh.write(radioss_friction(law, mu, title="flat die, mu(p) fitted by jaxfric (experiments/friction_laws.py)"))
+    with open(os.path.join(out, "friction.csv"), "w") as fh:
+        fh.write(friction_csv(law, mu, 30.0))
+    _figure(data, fitted, results, os.path.join(RESULTS, "friction_laws.png"))
+
+
+def _figure(data, fitted, results, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.4))
+    colours = plt.cm.viridis(np.linspace(0.0, 0.85, len(CLAMPS)))
+    for F, col in zip(CLAMPS, colours, strict=True):
+        u, f = data[F]
+        ax[0].plot(1e3 * u, f, "o", ms=2.5, color=col, label=f"measured, F = {F:g} N/mm")
+        ax[0].plot(1e3 * u, fitted["law"][F], "-", color=col, lw=1.2)
+        ax[0].plot(1e3 * u, fitted["coulomb"][F], "--", color=col, lw=1.0)
+    ax[0].set(xlabel="drawing displacement (um)", ylabel="drawing force (N/mm)",
+              title="curves: points measured, - mu(p) fit, -- constant mu fit")
+    ax[0].legend(fontsize=7)
+    ax[1].plot(CLAMPS, [data[F][1][-1] for F in CLAMPS], "ko", label="measured (reference, mu(p))")
+    ax[1].plot(CLAMPS, [fitted["law"][F][-1] for F in CLAMPS], "-", color="C0", label="mu(p) fit")
+    ax[1].plot(CLAMPS, [fitted["coulomb"][F][-1] for F in CLAMPS], "--", color="C3",
+               label=f"constant mu = {results['coulomb']['x'][0]:.4f}")
+    ax[1].set(xlabel="clamping force (N/mm)", ylabel="drawing force at the end (N/mm)",
+              title="force against clamping force")
+    ax[1].legend(fontsize=8)
+    p = np.linspace(0.0, 30.0, 61)
+    mu, mu_p = results["law"]["x"]
+    ax[2].plot(p, TRUTH["mu"] + TRUTH["mu_p"] * p, "k-", lw=2.5, alpha=0.4, label="law of the data")
+    ax[2].plot(p, mu + mu_p * p, "-", color="C0", label=f"fit: {mu:.4f} {mu_p:+.5f} p")
+    ax[2].axhline(results["coulomb"]["x"][0], color="C3", ls="--", label="constant mu fit")
+    ax[2].set(xlabel="contact pressure p (MPa)", ylabel="friction coefficient", title="mu(p)")
+    ax[2].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    print("written", path)
+
+
+if __name__ == "__main__":
+    main()
