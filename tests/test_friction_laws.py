@@ -2,16 +2,19 @@
 pair force and its tangent, every formulation on the flat die, the speed's limits, the parameters'
 derivatives, and the errors."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jaxfric import scenes
+from jaxfric.cards.friction import friction_csv, lsdyna_friction, radioss_friction
 from jaxfric.contact.friction import Polynomial, VelocityDecay, sliding_speed, tributary_lengths
 from jaxfric.contact.laws import augmented_pair
 from jaxfric.identification.params import parameterize, path_function
 from jaxfric.loadpath.run import run as run_model
+from jaxfric.loadpath.simulate import simulate
 
 LAW = {"friction_law": "polynomial", "mu_p": -0.004, "mu_pp": 2e-5}
 SMALL = {"mesh": "24x2"}
@@ -121,6 +124,7 @@ def test_derivatives_of_the_law_parameters_match_central_differences():
                        overrides={**SMALL, **LAW, "mu_v": -0.01, "U_draw": 0.01})
     f = path_function(par)
 
+    @jax.jit
     def force(p):
         hist, _ = f(p)
         return hist.observed["drawing_force"][hist.n_rows - 1]
@@ -135,11 +139,19 @@ def test_derivatives_of_the_law_parameters_match_central_differences():
     assert np.all(np.abs(grad) > 1.0)    # every parameter is felt (N/mm per unit)
 
 
-def test_exact_contact_refuses_derivatives_with_a_pressure_law():
-    par = parameterize("flat_die", ["mu"], algorithm="lcp_ssn", overrides={**SMALL, **LAW, "U_draw": 0.005})
-    f = path_function(par)
+def test_exact_contact_refuses_derivatives_with_a_friction_law():
+    # Parameterising for derivatives refuses in one line; a derivative asked of the step itself raises.
+    with pytest.raises(ValueError, match="field 'algorithm': lcp_ssn has no derivatives with friction_law"):
+        parameterize("flat_die", ["mu"], algorithm="lcp_ssn", overrides={**SMALL, **LAW})
+    scene = scenes.make("flat_die", None, "lcp_ssn", {**SMALL, **LAW, "U_draw": 0.002})
+
+    def last_force(mu):
+        model = eqx.tree_at(lambda m: m.tools[0].mu, scene.model, jnp.stack([0.0, mu]))
+        hist = simulate(model, control=scene.control, observe=scene.observe).history
+        return hist.observed["drawing_force"][hist.n_rows - 1]
+
     with pytest.raises(NotImplementedError, match="friction law of the pressure or speed"):
-        jax.jvp(lambda p: f(p)[0].observed["drawing_force"], (jnp.asarray(par.p0),), (jnp.ones(1),))
+        jax.jvp(last_force, (jnp.asarray(0.15),), (jnp.asarray(1.0),))
 
 
 @pytest.mark.parametrize("overrides, field", [
@@ -153,3 +165,53 @@ def test_exact_contact_refuses_derivatives_with_a_pressure_law():
 def test_bad_friction_fields_name_the_field(overrides, field):
     with pytest.raises(ValueError, match=field):
         scenes.make("flat_die", None, "penalty", {**SMALL, **overrides})
+
+
+def _fields(line: str, widths) -> list[str]:
+    out, at = [], 0
+    for w in widths:
+        out.append(line[at:at + w].strip())
+        at += w
+    return out
+
+
+def test_openradioss_friction_card_reads_back_to_the_law():
+    """/FRICTION with Ifric = 1 (OpenRadioss's generalised viscous law): the integers in fields of 10
+    characters and Xfreq in 20, then C1 .. C5 and C6, Fric, VISF in fields of 20."""
+    law = Polynomial(c_p=-0.004, c_v=0.0012, c_pv=-3e-5, c_pp=2e-5, c_vv=-1e-6)
+    text = radioss_friction(law, 0.18, fric_id=7, title="test")
+    lines = [line for line in text.splitlines() if not line.startswith("#")]
+    assert lines[0] == "/FRICTION/7" and lines[1] == "test"
+    ifric, ifiltr, xfreq, iform = _fields(lines[2], (10, 10, 20, 10))
+    assert (int(ifric), int(ifiltr), xfreq, iform) == (1, 0, "", "")
+    c = [float(v) for v in _fields(lines[3], (20,) * 5)]
+    c6, fric, visf = _fields(lines[4], (20, 20, 20))
+    assert float(c6) == 0.0 and float(fric) == 0.18 and visf == ""
+    np.testing.assert_allclose(c, [-0.004, 0.0012, -3e-5, 2e-5, -1e-6], rtol=1e-12)
+    # The card's law is the simulator's: mu = Fric + C1 p + C2 v + C3 p v + C4 p^2 + C5 v^2.
+    p, v = 12.0, 3.0
+    card_mu = float(fric) + c[0] * p + c[1] * v + c[2] * p * v + c[3] * p * p + c[4] * v * v
+    assert card_mu == pytest.approx(float(law.coefficient(0.18, p, v)), rel=1e-12)
+    with pytest.raises(ValueError, match="law"):
+        radioss_friction(VelocityDecay(0.1, 1.0), 0.18)
+
+
+def test_lsdyna_friction_card_reads_back_to_the_decay_law():
+    """Card 2 of *CONTACT_...: FS FD DC in fields of 10 (mu = FD + (FS - FD) exp(-DC v))."""
+    law = VelocityDecay(0.11, 0.35)
+    lines = [line for line in lsdyna_friction(law, 0.17).splitlines() if not line.startswith("$")]
+    fs, fd, dc = (float(v) for v in _fields(lines[0], (10, 10, 10)))
+    assert (fs, fd, dc) == (0.17, 0.11, 0.35)
+    v = 2.5
+    assert fd + (fs - fd) * np.exp(-dc * v) == pytest.approx(float(law.coefficient(0.17, 1.0, v)), rel=1e-14)
+    with pytest.raises(ValueError, match="velocity decay only"):
+        lsdyna_friction(Polynomial(c_p=0.01), 0.17)
+    table = friction_csv(Polynomial(c_p=-0.004), 0.18, 20.0, n=5).splitlines()
+    assert table[1] == "contact pressure (MPa),friction coefficient (-)"
+    np.testing.assert_allclose([float(r.split(",")[1]) for r in table[2:]], [0.18, 0.16, 0.14, 0.12, 0.10])
+
+
+def test_fits_let_a_friction_law_s_terms_go_negative():
+    from jaxfric.identification.fit import check_bounds
+    lo, hi = check_bounds(("mu", "mu_p", "mu_v"), np.array([0.15, 0.0, 0.0]), None)
+    assert lo.tolist() == [0.0, -np.inf, -np.inf] and np.all(np.isinf(hi))

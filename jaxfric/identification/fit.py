@@ -69,6 +69,7 @@ from ..numerics._checks import check_int, check_positive
 from ..numerics.lru import LRU
 from ..numerics.newton import NewtonOptions
 from ..numerics.results import Result, describe
+from ..scenes._common import POLYNOMIAL_TERMS
 from . import fit_model_error
 from .fit_curve import Curve, refined_plan
 from .fit_data import Measurement, bin_means, curve_columns, observations, read_measurement, window_edges
@@ -282,9 +283,11 @@ def new_problem(par: Parameterization, meas: Measurement, edges, lo: np.ndarray,
 
 
 def check_bounds(names, p0, bounds) -> tuple[np.ndarray, np.ndarray]:
-    """(low, high) per fitted parameter: ``bounds`` where given, else [0, inf); each must hold its
-    start value ``p0`` (ValueError naming the field ``bounds``)."""
-    lo, hi = np.zeros(len(names)), np.full(len(names), np.inf)
+    """(low, high) per fitted parameter: ``bounds`` where given, else [0, inf), or (-inf, inf) for a
+    friction law's terms, which may be negative; each must hold its start value ``p0`` (ValueError naming
+    the field ``bounds``)."""
+    lo = np.array([-np.inf if name in POLYNOMIAL_TERMS else 0.0 for name in names])
+    hi = np.full(len(names), np.inf)
     bounds = dict(bounds or {})
     unknown = [k for k in bounds if k not in names]
     if unknown:

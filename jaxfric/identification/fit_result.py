@@ -99,7 +99,7 @@ def write_fit(result: FitResult, out: str) -> dict:
         "overrides": {k: _override_text(k, v) for k, v in result.overrides.items()},
         "params": result.params, "stderr": {k: _json_number(v) for k, v in result.stderr.items()},
         "ci95": {k: [_json_number(a), _json_number(b)] for k, (a, b) in result.ci95.items()},
-        "start": result.start, "bounds": {k: [a, _json_number(b)] for k, (a, b) in result.bounds.items()},
+        "start": result.start, "bounds": {k: [_json_number(a), _json_number(b)] for k, (a, b) in result.bounds.items()},
         "covariance": [[_json_number(float(v)) for v in row] for row in result.covariance],
         "window": result.window, "residual_rms": result.residual_rms, "n_points": result.n_points,
         "n_simulations": result.n_simulations, "n_replans": result.n_replans,
