@@ -25,6 +25,11 @@ curves), ``friction_laws.png`` (the curves, the steady force against the clampin
 and, for the law fit, the OpenRadioss ``/FRICTION`` card and the mu(p) table
 (``experiments/results/friction_laws/friction.rad``, ``friction.csv``). Reference runs go under
 ``--root`` (default ``runs/friction_laws``; a second call reads them back).
+
+``--card``: what the two fitted laws predict elsewhere, shape1's bead card (restraining force against
+penetration, :func:`jaxfric.cards.bead_card`) with the fitted mu(p) and with the constant mu, and the
+contact pressures of its full-depth run (the bead presses far harder than the flat die, so the law is
+used beyond the pressures it was fitted on): ``friction_laws_card.csv`` and ``friction_laws_card.png``.
 """
 
 from __future__ import annotations
@@ -143,7 +148,10 @@ def main(argv=None) -> None:
     ap.add_argument("--noise", type=float, default=0.005,
                     help="noise of the noisy fit, times each curve's largest force")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--card", action="store_true", help="only the bead cards of the fitted laws (after a fit)")
     a = ap.parse_args(argv)
+    if a.card:
+        return cards(a.root)
 
     data = reference_curves(a.root)
     rng = np.random.default_rng(a.seed)
@@ -189,6 +197,70 @@ def main(argv=None) -> None:
     with open(os.path.join(out, "friction.csv"), "w") as fh:
         fh.write(friction_csv(law, mu, 30.0))
     _figure(data, fitted, results, os.path.join(RESULTS, "friction_laws.png"))
+
+
+def cards(root: str) -> None:
+    """Shape1's bead card with each fitted law (``friction_laws.csv``), and the pressures of the bead."""
+    from jaxfric.cards import bead_card
+
+    with open(os.path.join(RESULTS, "friction_laws.csv")) as fh:
+        fitted = {row["fit"]: row for row in csv.DictReader(fh)}
+    laws = {"mu(p) fit": {**LAW, "mu": float(fitted["law"]["mu"]), "mu_p": float(fitted["law"]["mu_p"])},
+            "constant mu fit": {"mu": float(fitted["coulomb"]["mu"])}}
+    log = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    out = {name: bead_card("shape1", overrides=o, progress=log) for name, o in laws.items()}
+    # The pressures the mu(p) law meets in the bead: its full-depth card run drawn 35 mm again.
+    done = run_case(os.path.join(root, "shape1_full_depth"), "blankholder", "shape1", "lcp_ssn",
+                    {**laws["mu(p) fit"], "lock_control": "depth", "U_pull": 35.0, "steady_window": (25.0, 35.0)},
+                    tag="friction_laws", log=log)
+    p = _pressures(done["contact"])
+    closed = p > 1e-9
+    fit_range = max(_pressures(np.load(os.path.join(root, f"reference_F{F:g}", "contact.npz"))).max() for F in CLAMPS)
+    rows = []
+    for k, depth in enumerate(out["mu(p) fit"].penetration):
+        rows.append({"penetration_mm": depth, **{f"{name} restraining (N/mm)": card.restraining_force[k]
+                                                 for name, card in out.items()},
+                     **{f"{name} normal (N/mm)": card.normal_force[k] for name, card in out.items()}})
+    write_rows(os.path.join(RESULTS, "friction_laws_card.csv"), rows)
+    summary = (f"bead pressures at full depth (closed pairs): median {np.median(p[closed]):.1f} MPa, "
+               f"90th percentile {np.percentile(p[closed], 90):.1f} MPa, largest {np.max(p):.1f} MPa; "
+               f"the flat die's curves reach {fit_range:.1f} MPa")
+    print(summary)
+    with open(os.path.join(RESULTS, "friction_laws", "bead_pressures.txt"), "w") as fh:
+        fh.write(summary + "\n")
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
+    for (name, card), style in zip(out.items(), ("-o", "--s"), strict=True):
+        ax[0].plot(card.penetration, card.restraining_force, style, label=name)
+        ax[0].plot(card.penetration, card.normal_force, style, alpha=0.45, label=f"{name}: normal force")
+    ax[0].set(xlabel="bead penetration (mm)", ylabel="force per unit bead length (N/mm)",
+              title="shape1 bead card with each fitted law")
+    ax[0].legend(fontsize=8)
+    ax[1].hist(p[closed], bins=40, color="0.5")
+    ax[1].axvspan(0.0, fit_range, color="C0", alpha=0.15, label="pressures of the fit's curves (flat die)")
+    ax[1].set(xlabel="contact pressure (MPa)", ylabel="closed pairs", title="the bead's pressures at full depth")
+    ax[1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(os.path.join(RESULTS, "friction_laws_card.png"), dpi=130)
+    print("written", os.path.join(RESULTS, "friction_laws_card.png"))
+
+
+def _pressures(contact) -> np.ndarray:
+    """(m,) every pair's contact pressure at the run's final instant (MPa), tool by tool (its own row of
+    candidates: :func:`jaxfric.contact.friction.tributary_lengths`)."""
+    from jaxfric.contact.friction import tributary_lengths
+
+    X = contact["x0"][contact["pair_node"]]
+    out = np.zeros(len(X))
+    for tool in np.unique(contact["pair_tool"]):
+        mine = contact["pair_tool"] == tool
+        out[mine] = contact["final__rn"][mine] / np.asarray(tributary_lengths(X[mine]))
+    return out
 
 
 def _figure(data, fitted, results, path) -> None:

@@ -15,6 +15,7 @@ from .contact.formulations import (  # noqa: E402
     Penalty,
     formulation,
 )
+from .contact.friction import FrictionLaw, Polynomial, VelocityDecay  # noqa: E402
 from .contact.rigid import Force, Move, RigidTool  # noqa: E402
 from .contact.status import OPEN, SLIP, STICK, contact_status  # noqa: E402
 from .contact.tools import Tool  # noqa: E402
@@ -42,7 +43,7 @@ from .numerics.results import Result, SimulationError  # noqa: E402
 __version__ = "0.1.0"
 
 __all__ = [
-    "RigidTool", "Move", "Force", "Tool",
+    "RigidTool", "Move", "Force", "Tool", "FrictionLaw", "Polynomial", "VelocityDecay",
     "ALGORITHMS", "AbstractContactFormulation", "Penalty", "AugmentedLagrangian", "Complementarity", "formulation",
     "OPEN", "STICK", "SLIP", "contact_status",
     "BlockTridiag", "Bordered", "block_tridiag_solve", "bordered_solve", "dense_solve", "linear_solve",

@@ -224,7 +224,8 @@ def _pair(tool: RigidTool, law, frictional: bool, X, u, q, mu, lam_n, lam_t, u_r
     proj = project(tool.geometry, X, q_ref * tool.drive, displacement=u_ref, increment=increment)
     smoothing = law.smoothing if law.smooth else None
     if frictional:
-        coefficient = mu if tool.friction is None else (lambda rn: tool.friction.coefficient(mu, rn / length, speed))
+        friction = tool.friction
+        coefficient = mu if friction is None else (lambda rn: friction.coefficient(mu, rn / length, speed))
         force = augmented_pair(proj.gap, proj.zeta_increment, lam_n, lam_t, coefficient, law.eps_n, law.eps_t,
                                proj.valid, smoothing)
     else:  # static: a frictionless tool builds no tangential term at all

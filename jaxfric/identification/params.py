@@ -106,7 +106,7 @@ def parameterize(scene: str, names, *, variant: str | None = None, algorithm: st
     base = scenes.make(scene, variant, algorithm, overrides)
     if algorithm in ("lcp_ssn", "lcp_lemke") and has_friction_law(base.model.tools):
         raise ValueError(f"field 'algorithm': {algorithm} has no derivatives with friction_law = "
-                         f"{base.config.friction_law!r} (jaxfric.contact.friction); use penalty or auglag")
+                         f"{getattr(base.config, 'friction_law')!r} (jaxfric.contact.friction); use penalty or auglag")
     config = base.config
     assert dataclasses.is_dataclass(config)  # a scene's config is its config dataclass (Scene.config: object)
     start = []
