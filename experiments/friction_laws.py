@@ -49,8 +49,8 @@ import numpy as np  # noqa: E402
 from scipy import optimize, stats  # noqa: E402
 
 from benchutil import write_rows  # noqa: E402
-from jaxfric.cards.friction import friction_csv, radioss_friction  # noqa: E402
-from jaxfric.contact.friction import Polynomial  # noqa: E402
+from jaxfric.cards.friction import friction_csv, lsdyna_friction, radioss_friction  # noqa: E402
+from jaxfric.contact.friction import Polynomial, VelocityDecay  # noqa: E402
 from jaxfric.identification.params import parameterize, path_function  # noqa: E402
 from jaxfric.io.batch import run_case  # noqa: E402
 
@@ -59,69 +59,86 @@ RESULTS = os.path.join(HERE, "results")
 CLAMPS = (25.0, 50.0, 100.0, 200.0)
 TRUTH = {"mu": 0.18, "mu_p": -0.004}
 LAW = {"friction_law": "polynomial"}
+# The speed study: LS-DYNA's decay law at F_clamp = 50 N/mm, drawn at three speeds (mm/s).
+SPEEDS = (0.2, 1.0, 5.0)
+SPEED_TRUTH = {"mu": 0.18, "mu_d": 0.10, "decay": 1.0}
+SPEED_LAW = {"friction_law": "velocity_decay"}
 # Drawn 50 um, beyond the spec's 30: at 200 N/mm the sheet slides as a whole only from about 38 um on.
 STROKE = {"U_draw": 0.05}
 REFERENCE_MESH = "480x4"
-START = {"mu": 0.15, "mu_p": 0.0}
-BOUNDS = {"mu": (0.0, 1.0), "mu_p": (-0.05, 0.05)}
+START = {"mu": 0.15, "mu_p": 0.0, "mu_d": 0.15, "decay": 0.5}
+BOUNDS = {"mu": (0.0, 1.0), "mu_p": (-0.05, 0.05), "mu_d": (0.0, 1.0), "decay": (0.0, 100.0)}
 
 
-def reference_curves(root: str) -> dict:
-    """Per clamping force, the measured curve (displacement, force) of the reference discretisation."""
+def reference_curves(root: str, cases: dict, truth: dict) -> dict:
+    """Per case (label -> config values), the measured curve (displacement, force) of the reference
+    discretisation made with ``truth``."""
     out = {}
-    for F in CLAMPS:
-        done = run_case(os.path.join(root, f"reference_F{F:g}"), "flat_die", "const_force", "lcp_ssn",
-                        {**LAW, **TRUTH, **STROKE, "F_clamp": F, "mesh": REFERENCE_MESH}, tag="friction_laws",
+    for label, values in cases.items():
+        done = run_case(os.path.join(root, f"reference_{label}"), "flat_die", "const_force", "lcp_ssn",
+                        {**truth, **values, "mesh": REFERENCE_MESH}, tag="friction_laws",
                         log=lambda line: print(line, file=sys.stderr, flush=True))
         if not done["summary"]["converged"]:
-            raise SystemExit(f"reference run at F_clamp = {F:g} did not converge: {done['summary']['message']}")
+            raise SystemExit(f"reference run {label} did not converge: {done['summary']['message']}")
         h = done["history"]
         keep = np.asarray(h["drawing_displacement"]) > 0
-        out[F] = (np.asarray(h["drawing_displacement"])[keep], np.asarray(h["drawing_force"])[keep])
+        out[label] = (np.asarray(h["drawing_displacement"])[keep], np.asarray(h["drawing_force"])[keep])
     return out
 
 
 class JointModel:
-    """The fitting model's curves at every clamping force, from one compiled path function whose
-    parameters are ``names`` plus the clamping force."""
+    """The fitting model's curves of several cases from as few compiled path functions as possible.
 
-    def __init__(self, names: tuple, overrides: dict, data: dict):
-        self.names = names
-        self.par = parameterize("flat_die", [*names, "F_clamp"], variant="const_force", algorithm="penalty",
-                                overrides={**overrides, **STROKE, **{k: START[k] for k in names}, "F_clamp": CLAMPS[1]})
-        path = path_function(self.par)
-        self.data = data
+    ``cases``: per label, the config values of that curve. Values named in ``extra`` (the clamping
+    force) become fixed parameters of a shared path function after ``names``; the others (the drawing
+    speed, which sets the phases' static durations) give each distinct set its own path function."""
 
-        def curve(theta, F, u):
-            hist, code = path(jnp.concatenate([theta, jnp.array([F])]))
+    def __init__(self, names: tuple, overrides: dict, data: dict, cases: dict, extra: tuple = ()):
+        self.names, self.data, self.extra, self.labels = names, data, extra, tuple(cases)
+        self._extra_values = {label: jnp.asarray([cases[label][k] for k in extra], jnp.float64) for label in cases}
+        self._groups, functions = {}, {}
+        for label, values in cases.items():
+            static = tuple(sorted((k, v) for k, v in values.items() if k not in extra))
+            if static not in functions:
+                first = dict(values)
+                par = parameterize("flat_die", [*names, *extra], variant="const_force", algorithm="penalty",
+                                   overrides={**overrides, **first, **{k: START[k] for k in names}})
+                functions[static] = self._compile(path_function(par))
+            self._groups[label] = functions[static]
+        self.evaluations = 0
+
+    @staticmethod
+    def _compile(path):
+        def curve(theta, extra, u):
+            hist, code = path(jnp.concatenate([theta, extra]))
             U, force = hist.observed["drawing_displacement"], hist.observed["drawing_force"]
             rows = jnp.arange(U.shape[0]) < hist.n_rows
             # Rows past the last are padding: push their displacements beyond every measured one.
             U = jnp.where(rows, U, 1e9 + jnp.arange(U.shape[0]))
             return jnp.interp(u, U, force), code
 
-        self._curve = jax.jit(curve)
-        self._jac = jax.jit(jax.jacfwd(lambda th, F, u: curve(th, F, u)[0]))
-        self.evaluations = 0
+        return jax.jit(curve), jax.jit(jax.jacfwd(lambda th, e, u: curve(th, e, u)[0]))
 
     def curves(self, theta) -> dict:
         out = {}
-        for F, (u, _) in self.data.items():
-            values, code = self._curve(jnp.asarray(theta), F, jnp.asarray(u))
+        for label in self.labels:
+            values, code = self._groups[label][0](jnp.asarray(theta), self._extra_values[label],
+                                                  jnp.asarray(self.data[label][0]))
             if int(code) != 0:
                 where = dict(zip(self.names, np.asarray(theta).tolist()))
-                raise RuntimeError(f"the replay at F_clamp = {F:g}, {where} stopped (code {int(code)})")
-            out[F] = np.asarray(values)
+                raise RuntimeError(f"the replay of {label}, {where} stopped (code {int(code)})")
+            out[label] = np.asarray(values)
         self.evaluations += 1
         return out
 
     def residual(self, theta, measured) -> np.ndarray:
         c = self.curves(theta)
-        return np.concatenate([c[F] - measured[F] for F in CLAMPS])
+        return np.concatenate([c[label] - measured[label] for label in self.labels])
 
     def jacobian(self, theta) -> np.ndarray:
-        return np.concatenate([np.asarray(self._jac(jnp.asarray(theta), F, jnp.asarray(self.data[F][0])))
-                               for F in CLAMPS])
+        return np.concatenate([np.asarray(self._groups[label][1](jnp.asarray(theta), self._extra_values[label],
+                                                                 jnp.asarray(self.data[label][0])))
+                               for label in self.labels])
 
 
 def fit(model: JointModel, measured: dict) -> dict:
@@ -153,40 +170,35 @@ def main(argv=None) -> None:
     if a.card:
         return cards(a.root)
 
-    data = reference_curves(a.root)
+    rows = []
+    clamps = {f"F{F:g}": {**LAW, **STROKE, "F_clamp": F} for F in CLAMPS}
+    data = reference_curves(a.root, clamps, {**LAW, **TRUTH})
+    clean = {label: f for label, (_, f) in data.items()}
     rng = np.random.default_rng(a.seed)
-    noisy = {F: f + a.noise * np.max(np.abs(f)) * rng.standard_normal(f.shape) for F, (_, f) in data.items()}
-    clean = {F: f for F, (_, f) in data.items()}
-    law_model = JointModel(("mu", "mu_p"), LAW, data)
-    coulomb_model = JointModel(("mu",), {}, data)
+    noisy = {label: f + a.noise * np.max(np.abs(f)) * rng.standard_normal(f.shape) for label, f in clean.items()}
+    law_model = JointModel(("mu", "mu_p"), LAW, data, clamps, extra=("F_clamp",))
+    coulomb_model = JointModel(("mu",), {}, data, {k: {kk: vv for kk, vv in v.items() if kk != "friction_law"}
+                                                    for k, v in clamps.items()}, extra=("F_clamp",))
+    results = _fits({"law": (law_model, clean), "coulomb": (coulomb_model, clean),
+                     "law_noisy": (law_model, noisy)}, TRUTH, rows)
+    fitted = {"law": law_model.curves(results["law"]["x"]), "coulomb": coulomb_model.curves(results["coulomb"]["x"])}
+    _write_curves(os.path.join(RESULTS, "friction_laws_curves.csv"), data, fitted, clamps)
 
-    fits = {"law": (law_model, clean), "coulomb": (coulomb_model, clean), "law_noisy": (law_model, noisy)}
-    rows, results = [], {}
-    for name, (model, measured) in fits.items():
-        res = fit(model, measured)
-        results[name] = res
-        row = {"fit": name, "parameters": " ".join(model.names)}
-        for k, key in enumerate(model.names):
-            row.update({key: res["x"][k], f"{key}_stderr": res["stderr"][k], f"{key}_lo95": res["lo"][k],
-                        f"{key}_hi95": res["hi"][k], f"{key}_truth": TRUTH[key],
-                        f"{key}_in_interval": bool(res["lo"][k] <= TRUTH[key] <= res["hi"][k])})
-        row.update({"rms_misfit": res["rms"], "max_misfit": res["max_misfit"], "evaluations": res["nfev"],
-                    "seconds": round(res["seconds"], 1)})
-        rows.append(row)
-        print(name, {k: v for k, v in row.items() if not k.endswith("_truth")}, flush=True)
+    speeds = {f"v{v:g}": {**SPEED_LAW, "F_clamp": 50.0, "draw_speed": v} for v in SPEEDS}
+    speed_data = reference_curves(a.root, speeds, {**SPEED_LAW, **SPEED_TRUTH})
+    speed_clean = {label: f for label, (_, f) in speed_data.items()}
+    speed_model = JointModel(("mu", "mu_d", "decay"), SPEED_LAW, speed_data, speeds)
+    speed_coulomb = JointModel(("mu",), {}, speed_data, {k: {"F_clamp": 50.0} for k in speeds})
+    speed_results = _fits({"speed_law": (speed_model, speed_clean), "speed_coulomb": (speed_coulomb, speed_clean)},
+                          SPEED_TRUTH, rows)
+    speed_fitted = {"law": speed_model.curves(speed_results["speed_law"]["x"]),
+                    "coulomb": speed_coulomb.curves(speed_results["speed_coulomb"]["x"])}
+    _write_curves(os.path.join(RESULTS, "friction_laws_speed_curves.csv"), speed_data, speed_fitted, speeds)
+
     keys = []
     for row in rows:
         keys += [k for k in row if k not in keys]
     write_rows(os.path.join(RESULTS, "friction_laws.csv"), [{k: row.get(k, "") for k in keys} for row in rows])
-
-    fitted = {"law": law_model.curves(results["law"]["x"]), "coulomb": coulomb_model.curves(results["coulomb"]["x"])}
-    with open(os.path.join(RESULTS, "friction_laws_curves.csv"), "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["F_clamp (N/mm)", "drawing displacement (mm)", "measured force (N/mm)",
-                    "law fit (N/mm)", "coulomb fit (N/mm)"])
-        for F in CLAMPS:
-            for u, f, g, c in zip(data[F][0], data[F][1], fitted["law"][F], fitted["coulomb"][F], strict=True):
-                w.writerow([F, f"{u:.10g}", f"{f:.10g}", f"{g:.10g}", f"{c:.10g}"])
 
     out = os.path.join(RESULTS, "friction_laws")
     os.makedirs(out, exist_ok=True)
@@ -196,7 +208,40 @@ def main(argv=None) -> None:
         fh.write(radioss_friction(law, mu, title="flat die, mu(p) fitted by jaxfric (experiments/friction_laws.py)"))
     with open(os.path.join(out, "friction.csv"), "w") as fh:
         fh.write(friction_csv(law, mu, 30.0))
+    mu_s, mu_d, decay = speed_results["speed_law"]["x"]
+    with open(os.path.join(out, "friction_speed.k"), "w") as fh:
+        fh.write(lsdyna_friction(VelocityDecay(mu_d, decay), mu_s))
     _figure(data, fitted, results, os.path.join(RESULTS, "friction_laws.png"))
+    _speed_figure(speed_data, speed_fitted, speed_results, os.path.join(RESULTS, "friction_laws_speed.png"))
+
+
+def _fits(fits: dict, truth: dict, rows: list) -> dict:
+    """Each fit (name -> (model, measured)), its row appended to ``rows``; the results by name."""
+    results = {}
+    for name, (model, measured) in fits.items():
+        res = fit(model, measured)
+        results[name] = res
+        row = {"fit": name, "parameters": " ".join(model.names)}
+        for k, key in enumerate(model.names):
+            row.update({key: res["x"][k], f"{key}_stderr": res["stderr"][k], f"{key}_lo95": res["lo"][k],
+                        f"{key}_hi95": res["hi"][k], f"{key}_truth": truth[key],
+                        f"{key}_in_interval": bool(res["lo"][k] <= truth[key] <= res["hi"][k])})
+        row.update({"rms_misfit": res["rms"], "max_misfit": res["max_misfit"], "evaluations": res["nfev"],
+                    "seconds": round(res["seconds"], 1)})
+        rows.append(row)
+        print(name, {k: v for k, v in row.items() if not k.endswith("_truth")}, flush=True)
+    return results
+
+
+def _write_curves(path: str, data: dict, fitted: dict, cases: dict) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["case", "F_clamp (N/mm)", "draw_speed (mm/s)", "drawing displacement (mm)",
+                    "measured force (N/mm)", "law fit (N/mm)", "coulomb fit (N/mm)"])
+        for label, values in cases.items():
+            for u, f, g, c in zip(*data[label], fitted["law"][label], fitted["coulomb"][label], strict=True):
+                w.writerow([label, values["F_clamp"], values.get("draw_speed", 1.0), f"{u:.10g}", f"{f:.10g}",
+                            f"{g:.10g}", f"{c:.10g}"])
 
 
 def cards(root: str) -> None:
@@ -272,16 +317,16 @@ def _figure(data, fitted, results, path) -> None:
     fig, ax = plt.subplots(1, 3, figsize=(15, 4.4))
     colours = plt.cm.viridis(np.linspace(0.0, 0.85, len(CLAMPS)))
     for F, col in zip(CLAMPS, colours, strict=True):
-        u, f = data[F]
+        u, f = data[f"F{F:g}"]
         ax[0].plot(1e3 * u, f, "o", ms=2.5, color=col, label=f"measured, F = {F:g} N/mm")
-        ax[0].plot(1e3 * u, fitted["law"][F], "-", color=col, lw=1.2)
-        ax[0].plot(1e3 * u, fitted["coulomb"][F], "--", color=col, lw=1.0)
+        ax[0].plot(1e3 * u, fitted["law"][f"F{F:g}"], "-", color=col, lw=1.2)
+        ax[0].plot(1e3 * u, fitted["coulomb"][f"F{F:g}"], "--", color=col, lw=1.0)
     ax[0].set(xlabel="drawing displacement (um)", ylabel="drawing force (N/mm)",
               title="curves: points measured, - mu(p) fit, -- constant mu fit")
     ax[0].legend(fontsize=7)
-    ax[1].plot(CLAMPS, [data[F][1][-1] for F in CLAMPS], "ko", label="measured (reference, mu(p))")
-    ax[1].plot(CLAMPS, [fitted["law"][F][-1] for F in CLAMPS], "-", color="C0", label="mu(p) fit")
-    ax[1].plot(CLAMPS, [fitted["coulomb"][F][-1] for F in CLAMPS], "--", color="C3",
+    ax[1].plot(CLAMPS, [data[f"F{F:g}"][1][-1] for F in CLAMPS], "ko", label="measured (reference, mu(p))")
+    ax[1].plot(CLAMPS, [fitted["law"][f"F{F:g}"][-1] for F in CLAMPS], "-", color="C0", label="mu(p) fit")
+    ax[1].plot(CLAMPS, [fitted["coulomb"][f"F{F:g}"][-1] for F in CLAMPS], "--", color="C3",
                label=f"constant mu = {results['coulomb']['x'][0]:.4f}")
     ax[1].set(xlabel="clamping force (N/mm)", ylabel="drawing force at the end (N/mm)",
               title="force against clamping force")
@@ -293,6 +338,39 @@ def _figure(data, fitted, results, path) -> None:
     ax[2].axhline(results["coulomb"]["x"][0], color="C3", ls="--", label="constant mu fit")
     ax[2].set(xlabel="contact pressure p (MPa)", ylabel="friction coefficient", title="mu(p)")
     ax[2].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    print("written", path)
+
+
+def _speed_figure(data, fitted, results, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
+    colours = plt.cm.viridis(np.linspace(0.0, 0.85, len(SPEEDS)))
+    for v, col in zip(SPEEDS, colours, strict=True):
+        u, f = data[f"v{v:g}"]
+        ax[0].plot(1e3 * u, f, "o", ms=2.5, color=col, label=f"measured, {v:g} mm/s")
+        ax[0].plot(1e3 * u, fitted["law"][f"v{v:g}"], "-", color=col, lw=1.2)
+        ax[0].plot(1e3 * u, fitted["coulomb"][f"v{v:g}"], "--", color=col, lw=1.0)
+    ax[0].set(xlabel="drawing displacement (um)", ylabel="drawing force (N/mm)",
+              title="F = 50 N/mm: - mu(v) fit, -- constant mu fit")
+    ax[0].legend(fontsize=8)
+    v = np.logspace(-2, 1.3, 80)
+    mu, mu_d, decay = results["speed_law"]["x"]
+    t = SPEED_TRUTH
+    ax[1].semilogx(v, t["mu_d"] + (t["mu"] - t["mu_d"]) * np.exp(-t["decay"] * v), "k-", lw=2.5, alpha=0.4,
+                   label="law of the data")
+    ax[1].semilogx(v, mu_d + (mu - mu_d) * np.exp(-decay * v), "-", color="C0",
+                   label=f"fit: {mu_d:.4f} + ({mu:.4f} - {mu_d:.4f}) exp(-{decay:.3f} v)")
+    ax[1].axhline(results["speed_coulomb"]["x"][0], color="C3", ls="--", label="constant mu fit")
+    for s in SPEEDS:
+        ax[1].axvline(s, color="0.8", lw=0.8)
+    ax[1].set(xlabel="sliding speed v (mm/s)", ylabel="friction coefficient", title="mu(v); grey: the draw speeds")
+    ax[1].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     print("written", path)

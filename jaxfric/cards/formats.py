@@ -68,6 +68,15 @@ def _meta(card: BeadCard, comment: str) -> list[str]:
             f"{comment} units: mm, N/mm (force per unit bead length); overrides {card.overrides or {}}"]
 
 
+def _law_note(card: BeadCard, total: bool) -> list[str]:
+    """A comment for a card made with a friction law of pressure or speed: FS and FD hold only its mu_0."""
+    law = (card.overrides or {}).get("friction_law", "coulomb")
+    if law == "coulomb" or total:
+        return []
+    return [f"$ friction_law = {law}: the runs' friction varies with pressure or speed, FS = FD = its mu_0 only;",
+            "$ the restraining force with that law is the card's total (write it with --total)"]
+
+
 def lsdyna_deck(card: BeadCard, *, ssid: int = 1, msid: int = 2, sstyp: int = 4, mstyp: int = 3,
                 lcids: tuple[int, int] = (1, 2), total: bool = False) -> str:
     """The LS-DYNA keyword text: ``*CONTACT_DRAWBEAD`` (cards 1 to 4) and the two ``*DEFINE_CURVE``
@@ -80,6 +89,7 @@ def lsdyna_deck(card: BeadCard, *, ssid: int = 1, msid: int = 2, sstyp: int = 4,
     out = ["*KEYWORD", *_meta(card, "$"),
            f"$ LCIDRF: {what}; LCIDNF: normal force; abscissa: bead displacement 0 .. DBDTH (mm)",
            "$ set SSID (the bead line) and MSID (the blank) to the deck's own ids",
+           *_law_note(card, total),
            "*CONTACT_DRAWBEAD",
            "$     SSID      MSID     SSTYP     MSTYP    SBOXID    MBOXID       SPR       MPR",
            "".join(_f10(v) for v in (ssid, msid, sstyp, mstyp, 0, 0, 0, 0)),
