@@ -26,7 +26,8 @@ and, for the law fit, the OpenRadioss ``/FRICTION`` card and the mu(p) table
 (``experiments/results/friction_laws/friction.rad``, ``friction.csv``). Reference runs go under
 ``--root`` (default ``runs/friction_laws``; a second call reads them back).
 
-``--card``: what the two fitted laws predict elsewhere, shape1's bead card (restraining force against
+Then what the two fitted laws predict elsewhere (``--card``: only this part, from the table on disk):
+shape1's bead card (restraining force against
 penetration, :func:`jaxfric.cards.bead_card`) with the fitted mu(p) and with the constant mu, and the
 contact pressures of its full-depth run (the bead presses far harder than the flat die, so the law is
 used beyond the pressures it was fitted on): ``friction_laws_card.csv`` and ``friction_laws_card.png``.
@@ -49,8 +50,8 @@ import numpy as np  # noqa: E402
 from scipy import optimize, stats  # noqa: E402
 
 from benchutil import write_rows  # noqa: E402
-from jaxfric.cards.friction import friction_csv, lsdyna_friction, radioss_friction  # noqa: E402
-from jaxfric.contact.friction import Polynomial, VelocityDecay  # noqa: E402
+from jaxfric.cards.friction import friction_csv, radioss_friction  # noqa: E402
+from jaxfric.contact.friction import Polynomial  # noqa: E402
 from jaxfric.identification.params import parameterize, path_function  # noqa: E402
 from jaxfric.io.batch import run_case  # noqa: E402
 
@@ -59,15 +60,12 @@ RESULTS = os.path.join(HERE, "results")
 CLAMPS = (25.0, 50.0, 100.0, 200.0)
 TRUTH = {"mu": 0.18, "mu_p": -0.004}
 LAW = {"friction_law": "polynomial"}
-# The speed study: LS-DYNA's decay law at F_clamp = 50 N/mm, drawn at three speeds (mm/s).
-SPEEDS = (0.2, 1.0, 5.0)
-SPEED_TRUTH = {"mu": 0.18, "mu_d": 0.10, "decay": 1.0}
-SPEED_LAW = {"friction_law": "velocity_decay"}
+
 # Drawn 50 um, beyond the spec's 30: at 200 N/mm the sheet slides as a whole only from about 38 um on.
 STROKE = {"U_draw": 0.05}
 REFERENCE_MESH = "480x4"
-START = {"mu": 0.15, "mu_p": 0.0, "mu_d": 0.15, "decay": 0.5}
-BOUNDS = {"mu": (0.0, 1.0), "mu_p": (-0.05, 0.05), "mu_d": (0.0, 1.0), "decay": (0.0, 100.0)}
+START = {"mu": 0.15, "mu_p": 0.0}
+BOUNDS = {"mu": (0.0, 1.0), "mu_p": (-0.05, 0.05)}
 
 
 def reference_curves(root: str, cases: dict, truth: dict) -> dict:
@@ -165,7 +163,7 @@ def main(argv=None) -> None:
     ap.add_argument("--noise", type=float, default=0.005,
                     help="noise of the noisy fit, times each curve's largest force")
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--card", action="store_true", help="only the bead cards of the fitted laws (after a fit)")
+    ap.add_argument("--card", action="store_true", help="only the bead cards of the fitted laws (after the fits)")
     a = ap.parse_args(argv)
     if a.card:
         return cards(a.root)
@@ -184,17 +182,6 @@ def main(argv=None) -> None:
     fitted = {"law": law_model.curves(results["law"]["x"]), "coulomb": coulomb_model.curves(results["coulomb"]["x"])}
     _write_curves(os.path.join(RESULTS, "friction_laws_curves.csv"), data, fitted, clamps)
 
-    speeds = {f"v{v:g}": {**SPEED_LAW, "F_clamp": 50.0, "draw_speed": v} for v in SPEEDS}
-    speed_data = reference_curves(a.root, speeds, {**SPEED_LAW, **SPEED_TRUTH})
-    speed_clean = {label: f for label, (_, f) in speed_data.items()}
-    speed_model = JointModel(("mu", "mu_d", "decay"), SPEED_LAW, speed_data, speeds)
-    speed_coulomb = JointModel(("mu",), {}, speed_data, {k: {"F_clamp": 50.0} for k in speeds})
-    speed_results = _fits({"speed_law": (speed_model, speed_clean), "speed_coulomb": (speed_coulomb, speed_clean)},
-                          SPEED_TRUTH, rows)
-    speed_fitted = {"law": speed_model.curves(speed_results["speed_law"]["x"]),
-                    "coulomb": speed_coulomb.curves(speed_results["speed_coulomb"]["x"])}
-    _write_curves(os.path.join(RESULTS, "friction_laws_speed_curves.csv"), speed_data, speed_fitted, speeds)
-
     keys = []
     for row in rows:
         keys += [k for k in row if k not in keys]
@@ -208,11 +195,8 @@ def main(argv=None) -> None:
         fh.write(radioss_friction(law, mu, title="flat die, mu(p) fitted by jaxfric (experiments/friction_laws.py)"))
     with open(os.path.join(out, "friction.csv"), "w") as fh:
         fh.write(friction_csv(law, mu, 30.0))
-    mu_s, mu_d, decay = speed_results["speed_law"]["x"]
-    with open(os.path.join(out, "friction_speed.k"), "w") as fh:
-        fh.write(lsdyna_friction(VelocityDecay(mu_d, decay), mu_s))
     _figure(data, fitted, results, os.path.join(RESULTS, "friction_laws.png"))
-    _speed_figure(speed_data, speed_fitted, speed_results, os.path.join(RESULTS, "friction_laws_speed.png"))
+    cards(a.root)
 
 
 def _fits(fits: dict, truth: dict, rows: list) -> dict:
@@ -338,39 +322,6 @@ def _figure(data, fitted, results, path) -> None:
     ax[2].axhline(results["coulomb"]["x"][0], color="C3", ls="--", label="constant mu fit")
     ax[2].set(xlabel="contact pressure p (MPa)", ylabel="friction coefficient", title="mu(p)")
     ax[2].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    print("written", path)
-
-
-def _speed_figure(data, fitted, results, path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
-    colours = plt.cm.viridis(np.linspace(0.0, 0.85, len(SPEEDS)))
-    for v, col in zip(SPEEDS, colours, strict=True):
-        u, f = data[f"v{v:g}"]
-        ax[0].plot(1e3 * u, f, "o", ms=2.5, color=col, label=f"measured, {v:g} mm/s")
-        ax[0].plot(1e3 * u, fitted["law"][f"v{v:g}"], "-", color=col, lw=1.2)
-        ax[0].plot(1e3 * u, fitted["coulomb"][f"v{v:g}"], "--", color=col, lw=1.0)
-    ax[0].set(xlabel="drawing displacement (um)", ylabel="drawing force (N/mm)",
-              title="F = 50 N/mm: - mu(v) fit, -- constant mu fit")
-    ax[0].legend(fontsize=8)
-    v = np.logspace(-2, 1.3, 80)
-    mu, mu_d, decay = results["speed_law"]["x"]
-    t = SPEED_TRUTH
-    ax[1].semilogx(v, t["mu_d"] + (t["mu"] - t["mu_d"]) * np.exp(-t["decay"] * v), "k-", lw=2.5, alpha=0.4,
-                   label="law of the data")
-    ax[1].semilogx(v, mu_d + (mu - mu_d) * np.exp(-decay * v), "-", color="C0",
-                   label=f"fit: {mu_d:.4f} + ({mu:.4f} - {mu_d:.4f}) exp(-{decay:.3f} v)")
-    ax[1].axhline(results["speed_coulomb"]["x"][0], color="C3", ls="--", label="constant mu fit")
-    for s in SPEEDS:
-        ax[1].axvline(s, color="0.8", lw=0.8)
-    ax[1].set(xlabel="sliding speed v (mm/s)", ylabel="friction coefficient", title="mu(v); grey: the draw speeds")
-    ax[1].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     print("written", path)

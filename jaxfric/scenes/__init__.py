@@ -21,7 +21,7 @@ import typing
 from ..contact.formulations import ALGORITHMS
 from ..fem.mesh import MAX_ELEMENTS
 from . import bead, blankholder, flat_die, nine
-from ._common import check_steady_window
+from ._common import FrictionLawFields, check_steady_window
 from .base import Scene
 
 __all__ = ["SCENES", "ALGORITHMS", "Scene", "scene_names", "variants", "default_variant",
@@ -60,9 +60,11 @@ def config_class(name: str) -> type:
 
 
 def config_fields(name: str) -> list:
-    """[(field, default, unit, doc), ...] of a scene's config, in declaration order."""
-    return [(f.name, f.default, f.metadata.get("unit", ""), f.metadata.get("doc", ""))
-            for f in dataclasses.fields(config_class(name))]
+    """[(field, default, unit, doc), ...] of a scene's config, in declaration order, the friction-law
+    fields every scene shares (``FrictionLawFields``) last."""
+    shared = {f.name for f in dataclasses.fields(FrictionLawFields)}
+    fields = sorted(dataclasses.fields(config_class(name)), key=lambda f: f.name in shared)
+    return [(f.name, f.default, f.metadata.get("unit", ""), f.metadata.get("doc", "")) for f in fields]
 
 
 def scaled_steps(name: str, config, factor: float) -> dict:

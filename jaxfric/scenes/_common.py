@@ -76,6 +76,23 @@ MU_D_DOC = "friction_law=velocity_decay: dynamic coefficient (LS-DYNA FD; None: 
 DECAY_DOC = "friction_law=velocity_decay: decay coefficient (s/mm; LS-DYNA DC) [chosen]"
 DRAW_SPEED_DOC = ("drawing speed (mm/s): the drawing phase lasts its stroke over this speed, which gives a friction "
                   "law its sliding speeds; the other phases have none (v = 0) [chosen]")
+
+
+@dataclasses.dataclass(frozen=True)
+class FrictionLawFields:
+    """The friction-law fields every scene's config has (:func:`friction_law`, :func:`phase_seconds`)."""
+
+    friction_law: str = spec_field("coulomb", "-", FRICTION_LAW_DOC)
+    mu_p: float = spec_field(0.0, "1/MPa", MU_P_DOC)
+    mu_v: float = spec_field(0.0, "s/mm", MU_V_DOC)
+    mu_pv: float = spec_field(0.0, "s/(MPa mm)", MU_PV_DOC)
+    mu_pp: float = spec_field(0.0, "1/MPa^2", MU_PP_DOC)
+    mu_vv: float = spec_field(0.0, "s^2/mm^2", MU_VV_DOC)
+    mu_d: float | None = spec_field(None, "-", MU_D_DOC)
+    decay: float | None = spec_field(None, "s/mm", DECAY_DOC)
+    draw_speed: float = spec_field(1.0, "mm/s", DRAW_SPEED_DOC)
+
+
 C_KIN_DOC = ("moduli C_i of the Armstrong-Frederick back stresses, comma-separated, one per back stress "
              "(jaxfric.fem.kinematic); empty: isotropic hardening only [paper]")
 GAMMA_KIN_DOC = ("recall rates gamma_i of the back stresses, one per C_i (0: linear Prager rule); the isotropic "

@@ -68,7 +68,7 @@ ROLLER_SEAM = math.radians(202.5)
 
 
 @dataclasses.dataclass(frozen=True)
-class BeadConfig:
+class BeadConfig(cm.FrictionLawFields):
     """Every value of the bead scene (spec section 3); defaults are the spec's (``th090_mu017``)."""
 
     x_left: float = cm.spec_field(-100.0, "mm", "left (clamped, free) end of the strip [chosen]")
@@ -95,15 +95,6 @@ class BeadConfig:
     gamma_kin: tuple = cm.spec_field((), "-", cm.GAMMA_KIN_DOC)
     Q_voce: tuple = cm.spec_field((), "MPa", cm.Q_VOCE_DOC)
     b_voce: tuple = cm.spec_field((), "-", cm.B_VOCE_DOC)
-    friction_law: str = cm.spec_field("coulomb", "-", cm.FRICTION_LAW_DOC)
-    mu_p: float = cm.spec_field(0.0, "1/MPa", cm.MU_P_DOC)
-    mu_v: float = cm.spec_field(0.0, "s/mm", cm.MU_V_DOC)
-    mu_pv: float = cm.spec_field(0.0, "s/(MPa mm)", cm.MU_PV_DOC)
-    mu_pp: float = cm.spec_field(0.0, "1/MPa^2", cm.MU_PP_DOC)
-    mu_vv: float = cm.spec_field(0.0, "s^2/mm^2", cm.MU_VV_DOC)
-    mu_d: float | None = cm.spec_field(None, "-", cm.MU_D_DOC)
-    decay: float | None = cm.spec_field(None, "s/mm", cm.DECAY_DOC)
-    draw_speed: float = cm.spec_field(1.0, "mm/s", cm.DRAW_SPEED_DOC)
     eps_n: float = cm.spec_field(1e5, "N/mm/mm", "normal penalty [chosen]")
     eps_t: float | None = cm.spec_field(None, "N/mm/mm", "tangential penalty; None: mu eps_n [chosen]")
     target_gap: float = cm.spec_field(1e-5, "mm", "auglag target gap [chosen]")
