@@ -29,7 +29,9 @@ of the step before it (``ContactState.speed``), not its own: with its own, a coe
 speed gives a slipping pair a negative tangential stiffness, R_N dmu/dv / Delta t, and the quasi-static
 problem loses its uniqueness (the flat die with mu falling from 0.15 to 0.09 over 0.05 mm/s stopped 0.1 um
 into its draw, Newton failing at every increment). The lag is one step, which the drawing's steady
-sliding does not feel.
+sliding does not feel. A coefficient that falls steeply with speed still drives the penalty path into
+stick-slip: its drawing force scatters and its steps are cut, where exact contact takes the nominal
+steps (docs/results.md, friction laws of pressure and speed).
 
 Every formulation takes the law: the penalty and augmented-Lagrangian pair laws evaluate mu(p, v) inside
 the pair force, so the tangent (by forward mode) and the parameters' derivatives carry its derivatives.
