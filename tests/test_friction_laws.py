@@ -101,8 +101,10 @@ def test_every_formulation_meets_the_law_at_its_forces(flat_die_runs):
 
 def test_zero_pressure_terms_give_the_coulomb_run(flat_die_runs):
     res = run(scenes.make("flat_die", None, "lcp_ssn", {**SMALL, "friction_law": "polynomial"}))
+    # Two programs (one evaluates the law) whose Newton solves stop at rtol 1e-8 of the force scale: they
+    # agree to round-off, 1.2e-11 N/mm with XLA's multi-threaded reductions on 2 workers.
     np.testing.assert_allclose(res.history["drawing_force"], flat_die_runs["coulomb"].history["drawing_force"],
-                               rtol=1e-12, atol=1e-12)
+                               rtol=1e-9, atol=1e-10)
 
 
 def test_speed_limits_of_the_decay_law_are_coulomb_runs():
