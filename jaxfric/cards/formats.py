@@ -47,12 +47,13 @@ CSV_COLUMNS = (
 )
 
 
-def _f10(v) -> str:
-    """A number in a 10-character field (LS-DYNA's and OpenRadioss's integer fields, LS-DYNA's reals)."""
+def _f10(v, digits: int = 4) -> str:
+    """A number in a 10-character field (LS-DYNA's and OpenRadioss's integer fields, LS-DYNA's reals, to
+    ``digits`` significant digits)."""
     if isinstance(v, (int, np.integer)):
         text = str(int(v))
     else:
-        text = f"{float(v):.4g}" if abs(float(v)) < 1e5 else f"{float(v):.3e}"
+        text = f"{float(v):.{digits}g}" if abs(float(v)) < 1e5 else f"{float(v):.3e}"
     if len(text) > 10:
         raise ValueError(f"value {v!r} does not fit a 10-character field")
     return text.rjust(10)

@@ -21,26 +21,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..contact.friction import FrictionLaw, Polynomial, VelocityDecay
+from .formats import _f10, _f20
 
 __all__ = ["radioss_friction", "lsdyna_friction", "friction_csv"]
-
-
-def _i10(v: int) -> str:
-    return str(int(v)).rjust(10)
-
-
-def _f10(v: float) -> str:
-    text = f"{float(v):.6g}"
-    if len(text) > 10:
-        raise ValueError(f"value {v!r} does not fit a 10-character field")
-    return text.rjust(10)
-
-
-def _r20(v: float) -> str:
-    text = f"{float(v):.12g}"
-    if len(text) > 20:
-        raise ValueError(f"value {v!r} does not fit a 20-character field")
-    return text.rjust(20)
 
 
 def radioss_friction(law: FrictionLaw, mu0: float, *, fric_id: int = 1, title: str = "jaxfric friction law") -> str:
@@ -48,7 +31,7 @@ def radioss_friction(law: FrictionLaw, mu0: float, *, fric_id: int = 1, title: s
     ``mu0`` (module doc)."""
     if not isinstance(law, Polynomial):
         raise ValueError(f"field 'law': no OpenRadioss /FRICTION form for {type(law).__name__} here")
-    c = [float(getattr(law, k)) for k in ("c_p", "c_v", "c_pv", "c_pp", "c_vv")]
+    c = [float(getattr(law, k)) for k in Polynomial.TERMS]
     lines = [
         f"# jaxfric: mu = max({float(mu0):.6g} + {c[0]:.6g} p + {c[1]:.6g} v + {c[2]:.6g} p v + {c[3]:.6g} p^2 "
         f"+ {c[4]:.6g} v^2, 0)",
@@ -56,11 +39,11 @@ def radioss_friction(law: FrictionLaw, mu0: float, *, fric_id: int = 1, title: s
         f"/FRICTION/{int(fric_id)}",
         title[:100],
         "#   I_fric   I_filtr              X_freq    I_form",
-        _i10(1) + _i10(0) + " " * 20 + " " * 10,
+        _f10(1) + _f10(0) + " " * 20 + " " * 10,
         "#                 C1                  C2                  C3                  C4                  C5",
-        "".join(_r20(v) for v in c),
+        "".join(_f20(v) for v in c),
         "#                 C6                FRIC               VIS_f",
-        _r20(0.0) + _r20(mu0) + " " * 20,
+        _f20(0.0) + _f20(mu0) + " " * 20,
     ]
     return "\n".join(lines) + "\n"
 
@@ -74,7 +57,7 @@ def lsdyna_friction(law: FrictionLaw, mu0: float) -> str:
     lines = [f"$ jaxfric: mu = {float(law.mu_d):.6g} + ({float(mu0):.6g} - {float(law.mu_d):.6g}) "
              f"exp(-{float(law.decay):.6g} v), v the sliding speed (mm/s); units mm, N, s",
              "$       FS        FD        DC        VC       VDC    PENCHK        BT        DT",
-             _f10(mu0) + _f10(float(law.mu_d)) + _f10(float(law.decay))]
+             "".join(_f10(float(v), digits=6) for v in (mu0, law.mu_d, law.decay))]
     return "\n".join(lines) + "\n"
 
 

@@ -176,12 +176,16 @@ class PieceData(NamedTuple):
 def piece_data(it: Iterate, args, x, hint, frames=None) -> PieceData:
     """:class:`PieceData` at the iterate ``it`` (at x), with ``hint`` (m, 2) the contact forces of the
     prescribed dofs' rows (:func:`equilibrium_force`); ``frames``: :func:`contact_frames` at ``it`` when the
-    caller has it already."""
+    caller has it already, with a friction law's coefficients at ``hint`` (:func:`frames_at_forces`)."""
     c = args.contact
     n = args.mesh.n_dofs
-    fr, K = contact_frames(it, args) if frames is None else frames
-    # A friction law's coefficients are those of the forces the last direction predicted (``hint``).
-    fr = frames_at_forces(fr, args, hint)
+    if frames is None:
+        fr, K = contact_frames(it, args)
+        # A friction law's coefficients are those of the forces the last direction predicted (``hint``);
+        # a caller that passes ``frames`` has set them (:func:`frames_at_forces`).
+        fr = frames_at_forces(fr, args, hint)
+    else:
+        fr, K = frames
     nodes, pairs, valid = fr.nodes, fr.pairs, fr.valid
     f_tilde = equilibrium_force(it, args, x, hint, fr.kappa)
     f_nodes = f_tilde.reshape(-1, 2)

@@ -44,6 +44,7 @@ d mu terms), and asking for them raises a one-line error.
 from __future__ import annotations
 
 import abc
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -80,6 +81,7 @@ class Polynomial(FrictionLaw):
     mu_0 = 0 (module doc). Attributes: the coefficients, () each (1/MPa, s/mm, s/(MPa mm), 1/MPa^2,
     s^2/mm^2)."""
 
+    TERMS: ClassVar[tuple] = ("c_p", "c_v", "c_pv", "c_pp", "c_vv")
     c_p: jax.Array
     c_v: jax.Array
     c_pv: jax.Array
@@ -87,18 +89,18 @@ class Polynomial(FrictionLaw):
     c_vv: jax.Array
 
     def __init__(self, c_p=0.0, c_v=0.0, c_pv=0.0, c_pp=0.0, c_vv=0.0):
-        for name, value in zip(("c_p", "c_v", "c_pv", "c_pp", "c_vv"), (c_p, c_v, c_pv, c_pp, c_vv), strict=True):
+        for name, value in zip(self.TERMS, (c_p, c_v, c_pv, c_pp, c_vv), strict=True):
             setattr(self, name, jnp.asarray(value, jnp.float64))
 
     def __check_init__(self):
-        self._check_scalars(("c_p", "c_v", "c_pv", "c_pp", "c_vv"))
+        self._check_scalars(self.TERMS)
 
     def coefficient(self, mu0, p, v) -> jax.Array:
         mu = mu0 + self.c_p * p + self.c_v * v + self.c_pv * p * v + self.c_pp * p * p + self.c_vv * v * v
         return jnp.where(mu0 > 0.0, jnp.maximum(mu, 0.0), 0.0)
 
     def describe(self) -> dict:
-        return {"law": "polynomial", **{k: float(getattr(self, k)) for k in ("c_p", "c_v", "c_pv", "c_pp", "c_vv")}}
+        return {"law": "polynomial", **{k: float(getattr(self, k)) for k in self.TERMS}}
 
 
 class VelocityDecay(FrictionLaw):
