@@ -30,6 +30,16 @@ __all__ = ["StripModel", "SimState", "initial_state", "default_observe", "contac
            "stresses", "tool_positions"]
 
 
+def _durations(value):
+    """``StripModel.phase_seconds`` as an array of float64 (a traced one kept as it is)."""
+    if value is None or isinstance(value, jax.Array):
+        return value
+    try:
+        return np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"field 'phase_seconds' must hold one finite duration >= 0 per phase, got {value!r}") from None
+
+
 class StripModel(eqx.Module):
     """A strip of elasto-plastic material under a sequence of phases of prescribed displacements,
     optionally in contact with rigid tools.
@@ -52,9 +62,10 @@ class StripModel(eqx.Module):
             :class:`~jaxfric.contact.formulations.Penalty`,
             :class:`~jaxfric.contact.formulations.AugmentedLagrangian` or
             :class:`~jaxfric.contact.formulations.Complementarity`).
-        phase_seconds: None, or per phase its duration in seconds (static; 0: none): a step's duration is
-            its share of its phase's, which gives the sliding speed of a friction law
-            (:mod:`jaxfric.contact.friction`). None: every phase quasi-static.
+        phase_seconds: None, or per phase its duration in seconds (an array, data: a stroke or a speed
+            changes no program; 0: none): a step's duration is its share of its phase's, which gives the
+            sliding speed of a friction law (:mod:`jaxfric.contact.friction`). None: every phase
+            quasi-static.
     """
 
     mesh: StripMesh
@@ -64,7 +75,7 @@ class StripModel(eqx.Module):
     tools: tuple = ()
     contact: AbstractContactFormulation | None = None
     thickness_points: int = eqx.field(static=True, default=2)
-    phase_seconds: tuple | None = eqx.field(static=True, default=None)
+    phase_seconds: tuple | np.ndarray | jax.Array | None = eqx.field(default=None, converter=_durations)
 
     def __check_init__(self):
         if not isinstance(self.mesh, StripMesh):
@@ -78,8 +89,9 @@ class StripModel(eqx.Module):
             raise ValueError(f"field 'thickness_points' must be an integer from 2 to 16, got {self.thickness_points!r}")
         if len(self.phases) == 0 or not all(isinstance(p, Phase) for p in self.phases):
             raise ValueError("field 'phases' must be a non-empty tuple of Phase")
-        if self.phase_seconds is not None and (len(self.phase_seconds) != len(self.phases)
-                                               or not all(np.isfinite(t) and t >= 0 for t in self.phase_seconds)):
+        if isinstance(self.phase_seconds, np.ndarray) and (
+                self.phase_seconds.shape != (len(self.phases),)
+                or not np.all(np.isfinite(self.phase_seconds) & (self.phase_seconds >= 0))):
             raise ValueError(f"field 'phase_seconds' must hold one finite duration >= 0 per phase, got "
                              f"{self.phase_seconds!r}")
         names = [p.name for p in self.phases]

@@ -95,7 +95,7 @@ def step_args(model: StripModel, state: SimState, phase, t_target, ctx: StepCont
     contact, q_start, f_start = (None, None, None)
     if model.tools:
         dt = 0.0
-        if model.phase_seconds is not None:   # static
+        if model.phase_seconds is not None:   # None or not: static (the tree's structure)
             dt = (t_target - state.time) * jnp.asarray(model.phase_seconds)[phase]
         contact, q_start, f_start = _contact_step(model, state, phase, tau, model.contact, dt)
     u_start = None if damping is None else state.u.reshape(-1)
