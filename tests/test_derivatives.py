@@ -88,13 +88,18 @@ def test_dot_product_test_of_the_implicit_step_derivative():
 
 
 def test_new_parameter_values_do_not_retrace():
+    # The model an argument: its increments are data, so the history buffer's length is given.
+    control = jf.StepControl(max_steps=200)
+
     @eqx.filter_jit
     @eqx.debug.assert_max_traces(max_traces=1)
     def run(model):
-        return jf.simulate(model).final.u
+        return jf.simulate(model, control=control).final.u
 
     for sigma_y, length in [(200.0, 10.0), (250.0, 9.0), (180.0, 11.0)]:
         run(cycle_model(sigma_y, length))
+    with pytest.raises(ValueError, match="field 'max_steps'"):
+        eqx.filter_jit(lambda m: jf.simulate(m).final.u)(cycle_model(200.0, 10.0))
     # The public entry point compiles once per structure as well.
     jf.run(cycle_model(200.0, 10.0), progress=False)
     cache = jf.run.__globals__["_COMPILED"]

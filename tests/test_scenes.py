@@ -469,6 +469,22 @@ def test_nine_short_run():
                                [h["bead_fx"][-1], h["cyl_a_fx"][-1]], rtol=1e-9, atol=1e-12)
 
 
+def test_strokes_and_increments_are_data_of_one_program():
+    """The short Nine run again with another stroke of B, a longer pull and other increments (and with them
+    another history buffer): the nominal increments, the strokes and ``max_steps`` are data, so the run
+    finds the first one's compiled program (a compilation takes seconds, a hit about a millisecond), and
+    draws to the new stroke in the new increments."""
+    overrides = {"mesh": "60x2", "stroke": 3.0, "dq_clamp": 0.5, "U_draw": 1.0, "dU": 0.25}
+    first, h0 = _run(make("nine", "mu017", overrides=overrides))
+    longer = make("nine", "mu017", overrides={**overrides, "stroke": 3.5, "dq_clamp": 0.25, "U_draw": 1.5, "dU": 0.05})
+    result, h = _run(longer)
+    assert result.converged and result.compile_s < 0.05
+    assert h["drawing_displacement"][-1] == 1.5 and h["tool_position"][-1] == pytest.approx(3.5)
+    # The controller never exceeds the nominal increment: the new one, 0.05 mm, was the program's.
+    largest = [np.max(np.diff(x["drawing_displacement"][x["phase_name"] == "draw"])) for x in (h0, h)]
+    assert largest[1] <= 0.05 * (1 + 1e-12) < largest[0]
+
+
 @pytest.mark.slow
 def test_bead_short_run():
     """Clamp, wind by 10 deg, draw 0.5 mm on a coarse strip. Frictionless clamp: with the spec's

@@ -6,10 +6,14 @@ Dirichlet conditions active during it, so the set of constrained dofs can change
 phase (for example a right end held during clamping and pulled during drawing).
 
 Motion parameters are array leaves: an imposed stretch or a rotation angle can be differentiated.
-Node lists and constrained components are static structure.
+A phase's nominal increments are array leaves too, so that a longer stroke or finer increments reuse
+the compiled program. Node lists, constrained components and the number of increment segments are
+static structure.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import equinox as eqx
 import jax
@@ -137,17 +141,21 @@ class Phase(eqx.Module):
     Attributes:
         name: phase name (static).
         bcs: Dirichlet conditions active during the phase.
-        increments: nominal increments as ``((tau_end, n_steps), ...)``: from the previous breakpoint
-            to tau_end the phase is divided into n_steps equal steps. The last tau_end is 1. The step
-            controller may cut these steps and grows them back, never beyond the nominal value.
+        tau_ends, n_steps: the nominal increments, as data (arrays of one entry per segment: a change of
+            stroke or increment compiles no new program; their count is structure): from the previous
+            breakpoint to ``tau_ends[i]`` the phase is divided into ``n_steps[i]`` equal steps. The last
+            end is 1. The step controller may cut these steps and grows them back, never beyond the
+            nominal value.
 
     The constructor takes either ``n_steps`` (equal nominal steps over the whole phase, the same as
-    ``increments=((1.0, n_steps),)``) or ``increments``.
+    ``increments=((1.0, n_steps),)``) or ``increments`` as ``((tau_end, n_steps), ...)``;
+    :attr:`increments` gives them back in that form.
     """
 
     name: str = eqx.field(static=True)
     bcs: tuple
-    increments: tuple = eqx.field(static=True)
+    tau_ends: np.ndarray
+    n_steps: np.ndarray
 
     def __init__(self, name: str, bcs=(), n_steps: int | None = 10, increments=None):
         self.name = str(name)
@@ -166,7 +174,22 @@ class Phase(eqx.Module):
         if any(n < 1 for _, n in increments) or not np.all(np.diff([0.0] + ends) > 0) or ends[-1] != 1.0:
             raise ValueError(f"field 'increments' of phase {name!r} must have increasing breakpoints "
                              f"ending at 1 and step counts >= 1, got {increments}")
-        self.increments = increments
+        self.tau_ends = np.array(ends, np.float64)
+        self.n_steps = np.array([n for _, n in increments], np.int64)
+
+    @property
+    def increments(self) -> tuple:
+        """The nominal increments as ``((tau_end, n_steps), ...)`` (of a phase whose values are known: not
+        inside a compiled function that takes the model as an argument)."""
+        return tuple((float(e), int(n)) for e, n in zip(_concrete("tau_ends", self.tau_ends),
+                                                          _concrete("n_steps", self.n_steps)))
+
+
+def _concrete(name: str, value) -> np.ndarray:
+    if isinstance(value, jax.core.Tracer):
+        raise ValueError(f"field '{name}' of a phase is traced here, and this needs its values: give them "
+                         f"outside the compiled function (for a run's history buffer: StepControl.max_steps)")
+    return np.asarray(value)
 
 
 def with_steps(phases, times, phase_index) -> tuple:
@@ -185,39 +208,44 @@ def with_steps(phases, times, phase_index) -> tuple:
     return tuple(out)
 
 
-class Schedule(eqx.Module):
-    """The nominal increments of all phases, flattened into segments of global pseudo-time (static)."""
+@dataclasses.dataclass(frozen=True)
+class Schedule:
+    """The nominal increments of all phases, flattened into segments of global pseudo-time: arrays,
+    NumPy where the phases' increments are known, traced where they are data of a compiled function."""
 
-    seg_end: tuple = eqx.field(static=True)    # global time at the end of each segment
-    seg_dt: tuple = eqx.field(static=True)     # nominal increment in each segment
-    seg_phase: tuple = eqx.field(static=True)  # phase index of each segment
+    seg_end: np.ndarray | jax.Array     # global time at the end of each segment
+    seg_dt: np.ndarray | jax.Array      # nominal increment in each segment
+    seg_phase: np.ndarray               # phase index of each segment (structure: always NumPy)
+    seg_steps: np.ndarray | jax.Array   # nominal steps in each segment
 
     @property
     def n_nominal_steps(self) -> int:
-        starts = (0.0,) + self.seg_end[:-1]
-        return int(sum(round((e - s) / d) for s, e, d in zip(starts, self.seg_end, self.seg_dt)))
+        return int(np.sum(_concrete("n_steps", self.seg_steps)))
 
     def nominal_steps(self) -> tuple[np.ndarray, np.ndarray]:
         """End times (n_nominal_steps,) of all nominal steps, and the phase index of each."""
-        starts = (0.0,) + self.seg_end[:-1]
-        times, phases = [], []
-        for s, e, d, p in zip(starts, self.seg_end, self.seg_dt, self.seg_phase):
-            n = round((e - s) / d)
-            times.append(s + (e - s) * np.arange(1, n + 1) / n)
-            phases.append(np.full(n, p))
+        ends, counts = _concrete("tau_ends", self.seg_end), _concrete("n_steps", self.seg_steps)
+        starts = np.concatenate([[0.0], ends[:-1]])
+        times = [s + (e - s) * np.arange(1, n + 1) / n for s, e, n in zip(starts, ends, counts)]
+        phases = [np.full(n, p) for n, p in zip(counts, self.seg_phase)]
         return np.concatenate(times), np.concatenate(phases)
 
 
 def schedule(phases) -> Schedule:
-    seg_end, seg_dt, seg_phase = [], [], []
+    """The segments of ``phases``' nominal increments (computed with NumPy where their values are known,
+    in the compiled function where they are traced: the same IEEE operations either way)."""
+    traced = any(isinstance(a, jax.core.Tracer) for ph in phases for a in (ph.tau_ends, ph.n_steps))
+    xp = jnp if traced else np
+    seg_end, seg_dt, seg_steps, seg_phase = [], [], [], []
     for k, phase in enumerate(phases):
-        start = 0.0
-        for tau_end, n in phase.increments:
-            seg_end.append(k + tau_end)
-            seg_dt.append((tau_end - start) / n)
-            seg_phase.append(k)
-            start = tau_end
-    return Schedule(tuple(seg_end), tuple(seg_dt), tuple(seg_phase))
+        ends = xp.asarray(phase.tau_ends, xp.float64)
+        starts = xp.concatenate([xp.zeros(1, xp.float64), ends[:-1]])
+        seg_end.append(k + ends)
+        seg_dt.append((ends - starts) / xp.asarray(phase.n_steps).astype(xp.float64))
+        seg_steps.append(xp.asarray(phase.n_steps))
+        seg_phase.append(np.full(np.shape(phase.tau_ends)[0], k, np.int32))
+    return Schedule(xp.concatenate(seg_end), xp.concatenate(seg_dt), np.concatenate(seg_phase),
+                    xp.concatenate(seg_steps))
 
 
 def constraint_masks(n_nodes: int, phases) -> np.ndarray:

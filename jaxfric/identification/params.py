@@ -37,13 +37,23 @@ from ..loadpath.run import run
 from ..loadpath.simulate import simulate, simulate_fixed
 from ..numerics.newton import NewtonOptions
 
-__all__ = ["Parameterization", "parameterize", "adaptive_run", "path_function", "AFFINE_RTOL"]
+__all__ = ["Parameterization", "parameterize", "adaptive_run", "path_function", "value_filter", "AFFINE_RTOL"]
 
 AFFINE_RTOL = 1e-9  # affinity check, relative to the size of a leaf and of its change
 
 
+def value_filter(model):
+    """The filter (an ``eqx.partition`` spec) of the leaves of ``model`` that a parameterization writes as
+    functions of the parameters: every array but the phases' nominal increments, which it holds at the
+    start values with the rest of the structure (a stroke changes the closing distance, not the number of
+    closing steps)."""
+    spec = jax.tree_util.tree_map(eqx.is_array, model)
+    fixed = lambda m: [a for phase in m.phases for a in (phase.tau_ends, phase.n_steps)]  # noqa: E731
+    return eqx.tree_at(fixed, spec, replace=[False] * (2 * len(model.phases)))
+
+
 def _leaves(model):
-    dyn, static = eqx.partition(model, eqx.is_array)
+    dyn, static = eqx.partition(model, value_filter(model))
     return [np.asarray(a) for a in jax.tree_util.tree_leaves(dyn)], jax.tree_util.tree_structure(dyn), static
 
 

@@ -35,7 +35,7 @@ from ..numerics.results import Result
 
 __all__ = ["StepControl", "Controller", "ControllerState", "ContinuationState", "Outcome", "Tally",
            "increment_after_acceptance", "increment_from_error", "retry_from_converged", "unsearched_attempt",
-           "continuation_rule",
+           "continuation_rule", "max_steps",
            "stabilised_attempt", "stop_code", "STABILIZE", "STABILIZE_RISE"]
 
 
@@ -283,6 +283,22 @@ def stop_code(too_small, finished, full, plain, last_code, code):
                                                     Result.MAX_STEPS], Result.CONTINUE).astype(jnp.int32)
 
 
+def max_steps(control: StepControl, phases) -> int:
+    """The most accepted steps of a run: ``control.max_steps``, by default 10x the phases' nominal steps
+    + 100, which needs the increments' values.
+
+    Raises:
+        ValueError: no ``max_steps`` and the increments traced (the model an argument of a compiled
+            function): naming the field.
+    """
+    if control.max_steps:
+        return control.max_steps
+    if any(isinstance(phase.n_steps, jax.core.Tracer) for phase in phases):
+        raise ValueError("field 'max_steps': give StepControl(max_steps=...) when the model is an argument of "
+                         "the compiled function (its nominal increments are data there, and the default counts them)")
+    return 10 * schedule(phases).n_nominal_steps + 100
+
+
 class Controller(eqx.Module):
     """The adaptive step controller of one run: its schedule (segments of nominal increments ending on
     the phases' breakpoints) and its static choices.
@@ -291,7 +307,10 @@ class Controller(eqx.Module):
         control: the settings.
         seg_end, seg_dt, seg_phase: per schedule segment, its end (pseudo-time), nominal increment
             and phase.
-        n_buffer: history rows of accepted steps (static).
+        n_buffer: history rows of accepted steps in a whole run's buffer (static; 0 in a chunk's
+            program, whose buffers are its own).
+        max_rows: () int32, accepted steps after which the run stops with ``Result.MAX_STEPS`` (data:
+            the chunked driver's programs serve every ``max_steps``).
         continuation: the run carries the continuation's stages (static: asked for, and a
             formulation that has them).
         has_line_search: a last attempt without line search exists (static).
@@ -306,6 +325,7 @@ class Controller(eqx.Module):
     seg_dt: jax.Array
     seg_phase: jax.Array
     n_buffer: int = eqx.field(static=True)
+    max_rows: jax.Array
     continuation: bool = eqx.field(static=True)
     has_line_search: bool = eqx.field(static=True)
     n_stages: jax.Array
@@ -314,13 +334,17 @@ class Controller(eqx.Module):
 
     @classmethod
     def build(cls, phases, control: StepControl, continuation: bool, has_line_search: bool,
-              n_stages, modulus=None) -> Controller:
-        """``modulus``: the sheet's Young's modulus (the stabilisation's scale; None: no stabilisation)."""
+              n_stages, modulus=None, max_rows=None) -> Controller:
+        """``modulus``: the sheet's Young's modulus (the stabilisation's scale; None: no stabilisation).
+        ``max_rows``: the run's most accepted steps as data, for a chunk's program (no buffer of its own
+        here); None: ``control``'s :func:`max_steps`, and a whole run's buffer of that many rows."""
         sched = schedule(phases)
         stabilized = modulus is not None and control.stabilize > 0
         eta = jnp.asarray(control.stabilize * modulus if stabilized else 0.0, jnp.float64)
+        n_buffer = 0 if max_rows is not None else max_steps(control, phases)
+        rows = jnp.asarray(n_buffer if max_rows is None else max_rows, jnp.int32)
         return cls(control, jnp.asarray(sched.seg_end), jnp.asarray(sched.seg_dt),
-                   jnp.asarray(sched.seg_phase, jnp.int32), control.max_steps or 10 * sched.n_nominal_steps + 100,
+                   jnp.asarray(sched.seg_phase, jnp.int32), n_buffer, rows,
                    continuation, has_line_search, n_stages, stabilized, eta)
 
     def init(self, u, q) -> ControllerState:
@@ -391,7 +415,7 @@ class Controller(eqx.Module):
         damp = level > 0
         too_small, repeat = too_small & ~damp, repeat | damp
         finished = seg_done & (cs.seg == n_seg - 1)
-        full = ok & ~finished & (row + 1 >= self.n_buffer + 1)
+        full = ok & ~finished & (row + 1 >= self.max_rows + 1)
         keep_r = (too_small & cs.plain) | held
         return ControllerState(
             dt=jnp.where(ok, dt_ok, jnp.where(repeat, t_try - t_start, dt_cut)), seg=next_seg,

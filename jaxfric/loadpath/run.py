@@ -22,7 +22,7 @@ import numpy as np
 from ..numerics.lru import LRU
 from ..numerics.newton import NewtonOptions
 from ..numerics.results import Result, SimulationError, describe
-from .controller import StepControl
+from .controller import StepControl, max_steps
 from .model import SimState, StripModel, default_observe
 from .progress import ProgressMonitor
 from .simulate import Chunk, History, LoadPathState, Simulation, advance, begin, restart
@@ -210,22 +210,26 @@ _COMPILED: LRU = LRU(8)
 
 
 def _compiled(model, newton, control, observe, snapshot):
-    """AOT-compile once per structure (shapes, static fields, options); values never recompile."""
+    """AOT-compile once per structure (shapes, static fields, options); values never recompile, nor do
+    the nominal increments or ``control.max_steps``, which the programs take as data."""
     leaves, treedef = jax.tree_util.tree_flatten(model)
+    program_control = dataclasses.replace(control, max_steps=None)
     key = (treedef, tuple((np.shape(x), str(getattr(x, "dtype", type(x)))) for x in leaves),
-           newton, control, observe, snapshot)
-    return _COMPILED.get(key, lambda: _compile(model, newton, control, observe, snapshot))
+           newton, program_control, observe, snapshot)
+    return _COMPILED.get(key, lambda: _compile(model, newton, program_control, observe, snapshot))
 
 
 def _compile(model, newton, control, observe, snapshot):
     """The two compiled programs of ``model``'s structure: the start of its load path (with history row
-    0) and one chunk (:func:`~jaxfric.loadpath.simulate.advance`). Neither calls the host."""
-    start = eqx.filter_jit(lambda m: begin(m, control=control, observe=observe, snapshot=snapshot))
-    step = eqx.filter_jit(lambda m, p, k: advance(m, p, k, size=CHUNK_ROWS, newton=newton, control=control,
-                                                  observe=observe, snapshot=snapshot))
-    start = start.lower(model).compile()
-    path, _ = start(model)
-    return start, step.lower(model, path, jnp.array(1, jnp.int32)).compile()
+    0) and one chunk (:func:`~jaxfric.loadpath.simulate.advance`), each taking the run's most accepted
+    steps as its last argument. Neither calls the host."""
+    start = eqx.filter_jit(lambda m, r: begin(m, control=control, observe=observe, snapshot=snapshot, max_steps=r))
+    step = eqx.filter_jit(lambda m, p, k, r: advance(m, p, k, size=CHUNK_ROWS, newton=newton, control=control,
+                                                     observe=observe, snapshot=snapshot, max_steps=r))
+    rows = jnp.array(1, jnp.int32)
+    start = start.lower(model, rows).compile()
+    path, _ = start(model, rows)
+    return start, step.lower(model, path, jnp.array(1, jnp.int32), rows).compile()
 
 
 def _next_limit(rows: int, seconds: float, limit: int) -> int:
@@ -278,9 +282,10 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     t0 = time.perf_counter()
     start, step = _compiled(model, newton, control, observe, snapshot)
     compile_s = time.perf_counter() - t0
+    rows_max = jnp.array(max_steps(control, model.phases), jnp.int32)
     check_memory(step, model)
     if resume is None:
-        path, chunk = start(model)
+        path, chunk = start(model, rows_max)
         record = Record()
         record.add(chunk, 0.0, 0.0)
     else:
@@ -297,7 +302,7 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
                 code = Result.STOPPED
                 break
             t1, c1 = time.perf_counter(), time.process_time()
-            path, chunk = step(model, path, jnp.array(limit, jnp.int32))
+            path, chunk = step(model, path, jnp.array(limit, jnp.int32), rows_max)
             chunk = jax.device_get(chunk)
             wall, cpu = time.perf_counter() - t1, time.process_time() - c1
             rows = record.add(chunk, wall, cpu)
@@ -343,6 +348,7 @@ def extend_stroke(checkpoint: Checkpoint, model: StripModel, scale: float, *,
     path = jax.tree_util.tree_map(jnp.asarray, checkpoint.path)
     t = float(path.state.time)
     t_new = last + (t - last) * float(scale) if t > last else t
+    control = dataclasses.replace(control, max_steps=max_steps(control, model.phases))  # needs the increments' values
     path = eqx.filter_jit(lambda m, p, s: restart(m, p, s, control=control))(model, path, t_new)
     return Checkpoint(path=jax.device_get(path), record=record)
 

@@ -235,16 +235,16 @@ class _Loop(eqx.Module):
     snapshots: Any = None
 
 
-def _controller(model: StripModel, control: StepControl) -> Controller:
+def _controller(model: StripModel, control: StepControl, max_rows=None) -> Controller:
     """The step controller of ``model``'s load path, with the continuation where the formulation has
-    one and ``control`` asks for it."""
+    one and ``control`` asks for it; ``max_rows``: :meth:`Controller.build`'s."""
     on = continuation_on(model, control)
     has_line_search = model.contact is None or not model.tools or model.contact.unsearched_retry
     n_stages = continuation_stages(model) if on else jnp.array(0, jnp.int32)
     # The stabilised attempt: a formulation whose residual carries the damper, and a sheet modulus to scale it.
     damper = (model.contact is None or not model.tools or model.contact.stabilized)
     modulus = getattr(model.material, "E", None) if damper else None
-    return Controller.build(model.phases, control, on, has_line_search, n_stages, modulus)
+    return Controller.build(model.phases, control, on, has_line_search, n_stages, modulus, max_rows)
 
 
 def _start(model: StripModel, ctrl: Controller) -> LoadPathState:
@@ -333,7 +333,9 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
 
     Pure and jit-able (wrap with ``eqx.filter_jit``); ``observe(model, state) -> pytree`` is recorded at
     every accepted step and must be a static (hashable) function. :func:`begin` and :func:`advance` run
-    the same attempts in chunks.
+    the same attempts in chunks. The history buffer holds ``control.max_steps`` rows; with the model an
+    argument of the compiled function (its increments then traced), give ``max_steps``: its default
+    counts the nominal steps, which needs their values.
     """
     ctx = StepContext.build(model)
     ctrl = _controller(model, control)
@@ -343,10 +345,11 @@ def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
 
 
 def begin(model: StripModel, *, control: StepControl = StepControl(), observe: Callable = default_observe,
-          snapshot: Callable | None = None) -> tuple[LoadPathState, Chunk]:
+          snapshot: Callable | None = None, max_steps=None) -> tuple[LoadPathState, Chunk]:
     """The start of ``model``'s adaptive load path, and its history row 0 (the initial state's
-    observation and, with ``snapshot``, its snapshot) as a chunk of one row. Jit-able."""
-    ctrl = _controller(model, control)
+    observation and, with ``snapshot``, its snapshot) as a chunk of one row. Jit-able; ``max_steps``:
+    as for :func:`advance`."""
+    ctrl = _controller(model, control, max_steps)
     path = _start(model, ctrl)
     history = _empty_history(1, observe(model, path.state))
     snapshots = None if snapshot is None else jax.tree_util.tree_map(lambda a: a[None], snapshot(model, path.state))
@@ -355,7 +358,7 @@ def begin(model: StripModel, *, control: StepControl = StepControl(), observe: C
 
 def advance(model: StripModel, path: LoadPathState, limit, *, size: int, newton: NewtonOptions = NewtonOptions(),
             control: StepControl = StepControl(), observe: Callable = default_observe,
-            snapshot: Callable | None = None) -> tuple[LoadPathState, Chunk]:
+            snapshot: Callable | None = None, max_steps=None) -> tuple[LoadPathState, Chunk]:
     """Continue the adaptive load path from ``path`` by at most ``limit`` accepted steps.
 
     The attempts are those of :func:`simulate`, whatever the chunks: a load path advanced in chunks
@@ -370,13 +373,17 @@ def advance(model: StripModel, path: LoadPathState, limit, *, size: int, newton:
         size: static, rows of the chunk's buffers (the largest ``limit``).
         newton, control, observe: as for :func:`simulate`.
         snapshot: static ``snapshot(model, state) -> pytree`` kept per accepted step, or None.
+        max_steps: the run's most accepted steps, may be traced (:func:`jaxfric.loadpath.run.run`
+            passes it as data, so that one program serves every ``StepControl.max_steps`` and every
+            nominal increment); None: ``control``'s
+            (:func:`~jaxfric.loadpath.controller.max_steps`).
 
     Returns:
         ``(path, chunk)``: where the load path stands after the chunk (``path.ctrl.code`` is
         ``Result.CONTINUE`` until the load path ends or fails) and the rows it accepted.
     """
     ctx = StepContext.build(model)
-    ctrl = _controller(model, control)
+    ctrl = _controller(model, control, max_steps)
     body = _attempt_body(model, ctrl, newton, ctx, observe, snapshot)
     history = _empty_history(size, observe(model, path.state), filled=False)
     snapshots = None if snapshot is None else _buffer(size, snapshot(model, path.state))

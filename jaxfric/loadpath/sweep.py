@@ -41,7 +41,7 @@ from jax.sharding import PartitionSpec as P
 from ..fem.assembly import ELEMENT_CHUNK, element_chunk
 from ..numerics.linalg import on_gpu
 from ..numerics.newton import NewtonOptions
-from .controller import StepControl
+from .controller import StepControl, max_steps
 from .model import StripModel, default_observe
 from .simulate import Simulation, simulate, simulate_flat
 
@@ -149,6 +149,8 @@ def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions
     if not devices:
         raise ValueError("field 'devices' must name at least one device")
     values, axes, (treedef, static) = stack_models(models)
+    # One history buffer for every member (their increments are data and may differ): the largest.
+    control = dataclasses.replace(control, max_steps=max(max_steps(control, m.phases) for m in models))
     first = models[0]
     if flat is None:
         flat = first.contact is None or not first.tools or first.contact.one_newton_solve

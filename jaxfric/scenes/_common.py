@@ -299,6 +299,13 @@ def stiff_penalty(config) -> float:
     return STIFF_PENALTY_RATIO * float(spec.eps_n) * thinner
 
 
+def ramp_end(model, phase: int, bc: int) -> jnp.ndarray:
+    """The x-displacement that Dirichlet condition ``bc`` of phase ``phase`` (a :class:`Ramp` from 0)
+    reaches at the phase's end: a scene's stroke, read from the model (data: a longer stroke is the same
+    program) rather than held by its static observer."""
+    return model.phases[phase].bcs[bc].motion.end[0]
+
+
 def phase_progress(state, phase: int) -> jnp.ndarray:
     """Progress tau in [0, 1] of phase ``phase`` (0-based): 0 before it, 1 after it. Pseudo-time is
     linear in the phase's control variable, so control = start + tau (end - start)."""

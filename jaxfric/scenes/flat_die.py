@@ -105,13 +105,13 @@ class FlatDieObserve(eqx.Module):
     """
 
     right: tuple = eqx.field(static=True)    # DC nodes
-    U_draw: float = eqx.field(static=True)   # mm
+    pull: tuple = eqx.field(static=True)     # (phase, condition) of the pull's Ramp: its end is U_draw
 
     def __call__(self, model, state) -> dict:
         c = state.contact
         sum_fn = jnp.sum(c.rn)
         return {
-            "drawing_displacement": self.U_draw * cm.phase_progress(state, 1),
+            "drawing_displacement": cm.ramp_end(model, *self.pull) * cm.phase_progress(state, 1),
             "drawing_force": cm.end_reaction(model, state, self.right)[0],
             "clamping_force": sum_fn,
             "tool_position": c.q[0],
@@ -165,7 +165,7 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
     model = StripModel(mesh, material, phases, tools=(tool,), contact=law, formulation=config.element,
                        thickness_points=config.thickness_points,
                        phase_seconds=cm.phase_seconds(config, phases, config.U_draw))
-    observe = FlatDieObserve(right=tuple(int(a) for a in mesh.right), U_draw=float(config.U_draw))
+    observe = FlatDieObserve(right=tuple(int(a) for a in mesh.right), pull=(1, 1))
 
     parameters = {
         "variant": variant,

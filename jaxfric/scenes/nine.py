@@ -167,7 +167,7 @@ class NineObserve(eqx.Module):
 
     right: tuple = eqx.field(static=True)     # right-end nodes
     tail: int = eqx.field(static=True)        # bottom-left node
-    U_draw: float = eqx.field(static=True)    # mm
+    pull: tuple = eqx.field(static=True)      # (phase, condition) of the pull's Ramp: its end is U_draw
 
     def __call__(self, model, state) -> dict:
         c = state.contact
@@ -175,7 +175,7 @@ class NineObserve(eqx.Module):
         f_a, f_b, f_c, f_d, f_e = resultants[:len(TOOLS)]
         guide = resultants[len(TOOLS):] or (jnp.zeros(2), jnp.zeros(2))
         return {
-            "drawing_displacement": self.U_draw * cm.phase_progress(state, 1),
+            "drawing_displacement": cm.ramp_end(model, *self.pull) * cm.phase_progress(state, 1),
             "drawing_force": cm.end_reaction(model, state, self.right)[0],
             "clamping_force": c.force[1],
             "tool_position": c.q[1],
@@ -272,8 +272,7 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
     model = StripModel(mesh, material, phases, tools=tuple(tools), contact=law, formulation=config.element,
                        thickness_points=config.thickness_points,
                        phase_seconds=cm.phase_seconds(config, phases, config.U_draw))
-    observe = NineObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)),
-                          U_draw=float(config.U_draw))
+    observe = NineObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)), pull=(1, 0))
 
     parameters = {
         "variant": variant,
