@@ -537,3 +537,28 @@ def test_a_target_curve_is_met_relative_to_its_largest_value():
     targets = np.array([0.0, 50.0, 100.0])
     assert met(np.array([0.05, -0.09, 0.1]), targets, 1e-3)
     assert not met(np.array([0.0, 0.0, 0.11]), targets, 1e-3)
+
+
+def test_replays_of_step_sequences_of_about_the_same_length_share_one_program():
+    """A fit's curve takes its step sequence as data, padded per phase to a power of two: the adaptive run's
+    own sequence and one with a step split in two replay in one compiled program (traced once), the first
+    reproducing the adaptive run's forces and the second ending where the load path does."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxfric.identification.params import adaptive_run, plan_steps, replay_function
+
+    par = parameterize("flat_die", ["mu"], variant="const_force", overrides={"mesh": "24x1", "U_draw": 0.01})
+    run = adaptive_run(par, par.p0).history
+    replay = jax.jit(lambda p, steps: (lambda h, code: (h.observed["drawing_force"], h.n_rows, code))(
+        *replay_function(par)(p, steps)))
+    time, phase = np.asarray(run["time"]), np.asarray(run["phase"])
+    k = int(np.flatnonzero(phase == 1)[3])               # a drawing step, split at its middle
+    split = {"time": np.insert(time, k, 0.5 * (time[k - 1] + time[k])), "phase": np.insert(phase, k, 1)}
+    steps = [plan_steps(par, plan) for plan in (run, split)]
+    assert [[a.shape for a, _ in s] for s in steps][0] == [[a.shape for a, _ in s] for s in steps][1]
+    (force, rows, code), (force2, rows2, code2) = (replay(jnp.asarray(par.p0), s) for s in steps)
+    assert replay._cache_size() == 1
+    assert int(code) == int(code2) == 0 and int(rows) == len(time) and int(rows2) == len(time) + 1
+    np.testing.assert_allclose(np.asarray(force)[:int(rows)], run["drawing_force"], rtol=1e-9, atol=1e-9)
+    assert abs(float(force2[int(rows2) - 1]) - run["drawing_force"][-1]) < 1e-3 * abs(run["drawing_force"][-1])

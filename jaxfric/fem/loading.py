@@ -170,11 +170,13 @@ class Phase(eqx.Module):
                 raise ValueError(f"field 'n_steps' of phase {name!r} must be an integer >= 1, got {n_steps!r}")
             increments = ((1.0, int(n_steps)),)
         increments = tuple((float(e), int(n)) for e, n in increments)
-        ends = [e for e, _ in increments]
-        if any(n < 1 for _, n in increments) or not np.all(np.diff([0.0] + ends) > 0) or ends[-1] != 1.0:
+        real = tuple(inc for inc in increments if inc != (1.0, 0))   # (1, 0): empty padding, only at the end
+        ends = [e for e, _ in real]
+        if (not real or any(n < 1 for _, n in real) or not np.all(np.diff([0.0] + ends) > 0) or ends[-1] != 1.0
+                or increments[:len(real)] != real):
             raise ValueError(f"field 'increments' of phase {name!r} must have increasing breakpoints "
-                             f"ending at 1 and step counts >= 1, got {increments}")
-        self.tau_ends = np.array(ends, np.float64)
+                             f"ending at 1 and step counts >= 1 (then only empty (1, 0) entries), got {increments}")
+        self.tau_ends = np.array([e for e, _ in increments], np.float64)
         self.n_steps = np.array([n for _, n in increments], np.int64)
 
     @property
@@ -182,7 +184,7 @@ class Phase(eqx.Module):
         """The nominal increments as ``((tau_end, n_steps), ...)`` (of a phase whose values are known: not
         inside a compiled function that takes the model as an argument)."""
         return tuple((float(e), int(n)) for e, n in zip(_concrete("tau_ends", self.tau_ends),
-                                                          _concrete("n_steps", self.n_steps)))
+                                                          _concrete("n_steps", self.n_steps)) if n > 0)
 
 
 def _concrete(name: str, value) -> np.ndarray:
@@ -192,11 +194,15 @@ def _concrete(name: str, value) -> np.ndarray:
     return np.asarray(value)
 
 
-def with_steps(phases, times, phase_index) -> tuple:
+def with_steps(phases, times, phase_index, padded: bool = False) -> tuple:
     """``phases`` with their nominal increments replaced by the given steps: ``times`` (increasing
     global pseudo-times, each the end of one step) and the phase index of each step. Used to replay
     the accepted steps of an adaptive run as the nominal steps of another (the step controller still
-    cuts a step that fails, and grows back to the given step, never beyond)."""
+    cuts a step that fails, and grows back to the given step, never beyond).
+
+    ``padded``: each phase's steps are followed by empty (1, 0) segments up to the next power of two, so
+    that replays of step sequences of nearly the same length have arrays of the same shapes and share
+    one compiled program (the controller passes over empty segments: the same steps either way)."""
     times, phase_index = np.asarray(times, float), np.asarray(phase_index, int)
     out = []
     for k, phase in enumerate(phases):
@@ -204,7 +210,10 @@ def with_steps(phases, times, phase_index) -> tuple:
         if tau.size == 0 or abs(tau[-1] - 1.0) > 1e-9:
             raise ValueError(f"field 'times' must cover phase {phase.name!r} up to its end")
         tau[-1] = 1.0
-        out.append(Phase(phase.name, phase.bcs, increments=tuple((float(t), 1) for t in tau)))
+        steps = [(float(t), 1) for t in tau]
+        if padded:
+            steps += [(1.0, 0)] * (2 ** int(np.ceil(np.log2(len(steps)))) - len(steps))
+        out.append(Phase(phase.name, phase.bcs, increments=tuple(steps)))
     return tuple(out)
 
 
@@ -241,7 +250,8 @@ def schedule(phases) -> Schedule:
         ends = xp.asarray(phase.tau_ends, xp.float64)
         starts = xp.concatenate([xp.zeros(1, xp.float64), ends[:-1]])
         seg_end.append(k + ends)
-        seg_dt.append((ends - starts) / xp.asarray(phase.n_steps).astype(xp.float64))
+        # Empty padding segments (no steps, no length) get a zero increment, never taken.
+        seg_dt.append((ends - starts) / xp.maximum(xp.asarray(phase.n_steps), 1).astype(xp.float64))
         seg_steps.append(xp.asarray(phase.n_steps))
         seg_phase.append(np.full(np.shape(phase.tau_ends)[0], k, np.int32))
     return Schedule(xp.concatenate(seg_end), xp.concatenate(seg_dt), np.concatenate(seg_phase),

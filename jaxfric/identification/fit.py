@@ -24,9 +24,10 @@ in the parameters, so the replays allow more Newton iterations per step than the
 11. When the fit has converged on one sequence, the adaptive run is repeated at the optimum: where it
 takes other steps, its misfit and the last Jacobian (sequences a few steps apart have nearly the same
 Jacobian) give a Gauss-Newton step, and adaptive runs follow these steps until one moves no parameter
-by more than the stopping tolerance (below). Each adaptive run reuses one compiled program, where a
-new sequence would compile a new curve; only when ``max_replans`` such runs do not settle is the fit
-repeated on the last run's sequence. The answer is then the parameters at which the ordinary adaptive
+by more than the stopping tolerance (below). Each adaptive run reuses one compiled program; only when
+``max_replans`` such runs do not settle is the fit repeated on the last run's sequence, whose curve
+reuses the first one's compiled program where each phase's steps stay within the same power of two
+(the sequence is data of the program: :func:`jaxfric.identification.params.plan_steps`). The answer is then the parameters at which the ordinary adaptive
 run (``jaxfric run``) reproduces the data best, to the accuracy the data resolve.
 
 **The optimiser.** ``scipy.optimize.least_squares`` (trust-region reflective, bounded) on the

@@ -11,50 +11,66 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..numerics.lru import LRU
 from ..numerics.newton import NewtonOptions
 from .fit_data import bin_means
-from .params import Parameterization, path_function
+from .params import Parameterization, plan_steps, replay_function
 
-__all__ = ["Curve", "refined_plan", "REPLAY_ITERATIONS"]
+__all__ = ["Curve", "refined_plan", "REPLAY_ITERATIONS", "PROGRAMS"]
 
 REPLAY_ITERATIONS = 60  # Newton iterations per step allowed in the frozen-sequence replays
 
 
 class Curve:
     """The fitted observations (the simulated force at the measured displacements, or its means over
-    the windows ``edges``) along one frozen step sequence, with their Jacobian; compiled once per
-    sequence.
+    the windows ``edges``) along one frozen step sequence, with their Jacobian.
 
     Args:
         par: the parameterised scene.
-        plan_history: the step sequence (``time``, ``phase``, ``predicted`` columns of an adaptive run).
+        plan_history: the step sequence (``time``, ``phase`` columns of an adaptive run).
         x: (m,) measured displacements (mm); edges: window edges (mm), or None (pointwise).
         newton: Newton's options (None: the scene's), with at least :data:`REPLAY_ITERATIONS` iterations.
 
-    ``curve(p)`` returns (observations, Jacobian (m, n), pointwise force, result code, cutbacks).
+    ``curve(p)`` returns (observations, Jacobian (m, n), pointwise force, result code, cutbacks). The step
+    sequence is data of the compiled function (:func:`~jaxfric.identification.params.plan_steps`): the curves
+    of one parameterisation, measurement and Newton's options share it (:data:`PROGRAMS`), so that a new
+    sequence of about the same length (a fit's re-plan) compiles nothing.
     """
 
     def __init__(self, par: Parameterization, plan_history: dict, x: np.ndarray, edges, newton: NewtonOptions | None):
         self.times = np.asarray(plan_history["time"][1:])
         newton = par.scene.newton if newton is None else newton
         newton = dataclasses.replace(newton, max_iterations=max(newton.max_iterations, REPLAY_ITERATIONS))
-        path = path_function(par, newton=newton, plan=plan_history)
-
-        def curve(p):
-            h, code = path(p)
-            rows = jnp.arange(h.time.shape[0], dtype=h.n_rows.dtype)
-            # Unfilled rows get displacements beyond every measured one (interp needs increasing x).
-            xr = jnp.where(rows < h.n_rows, h.observed["drawing_displacement"], 1e30 * (1.0 + rows.astype(float)))
-            fr = jnp.where(rows < h.n_rows, h.observed["drawing_force"], 0.0)
-            pointwise = jnp.interp(jnp.asarray(x), xr, fr)
-            obs = pointwise if edges is None else bin_means(xr, fr, jnp.asarray(edges))
-            return obs, (obs, pointwise, code, jnp.sum(h.cutbacks))
-
-        self._fn = jax.jit(jax.jacfwd(curve, has_aux=True))
+        self._steps = plan_steps(par, plan_history)
+        key = (id(par), newton, np.asarray(x).tobytes(), None if edges is None else np.asarray(edges).tobytes())
+        self._fn = PROGRAMS.get(key, lambda: (par, _compiled_curve(par, x, edges, newton)))[1]
 
     def __call__(self, p):
-        jac, (obs, pointwise, code, cuts) = self._fn(jnp.asarray(p, jnp.float64))
+        jac, (obs, pointwise, code, cuts) = self._fn(jnp.asarray(p, jnp.float64), self._steps)
         return np.asarray(obs), np.asarray(jac), np.asarray(pointwise), int(code), int(cuts)
+
+
+# Compiled curves by (parameterisation, Newton's options, measurement): each entry holds its
+# parameterisation, so that the key's id() names no other object while the entry lives.
+PROGRAMS: LRU = LRU(4)
+
+
+def _compiled_curve(par: Parameterization, x, edges, newton: NewtonOptions):
+    """``fn(p, steps) -> (Jacobian, (observations, pointwise force, result code, cutbacks))``, jitted, the
+    step sequence ``steps`` an argument (not differentiated)."""
+    replay = replay_function(par, newton)
+
+    def curve(p, steps):
+        h, code = replay(p, steps)
+        rows = jnp.arange(h.time.shape[0], dtype=h.n_rows.dtype)
+        # Unfilled rows get displacements beyond every measured one (interp needs increasing x).
+        xr = jnp.where(rows < h.n_rows, h.observed["drawing_displacement"], 1e30 * (1.0 + rows.astype(float)))
+        fr = jnp.where(rows < h.n_rows, h.observed["drawing_force"], 0.0)
+        pointwise = jnp.interp(jnp.asarray(x), xr, fr)
+        obs = pointwise if edges is None else bin_means(xr, fr, jnp.asarray(edges))
+        return obs, (obs, pointwise, code, jnp.sum(h.cutbacks))
+
+    return jax.jit(jax.jacfwd(curve, has_aux=True))
 
 
 def refined_plan(history: dict, substeps: int) -> dict:

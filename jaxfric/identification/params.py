@@ -37,7 +37,8 @@ from ..loadpath.run import run
 from ..loadpath.simulate import simulate, simulate_fixed
 from ..numerics.newton import NewtonOptions
 
-__all__ = ["Parameterization", "parameterize", "adaptive_run", "path_function", "value_filter", "AFFINE_RTOL"]
+__all__ = ["Parameterization", "parameterize", "adaptive_run", "path_function", "replay_function", "plan_steps",
+           "value_filter", "AFFINE_RTOL"]
 
 AFFINE_RTOL = 1e-9  # affinity check, relative to the size of a leaf and of its change
 
@@ -233,13 +234,40 @@ def path_function(par: Parameterization, *, newton: NewtonOptions | None = None,
     times, step_phase = np.asarray(plan["time"][1:]), np.asarray(plan["phase"][1:])
     fresh = np.asarray(plan["predicted"][1:]) == 0   # retries and withheld predictions start converged
 
-    def f(p):
-        model = par.model(p)
-        model = eqx.tree_at(lambda m: m.phases, model, with_steps(model.phases, times, step_phase))
-        if reverse:
+    if reverse:
+        def f(p):
+            model = par.model(p)
+            model = eqx.tree_at(lambda m: m.phases, model, with_steps(model.phases, times, step_phase))
             sim = simulate_fixed(model, newton=newton, observe=scene.observe, checkpoint=checkpoint, fresh=fresh)
-        else:
-            sim = simulate(model, newton=newton, control=scene.control, observe=scene.observe)
+            return sim.history, sim.code
+        return f
+    replay, steps = replay_function(par, newton), plan_steps(par, plan)
+    return lambda p: replay(p, steps)
+
+
+def plan_steps(par: Parameterization, plan: dict) -> tuple:
+    """The step sequence of ``plan`` (a run's history) as the data of :func:`replay_function`: per phase,
+    its steps' ends and counts, padded to a power of two (:func:`jaxfric.fem.loading.with_steps`), so that
+    sequences of nearly the same length have the same shapes."""
+    phases = with_steps(par.scene.model.phases, np.asarray(plan["time"][1:]), np.asarray(plan["phase"][1:]),
+                        padded=True)
+    return tuple((phase.tau_ends, phase.n_steps) for phase in phases)
+
+
+def replay_function(par: Parameterization, newton: NewtonOptions | None = None):
+    """``g(p, steps) -> (history, result code)``: the model at parameter values ``p`` run by the adaptive
+    loop with the nominal steps ``steps`` (:func:`plan_steps`), which are data: one compiled ``g`` (or
+    its derivative) replays every step sequence of the same padded length. Forward mode; the history
+    buffer is the scene's (``StepControl.max_steps``), which bounds the steps of a replay."""
+    scene = par.scene
+    newton = scene.newton if newton is None else newton
+
+    def g(p, steps):
+        model = par.model(p)
+        phases = tuple(eqx.tree_at(lambda ph: (ph.tau_ends, ph.n_steps), phase, tuple(step))
+                       for phase, step in zip(model.phases, steps))
+        model = eqx.tree_at(lambda m: m.phases, model, phases)
+        sim = simulate(model, newton=newton, control=scene.control, observe=scene.observe)
         return sim.history, sim.code
 
-    return f
+    return g

@@ -305,8 +305,9 @@ class Controller(eqx.Module):
 
     Attributes:
         control: the settings.
-        seg_end, seg_dt, seg_phase: per schedule segment, its end (pseudo-time), nominal increment
-            and phase.
+        seg_end, seg_dt, seg_phase, seg_steps: per schedule segment, its end (pseudo-time), nominal
+            increment, phase and number of nominal steps (0: an empty segment that pads a phase's
+            increments, which the controller passes over: :func:`jaxfric.fem.loading.with_steps`).
         n_buffer: history rows of accepted steps in a whole run's buffer (static; 0 in a chunk's
             program, whose buffers are its own).
         max_rows: () int32, accepted steps after which the run stops with ``Result.MAX_STEPS`` (data:
@@ -324,6 +325,7 @@ class Controller(eqx.Module):
     seg_end: jax.Array
     seg_dt: jax.Array
     seg_phase: jax.Array
+    seg_steps: jax.Array
     n_buffer: int = eqx.field(static=True)
     max_rows: jax.Array
     continuation: bool = eqx.field(static=True)
@@ -344,7 +346,7 @@ class Controller(eqx.Module):
         n_buffer = 0 if max_rows is not None else max_steps(control, phases)
         rows = jnp.asarray(n_buffer if max_rows is None else max_rows, jnp.int32)
         return cls(control, jnp.asarray(sched.seg_end), jnp.asarray(sched.seg_dt),
-                   jnp.asarray(sched.seg_phase, jnp.int32), n_buffer, rows,
+                   jnp.asarray(sched.seg_phase, jnp.int32), jnp.asarray(sched.seg_steps, jnp.int32), n_buffer, rows,
                    continuation, has_line_search, n_stages, stabilized, eta)
 
     def init(self, u, q) -> ControllerState:
@@ -385,11 +387,13 @@ class Controller(eqx.Module):
         """The state after an attempt from ``t_start`` to ``t_try`` with outcome ``out``; ``row``: the
         history rows filled before it."""
         dt_nom, end = self.seg_dt[cs.seg], self.seg_end[cs.seg]
-        n_seg = self.seg_end.shape[0]
         converged = out.code == Result.SUCCESS
         ok, iters, stats = self.tally(cs, out)
         seg_done = ok & (t_try == end)
-        next_seg = jnp.minimum(cs.seg + seg_done.astype(jnp.int32), n_seg - 1)
+        # The next segment with steps (empty ones pad a replay's phases); none: the load path's end.
+        later = (jnp.arange(self.seg_end.shape[0], dtype=jnp.int32) > cs.seg) & (self.seg_steps > 0)
+        last_seg = ~jnp.any(later)
+        next_seg = jnp.where(seg_done & ~last_seg, jnp.argmax(later).astype(jnp.int32), cs.seg)
         hardest = out.iterations if out.hardest is None else out.hardest
         n_easy, grow, dt_ok = increment_after_acceptance(self.control, ok, cs.n_easy, hardest, cs.dt, dt_nom,
                                                          self.seg_dt[next_seg], seg_done)
@@ -414,7 +418,7 @@ class Controller(eqx.Module):
         level = stabilised_attempt(too_small, cs.damped, self.stabilized)
         damp = level > 0
         too_small, repeat = too_small & ~damp, repeat | damp
-        finished = seg_done & (cs.seg == n_seg - 1)
+        finished = seg_done & last_seg
         full = ok & ~finished & (row + 1 >= self.max_rows + 1)
         keep_r = (too_small & cs.plain) | held
         return ControllerState(
