@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..numerics._checks import check_finite, check_finite_array
+from ..numerics._checks import check_finite, check_finite_array, is_concrete
 
 __all__ = ["Motion", "Ramp", "Affine", "RigidMotion", "DirichletBC", "Phase", "with_steps", "constraint_masks",
            "prescribed_values", "Schedule", "schedule"]
@@ -188,7 +188,7 @@ class Phase(eqx.Module):
 
 
 def _concrete(name: str, value) -> np.ndarray:
-    if isinstance(value, jax.core.Tracer):
+    if not is_concrete(value):
         raise ValueError(f"field '{name}' of a phase is traced here, and this needs its values: give them "
                          f"outside the compiled function (for a run's history buffer: StepControl.max_steps)")
     return np.asarray(value)
@@ -243,8 +243,7 @@ class Schedule:
 def schedule(phases) -> Schedule:
     """The segments of ``phases``' nominal increments (computed with NumPy where their values are known,
     in the compiled function where they are traced: the same IEEE operations either way)."""
-    traced = any(isinstance(a, jax.core.Tracer) for ph in phases for a in (ph.tau_ends, ph.n_steps))
-    xp = jnp if traced else np
+    xp = np if is_concrete([(ph.tau_ends, ph.n_steps) for ph in phases]) else jnp
     seg_end, seg_dt, seg_steps, seg_phase = [], [], [], []
     for k, phase in enumerate(phases):
         ends = xp.asarray(phase.tau_ends, xp.float64)

@@ -27,8 +27,9 @@ Jacobian) give a Gauss-Newton step, and adaptive runs follow these steps until o
 by more than the stopping tolerance (below). Each adaptive run reuses one compiled program; only when
 ``max_replans`` such runs do not settle is the fit repeated on the last run's sequence, whose curve
 reuses the first one's compiled program where each phase's steps stay within the same power of two
-(the sequence is data of the program: :func:`jaxfric.identification.params.plan_steps`). The answer is then the parameters at which the ordinary adaptive
-run (``jaxfric run``) reproduces the data best, to the accuracy the data resolve.
+(the sequence is data of the program: :func:`jaxfric.identification.params.plan_steps`). The answer is
+then the parameters at which the ordinary adaptive run (``jaxfric run``) reproduces the data best, to the
+accuracy the data resolve.
 
 **The optimiser.** ``scipy.optimize.least_squares`` (trust-region reflective, bounded) on the
 residuals r = F_sim(x_k; p) - F_k, with the Jacobian from forward-mode differentiation through the whole

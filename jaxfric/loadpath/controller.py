@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 
 from ..fem.loading import schedule
-from ..numerics._checks import check_int, check_nonnegative
+from ..numerics._checks import check_int, check_nonnegative, is_concrete
 from ..numerics.results import Result
 
 __all__ = ["StepControl", "Controller", "ControllerState", "ContinuationState", "Outcome", "Tally",
@@ -293,7 +293,7 @@ def max_steps(control: StepControl, phases) -> int:
     """
     if control.max_steps:
         return control.max_steps
-    if any(isinstance(phase.n_steps, jax.core.Tracer) for phase in phases):
+    if not is_concrete([phase.n_steps for phase in phases]):
         raise ValueError("field 'max_steps': give StepControl(max_steps=...) when the model is an argument of "
                          "the compiled function (its nominal increments are data there, and the default counts them)")
     return 10 * schedule(phases).n_nominal_steps + 100
