@@ -550,8 +550,13 @@ def test_replays_of_step_sequences_of_about_the_same_length_share_one_program():
 
     par = parameterize("flat_die", ["mu"], variant="const_force", overrides={"mesh": "24x1", "U_draw": 0.01})
     run = adaptive_run(par, par.p0).history
-    replay = jax.jit(lambda p, steps: (lambda h, code: (h.observed["drawing_force"], h.n_rows, code))(
-        *replay_function(par)(p, steps)))
+    g = replay_function(par)
+
+    @jax.jit
+    def replay(p, steps):
+        h, code = g(p, steps)
+        return h.observed["drawing_force"], h.n_rows, code
+
     time, phase = np.asarray(run["time"]), np.asarray(run["phase"])
     k = int(np.flatnonzero(phase == 1)[3])               # a drawing step, split at its middle
     split = {"time": np.insert(time, k, 0.5 * (time[k - 1] + time[k])), "phase": np.insert(phase, k, 1)}
