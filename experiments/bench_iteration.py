@@ -21,7 +21,8 @@ step's converged solution (the program pieces compiled apart, median process CPU
 - ``solve``: one block-Thomas solve of the bare tangent;
 - ``step``: a whole nominal drawing step (solve_step) over its Newton iterations, for ``--steps`` steps
   from the secant predictor (``per_iteration``: the step's time over its iterations; ``passes``: the
-  active-set passes per Newton iteration of these steps).
+  active-set passes per Newton iteration of these steps; ``dU``: the timed increment, the nominal one, or
+  half of it, up to three times, where a timed step does not converge at the nominal one).
 
 The columns are milliseconds; ``share`` is the part's time over the whole step's time per iteration.
 One XLA thread is assumed (``XLA_FLAGS=--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1``,
@@ -84,6 +85,10 @@ def main(argv=None) -> None:
         raise SystemExit("no mesh was measured")
 
 
+#: halvings of the timed increment where a timed step does not converge at the nominal one
+HALVINGS = 3
+
+
 def bench(variant: str, overrides: dict, u0: float, steps: int, label: str = "") -> list[dict]:
     """The rows of one mesh (module docstring)."""
     scene = scenes.make("nine", variant, "lcp_ssn", overrides)
@@ -96,23 +101,33 @@ def bench(variant: str, overrides: dict, u0: float, steps: int, label: str = "")
     dt = config.dU / config.U_draw
     state = eqx.tree_at(lambda s: s.time, sim.final, jnp.asarray(1.0 + u0 / config.U_draw))
 
-    # Whole steps from the secant predictor.
+    # Whole steps from the secant predictor, at the nominal increment; where a step does not converge at
+    # it (Newton's iteration limit on a fine mesh), the timed sequence starts again from the same state
+    # at half the increment, as the step controller would cut it, at most HALVINGS times.
     step = eqx.filter_jit(lambda st, t, g: solve_step(model, st, 1, t, opts, ctx, guess=g))
-    prev, iters, step_ms, passes = None, [], [], []
-    for s in range(steps + 2):
-        t_target = float(state.time) + dt
-        guess = (state.u, state.contact.q) if prev is None else \
-            (2 * state.u - prev.u, 2 * state.contact.q - prev.contact.q)
-        jax.block_until_ready(step(state, t_target, guess))   # compiled on the first call
-        t0 = time.process_time()
-        sol, new = jax.block_until_ready(step(state, t_target, guess))
-        if s >= 2:   # the first two steps: compilation and the predictor's start
-            step_ms.append(1e3 * (time.process_time() - t0))
-            iters.append(int(sol.iterations))
-            passes.append(int(sol.stats[1]))
-        if int(sol.code) != 0:
-            raise RuntimeError(f"the timed step {s} did not converge (code {int(sol.code)}); try another --u0")
-        prev, state = state, new
+    start = state
+    for halving in range(HALVINGS + 1):
+        state, prev, iters, step_ms, passes = start, None, [], [], []
+        for s in range(steps + 2):
+            t_target = float(state.time) + dt
+            guess = (state.u, state.contact.q) if prev is None else \
+                (2 * state.u - prev.u, 2 * state.contact.q - prev.contact.q)
+            jax.block_until_ready(step(state, t_target, guess))   # compiled on the first call
+            t0 = time.process_time()
+            sol, new = jax.block_until_ready(step(state, t_target, guess))
+            if int(sol.code) != 0:
+                break
+            if s >= 2:   # the first two steps: compilation and the predictor's start
+                step_ms.append(1e3 * (time.process_time() - t0))
+                iters.append(int(sol.iterations))
+                passes.append(int(sol.stats[1]))
+            prev, state = state, new
+        else:
+            break
+        if halving == HALVINGS:
+            raise RuntimeError(f"the timed step {s} did not converge (code {int(sol.code)}) at {dt * config.U_draw:g} "
+                               f"mm; try another --u0")
+        dt = 0.5 * dt
     per_iteration = float(np.sum(step_ms) / np.sum(iters))
 
     # The parts, at the last step's converged solution, as data of the step that follows it.
@@ -141,7 +156,7 @@ def bench(variant: str, overrides: dict, u0: float, steps: int, label: str = "")
     n_passes = int(eqx.filter_jit(lambda ar: problem.direction(x, c1.point, ar, jnp.array(False)).stats[1])(args))
     m = int(sum(len(t.candidates) for t in model.tools))
     size = {"mesh": f"{model.mesh.nx}x{model.mesh.ny}", "elements": int(model.mesh.n_elements),
-            "dofs": int(model.mesh.n_dofs), "pairs": m}
+            "dofs": int(model.mesh.n_dofs), "pairs": m, "dU": round(dt * config.U_draw, 6)}
     rows = [{"label": label, **size, "part": "step", "ms": round(float(np.mean(step_ms)), 3),
              "per_iteration": round(per_iteration, 3), "share": 1.0,
              "iterations": round(float(np.mean(iters)), 2), "passes": round(np.sum(passes) / np.sum(iters), 2)}]
@@ -154,9 +169,9 @@ def bench(variant: str, overrides: dict, u0: float, steps: int, label: str = "")
             rows.append({"label": label, **size, "part": "direction_per_pass", "ms": round(ms / n_passes, 3),
                          "per_iteration": "", "share": round(ms / n_passes / per_iteration, 3), "iterations": "",
                          "passes": ""})
-    print(f"Nine {variant} {size['mesh']} at U = {u0 + steps * config.dU:.1f} mm, {m} candidate pairs, "
-          f"{len(iters)} steps of {np.mean(iters):.2f} Newton iterations and {np.sum(passes) / np.sum(iters):.2f} "
-          f"active-set passes per iteration, {per_iteration:.2f} ms per iteration")
+    print(f"Nine {variant} {size['mesh']} at U = {float(state.time - 1.0) * config.U_draw:.1f} mm, {m} candidate "
+          f"pairs, {len(iters)} steps of {dt * config.U_draw:g} mm, {np.mean(iters):.2f} Newton iterations and "
+          f"{np.sum(passes) / np.sum(iters):.2f} active-set passes per iteration, {per_iteration:.2f} ms per iteration")
     for r in rows:
         print(f"  {r['part']:>15}: {r['ms']:9.3f} ms  ({r['share']:.2f} of an iteration)")
     return rows
