@@ -12,7 +12,8 @@ step's converged solution (the program pieces compiled apart, median process CPU
 
 - ``elements``: the element forces and consistent tangents, assembled (block-tridiagonal);
 - ``elements_force``: the element forces alone (what a line search's trial needs);
-- ``pairs``: every candidate pair's projection and its forward derivative;
+- ``pairs``: the pairs' projections and their forward derivatives (``evaluated_pairs`` of the ``pairs``
+  candidates: those the step's pre-selection keeps, :mod:`jaxfric.contact.preselection`);
 - ``evaluate``: one point of the Newton loop (elements, pairs, residual, the line search's merit);
 - ``direction``: one direction of the semismooth Newton (the frames, the active-set passes, each a
   block-Thomas solve, and the merit at its start), taken at the converged point with its own forces as
@@ -155,8 +156,10 @@ def bench(variant: str, overrides: dict, u0: float, steps: int, label: str = "")
 
     n_passes = int(eqx.filter_jit(lambda ar: problem.direction(x, c1.point, ar, jnp.array(False)).stats[1])(args))
     m = int(sum(len(t.candidates) for t in model.tools))
+    evaluated = int(sum(t.capacity or len(t.candidates) for t in model.tools))   # jaxfric.contact.preselection
     size = {"mesh": f"{model.mesh.nx}x{model.mesh.ny}", "elements": int(model.mesh.n_elements),
-            "dofs": int(model.mesh.n_dofs), "pairs": m, "dU": round(dt * config.U_draw, 6)}
+            "dofs": int(model.mesh.n_dofs), "pairs": m, "evaluated_pairs": evaluated,
+            "dU": round(dt * config.U_draw, 6)}
     rows = [{"label": label, **size, "part": "step", "ms": round(float(np.mean(step_ms)), 3),
              "per_iteration": round(per_iteration, 3), "share": 1.0,
              "iterations": round(float(np.mean(iters)), 2), "passes": round(np.sum(passes) / np.sum(iters), 2)}]
@@ -170,7 +173,8 @@ def bench(variant: str, overrides: dict, u0: float, steps: int, label: str = "")
                          "per_iteration": "", "share": round(ms / n_passes / per_iteration, 3), "iterations": "",
                          "passes": ""})
     print(f"Nine {variant} {size['mesh']} at U = {float(state.time - 1.0) * config.U_draw:.1f} mm, {m} candidate "
-          f"pairs, {len(iters)} steps of {dt * config.U_draw:g} mm, {np.mean(iters):.2f} Newton iterations and "
+          f"pairs ({evaluated} evaluated per iteration), {len(iters)} steps of {dt * config.U_draw:g} mm, "
+          f"{np.mean(iters):.2f} Newton iterations and "
           f"{np.sum(passes) / np.sum(iters):.2f} active-set passes per iteration, {per_iteration:.2f} ms per iteration")
     for r in rows:
         print(f"  {r['part']:>15}: {r['ms']:9.3f} ms  ({r['share']:.2f} of an iteration)")

@@ -2,12 +2,14 @@
 
 Every scene variant with every algorithm runs at a coarse mesh (the meshes of ``tests/test_scenes.py``)
 over a shortened stroke, plus the ``make run`` case (Nine ``mu017``, spec mesh, ``lcp_ssn``, whole
-stroke). ``record`` writes each run's history columns to ``DIR/<case>.npz``; ``compare`` reads two such
+stroke). ``record`` writes each run's history columns to ``DIR/<case>.npz`` (``--set``: a config field
+given to every case, e.g. ``preselect=false`` to compare a setting that should not change the results);
+``compare`` reads two such
 folders and writes, per case, the largest difference of every column scaled by the column's largest
 magnitude, and whether the runs took the same steps.
 
     python experiments/refactor_equivalence.py list        # the case names
-    python experiments/refactor_equivalence.py record runs/equivalence/before [CASE]
+    python experiments/refactor_equivalence.py record runs/equivalence/before [CASE] [--set KEY=VALUE ...]
     python experiments/refactor_equivalence.py compare runs/equivalence/before runs/equivalence/after \\
         experiments/results/refactor_equivalence.csv
 """
@@ -42,16 +44,16 @@ def cases(with_make_run: bool = True):
     return out
 
 
-def record(folder: str, only: str | None = None) -> None:
-    """Run every case (or the one named ``only``, or else those whose name contains it) and write its
-    history to ``folder``."""
+def record(folder: str, only: str | None = None, extra: dict | None = None) -> None:
+    """Run every case (or the one named ``only``, or else those whose name contains it), with the config
+    fields ``extra`` (field -> text) on top of its own, and write its history to ``folder``."""
     os.makedirs(folder, exist_ok=True)
     chosen = cases()
     if only is not None:
         exact = [c for c in chosen if c[0] == only]
         chosen = exact or [c for c in chosen if only in c[0]]
     for name, scene_name, variant, algorithm, overrides in chosen:
-        scene = make(scene_name, variant, algorithm, dict(overrides))
+        scene = make(scene_name, variant, algorithm, {**overrides, **(extra or {})})
         result = jaxfric.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
                              progress=False, raise_on_failure=False)
         columns = {k: np.asarray(v) for k, v in result.history.items()
@@ -114,7 +116,10 @@ def compare(before: str, after: str, out_csv: str | None = None) -> list:
 
 if __name__ == "__main__":
     if len(sys.argv) >= 3 and sys.argv[1] == "record":
-        record(sys.argv[2], sys.argv[3] if len(sys.argv) > 3 else None)
+        words = sys.argv[3:]
+        sets = [words[i + 1] for i, w in enumerate(words) if w == "--set" and i + 1 < len(words)]
+        names = [w for i, w in enumerate(words) if w != "--set" and (i == 0 or words[i - 1] != "--set")]
+        record(sys.argv[2], names[0] if names else None, dict(text.split("=", 1) for text in sets))
     elif len(sys.argv) == 2 and sys.argv[1] == "list":
         print("\n".join(c[0] for c in cases()))
     elif len(sys.argv) >= 4 and sys.argv[1] == "compare":

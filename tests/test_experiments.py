@@ -321,3 +321,10 @@ def test_suite_compile_reads_jax_s_compile_log_and_sorts_programs_by_kind():
     per_test, totals = suite_compile.summarise([("t", "xla", "jit(add)", 1.0), ("t", "trace", "jit(add)", 0.5),
                                                 ("u", "xla", "jit(curve)", 2.0)])
     assert per_test["t"][("op by op", "programs")] == 1 and totals[("curve", "xla")] == 2.0
+
+
+def test_bench_preselection_times_the_pairs_with_and_without_the_selection():
+    import bench_preselection
+
+    (row,) = bench_preselection.geometry("40x2", "lcp_ssn")
+    assert 0 < row["evaluated"] < row["candidates"] and row["ms_on"] > 0 and row["ms_off"] > 0

@@ -90,6 +90,7 @@ from .exact_active_set import active_set_step, contact_frames, frames_at_forces,
 from .exact_condensed import contact_newton_step
 from .exact_derivative import exact_step_tangents
 from .exact_iterate import Iterate, iterate_residual, linearize_iterate, pair_status
+from .preselection import holds
 from .rigid import pair_friction, pair_mu, pair_speeds
 
 __all__ = ["ExactContactProblem", "exact_solve"]
@@ -150,9 +151,11 @@ class ExactContactProblem(AbstractNewtonProblem):
         penetrating = it.valid & (it.gap < -10.0 * self.options.du_atol)
         finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in (R, it.f_int, it.K.diag, it.gap)]))
         merit = semismooth_merit(x, it, args, pred.p, pred.frames) if self.searched else None
+        n = args.mesh.n_dofs
         return Evaluation(R, jnp.max(jnp.abs(it.f_int)), finite, ~(it.det_min <= 0.0),
                           Point(it, pred.p, status, penetrating), merit=merit,
-                          in_band=~jnp.any(~pred.in_band & penetrating))
+                          in_band=~jnp.any(~pred.in_band & penetrating),
+                          preselected=holds(c, x[:n].reshape(-1, 2), it.q))
 
     def settled(self, new, old, trial) -> jax.Array:
         pred = trial.data

@@ -11,9 +11,10 @@ import numpy as np
 
 from ..fem.assembly import internal_force, internal_force_and_tangent, shared_trace
 from ..numerics.linalg import BlockTridiag
+from .preselection import expand, gather
 from .rigid import ContactStep, pair_nodes, split_pairs
 from .status import contact_status
-from .tools import project
+from .tools import GAP_OPEN, project
 
 __all__ = ["KAPPA", "REFINE_ITER", "GAP_FAR", "Iterate", "linearize_iterate", "iterate_values", "iterate_residual",
            "pair_status", "pair_forces", "pair_tools", "tangents", "iterate_tool_positions", "Band", "proximity_band",
@@ -75,7 +76,12 @@ def _geometry(step: ContactStep, nodes_ref, u, q, derivatives: bool = True):
                 return jnp.zeros((4, 3)), local(z)[1]
             return jax.jacfwd(local, has_aux=True)(z)
 
-        J, pr = jax.vmap(one)(nodes_ref[idx], u[idx], step.u_ref[k])
+        near = step.selected(k)
+        J, pr = jax.vmap(one)(*(gather(near, a) for a in (nodes_ref[idx], u[idx], step.u_ref[k])))
+        # The pairs left out are open (jaxfric.contact.preselection): the open projection, no derivative.
+        J = expand(near, J, len(idx))
+        pr = pr._replace(**{f: expand(near, getattr(pr, f), len(idx), GAP_OPEN if f == "gap" else 0.0)
+                            for f in pr._fields})
         out.append(pr)
         jac.append(J)
     cat = lambda name: jnp.concatenate([getattr(p, name) for p in out])  # noqa: E731

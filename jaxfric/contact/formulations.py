@@ -106,6 +106,12 @@ class AbstractContactFormulation(eqx.Module):
         continuation stage (Newton's round-off floor relative to the positions, :mod:`jaxfric.numerics.newton`).
         """
 
+    @property
+    def forces_at_any_gap(self) -> bool:
+        """Static: an open pair carries a force however far it is from its tool (a smoothed law), so a
+        step evaluates every pair (no pair pre-selection, :mod:`jaxfric.contact.preselection`)."""
+        return False
+
     def continuation_stages(self, modulus) -> jax.Array:
         """() int32: the number m of softened stages for a sheet of modulus ``modulus`` (0: none)."""
         return jnp.array(0, jnp.int32)
@@ -140,6 +146,10 @@ class _Regularised(AbstractContactFormulation):
         if not isinstance(smooth, bool):
             raise ValueError(f"field 'smooth' must be True, False or None, got {smooth!r}")
         self.smooth = smooth
+
+    @property
+    def forces_at_any_gap(self) -> bool:
+        return self.smooth
 
     def __check_init__(self):
         if is_concrete(self.eps_n) and not float(self.eps_n) > 0:

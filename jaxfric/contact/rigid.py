@@ -39,8 +39,9 @@ import numpy as np
 from ..numerics._checks import check_nonnegative, is_concrete
 from .friction import FrictionLaw, tributary_lengths
 from .laws import augmented_pair
+from .preselection import expand, gather
 from .status import OPEN
-from .tools import Tool, project
+from .tools import GAP_OPEN, Tool, project
 
 __all__ = ["Move", "Force", "RigidTool", "ContactState", "ContactStep", "PairResult", "initial_contact_state",
            "evaluate_pairs", "tool_forces", "split_pairs", "pair_nodes", "pair_mu", "pair_friction",
@@ -96,6 +97,9 @@ class RigidTool(eqx.Module):
             derivative or a fit can start from mu = 0.
         friction: None (Coulomb: mu) or a :class:`~jaxfric.contact.friction.FrictionLaw` of the contact
             pressure and sliding speed about mu (needs a frictional tool).
+        capacity: static; None (every candidate's pair is evaluated at every Newton iterate), or how
+            many candidates nearest to the tool each load step evaluates
+            (:mod:`jaxfric.contact.preselection`, :func:`~jaxfric.contact.preselection.tool_capacity`).
     """
 
     name: str = eqx.field(static=True)
@@ -106,9 +110,10 @@ class RigidTool(eqx.Module):
     mu: jax.Array
     frictional: bool = eqx.field(static=True)
     friction: FrictionLaw | None = None
+    capacity: int | None = eqx.field(static=True, default=None)
 
     def __init__(self, name, geometry: Tool, drive, candidates, controls, mu, frictional: bool | None = None,
-                 friction: FrictionLaw | None = None):
+                 friction: FrictionLaw | None = None, capacity: int | None = None):
         self.name = str(name)
         self.geometry = geometry
         self.drive = jnp.asarray(drive, jnp.float64)
@@ -125,6 +130,7 @@ class RigidTool(eqx.Module):
         mu = jnp.asarray(mu, jnp.float64)
         self.mu = jnp.broadcast_to(mu, (len(self.controls),)) if mu.ndim == 0 else mu
         self.friction = friction
+        self.capacity = None if capacity is None else int(capacity)
 
     def __check_init__(self):
         if self.drive.shape != (2,):
@@ -133,6 +139,9 @@ class RigidTool(eqx.Module):
             raise ValueError(f"tool {self.name!r}: field 'drive' must be a unit vector, got {self.drive}")
         if not self.candidates:
             raise ValueError(f"tool {self.name!r}: field 'candidates' is empty")
+        if self.capacity is not None and not 1 <= self.capacity < len(self.candidates):
+            raise ValueError(f"tool {self.name!r}: field 'capacity' must be None or from 1 to the number of "
+                             f"candidates less one ({len(self.candidates) - 1}), got {self.capacity}")
         if not all(isinstance(c, (Move, Force)) for c in self.controls):
             raise ValueError(f"tool {self.name!r}: field 'controls' must hold one Move or Force per phase")
         if self.mu.shape != (len(self.controls),):
@@ -200,6 +209,13 @@ class ContactStep(eqx.Module):
     force_mask: jax.Array  # (n_t,) bool: force-driven in this phase
     dt: Any = 0.0        # () duration of the step (s; 0: none): the pairs' sliding speeds after it
     speed: tuple = ()    # per tool, (n_k,) sliding speeds of the last step (mm/s), which a friction law reads
+    near: tuple = ()     # per tool, (capacity,) the candidates this step evaluates, or None: all
+                         # (jaxfric.contact.preselection); () for none at all
+    clearance: tuple = ()  # per tool, () the smallest distance bound of the others at the step's start (mm)
+
+    def selected(self, k: int):
+        """The candidates of tool k this step evaluates (None: all)."""
+        return self.near[k] if self.near else None
 
 
 class PairResult(NamedTuple):
@@ -257,14 +273,21 @@ def evaluate_pairs(step: ContactStep, nodes_ref: jax.Array, u: jax.Array, q: jax
         law = tool.friction is not None
         lengths = tributary_lengths(nodes_ref[idx]) if law else jnp.ones(len(idx))
         speeds = step.speed[k] if law else jnp.zeros(len(idx))
-        args = (u[idx], q[k], nodes_ref[idx], step.lam_n[k], step.lam_t[k], step.u_ref[k], lengths, speeds)
+        near = step.selected(k)
+        per_pair = tuple(gather(near, a) for a in (u[idx], nodes_ref[idx], step.lam_n[k], step.lam_t[k],
+                                                   step.u_ref[k], lengths, speeds))
+        args = (per_pair[0], q[k]) + per_pair[1:]
         axes = (0, None, 0, 0, 0, 0, 0, 0)
         if jacobian:  # d f / d x_node = d f / d u_node
             (dfdx, dfdq), (f, aux) = jax.vmap(jax.jacfwd(one, argnums=(0, 1), has_aux=True), axes)(*args)
+            dfdx, dfdq = expand(near, (dfdx, dfdq), len(idx))
         else:
             f, aux = jax.vmap(lambda *a: one(*a)[1], axes)(*args)
             dfdx = dfdq = None
-        out.append(PairResult(f, dfdx, dfdq, *aux))
+        # The pairs left out are open: no force, the open pair's gap (jaxfric.contact.preselection).
+        f, rn, rt, status, gap, zeta, normal, slip = (expand(near, a, len(idx), GAP_OPEN if i == 4 else 0.0)
+                                                      for i, a in enumerate((f, *aux)))
+        out.append(PairResult(f, dfdx, dfdq, rn, rt, status, gap, zeta, normal, slip))
     return out
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..contact.formulations import newton_step
 from ..contact.friction import sliding_speed
+from ..contact.preselection import complete_geometry, select_pairs
 from ..contact.rigid import ContactState, ContactStep, Force, Move, pair_friction, pair_speeds, split_pairs
 from ..contact.status import contact_status
 from ..contact.system import StepArgs, linearize
@@ -72,10 +73,13 @@ def _contact_step(model: StripModel, state: SimState, phase, tau, law, dt=0.0) -
     # lambda_N: the last converged R_N where the formulation starts from it (the augmented Lagrangian's
     # warm start, spec 1.6; exact contact's guess of the first active set); the penalty law's is 0.
     lam_n = split_pairs(model.tools, c.rn if law.warm_start else jnp.zeros_like(c.rn))
+    # The candidates each tool's pairs are evaluated at in this step (jaxfric.contact.preselection).
+    near, clearance = select_pairs(model.tools, model.mesh.nodes, state.u, c.q, c.gap,
+                                   law.forces_at_any_gap)
     step = ContactStep(tools=model.tools, law=law, mu=mu_now, lam_n=lam_n, lam_t=tuple(lam_t),
                        u_ref=_candidates(model, state.u), q_ref=c.q, q_presc=jnp.stack(q_table)[phase],
                        force=jnp.stack(f_table)[phase], force_mask=jnp.asarray(force_mask)[phase], dt=dt,
-                       speed=split_pairs(model.tools, c.speed))
+                       speed=split_pairs(model.tools, c.speed), near=near, clearance=clearance)
     return step, q_start, f_start
 
 
@@ -184,6 +188,8 @@ def step_state(model: StripModel, args, sol, t_target, phase, q_start, f_start) 
     f_int, states, c_out = sol.aux
     new_contact = None
     if model.tools:
+        n = model.mesh.n_dofs
+        c_out = complete_geometry(args.contact, model.mesh.nodes, sol.x[:n].reshape(-1, 2), c_out["q"], c_out)
         kept = {k: v for k, v in c_out.items() if k != "slip"}  # slip is a per-attempt measure only
         # The stored status follows the spec's force thresholds (section 0) for every law, so that the
         # counts of closed and slipping pairs agree with the forces written out.

@@ -107,6 +107,8 @@ class Linearization(NamedTuple):
     prescribed_error: Any = None  # optional () max |x - x_presc| over prescribed dofs (mm)
     magnitude: Any = None    # optional (N,) size of what each unknown's round-off is relative to (|x|
                              # by default): positions |X + u| where the residual uses them (contact gaps)
+    preselected: Any = None  # optional () bool: False where a pair the step left out could have reached
+                             # its tool (jaxfric.contact.preselection)
 
 
 class NewtonSolution(NamedTuple):
@@ -144,6 +146,8 @@ class Evaluation(NamedTuple):
     merit: Any = None        # () what the line search compares; None: the problem is not line-searched
     in_band: Any = None      # () False: the solve left out a contact it needed (CONTACT_BAND); None: no band
     prescribed_error: Any = None  # () max |x - x_presc| over prescribed unknowns (mm), where there are any
+    preselected: Any = None  # () False: a pair the step's pre-selection left out could have reached its
+                             # tool (PRESELECTION); None: no pre-selection
 
 
 class Trial(NamedTuple):
@@ -213,7 +217,8 @@ class LinearizedProblem(AbstractNewtonProblem):
     def evaluate(self, x, trial, args) -> Evaluation:
         lin = self.linearize(x, args)
         return Evaluation(lin.residual, lin.scale, _all_finite((lin.residual, lin.jacobian)), lin.valid, lin,
-                          merit=jnp.sum(lin.residual**2), prescribed_error=lin.prescribed_error)
+                          merit=jnp.sum(lin.residual**2), prescribed_error=lin.prescribed_error,
+                          preselected=lin.preselected)
 
     def settled(self, new, old, trial) -> jax.Array:
         if new.state.status is None:
@@ -275,10 +280,12 @@ def _code(k, x, x_ref, new: Evaluation, trial: Trial, step_norm, settled, r_prev
     # A contact left out of the solve shows as a converged state with a penetrating outsider, or as a
     # loop that cannot settle because the outsiders enter and leave the band: both report the band.
     outside_band = jnp.array(False) if new.in_band is None else (done | out_of_iterations) & ~new.in_band
+    # Likewise a pair the step's pre-selection left out: checked where the loop ends.
+    missed = jnp.array(False) if new.preselected is None else (done | out_of_iterations) & ~new.preselected
     code = jnp.select(
-        [~new.finite, ~trial.solved, ~new.valid, outside_band, done, out_of_iterations],
-        [Result.NONFINITE, Result.LCP_FAILED, Result.INVERTED_ELEMENT, Result.CONTACT_BAND, Result.SUCCESS,
-         Result.MAX_ITERATIONS], Result.CONTINUE)
+        [~new.finite, ~trial.solved, ~new.valid, outside_band, missed, done, out_of_iterations],
+        [Result.NONFINITE, Result.LCP_FAILED, Result.INVERTED_ELEMENT, Result.CONTACT_BAND, Result.PRESELECTION,
+         Result.SUCCESS, Result.MAX_ITERATIONS], Result.CONTINUE)
     return code.astype(jnp.int32), r_norm
 
 

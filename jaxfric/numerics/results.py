@@ -18,6 +18,7 @@ class Result(enum.IntEnum):
     LCP_FAILED = 7         # the exact contact problem of an iterate had no solution (Lemke ray)
     CONTACT_BAND = 8       # a candidate outside the proximity band of exact contact penetrates a tool
     STOPPED = 9            # a stop request ended the run between two chunks of steps (resumable)
+    PRESELECTION = 10      # a candidate the step's pair pre-selection left out could have reached its tool
 
 
 _ADVICE = {
@@ -36,6 +37,10 @@ _ADVICE = {
                        "nominal step",
     Result.CONTACT_BAND: "a candidate node outside the proximity band of the exact contact solver penetrates "
                          "a tool; raise Complementarity.band (or leave it None: all candidates)",
+    Result.PRESELECTION: "a candidate node left out of the step's pair pre-selection could have reached its tool "
+                         "(it moved further than its clearance allows even at the smallest increment); raise "
+                         "the tool's capacity (RigidTool.capacity), or switch the pre-selection off "
+                         "(--set preselect=false)",
 }
 
 

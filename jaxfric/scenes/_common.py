@@ -16,6 +16,7 @@ import numpy as np
 
 from ..contact.formulations import ALGORITHMS, STIFF_PENALTY_RATIO
 from ..contact.friction import Polynomial, VelocityDecay
+from ..contact.preselection import tool_capacity
 from ..contact.rigid import has_friction_law, max_penetration, pair_friction, split_pairs
 from ..contact.status import SLIP
 from ..contact.tools import GAP_OPEN, Arc, Segment, Tool
@@ -25,7 +26,8 @@ from ..fem.material import J2Material
 from ..loadpath.controller import STABILIZE, StepControl
 from ..loadpath.model import reactions
 
-__all__ = ["spec_field", "check_config", "check_steady_window", "check_variant", "check_algorithm", "pair_forces",
+__all__ = ["spec_field", "PreselectField", "preselected",
+           "check_config", "check_steady_window", "check_variant", "check_algorithm", "pair_forces",
            "tool_resultants", "contact_columns", "phase_progress", "ContactSnapshot", "n_steps",
            "schedule_entry", "friction_table", "material", "material_dict", "config_dict", "end_reaction",
            "resolve_eps_t", "step_control", "stiff_penalty"]
@@ -91,6 +93,32 @@ class FrictionLawFields:
     mu_d: float | None = spec_field(None, "-", MU_D_DOC)
     decay: float | None = spec_field(None, "s/mm", DECAY_DOC)
     draw_speed: float = spec_field(1.0, "mm/s", DRAW_SPEED_DOC)
+
+
+PRESELECT_DOC = ("evaluate, in each load step, only the candidate nodes nearest to each tool that can reach it "
+                 "within the step (jaxfric.contact.preselection; results unchanged); False: every candidate at "
+                 "every Newton iteration [chosen]")
+
+
+@dataclasses.dataclass(frozen=True)
+class PreselectField:
+    """The pair pre-selection switch every scene's config has (:func:`preselected`)."""
+
+    preselect: bool = spec_field(True, "-", PRESELECT_DOC)
+
+
+def preselected(tools, mesh, on: bool) -> tuple:
+    """``tools`` with their pair pre-selection's capacities (:func:`jaxfric.contact.preselection.tool_capacity`;
+    a tool that reaches most of its candidates keeps them all), or unchanged where ``on`` is False."""
+    if not on:
+        return tuple(tools)
+    nodes = np.asarray(mesh.nodes)
+    out = []
+    for tool in tools:
+        idx = np.asarray(tool.candidates)
+        along = idx[np.argsort(nodes[idx, 0], kind="stable")]   # consecutive along the strip
+        out.append(dataclasses.replace(tool, capacity=tool_capacity(tool.geometry, nodes[along])))
+    return tuple(out)
 
 
 C_KIN_DOC = ("moduli C_i of the Armstrong-Frederick back stresses, comma-separated, one per back stress "

@@ -68,7 +68,7 @@ ROLLER_SEAM = math.radians(202.5)
 
 
 @dataclasses.dataclass(frozen=True)
-class BeadConfig(cm.FrictionLawFields):
+class BeadConfig(cm.FrictionLawFields, cm.PreselectField):
     """Every value of the bead scene (spec section 3); defaults are the spec's (``th090_mu017``)."""
 
     x_left: float = cm.spec_field(-100.0, "mm", "left (clamped, free) end of the strip [chosen]")
@@ -221,7 +221,8 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations, stiff_above=cm.stiff_penalty(config))
     material = cm.material(config)
-    model = StripModel(mesh, material, phases, tools=tools, contact=law, formulation=config.element,
+    model = StripModel(mesh, material, phases, tools=cm.preselected(tools, mesh, config.preselect),
+                       contact=law, formulation=config.element,
                        thickness_points=config.thickness_points,
                        phase_seconds=cm.phase_seconds(config, phases, config.s_draw))
     observe = BeadObserve(jaw=tuple(int(a) for a in jaw), tail=int(mesh.node_index(0, 0)), theta=theta,

@@ -52,7 +52,7 @@ INSTANTS = tuple(INSTANT_RULES)
 
 
 @dataclasses.dataclass(frozen=True)
-class FlatDieConfig(cm.FrictionLawFields):
+class FlatDieConfig(cm.FrictionLawFields, cm.PreselectField):
     """Every value of the flat die scene (spec section 2); defaults are the spec's (``const_force``)."""
 
     L: float = cm.spec_field(48.0, "mm", "sheet length, x in [0, L] [chosen]")
@@ -162,7 +162,8 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations, stiff_above=cm.stiff_penalty(config))
     material = cm.material(config)
-    model = StripModel(mesh, material, phases, tools=(tool,), contact=law, formulation=config.element,
+    model = StripModel(mesh, material, phases, tools=cm.preselected((tool,), mesh, config.preselect),
+                       contact=law, formulation=config.element,
                        thickness_points=config.thickness_points,
                        phase_seconds=cm.phase_seconds(config, phases, config.U_draw))
     observe = FlatDieObserve(right=tuple(int(a) for a in mesh.right), pull=(1, 1))

@@ -100,7 +100,7 @@ INSTANTS = tuple(INSTANT_RULES)
 
 
 @dataclasses.dataclass(frozen=True)
-class NineConfig(cm.FrictionLawFields):
+class NineConfig(cm.FrictionLawFields, cm.PreselectField):
     """Every value of the Nine scene (spec section 4); defaults are the spec's (variant ``mu017``)."""
 
     x_left: float = cm.spec_field(-50.0, "mm", "left (free) end of the strip; -Delta x1 [chosen reading]")
@@ -269,7 +269,8 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations, stiff_above=cm.stiff_penalty(config))
     material = cm.material(config)
-    model = StripModel(mesh, material, phases, tools=tuple(tools), contact=law, formulation=config.element,
+    model = StripModel(mesh, material, phases, tools=cm.preselected(tools, mesh, config.preselect),
+                       contact=law, formulation=config.element,
                        thickness_points=config.thickness_points,
                        phase_seconds=cm.phase_seconds(config, phases, config.U_draw))
     observe = NineObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)), pull=(1, 0))
