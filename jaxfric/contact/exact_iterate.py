@@ -14,7 +14,7 @@ from ..numerics.linalg import BlockTridiag
 from .preselection import expand, gather
 from .rigid import ContactStep, pair_nodes, split_pairs
 from .status import contact_status
-from .tools import GAP_OPEN, project
+from .tools import GAP_OPEN
 
 __all__ = ["KAPPA", "REFINE_ITER", "GAP_FAR", "Iterate", "linearize_iterate", "iterate_values", "iterate_residual",
            "pair_status", "pair_forces", "pair_tools", "tangents", "iterate_tool_positions", "Band", "proximity_band",
@@ -66,9 +66,7 @@ def _geometry(step: ContactStep, nodes_ref, u, q, derivatives: bool = True):
 
         def one(X, u_a, u_ref, tool=tool, k=k):
             def local(z):   # z = (u_a, q_k)
-                increment = (z[:2] - u_ref) - (z[2] - step.q_ref[k]) * tool.drive
-                pr = project(tool.geometry, X, step.q_ref[k] * tool.drive, displacement=u_ref,
-                             increment=increment)
+                pr = tool.projection(X, z[:2], u_ref, z[2], step.q_ref[k])
                 return jnp.concatenate([pr.normal, pr.gap[None], pr.zeta_increment[None]]), pr
 
             z = jnp.concatenate([u_a, q[k][None]])

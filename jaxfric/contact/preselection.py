@@ -37,7 +37,7 @@ import numpy as np
 
 from ..numerics._checks import is_concrete
 from ..numerics.tensor import safe_norm
-from .tools import Arc, Segment, Tool, project
+from .tools import Arc, Segment, Tool
 
 __all__ = ["distance_bound", "tool_capacity", "select", "select_pairs", "gather", "expand", "holds",
            "complete_geometry", "PAIR_REACH"]
@@ -174,8 +174,7 @@ def holds(step, u: jax.Array, q: jax.Array) -> jax.Array | None:
     selected = [k for k in range(len(step.tools)) if step.selected(k) is not None]
     if not selected:
         return None
-    nodes = np.concatenate([np.asarray(t.candidates) for t in step.tools])
-    moved = jnp.max(safe_norm(u[nodes] - jnp.concatenate(step.u_ref), axis=-1))
+    moved = jnp.max(safe_norm(step.pair_displacements(u) - jnp.concatenate(step.u_ref), axis=-1))
     clearance = jnp.stack([step.clearance[k] for k in selected])
     delta = moved + jnp.abs(q[np.asarray(selected)] - step.q_ref[np.asarray(selected)])
     return jax.lax.stop_gradient(jnp.all(clearance - delta > 0.0))
@@ -197,11 +196,8 @@ def complete_geometry(step, nodes_ref: jax.Array, u: jax.Array, q: jax.Array, ou
         start += n_k
         near = step.selected(k)
         if near is not None:
-            def one(X, u_a, u_ref, tool=tool, k=k):
-                increment = (u_a - u_ref) - (q[k] - step.q_ref[k]) * tool.drive
-                return project(tool.geometry, X, step.q_ref[k] * tool.drive, displacement=u_ref, increment=increment)
-
-            pr = jax.vmap(one)(nodes_ref[idx], u[idx], step.u_ref[k])
+            pr = jax.vmap(tool.projection, (0, 0, 0, None, None))(nodes_ref[idx], u[idx], step.u_ref[k], q[k],
+                                                                 step.q_ref[k])
             kept = jnp.zeros(n_k, bool).at[near].set(True)
             full = {"gap": pr.gap, "zeta": pr.zeta, "normal": pr.normal, "slip": pr.zeta_increment}
             mine = {name: jnp.where(kept.reshape((n_k,) + (1,) * (v.ndim - 1)), v, full[name])

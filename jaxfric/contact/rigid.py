@@ -163,6 +163,15 @@ class RigidTool(eqx.Module):
         """Static: whether any phase drives this tool by a force (it then owns an extra unknown)."""
         return any(isinstance(c, Force) for c in self.controls)
 
+    def projection(self, X, u, u_ref, q, q_ref):
+        """The projection (:class:`jaxfric.contact.tools.Projection`) of one candidate node on this tool at
+        position ``q`` (mm along ``drive``): node at reference position ``X`` with displacement ``u``
+        ((2,), mm). The slip ``zeta_increment`` is the change of zeta since the slip reference configuration
+        (``u_ref``, ``q_ref``), computed from the relative motion since then, not as a difference of two
+        zetas (round-off, see :func:`jaxfric.contact.tools.project`)."""
+        increment = (u - u_ref) - (q - q_ref) * self.drive
+        return project(self.geometry, X, q_ref * self.drive, displacement=u_ref, increment=increment)
+
 
 class ContactState(eqx.Module):
     """Contact history and outputs after a converged step (m pairs, n_t tools).
@@ -217,6 +226,10 @@ class ContactStep(eqx.Module):
         """The candidates of tool k this step evaluates (None: all)."""
         return self.near[k] if self.near else None
 
+    def pair_displacements(self, u: jax.Array) -> jax.Array:
+        """(m, 2) the displacement of every pair's node, tool after tool, from ``u`` (n_nodes, 2)."""
+        return u[pair_nodes(self.tools)]
+
 
 class PairResult(NamedTuple):
     """Per tool: forces on the sheet and their derivatives at every candidate pair."""
@@ -234,10 +247,7 @@ class PairResult(NamedTuple):
 
 
 def _pair(tool: RigidTool, law, frictional: bool, X, u, q, mu, lam_n, lam_t, u_ref, q_ref, length=None, speed=0.0):
-    # Relative motion of node and tool since the reference configuration; the slip is the change of zeta
-    # it causes, computed from the increment itself (round-off, see jaxfric.contact.tools.project).
-    increment = (u - u_ref) - (q - q_ref) * tool.drive
-    proj = project(tool.geometry, X, q_ref * tool.drive, displacement=u_ref, increment=increment)
+    proj = tool.projection(X, u, u_ref, q, q_ref)
     smoothing = law.smoothing if law.smooth else None
     if frictional:
         friction = tool.friction

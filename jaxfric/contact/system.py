@@ -209,13 +209,11 @@ def linearize(x, args: StepArgs) -> Linearization:
     # Round-off of the residual (Newton's floor, where the caller asks for it: jaxfric.numerics.newton): the
     # contact gaps are computed from the positions X + u, so with tools it is relative to those. Only
     # a formulation's continuation stages ask (jaxfric.loadpath.controller.StepControl); no other traces it.
-    preselected = None
+    preselected = magnitude = None
+    n = args.mesh.n_dofs
     if contact is not None and args.contact is not None:
-        n = args.mesh.n_dofs
         preselected = holds(args.contact, x[:n].reshape(-1, 2), contact[0])
-    magnitude = None
     if contact is not None and args.contact is not None and args.contact.law.continuation:
-        n = args.mesh.n_dofs
         magnitude = jnp.concatenate([jnp.abs(args.mesh.nodes.reshape(-1) + x[:n]), jnp.abs(x[n:])])
     return Linearization(R, J, jnp.max(jnp.abs(a.f_int)), a.det_min > 0.0,
                          (a.f_int, a.states, aux_contact), status, presc, magnitude, preselected)
