@@ -11,6 +11,7 @@ import numpy as np
 
 from ..fem.assembly import internal_force, internal_force_and_tangent, shared_trace
 from ..numerics.linalg import BlockTridiag
+from .pair_batches import PairTool, map_pairs
 from .preselection import expand, gather
 from .rigid import ContactStep, pair_nodes, split_pairs
 from .status import contact_status
@@ -59,29 +60,33 @@ def iterate_tool_positions(args, qf) -> jax.Array:
 def _geometry(step: ContactStep, nodes_ref, u, q, derivatives: bool = True):
     """Projection of every pair at (u, q): gap, normal, zeta, the slip since the step start, validity,
     and the derivatives of (normal, gap, slip) with respect to the pair's node displacement and its
-    tool's position, all from one forward-mode pass per pair (``derivatives`` False: zeros instead)."""
+    tool's position, all from one forward-mode pass per pair (``derivatives`` False: zeros instead).
+    Tools of one structure are evaluated as one batch (:func:`jaxfric.contact.pair_batches.map_pairs`)."""
+    def pair_fn(tool: PairTool, tool_values, pair_values):
+        q_k, q_ref = tool_values
+        X, u_a, u_ref = pair_values
+
+        def local(z):   # z = (u_a, q_k)
+            pr = tool.projection(X, z[:2], u_ref, z[2], q_ref)
+            return jnp.concatenate([pr.normal, pr.gap[None], pr.zeta_increment[None]]), pr
+
+        z = jnp.concatenate([u_a, q_k[None]])
+        if not derivatives:
+            return jnp.zeros((4, 3)), local(z)[1]
+        return jax.jacfwd(local, has_aux=True)(z)
+
+    def pair_args(k):
+        idx = np.asarray(step.tools[k].candidates)
+        return tuple(gather(step.selected(k), a) for a in (nodes_ref[idx], u[idx], step.u_ref[k]))
+
     out, jac = [], []
-    for k, tool in enumerate(step.tools):  # static: tools differ in structure
-        idx = np.asarray(tool.candidates)
-
-        def one(X, u_a, u_ref, tool=tool, k=k):
-            def local(z):   # z = (u_a, q_k)
-                pr = tool.projection(X, z[:2], u_ref, z[2], step.q_ref[k])
-                return jnp.concatenate([pr.normal, pr.gap[None], pr.zeta_increment[None]]), pr
-
-            z = jnp.concatenate([u_a, q[k][None]])
-            if not derivatives:
-                return jnp.zeros((4, 3)), local(z)[1]
-            return jax.jacfwd(local, has_aux=True)(z)
-
-        near = step.selected(k)
-        J, pr = jax.vmap(one)(*(gather(near, a) for a in (nodes_ref[idx], u[idx], step.u_ref[k])))
+    evaluated = map_pairs(step.tools, pair_fn, lambda k: (q[k], step.q_ref[k]), pair_args, friction=False)
+    for k, (J, pr) in enumerate(evaluated):
+        near, n_k = step.selected(k), len(step.tools[k].candidates)
         # The pairs left out are open (jaxfric.contact.preselection): the open projection, no derivative.
-        J = expand(near, J, len(idx))
-        pr = pr._replace(**{f: expand(near, getattr(pr, f), len(idx), GAP_OPEN if f == "gap" else 0.0)
-                            for f in pr._fields})
-        out.append(pr)
-        jac.append(J)
+        jac.append(expand(near, J, n_k))
+        out.append(pr._replace(**{f: expand(near, getattr(pr, f), n_k, GAP_OPEN if f == "gap" else 0.0)
+                                  for f in pr._fields}))
     cat = lambda name: jnp.concatenate([getattr(p, name) for p in out])  # noqa: E731
     return cat("gap"), cat("normal"), cat("zeta"), cat("zeta_increment"), cat("valid"), jnp.concatenate(jac)
 

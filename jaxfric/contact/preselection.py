@@ -37,6 +37,7 @@ import numpy as np
 
 from ..numerics._checks import is_concrete
 from ..numerics.tensor import safe_norm
+from .pair_batches import PairTool, map_pairs, pair_part, stack, tool_batches
 from .tools import Arc, Segment, Tool
 
 __all__ = ["distance_bound", "tool_capacity", "select", "select_pairs", "gather", "expand", "holds",
@@ -57,7 +58,7 @@ def _arc_distance(arc: Arc, y: jax.Array) -> jax.Array:
     return jnp.abs(safe_norm(y - arc.centre) - arc.radius)
 
 
-def distance_bound(tool: Tool, y: jax.Array) -> jax.Array:
+def distance_bound(tool: Tool | PairTool, y: jax.Array) -> jax.Array:
     """() a lower bound of the Euclidean distance (mm) from the point ``y`` (2,), in the tool's frame
     (the point less the tool's translation), to the tool's chain: exact on segments, the distance to
     the supporting circle on arcs."""
@@ -102,7 +103,7 @@ def tool_capacity(tool: Tool, candidate_nodes, reach: float | None = None) -> in
     return capacity if capacity < n else None
 
 
-def select(tool: Tool, capacity: int, nodes_ref: jax.Array, u: jax.Array, offset: jax.Array, gap: jax.Array):
+def select(tool: Tool | PairTool, capacity: int, nodes_ref: jax.Array, u: jax.Array, offset: jax.Array, gap: jax.Array):
     """The ``capacity`` candidates nearest to the tool, by :func:`distance_bound`, and the clearance.
 
     Args:
@@ -130,20 +131,29 @@ def select_pairs(tools, nodes_ref: jax.Array, u: jax.Array, q: jax.Array, gap: j
     state of a step's start: displacements ``u`` (n_nodes, 2), tool positions ``q`` (n_t,), the pairs'
     gaps ``gap`` (m,). ``every_pair`` (static): the law gives every pair a force however far (a smoothed
     law), and every candidate is kept."""
-    near: list = []
-    clearance: list = []
-    start = 0
-    for k, tool in enumerate(tools):   # static: tools differ in structure
-        idx = np.asarray(tool.candidates)
-        gap_k = gap[start:start + idx.size]
-        start += idx.size
-        if tool.capacity is None or every_pair:
-            near.append(None)
-            clearance.append(jnp.array(jnp.inf))
-            continue
-        sel, c = select(tool.geometry, tool.capacity, nodes_ref[idx], u[idx], q[k] * tool.drive, gap_k)
-        near.append(sel)
-        clearance.append(c)
+    starts = np.cumsum([0] + [len(t.candidates) for t in tools])
+    near: list = [None] * len(tools)
+    clearance: list = [jnp.array(jnp.inf)] * len(tools)
+    chosen = [] if every_pair else [k for k, t in enumerate(tools) if t.capacity is not None]
+
+    def tool_args(k):
+        idx = np.asarray(tools[k].candidates)
+        return (pair_part(tools[k], friction=False), nodes_ref[idx], u[idx], q[k] * tools[k].drive,
+                gap[starts[k]:starts[k + 1]])
+
+    # Tools of one chain structure, capacity and candidate count select as one batch
+    # (jaxfric.contact.pair_batches).
+    batches = tool_batches(tools, chosen, key=lambda t: (t.capacity, len(t.candidates)), friction=False)
+    for batch in batches:
+        capacity = tools[batch[0]].capacity
+        args = [tool_args(k) for k in batch]
+        if len(batch) == 1:
+            picked = [select(args[0][0], capacity, *args[0][1:])]
+        else:
+            sel, c = jax.vmap(lambda tool, *a: select(tool, capacity, *a))(*stack(args))
+            picked = [(sel[i], c[i]) for i in range(len(batch))]
+        for k, (sel_k, c_k) in zip(batch, picked):
+            near[k], clearance[k] = sel_k, c_k
     return tuple(near), tuple(clearance)
 
 
@@ -185,22 +195,28 @@ def complete_geometry(step, nodes_ref: jax.Array, u: jax.Array, q: jax.Array, ou
     with the geometry of the pairs the step left out projected at (``u`` (n_nodes, 2), ``q`` (n_t,)),
     as their evaluation would have given it: the state and the written results do not depend on the
     pre-selection. One projection per left-out pair and step, without derivatives."""
-    if all(step.selected(k) is None for k in range(len(step.tools))):
+    selected = [k for k in range(len(step.tools)) if step.selected(k) is not None]
+    if not selected:
         return out
+
+    def pair_fn(tool, tool_values, pair_values):   # pair_values (X, u, u_ref), tool_values (q, q_ref)
+        pr = tool.projection(*pair_values, *tool_values)
+        return {"gap": pr.gap, "zeta": pr.zeta, "normal": pr.normal, "slip": pr.zeta_increment}
+
+    def pair_args(k):
+        idx = np.asarray(step.tools[k].candidates)
+        return nodes_ref[idx], u[idx], step.u_ref[k]
+
+    full = map_pairs(step.tools, pair_fn, lambda k: (q[k], step.q_ref[k]), pair_args, only=selected, friction=False)
     parts: dict[str, list] = {name: [] for name in ("gap", "zeta", "normal", "slip")}
     start = 0
     for k, tool in enumerate(step.tools):   # static
-        idx = np.asarray(tool.candidates)
-        n_k = idx.size
+        n_k = len(tool.candidates)
         mine = {name: out[name][start:start + n_k] for name in parts}
         start += n_k
-        near = step.selected(k)
-        if near is not None:
-            pr = jax.vmap(tool.projection, (0, 0, 0, None, None))(nodes_ref[idx], u[idx], step.u_ref[k], q[k],
-                                                                 step.q_ref[k])
-            kept = jnp.zeros(n_k, bool).at[near].set(True)
-            full = {"gap": pr.gap, "zeta": pr.zeta, "normal": pr.normal, "slip": pr.zeta_increment}
-            mine = {name: jnp.where(kept.reshape((n_k,) + (1,) * (v.ndim - 1)), v, full[name])
+        if full[k] is not None:
+            kept = jnp.zeros(n_k, bool).at[step.selected(k)].set(True)
+            mine = {name: jnp.where(kept.reshape((n_k,) + (1,) * (v.ndim - 1)), v, full[k][name])
                     for name, v in mine.items()}
         for name in parts:
             parts[name].append(mine[name])

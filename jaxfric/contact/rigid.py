@@ -39,9 +39,10 @@ import numpy as np
 from ..numerics._checks import check_nonnegative, is_concrete
 from .friction import FrictionLaw, tributary_lengths
 from .laws import augmented_pair
+from .pair_batches import PairTool, map_pairs
 from .preselection import expand, gather
 from .status import OPEN
-from .tools import GAP_OPEN, Tool, project
+from .tools import GAP_OPEN, Tool
 
 __all__ = ["Move", "Force", "RigidTool", "ContactState", "ContactStep", "PairResult", "initial_contact_state",
            "evaluate_pairs", "tool_forces", "split_pairs", "pair_nodes", "pair_mu", "pair_friction",
@@ -163,15 +164,6 @@ class RigidTool(eqx.Module):
         """Static: whether any phase drives this tool by a force (it then owns an extra unknown)."""
         return any(isinstance(c, Force) for c in self.controls)
 
-    def projection(self, X, u, u_ref, q, q_ref):
-        """The projection (:class:`jaxfric.contact.tools.Projection`) of one candidate node on this tool at
-        position ``q`` (mm along ``drive``): node at reference position ``X`` with displacement ``u``
-        ((2,), mm). The slip ``zeta_increment`` is the change of zeta since the slip reference configuration
-        (``u_ref``, ``q_ref``), computed from the relative motion since then, not as a difference of two
-        zetas (round-off, see :func:`jaxfric.contact.tools.project`)."""
-        increment = (u - u_ref) - (q - q_ref) * self.drive
-        return project(self.geometry, X, q_ref * self.drive, displacement=u_ref, increment=increment)
-
 
 class ContactState(eqx.Module):
     """Contact history and outputs after a converged step (m pairs, n_t tools).
@@ -246,10 +238,10 @@ class PairResult(NamedTuple):
     slip: jax.Array       # slip since the reference configuration (mm)
 
 
-def _pair(tool: RigidTool, law, frictional: bool, X, u, q, mu, lam_n, lam_t, u_ref, q_ref, length=None, speed=0.0):
+def _pair(tool: PairTool, law, X, u, q, mu, lam_n, lam_t, u_ref, q_ref, length=None, speed=0.0):
     proj = tool.projection(X, u, u_ref, q, q_ref)
     smoothing = law.smoothing if law.smooth else None
-    if frictional:
+    if tool.frictional:
         friction = tool.friction
         coefficient = mu if friction is None else (lambda rn: friction.coefficient(mu, rn / length, speed))
         force = augmented_pair(proj.gap, proj.zeta_increment, lam_n, lam_t, coefficient, law.eps_n, law.eps_t,
@@ -263,7 +255,8 @@ def _pair(tool: RigidTool, law, frictional: bool, X, u, q, mu, lam_n, lam_t, u_r
 
 def evaluate_pairs(step: ContactStep, nodes_ref: jax.Array, u: jax.Array, q: jax.Array,
                    jacobian: bool) -> list:
-    """Forces (and with ``jacobian`` their derivatives) of every pair, tool by tool.
+    """Forces (and with ``jacobian`` their derivatives) of every pair, tool by tool; tools of one
+    structure are evaluated as one batch (:func:`jaxfric.contact.pair_batches.map_pairs`).
 
     Args:
         step: the contact data of this step.
@@ -271,31 +264,36 @@ def evaluate_pairs(step: ContactStep, nodes_ref: jax.Array, u: jax.Array, q: jax
             accurate gap (see :func:`jaxfric.contact.tools.project`).
         q: (n_t,) current tool positions (mm).
     """
-    out = []
-    for k, tool in enumerate(step.tools):  # static loop: tools differ in structure
-        idx = np.asarray(tool.candidates)
+    def pair_fn(tool: PairTool, tool_values, pair_values):
+        q_k, mu, q_ref = tool_values
+        u_a, X_a, lam_n, lam_t, u_ref, length, speed = pair_values
 
-        def one(u_a, qk, X_a, lam_n, lam_t, u_ref, length, speed, tool=tool, k=k):
-            f, aux = _pair(tool, step.law, tool.frictional, X_a, u_a, qk, step.mu[k], lam_n, lam_t, u_ref,
-                           step.q_ref[k], length, speed)
+        def one(u_a, q_k):
+            f, aux = _pair(tool, step.law, X_a, u_a, q_k, mu, lam_n, lam_t, u_ref, q_ref, length, speed)
             return f, (f, aux)
 
+        if jacobian:  # d f / d x_node = d f / d u_node
+            (dfdx, dfdq), (f, aux) = jax.jacfwd(one, argnums=(0, 1), has_aux=True)(u_a, q_k)
+            return f, aux, dfdx, dfdq
+        return (*one(u_a, q_k)[1], None, None)
+
+    def pair_args(k):
+        tool = step.tools[k]
+        idx = np.asarray(tool.candidates)
         law = tool.friction is not None
         lengths = tributary_lengths(nodes_ref[idx]) if law else jnp.ones(len(idx))
         speeds = step.speed[k] if law else jnp.zeros(len(idx))
-        near = step.selected(k)
-        per_pair = tuple(gather(near, a) for a in (u[idx], nodes_ref[idx], step.lam_n[k], step.lam_t[k],
-                                                   step.u_ref[k], lengths, speeds))
-        args = (per_pair[0], q[k]) + per_pair[1:]
-        axes = (0, None, 0, 0, 0, 0, 0, 0)
-        if jacobian:  # d f / d x_node = d f / d u_node
-            (dfdx, dfdq), (f, aux) = jax.vmap(jax.jacfwd(one, argnums=(0, 1), has_aux=True), axes)(*args)
-            dfdx, dfdq = expand(near, (dfdx, dfdq), len(idx))
-        else:
-            f, aux = jax.vmap(lambda *a: one(*a)[1], axes)(*args)
-            dfdx = dfdq = None
+        return tuple(gather(step.selected(k), a) for a in (u[idx], nodes_ref[idx], step.lam_n[k], step.lam_t[k],
+                                                            step.u_ref[k], lengths, speeds))
+
+    results = map_pairs(step.tools, pair_fn, lambda k: (q[k], step.mu[k], step.q_ref[k]), pair_args)
+    out = []
+    for k, (f, aux, dfdx, dfdq) in enumerate(results):
+        near, n_k = step.selected(k), len(step.tools[k].candidates)
+        if jacobian:
+            dfdx, dfdq = expand(near, (dfdx, dfdq), n_k)
         # The pairs left out are open: no force, the open pair's gap (jaxfric.contact.preselection).
-        f, rn, rt, status, gap, zeta, normal, slip = (expand(near, a, len(idx), GAP_OPEN if i == 4 else 0.0)
+        f, rn, rt, status, gap, zeta, normal, slip = (expand(near, a, n_k, GAP_OPEN if i == 4 else 0.0)
                                                       for i, a in enumerate((f, *aux)))
         out.append(PairResult(f, dfdx, dfdq, rn, rt, status, gap, zeta, normal, slip))
     return out
@@ -310,18 +308,13 @@ def initial_contact_state(tools, nodes: jax.Array) -> ContactState:
     """Tools at rest, no force; zeta of every candidate's projection in the reference configuration."""
     n_t = len(tools)
     zeros_t = jnp.zeros(n_t)
-    zetas, gaps, normals = [], [], []
-    for tool in tools:
-        proj = jax.vmap(project, in_axes=(None, 0, None))(tool.geometry, nodes[np.asarray(tool.candidates)],
-                                                          jnp.zeros(2))
-        zetas.append(proj.zeta)
-        gaps.append(proj.gap)
-        normals.append(proj.normal)
-    zeta = jnp.concatenate(zetas)
+    projections = map_pairs(tools, lambda tool, _, X: tool.project(X, jnp.zeros(2)), lambda k: (),
+                            lambda k: nodes[np.asarray(tools[k].candidates)], friction=False)
+    zeta, gap, normal = (jnp.concatenate([getattr(p, f) for p in projections]) for f in ("zeta", "gap", "normal"))
     m = zeta.shape[0]
     return ContactState(q=zeros_t, q_start=zeros_t, f_start=zeros_t, force=zeros_t, rn=jnp.zeros(m),
-                        rt=jnp.zeros(m), zeta=zeta, gap=jnp.concatenate(gaps),
-                        normal=jnp.concatenate(normals), status=jnp.full(m, OPEN, jnp.int8), speed=jnp.zeros(m))
+                        rt=jnp.zeros(m), zeta=zeta, gap=gap, normal=normal, status=jnp.full(m, OPEN, jnp.int8),
+                        speed=jnp.zeros(m))
 
 
 def pair_nodes(tools) -> np.ndarray:

@@ -68,7 +68,7 @@ import numpy as np
 from jaxfric.numerics._checks import check_finite, check_positive, is_concrete
 from jaxfric.numerics.tensor import safe_norm
 
-__all__ = ["GAP_OPEN", "Segment", "Arc", "Circle", "Tool", "Projection", "project", "chain_length",
+__all__ = ["GAP_OPEN", "Segment", "Arc", "Circle", "Tool", "Projection", "project", "project_chain", "chain_length",
            "tool_outline"]
 
 GAP_OPEN = 1e30  # gap of an open pair: large and finite, so that products with zero stay zero
@@ -341,6 +341,11 @@ class Tool(eqx.Module):
                 raise ValueError(f"Tool: field 'primitives' is not a connected chain: primitive {k} ends at "
                                  f"{end} but primitive {k + 1} starts at {start}")
 
+    @property
+    def side(self) -> int:
+        """Static: +1 for normal_side "right", -1 for "left"."""
+        return _SIDES[self.normal_side]
+
     @classmethod
     def circle(cls, centre, radius, d_capture=2.0, seam=-0.5 * math.pi) -> Tool:
         """A full convex circle (roller, cylinder): centre (2,) mm, radius () mm; seam as in `Circle`."""
@@ -399,13 +404,21 @@ def project(tool: Tool, x: jax.Array, offset: jax.Array, displacement=None, incr
         Projection; the primitive is chosen as described in the module docstring. Differentiable in
         x, offset and every tool leaf, forward and reverse; vmap over points or stacked tools.
     """
-    side = _SIDES[tool.normal_side]
+    return project_chain(tool.primitives, tool.side, tool.d_capture, x, offset, displacement, increment)
+
+
+def project_chain(primitives: tuple, side, d_capture, x: jax.Array, offset: jax.Array, displacement=None,
+                  increment=None) -> Projection:
+    """:func:`project` on a chain given by its parts: ``primitives`` (static kinds and order), ``side`` +1
+    where the sheet lies on the right of the walking direction and -1 on the left (a number, or a ()
+    array: it enters the arithmetic only as a factor of +-1, so tools of either side can be stacked and
+    vmapped together, with the same results), and ``d_capture`` (mm)."""
     # The point in the tool's own frame is x + dy + inc.
     dy = -offset if displacement is None else displacement - offset
     inc = jnp.zeros(2, dtype=jnp.float64) if increment is None else increment
     feet, zetas = [], []
     travelled = jnp.zeros((), dtype=jnp.float64)
-    for prim in tool.primitives:  # static structure: unrolled at trace time
+    for prim in primitives:  # static structure: unrolled at trace time
         foot = prim.foot(x, dy, inc, side)
         feet.append(foot)
         zetas.append(side * (travelled + foot.s))
@@ -416,7 +429,7 @@ def project(tool: Tool, x: jax.Array, offset: jax.Array, displacement=None, incr
     k = jnp.argmin(jnp.where(inside, jnp.abs(gap), jnp.inf))
     chosen_gap = gap[k]
     normal = jnp.stack([f.normal for f in feet])[k]
-    valid = inside[k] & (chosen_gap >= -tool.d_capture)
+    valid = inside[k] & (chosen_gap >= -d_capture)
 
     zero2 = jnp.zeros(2, dtype=jnp.float64)
     normal = jnp.where(valid, normal, zero2)
