@@ -17,7 +17,9 @@ Exit status: 0 on success, 1 when the run stopped early or its files could not a
 converged is still written), 2 for bad input, 3 when a stop request ended the run. Errors are one line
 on stderr, without traceback. ``run``, ``fit``, ``design`` and ``report`` keep their compiled programs in JAX's
 persistent compilation cache (:mod:`jaxfric.io.cache`: ``~/.cache/jaxfric/xla``; ``JAXFRIC_CACHE_DIR=off``
-turns it off), so a second run of the same configuration in a new process compiles nothing.
+turns it off), so a second run of the same configuration in a new process compiles nothing, and ask XLA for
+its faster-compiling code generation (:mod:`jaxfric.io.xla_flags`; ``JAXFRIC_XLA_DEFAULTS=1`` keeps XLA's
+defaults).
 """
 
 from __future__ import annotations
@@ -245,7 +247,9 @@ def main(argv=None) -> int:
         if args.command == "scenes":
             return _scenes()
         from .io.cache import enable_compilation_cache
+        from .io.xla_flags import use_fast_compilation
 
+        use_fast_compilation()   # before the first computation: XLA reads its flags when it starts
         enable_compilation_cache()
         if args.command == "fit":
             return _fit(args)

@@ -10,7 +10,8 @@ test`` does), its backend optimisation level 0 (LLVM's cheap passes: the fast su
 the slow runs, which are mostly run time, keep the default level). The flags are probed in a child
 process first, because an XLA that no longer knows one aborts the process at start-up; they are then
 left out. Flags already in ``XLA_FLAGS`` are kept, and ``JAXFRIC_TEST_XLA_DEFAULTS=1`` runs the suite
-with XLA's defaults (what ``jaxfric`` itself uses: the package never sets XLA flags).
+with XLA's defaults (the package's functions set no XLA flag; the command lines ask for the older emitters
+only, :mod:`jaxfric.io.xla_flags`).
 
 The suite's processes (pytest-xdist's two workers and the command lines that tests start) share one JAX
 persistent compilation cache, a fresh folder per test run (removed at its end), so that a program
@@ -20,22 +21,13 @@ folder is used, and kept).
 
 import os
 import shutil
-import subprocess
-import sys
 import tempfile
 
-FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
+# Importing jaxfric starts no XLA backend, so the flags set below still apply; FAST_COMPILE_FLAGS are the
+# command lines' own.
+from jaxfric.io.xla_flags import FAST_COMPILE_FLAGS, xla_accepts
+
 FAST_SUITE_FLAGS = ("--xla_backend_optimization_level=0",)   # when the slow runs are deselected
-
-
-def _xla_accepts(flags: str) -> bool:
-    probe = "import jax.numpy as jnp; (jnp.ones(3) + 1).block_until_ready()"
-    env = {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"}
-    try:
-        done = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, timeout=120)
-    except (OSError, subprocess.TimeoutExpired):
-        return False
-    return done.returncode == 0
 
 
 def _ask_for_fast_compilation(wanted):
@@ -46,7 +38,7 @@ def _ask_for_fast_compilation(wanted):
             flag.split("=")[0] in current for flag in wanted):
         return
     flags = " ".join([current, *wanted]).strip()
-    if _xla_accepts(flags):
+    if xla_accepts(flags):
         # pytest-xdist's workers inherit the environment, and find the flags already set.
         os.environ["XLA_FLAGS"] = flags
 

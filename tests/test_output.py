@@ -510,3 +510,43 @@ def test_compilation_cache_keeps_a_program_for_the_next_process(tmp_path):
     assert "cache hit" in runs[1].stderr.lower() and "cache hit" not in runs[0].stderr.lower()
     chosen = probe_in(tmp_path / "chosen", JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="100")
     assert chosen.returncode == 0 and not any((tmp_path / "chosen").iterdir()), chosen.stderr[-2000:]
+
+
+def test_fast_compilation_flags_are_added_once_asked_once_and_never_override_the_user(tmp_path):
+    from jaxfric.io.xla_flags import FAST_COMPILE_FLAGS, use_fast_compilation
+
+    asked = []
+
+    def accepts(answer):
+        def probe(flags):
+            asked.append(flags)
+            return answer
+        return probe
+
+    folder = str(tmp_path / "cache")
+    env = {"JAXFRIC_CACHE_DIR": folder, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    assert use_fast_compilation(env, accepts(True))
+    assert env["XLA_FLAGS"].split() == ["--xla_force_host_platform_device_count=2", *FAST_COMPILE_FLAGS]
+    # Another process of the same jaxlib finds the answer in the cache folder and does not ask again.
+    again = {"JAXFRIC_CACHE_DIR": folder, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    assert use_fast_compilation(again, accepts(False)) and again["XLA_FLAGS"] == env["XLA_FLAGS"]
+    assert len(asked) == 1
+    # Already in effect: nothing added twice; given another value by the user: kept, reported not in effect.
+    assert use_fast_compilation(env, accepts(True)) and env["XLA_FLAGS"].count("fusion_emitters") == 1
+    own = {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true", "JAXFRIC_CACHE_DIR": "off"}
+    assert not use_fast_compilation(own, accepts(True)) and own["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
+    # An XLA that refuses them, or the user asking for XLA's defaults: XLA_FLAGS is left as it was.
+    refused = {"JAXFRIC_CACHE_DIR": "off"}
+    assert not use_fast_compilation(refused, accepts(False)) and "XLA_FLAGS" not in refused
+    defaults = {"JAXFRIC_XLA_DEFAULTS": "1", "JAXFRIC_CACHE_DIR": "off"}
+    assert not use_fast_compilation(defaults, accepts(True)) and "XLA_FLAGS" not in defaults
+    assert len(asked) == 2
+
+
+def test_this_xla_accepts_the_fast_compilation_flags():
+    """The flags the command lines ask for start this jaxlib's XLA (where they did not, the command lines
+    would fall back to XLA's defaults, slower to compile)."""
+    from jaxfric.io.xla_flags import FAST_COMPILE_FLAGS, xla_accepts
+
+    assert xla_accepts(" ".join(FAST_COMPILE_FLAGS))
+    assert not xla_accepts("--xla_no_such_flag_in_any_xla=1")

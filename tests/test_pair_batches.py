@@ -1,6 +1,6 @@
-"""Tools evaluated in batches (jaxfric.contact.pair_batches): which tools share a batch, and that a batch
-gives every pair what the tool's own evaluation gives, values and derivatives, for tools facing either
-way and of different candidate counts (padded)."""
+"""Tools evaluated in batches (jaxfric.contact.pair_batches): which tools share a batch, that a batch is
+traced once however many tools it holds, and that it gives every pair what the tool's own evaluation
+gives, values and derivatives, for tools facing either way and of different candidate counts (padded)."""
 
 import math
 
@@ -50,16 +50,49 @@ def test_a_batch_gives_each_tool_its_own_projection_and_derivatives():
             return jnp.concatenate([pr.gap[None], pr.normal, pr.zeta[None]])
         return local(X), jax.jacfwd(local)(X)
 
-    batched = map_pairs(tools, pair_fn, lambda k: offsets[k], lambda k: points[np.asarray(tools[k].candidates)])
-    for k, tool in enumerate(tools):
-        def own(x, tool=tool, k=k):
-            pr = project(tool.geometry, x, offsets[k])
+    # One compiled program each (evaluated eagerly, every primitive would compile on its own).
+    batched = jax.jit(lambda p, o: map_pairs(tools, pair_fn, lambda k: o[k],
+                                             lambda k: p[np.asarray(tools[k].candidates)]))(points, offsets)
+
+    @jax.jit
+    def own(p, o):   # each tool projected on its own, its side a Python number
+        def one(tool, x, offset):
+            pr = project(tool.geometry, x, offset)
             return jnp.concatenate([pr.gap[None], pr.normal, pr.zeta[None]])
-        X = points[np.asarray(tool.candidates)]
-        value, jac = batched[k]
-        assert value.shape == (len(tool.candidates), 4)
-        np.testing.assert_array_equal(value, jax.vmap(own)(X))
-        np.testing.assert_array_equal(jac, jax.vmap(jax.jacfwd(own))(X))
+        return [(jax.vmap(lambda x, t=t, k=k: one(t, x, o[k]))(p[np.asarray(t.candidates)]),
+                 jax.vmap(jax.jacfwd(lambda x, t=t, k=k: one(t, x, o[k])))(p[np.asarray(t.candidates)]))
+                for k, t in enumerate(tools)]
+
+    for k, ((value, jac), (value_own, jac_own)) in enumerate(zip(batched, own(points, offsets))):
+        assert value.shape == (len(tools[k].candidates), 4)
+        np.testing.assert_array_equal(value, value_own)
+        np.testing.assert_array_equal(jac, jac_own)
     # The points near the faces do touch both sides' chains (the check would pass on open pairs alone).
     gaps = np.concatenate([np.asarray(batched[k][0][:, 0]) for k in range(2)])
     assert np.sum(np.abs(gaps) < 1.0) >= 6
+
+
+def test_a_batch_traces_its_evaluation_once(monkeypatch):
+    import jaxfric.contact.pair_batches as pb
+
+    traced = []
+    original = pb.project_chain
+
+    def counted(*args, **kwargs):
+        traced.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(pb, "project_chain", counted)
+    still = (Move(0.0, 0.0),)
+    rollers = tuple(RigidTool(f"r{k}", Tool.circle((3.0 * k, -2.0), 2.0 + k), (0.0, 1.0), np.arange(4 + k), still, 0.0)
+                    for k in range(4))
+    points = jnp.zeros((8, 2))
+
+    def evaluate(tools):
+        traced.clear()
+        jax.make_jaxpr(lambda p: map_pairs(tools, lambda part, _, X: part.project(X, jnp.zeros(2)).gap,
+                                           lambda k: (), lambda k: p[np.asarray(tools[k].candidates)]))(points)
+        return len(traced)
+
+    assert evaluate(rollers) == 1
+    assert evaluate(rollers + _faces()) == 2   # the two faces, and the rollers with the faces' roller
