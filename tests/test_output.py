@@ -535,12 +535,15 @@ def test_fast_compilation_flags_are_added_once_asked_once_and_never_override_the
     assert use_fast_compilation(env, accepts(True)) and env["XLA_FLAGS"].count("fusion_emitters") == 1
     own = {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true", "JAXFRIC_CACHE_DIR": "off"}
     assert not use_fast_compilation(own, accepts(True)) and own["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
-    # An XLA that refuses them, or the user asking for XLA's defaults: XLA_FLAGS is left as it was.
-    refused = {"JAXFRIC_CACHE_DIR": "off"}
-    assert not use_fast_compilation(refused, accepts(False)) and "XLA_FLAGS" not in refused
+    # An XLA that refuses them, or the user asking for XLA's defaults: XLA_FLAGS is left as it was. A refusal
+    # is not kept (the child may have failed to start): the next process asks again.
+    other = str(tmp_path / "other")
+    for _ in range(2):
+        refused = {"JAXFRIC_CACHE_DIR": other}
+        assert not use_fast_compilation(refused, accepts(False)) and "XLA_FLAGS" not in refused
     defaults = {"JAXFRIC_XLA_DEFAULTS": "1", "JAXFRIC_CACHE_DIR": "off"}
     assert not use_fast_compilation(defaults, accepts(True)) and "XLA_FLAGS" not in defaults
-    assert len(asked) == 2
+    assert len(asked) == 3
 
 
 def test_this_xla_accepts_the_fast_compilation_flags():

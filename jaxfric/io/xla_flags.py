@@ -10,9 +10,10 @@ and 1379 Newton iterations (``docs/results.md``, run time of the Nine test). Res
 The command lines (:mod:`jaxfric.cli`) call :func:`use_fast_compilation` before their first computation;
 the package's functions set nothing, and a script or notebook may call it first thing. XLA reads
 ``XLA_FLAGS`` once, when its backend starts, and an XLA that does not know a flag aborts the process
-then; so a flag is first tried in a child process, once per jaxlib version, and the answer kept in the
+then; so a flag is first tried in a child process, and its acceptance kept per jaxlib version in the
 compilation cache's folder (:func:`jaxfric.io.cache.cache_dir`; tried in every process where the cache is
-off). Flags already in ``XLA_FLAGS`` are kept as given; ``JAXFRIC_XLA_DEFAULTS=1`` leaves XLA's defaults.
+off, and after a refusal). Flags already in ``XLA_FLAGS`` are kept as given; ``JAXFRIC_XLA_DEFAULTS=1``
+leaves XLA's defaults.
 """
 
 from __future__ import annotations
@@ -43,7 +44,8 @@ def xla_accepts(flags: str) -> bool:
 
 
 def _remembered(flags: str, folder: str | None, probe: Callable[[str], bool]) -> bool:
-    """``probe(flags)``, kept in ``folder`` per jaxlib version and flags (asked again where it cannot be kept)."""
+    """``probe(flags)``, an acceptance kept in ``folder`` per jaxlib version and flags (a refusal, which may
+    be a child that could not start, is asked again in the next process)."""
     if folder is None:
         return probe(flags)
     try:
@@ -52,18 +54,16 @@ def _remembered(flags: str, folder: str | None, probe: Callable[[str], bool]) ->
         version = "unknown"
     key = hashlib.sha256(f"{version} {flags}".encode()).hexdigest()[:16]
     path = os.path.join(folder, f"xla-flags-{key}")
-    try:
-        with open(path) as f:
-            return f.read().strip() == "accepted"
-    except OSError:
-        pass
+    if os.path.exists(path):
+        return True
     accepted = probe(flags)
-    try:
-        os.makedirs(folder, exist_ok=True)
-        with open(path, "w") as f:
-            f.write("accepted" if accepted else "refused")
-    except OSError:
-        pass
+    if accepted:
+        try:
+            os.makedirs(folder, exist_ok=True)
+            with open(path, "w") as f:
+                f.write(flags + "\n")
+        except OSError:
+            pass
     return accepted
 
 
