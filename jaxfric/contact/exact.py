@@ -83,8 +83,11 @@ from ..numerics.newton import (
     NewtonOptions,
     NewtonSolution,
     Trial,
+    carry_of,
     newton_loop,
     newton_result,
+    with_carry,
+    without_carry,
 )
 from .exact_active_set import active_set_step, contact_frames, frames_at_forces, semismooth_merit
 from .exact_condensed import contact_newton_step
@@ -107,6 +110,7 @@ class Prediction(NamedTuple):
     p: jax.Array         # (m, 2) the pairs' forces (R_N, R_T): the hint of the trial's merit
     in_band: jax.Array   # (m,) bool: the pair's node was in the solved problem
     frames: Any          # Frames at the direction's start (constants of the merit), or None without a search
+    enhanced: Any = None  # the elements' enhanced predictor the trial is evaluated with (StepArgs.predictor)
 
 
 class Point(NamedTuple):
@@ -140,11 +144,11 @@ class ExactContactProblem(AbstractNewtonProblem):
             shapes = eqx.filter_eval_shape(lambda i, a: contact_frames(i, a)[0], it_shape, args)
             frames = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
         return Trial(jnp.zeros_like(x0), jnp.array(1.0), jnp.array(jnp.inf), jnp.array(True), jnp.zeros(3, jnp.int32),
-                     Prediction(jnp.zeros((m, 2)), jnp.zeros(m, bool), frames))
+                     Prediction(jnp.zeros((m, 2)), jnp.zeros(m, bool), frames, carry_of(args)))
 
     def evaluate(self, x, trial, args) -> Evaluation:
         pred = trial.data
-        it = linearize_iterate(x, args)
+        it = linearize_iterate(x, with_carry(args, pred.enhanced))
         R, _ = iterate_residual(x, it, pred.p, args)
         c = args.contact
         status = pair_status(pred.p, pair_friction(c.tools, c.mu, args.mesh.nodes, pred.p[:, 0], pair_speeds(c)))
@@ -155,7 +159,7 @@ class ExactContactProblem(AbstractNewtonProblem):
         return Evaluation(R, jnp.max(jnp.abs(it.f_int)), finite, ~(it.det_min <= 0.0),
                           Point(it, pred.p, status, penetrating), merit=merit,
                           in_band=~jnp.any(~pred.in_band & penetrating),
-                          preselected=holds(c, x[:n].reshape(-1, 2), it.q))
+                          preselected=holds(c, x[:n].reshape(-1, 2), it.q), inner=it.enhanced_gap)
 
     def settled(self, new, old, trial) -> jax.Array:
         pred = trial.data
@@ -175,13 +179,14 @@ class ExactContactProblem(AbstractNewtonProblem):
         if not self.searched:
             step = active_set_step if self.law.solver == "ssn" else contact_newton_step
             dx, p_new, in_band, stats, solved = step(it, args, x, p, self.law, hint)
-            return Trial(dx, jnp.array(1.0), jnp.array(jnp.inf), solved, stats, Prediction(p_new, in_band, None))
+            return Trial(dx, jnp.array(1.0), jnp.array(jnp.inf), solved, stats,
+                         Prediction(p_new, in_band, None, it.predictor))
         # The frames (nodes, constants, kappa rows) serve the direction and the merit alike.
         frames = contact_frames(it, args)
         frames = (frames_at_forces(frames[0], args, hint), frames[1])
         dx, p_new, in_band, stats, solved = active_set_step(it, args, x, p, self.law, hint, frames=frames)
         merit = semismooth_merit(x, it, args, hint, frames[0])
-        return Trial(dx, jnp.array(1.0), merit, solved, stats, Prediction(p_new, in_band, frames[0]))
+        return Trial(dx, jnp.array(1.0), merit, solved, stats, Prediction(p_new, in_band, frames[0], it.predictor))
 
     def aux(self, x, point, args):
         it, p = point.state.it, point.state.p
@@ -209,12 +214,14 @@ def exact_solve(args, x0, x_ref, *, options: NewtonOptions, law):
 def _exact_solve_jvp(primals, tangents, *, options, law):
     args, x0, x_ref = primals
     solution, stats = exact_solve(args, x0, x_ref, options=options, law=law)
+    # The derivative's evaluations condense the elements exactly (no carried predictor).
+    args, args_dot = without_carry(args), without_carry(tangents[0])
     # The converged point and its contact forces are all the derivative needs: named as the penalty
     # path's solution (SOLUTION_NAME), so that a checkpointed load loop keeps them and its backward pass
     # does not run the Newton loop again.
     x_star = checkpoint_name(solution.x, SOLUTION_NAME)
     _, _, c = solution.aux
     p_star = checkpoint_name(jnp.stack([c["rn"], c["rt"]], -1), SOLUTION_NAME)
-    x_dot, aux_dot = exact_step_tangents(args, tangents[0], x_star, p_star, _contact_out)
+    x_dot, aux_dot = exact_step_tangents(args, args_dot, x_star, p_star, _contact_out)
     solution = solution._replace(x=x_star)
     return (solution, stats), (NewtonSolution(x_dot, aux_dot, None, None, None, None), None)

@@ -41,6 +41,8 @@ class Iterate(NamedTuple):
     slip: jax.Array       # (m,) slip since the start of the step
     valid: jax.Array      # (m,) bool
     jac: jax.Array        # (m, 4, 3) d(n_x, n_y, gap, slip) / d(u_a, q_k) of each pair (node, tool)
+    predictor: jax.Array | None = None     # the next iterate's enhanced predictor (jaxfric.fem.assembly.Assembled)
+    enhanced_gap: jax.Array | None = None  # () force the elements' own equations still move (N/mm)
 
 
 def pair_tools(tools) -> np.ndarray:
@@ -95,10 +97,14 @@ def _iterate(x, args, derivatives: bool) -> Iterate:
     n = args.mesh.n_dofs
     u = x[:n].reshape(-1, 2)
     q = iterate_tool_positions(args, x[n:])
-    assemble = internal_force_and_tangent if derivatives else internal_force
-    a = assemble(args.mesh, args.material, args.formulation, args.geo, u, args.states)
+    if derivatives:
+        a = internal_force_and_tangent(args.mesh, args.material, args.formulation, args.geo, u, args.states,
+                                       args.predictor)
+    else:
+        a = internal_force(args.mesh, args.material, args.formulation, args.geo, u, args.states)
     gap, normal, zeta, slip, valid, jac = _geometry(args.contact, args.mesh.nodes, u, q, derivatives)
-    return Iterate(a.f_int, a.tangent, a.states, a.det_min, q, gap, normal, zeta, slip, valid, jac)
+    return Iterate(a.f_int, a.tangent, a.states, a.det_min, q, gap, normal, zeta, slip, valid, jac,
+                   a.predictor, a.enhanced_gap)
 
 
 @shared_trace     # the loop's shapes (filter_eval_shape before the loop) and its body: one trace

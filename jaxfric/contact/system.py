@@ -17,6 +17,8 @@ derivatives come from automatic differentiation (element tangents, pair Jacobian
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -51,6 +53,19 @@ class StepArgs(eqx.Module):
     force_idx: tuple = eqx.field(static=True)
     damping: jax.Array | None = None    # () eta (N/mm per mm) of the stabilisation; None: no such term
     u_start: jax.Array | None = None    # (n_dofs,) the converged displacements the damper acts from
+    # (n_el, n_alpha, 9) the enhanced parameters' predictor the linearisation starts from (the enhanced-strain
+    # update: alpha carried with the Newton iterate, jaxfric.fem.element); None: alpha condensed by the
+    # elements' local solve. Newton passes it from each linearisation to the next (`carry`, `with_carry`).
+    predictor: jax.Array | None = None
+
+    @property
+    def carry(self):
+        """What the first evaluation of the step starts from besides x (:mod:`jaxfric.numerics.newton`)."""
+        return self.predictor
+
+    def with_carry(self, predictor) -> StepArgs:
+        """These args for an evaluation that continues from ``predictor`` (None: the local solve)."""
+        return dataclasses.replace(self, predictor=predictor)
 
 
 def _constrain_rows(K: BlockTridiag, mask: jax.Array, scale=1.0) -> BlockTridiag:
@@ -88,8 +103,11 @@ def _contact_out(q, pairs, tool_f):
 def _evaluate(x, args: StepArgs, jacobian: bool):
     n = args.mesh.n_dofs
     u, qf = x[:n].reshape(-1, 2), x[n:]
-    assemble = internal_force_and_tangent if jacobian else internal_force
-    a = assemble(args.mesh, args.material, args.formulation, args.geo, u, args.states)
+    if jacobian:
+        a = internal_force_and_tangent(args.mesh, args.material, args.formulation, args.geo, u, args.states,
+                                       args.predictor)
+    else:
+        a = internal_force(args.mesh, args.material, args.formulation, args.geo, u, args.states)
     r_u = a.f_int
     if args.damping is not None:
         assert args.u_start is not None
@@ -216,5 +234,6 @@ def linearize(x, args: StepArgs) -> Linearization:
     if contact is not None and args.contact is not None and args.contact.law.continuation:
         magnitude = jnp.concatenate([jnp.abs(args.mesh.nodes.reshape(-1) + x[:n]), jnp.abs(x[n:])])
     return Linearization(R, J, jnp.max(jnp.abs(a.f_int)), a.det_min > 0.0,
-                         (a.f_int, a.states, aux_contact), status, presc, magnitude, preselected)
+                         (a.f_int, a.states, aux_contact), status, presc, magnitude, preselected,
+                         carry=a.predictor, inner=a.enhanced_gap)
 

@@ -36,6 +36,10 @@ class Assembled(NamedTuple):
             default 2 x 2 rule).
         tau: (n_el, gp, 3, 3) Kirchhoff stress (MPa).
         det_min: () smallest det F over all Gauss points and centroids (<= 0: inverted element).
+        predictor: (n_el, n_alpha, 9) the enhanced parameters' predictor of the next Newton iterate, where
+            the assembly was given one (:func:`internal_force_and_tangent`); else None.
+        enhanced_gap: () largest nodal force the elements' own equations still move (``K_ua K_aa^-1 R_a``
+            assembled; zero once alpha is condensed, N/mm), with a predictor; else None.
     """
 
     f_int: jax.Array
@@ -43,6 +47,8 @@ class Assembled(NamedTuple):
     states: object
     tau: jax.Array
     det_min: jax.Array
+    predictor: jax.Array | None = None
+    enhanced_gap: jax.Array | None = None
 
 
 def mesh_geometry(mesh: StripMesh, thickness_points: int = 2) -> ElementGeometry:
@@ -126,7 +132,7 @@ def shared_trace(fn):
     return wrapper
 
 
-def _element_map(fn, material, formulation, geo, u_el, states):
+def _element_map(fn, material, formulation, geo, u_el, states, *extra):
     """``fn`` over the elements in n // c equal chunks (c = :data:`ELEMENT_CHUNK` or the traced setting;
     at least one chunk), so a chunk holds fewer than 2c elements (all of them when there are fewer than c).
 
@@ -136,6 +142,7 @@ def _element_map(fn, material, formulation, geo, u_el, states):
     chunk and a remainder of 388; now one chunk of 900). Rounding the number of chunks down, not up,
     matters too: two chunks of 450 made the Nine's run 13 % slower (a two-trip loop in the Newton loop,
     76 s against 67 s of solve on the 2-core CPU), one chunk of 900 runs as fast as before.
+    ``extra``: further per-element arguments of ``fn`` (leading axis n_el).
     """
     def one(args):
         return fn(material, formulation, *args)
@@ -144,7 +151,7 @@ def _element_map(fn, material, formulation, geo, u_el, states):
     n_chunks = max(1, n // _CHUNK.get())
     size = -(-n // n_chunks)
     pad = n_chunks * size - n
-    xs = (geo.gradients(formulation), geo.dN_dX_center, geo.weight, u_el, states)
+    xs = (geo.gradients(formulation), geo.dN_dX_center, geo.weight, u_el, states, *extra)
     if pad:
         xs = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]), xs)
     ys = jax.lax.map(one, xs, batch_size=size)
@@ -162,11 +169,21 @@ def internal_force(mesh: StripMesh, material, formulation: str, geo: ElementGeom
 
 
 def internal_force_and_tangent(mesh: StripMesh, material, formulation: str, geo: ElementGeometry,
-                               u: jax.Array, states) -> Assembled:
-    """As :func:`internal_force`, plus the consistent tangent d f_int / d u (block-tridiagonal)."""
+                               u: jax.Array, states, predictor: jax.Array | None = None) -> Assembled:
+    """As :func:`internal_force`, plus the consistent tangent d f_int / d u (block-tridiagonal).
+
+    ``predictor`` (n_el, n_alpha, 9), enhanced formulations only: the enhanced parameters follow the
+    Newton iterate instead of the local solve (:func:`~jaxfric.fem.element.element_force_and_tangent`);
+    ``f_int`` is then the condensed residual, and the result carries the next predictor and the
+    elements' remaining share of the force (``enhanced_gap``)."""
     elements = mesh.elements
-    f_el, K_el, (new_states, tau, det_min) = _element_map(
-        element_force_and_tangent, material, formulation, geo, u[elements], states)
+    extra = () if predictor is None else (predictor,)
+    f_el, K_el, aux = _element_map(element_force_and_tangent, material, formulation, geo, u[elements], states,
+                                   *extra)
     f_int = jnp.zeros_like(u).at[elements].add(f_el.reshape(-1, 4, 2))
     K = _scatter_tangent(K_el, mesh.nx, mesh.ny)
-    return Assembled(f_int, K, new_states, tau, jnp.min(det_min))
+    new_states, tau, det_min = aux[:3]
+    if predictor is None:
+        return Assembled(f_int, K, new_states, tau, jnp.min(det_min))
+    gap = jnp.max(jnp.abs(jnp.zeros_like(u).at[elements].add(aux[4])))
+    return Assembled(f_int, K, new_states, tau, jnp.min(det_min), aux[3], gap)

@@ -67,10 +67,18 @@ pressure within 0.7 %; the 40 % compressed block finished without an inverted el
 (docs/results.md, the through-thickness mode) it removes the layer error: the blankholder moves 0.5 %
 from 2 to 4 layers (``ans`` 11 %, F-bar 8 %); on the Nine 12 layers give 2.9 % more than 3 (mu000),
 which is the quadrature through the thickness of its reversed bends (below: 4 points per layer).
-Its cost is the local solve in every element
-evaluation, from the last converged step's alpha (which the point states keep), where a batch of
-elements iterates as long as its slowest one: on the Nine's ``make run`` case 1.8 times ``ans`` per
-Newton iteration and 1.6 times its compilation.
+Within a Newton loop alpha is carried with the iterate (``enhanced_update="iterate"``, the default; the
+enhanced-strain update of Simo and Armero, Int. J. Numer. Meth. Engng 33, 1992): each linearisation of
+the element's own equation R_a(u, alpha) = 0 predicts the next iterate's alpha from its displacements
+(:func:`element_force_and_tangent`'s ``predictor``, kept in the point states from one step to the
+next), so an element evaluation is one material pass, and the loop is Newton's on (u, alpha), alpha
+condensed out of each direction. The other way, ``enhanced_update="local"``, condenses alpha by a local
+Newton in every evaluation, where a batch of elements iterates as long as its slowest one. Both converge
+to the same answer (to the Newton tolerance); derivatives condense exactly in both. Measured on the Nine
+(mu017, 300 x 3, U_draw 3 mm; docs/results.md, the through-thickness mode): the carried alpha costs
+about what ``ans`` costs per Newton iteration, with 2 and with 4 points through each element, for
+3 % fewer iterations than ``ans`` and 3 % more than the local solve, which costs 1.7 (2 points) and
+2.4 times (4 points) as much per iteration.
 
 Through its thickness each element is integrated by ``thickness_points`` Gauss-Legendre points
 (:func:`gauss_rule`: 2 along xi times that many along eta; :class:`~jaxfric.loadpath.model.StripModel`'s
@@ -93,15 +101,14 @@ element, those of the incompatible modes (1 - xi^2), (1 - eta^2) of each displac
 
 with J_0 = dX/dxi at the centroid (Taylor's correction: the enhancement integrates to zero over the
 element, so the patch test holds). alpha is condensed inside the element: it solves
-``sum_g w_g P_g : dF_g/dalpha = 0`` (a local Newton from the last converged step's alpha, which the
-point states keep, differentiable by the implicit function theorem through ``jax.lax.custom_root``),
-and the tangent is the condensed
-``K_uu - K_ua K_aa^-1 K_au``. The modes carry the quadratic through-thickness Poisson displacement of
-a bent strip that F-bar and Q4 miss (pure bending is exact with three elements through the thickness,
-where F-bar is 7 % too soft and Q4 2.6 % too stiff), and relax the incompressibility constraint as
-well. Its cost is the local Newton (each iteration one material update and its derivative at the 4
-points); it is not the default: the finite-strain enhanced elements are known to develop hourglass
-modes under strong compression, which the clamped sheets of the benchmarks see (it inverts an element
+``sum_g w_g P_g : dF_g/dalpha = 0`` (with the Newton iterate as ``anst``'s, above, or by a local Newton
+from the last converged step's alpha, differentiable by the implicit function theorem through
+``jax.lax.custom_root``), and the tangent is the condensed ``K_uu - K_ua K_aa^-1 K_au``. The modes carry
+the quadratic through-thickness Poisson displacement of a bent strip that F-bar and Q4 miss (pure
+bending is exact with three elements through the thickness, where F-bar is 7 % too soft and Q4 2.6 % too
+stiff), and relax the incompressibility constraint as well. It is not the default: the finite-strain
+enhanced elements are known to develop hourglass modes under strong compression, which the clamped
+sheets of the benchmarks see (it inverts an element
 at 20 % compression of the block of ``tests/test_element_ans.py``, and during the Nine's clamping).
 """
 
@@ -118,9 +125,11 @@ import numpy as np
 from ..numerics.tensor import det2, inv2
 
 __all__ = ["FORMULATIONS", "ElementGeometry", "gauss_rule", "element_geometry", "deformation_gradients",
-           "initial_point_state", "element_force", "element_force_and_tangent"]
+           "initial_point_state", "element_force", "element_force_and_tangent", "enhanced_predictor",
+           "N_ENHANCED", "ENHANCED_UPDATES"]
 
 FORMULATIONS = ("fbar", "ans", "anst", "q4", "eas")
+ENHANCED_UPDATES = ("iterate", "local")   # alpha with the Newton iterate, or by a local solve per evaluation
 EAS_MAX_ITER = 25      # local Newton iterations for the enhanced parameters (while_loop bound)
 EAS_RTOL = 1e-12       # relative to sum_g w_g |P_g| |dF_g/dalpha|
 EAS_STEP_TOL = 1e-12   # a Newton step of the enhanced parameters this small ends the local solve
@@ -281,22 +290,52 @@ def _thickness_mode(dN_dX_center, weight, u_e) -> jax.Array:
 N_ENHANCED = {"eas": 4, "anst": 1}  # enhanced parameters per element; 0 for the other formulations
 
 
-def initial_point_state(material, formulation: str):
+def initial_point_state(material, formulation: str, enhanced_update: str = "local"):
     """A virgin state of one point of ``material`` with room for the formulation's enhanced parameters
-    (zero: the undeformed element)."""
+    (zero: the undeformed element): alpha (n,) for the local solve, the predictor (n, 9) of
+    :func:`element_force_and_tangent` for ``enhanced_update="iterate"``."""
     n = N_ENHANCED.get(formulation, 0)
     state = material.init_state()
     if not n:
         return state
-    return eqx.tree_at(lambda s: s.enhanced, state, jnp.zeros(n, jnp.float64), is_leaf=lambda x: x is None)
+    kept = jnp.zeros((n, 9) if enhanced_update == "iterate" else (n,), jnp.float64)
+    return eqx.tree_at(lambda s: s.enhanced, state, kept, is_leaf=lambda x: x is None)
 
 
-def _with_enhanced(states, alpha):
-    """``states`` (batched over the element's points) carrying the converged ``alpha``."""
+def _kept(states, n: int):
+    """The enhanced data the point states keep: ("alpha", (n,)), ("predictor", (n, 9)) or (None, None)."""
+    kept = getattr(states, "enhanced", None)
+    if kept is None or n == 0:
+        return None, None
+    if kept.shape[-1:] == (n,):
+        return "alpha", kept[0]
+    if kept.shape[-2:] == (n, 9):
+        return "predictor", kept[0]
+    return None, None
+
+
+def _start(states, n: int, u_e, dtype):
+    """The enhanced parameters the point states give at ``u_e``: the kept alpha, or the kept predictor's."""
+    form, kept = _kept(states, n)
+    if form == "alpha":
+        return kept
+    if form == "predictor":
+        return kept[:, 0] + kept[:, 1:] @ u_e.ravel()
+    return jnp.zeros(n, dtype)
+
+
+def _with_enhanced(states, alpha, predictor=None):
+    """``states`` (batched over the element's points) keeping ``alpha`` in their form: alpha itself, or
+    a predictor (``predictor``, or alpha held: :func:`enhanced_predictor`)."""
     if alpha.size == 0:
         return states
+    form, _ = _kept(states, alpha.size)
+    if form == "predictor":
+        value = enhanced_predictor(alpha) if predictor is None else predictor
+    else:
+        value = alpha
     n_points = jax.tree_util.tree_leaves(states)[0].shape[0]
-    return eqx.tree_at(lambda s: s.enhanced, states, jnp.broadcast_to(alpha, (n_points, alpha.size)),
+    return eqx.tree_at(lambda s: s.enhanced, states, jnp.broadcast_to(value, (n_points,) + value.shape),
                        is_leaf=lambda x: x is None)
 
 
@@ -467,8 +506,7 @@ def _condensed(material, formulation, dN_dX, dN_dX_center, weight, u_e, states):
         return jax.lax.while_loop(lambda c: (c[0] < EAS_MAX_ITER) & ~c[4], body,
                                   (jnp.array(0), alpha0, jac0, r0, size(r0) <= tol0))[1]
 
-    kept = getattr(states, "enhanced", None)
-    start = kept[0] if kept is not None and kept.shape[-1:] == (n,) else jnp.zeros(n, F_c.dtype)
+    start = _start(states, n, u_e, F_c.dtype)
     return jax.lax.custom_root(residual, jax.lax.stop_gradient(start), newton,
                                lambda g, y: jnp.linalg.solve(jax.jacfwd(g)(y), y))
 
@@ -504,7 +542,7 @@ def element_force(material, formulation, dN_dX, dN_dX_center, weight, u_e, state
     return f_e, (new_states, tau, det_min)
 
 
-def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight, u_e, states):
+def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight, u_e, states, predictor=None):
     """As :func:`element_force`, plus the (8, 8) element tangent d f_e / d u_e (dofs node-major).
 
     The tangent is the exact derivative of f_e = sum_g w_g (dF_g/du)^T P_g, assembled by the chain rule,
@@ -519,10 +557,20 @@ def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight
     element cost of differentiating the kinematics, ``experiments/bench_element_tangent.py``); for the
     others by ``jacfwd`` of the kinematics and, for ``anst``, ``jacfwd`` over ``grad`` (zero for plain
     Q4 and ``eas``, whose F is affine in (u, alpha)). With enhanced parameters the tangent is the
-    condensed ``K_uu - K_ua K_aa^-1 K_au`` at the converged alpha.
+    condensed ``K_uu - K_ua K_aa^-1 K_au``.
+
+    ``predictor`` (enhanced formulations only): None, alpha is condensed by the local solve (exact at
+    every call); or (n_alpha, 9), the enhanced-strain update of Simo and Armero, which carries alpha
+    with the Newton iterate: alpha = predictor[:, 0] + predictor[:, 1:] u_e (the previous iterate's
+    alpha corrected by its linearised equation, :func:`enhanced_predictor`), one material pass and no
+    local solve. The force is then the condensed residual ``R_u - K_ua K_aa^-1 R_a``, whose Newton step
+    with the condensed tangent is Newton's on (u, alpha), and the aux gains the next iterate's
+    predictor and ``K_ua K_aa^-1 R_a`` (8,), what the element's own equation still moves in the force
+    (zero once alpha is condensed).
     """
 
-    alpha = _condensed(material, formulation, dN_dX, dN_dX_center, weight, u_e, states)
+    alpha = (_condensed(material, formulation, dN_dX, dN_dX_center, weight, u_e, states) if predictor is None
+             else predictor[:, 0] + predictor[:, 1:] @ u_e.ravel())
 
     def kinematics(v):  # v: the element dofs (node-major), then alpha
         return _kinematics(formulation, dN_dX, dN_dX_center, weight, v[:8].reshape(4, 2), v[8:])
@@ -534,15 +582,31 @@ def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight
         v = jnp.concatenate([u_e.ravel(), alpha])
         Fb, det_min, dF_dv = _value_and_jacfwd(kinematics, v)  # dF_dv: (gp, 2, 2, 8 + n_alpha)
     dP_dF, (P, tau, new_states) = jax.vmap(jax.jacfwd(_piola(material), has_aux=True))(Fb, states)
-    new_states = _with_enhanced(new_states, alpha)
     wP = weight[:, None, None] * P
-    f_e = jnp.einsum("gij,gija->a", wP, dF_dv[..., :8])
     K_e = jnp.einsum("g,gija,gijkl,gklb->ab", weight, dF_dv, dP_dF, dF_dv)
     if formulation in ("fbar", "ans"):
         K_e = K_e + _fbar_geometric_term(wP, parts, dN_dX)
     elif formulation == "anst":  # F depends on alpha through the fibre F_0: differentiate the kinematics
         # Forward over grad (not jax.hessian, i.e. forward over jacrev): same matrix, measured 2.3x faster.
         K_e = K_e + jax.jacfwd(jax.grad(lambda w: jnp.sum(jax.lax.stop_gradient(wP) * kinematics(w)[0])))(v)
-    if alpha.size:
-        K_e = K_e[:8, :8] - K_e[:8, 8:] @ jnp.linalg.solve(K_e[8:, 8:], K_e[8:, :8])
-    return f_e.reshape(4, 2), K_e, (new_states, tau, det_min)
+    if predictor is None:
+        new_states = _with_enhanced(new_states, alpha)
+        f_e = jnp.einsum("gij,gija->a", wP, dF_dv[..., :8])
+        if alpha.size:
+            K_e = K_e[:8, :8] - K_e[:8, 8:] @ jnp.linalg.solve(K_e[8:, 8:], K_e[8:, :8])
+        return f_e.reshape(4, 2), K_e, (new_states, tau, det_min)
+    r = jnp.einsum("gij,gija->a", wP, dF_dv)      # (R_u, R_a)
+    h = jnp.linalg.solve(K_e[8:, 8:], jnp.concatenate([r[8:, None], K_e[8:, :8]], axis=1))  # K_aa^-1 [R_a K_au]
+    gap = K_e[:8, 8:] @ h[:, 0]
+    f_e = r[:8] - gap
+    K_c = K_e[:8, :8] - K_e[:8, 8:] @ h[:, 1:]
+    next_predictor = enhanced_predictor(alpha - h[:, 0] + h[:, 1:] @ u_e.ravel(), -h[:, 1:])
+    new_states = _with_enhanced(new_states, alpha, next_predictor)
+    return f_e.reshape(4, 2), K_c, (new_states, tau, det_min, next_predictor, gap.reshape(4, 2))
+
+
+def enhanced_predictor(alpha0, slope=None) -> jax.Array:
+    """(n_alpha, 9) the predictor of :func:`element_force_and_tangent`: alpha(u_e) = alpha0 + slope u_e
+    (``slope`` (n_alpha, 8), zero by default: alpha held at ``alpha0``, as at the start of a step)."""
+    slope = jnp.zeros((alpha0.shape[-1], 8), alpha0.dtype) if slope is None else slope
+    return jnp.concatenate([alpha0[..., None], jnp.broadcast_to(slope, alpha0.shape + (8,))], axis=-1)

@@ -43,9 +43,10 @@ class MaterialState(eqx.Module):
         cp_inv: (2, 2) in-plane block of C_p^-1 (identity initially).
         cp_inv_zz: () its zz component (1 initially).
         eqps: () equivalent plastic strain (0 initially).
-        enhanced: (n,) the enhanced parameters of the point's element (:mod:`jaxfric.fem.element`,
-            ``formulation="anst"`` or ``"eas"``), kept with the history so that the next step's local
-            solve starts from them; the law passes them through; None for the other formulations.
+        enhanced: the enhanced parameters of the point's element (:mod:`jaxfric.fem.element`,
+            ``formulation="anst"`` or ``"eas"``), kept with the history so that the next step starts
+            from them: (n,) alpha for the local solve, (n, 9) the predictor of the last Newton iterate
+            for ``enhanced_update="iterate"``; the law passes them through; None for the other formulations.
         back: (m, 3, 3) the back stresses of :class:`~jaxfric.fem.kinematic.KinematicJ2Material` (MPa,
             block diagonal, in the reference orientation); None for the isotropic law.
     """

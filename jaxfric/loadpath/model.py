@@ -20,7 +20,7 @@ from ..contact.rigid import ContactState, initial_contact_state, max_penetration
 from ..contact.status import SLIP
 from ..contact.tools import project
 from ..fem.assembly import internal_force, mesh_geometry
-from ..fem.element import FORMULATIONS, initial_point_state
+from ..fem.element import ENHANCED_UPDATES, FORMULATIONS, initial_point_state
 from ..fem.loading import Phase, constraint_masks
 from ..fem.material import J2Material
 from ..fem.mesh import StripMesh
@@ -62,6 +62,11 @@ class StripModel(eqx.Module):
             :class:`~jaxfric.contact.formulations.Penalty`,
             :class:`~jaxfric.contact.formulations.AugmentedLagrangian` or
             :class:`~jaxfric.contact.formulations.Complementarity`).
+        enhanced_update: how ``anst`` and ``eas`` find their enhanced parameters within a Newton loop
+            (static): "iterate" (default), updated with the Newton iterate from each linearisation (the
+            enhanced-strain update of Simo and Armero: one material pass per element and iteration), or
+            "local", condensed by a local Newton in every element evaluation (the same converged
+            answer; :mod:`jaxfric.fem.element`).
         phase_seconds: None, or per phase its duration in seconds (an array, data: a stroke or a speed
             changes no program; 0: none): a step's duration is its share of its phase's, which gives the
             sliding speed of a friction law (:mod:`jaxfric.contact.friction`). None: every phase
@@ -75,6 +80,7 @@ class StripModel(eqx.Module):
     tools: tuple = ()
     contact: AbstractContactFormulation | None = None
     thickness_points: int = eqx.field(static=True, default=2)
+    enhanced_update: str = eqx.field(static=True, default="iterate")
     phase_seconds: tuple | np.ndarray | jax.Array | None = eqx.field(default=None, converter=_durations)
 
     def __check_init__(self):
@@ -87,6 +93,8 @@ class StripModel(eqx.Module):
         if not (isinstance(self.thickness_points, int | np.integer) and not isinstance(self.thickness_points, bool)
                 and 2 <= self.thickness_points <= 16):
             raise ValueError(f"field 'thickness_points' must be an integer from 2 to 16, got {self.thickness_points!r}")
+        if self.enhanced_update not in ENHANCED_UPDATES:
+            raise ValueError(f"field 'enhanced_update' must be one of {ENHANCED_UPDATES}, got {self.enhanced_update!r}")
         if len(self.phases) == 0 or not all(isinstance(p, Phase) for p in self.phases):
             raise ValueError("field 'phases' must be a non-empty tuple of Phase")
         if isinstance(self.phase_seconds, np.ndarray) and (
@@ -170,7 +178,7 @@ def initial_state(model: StripModel) -> SimState:
     """The state before the first step: zero displacements, virgin material at every Gauss point, the
     tools at their initial positions (with no force), pseudo-time 0 in phase 0."""
     n_el = model.mesh.n_elements
-    one = initial_point_state(model.material, model.formulation)
+    one = initial_point_state(model.material, model.formulation, model.enhanced_update)
     n_points = 2 * model.thickness_points
     states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n_el, n_points) + a.shape), one)
     zeros = jnp.zeros((model.mesh.n_nodes, 2))

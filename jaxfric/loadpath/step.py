@@ -21,7 +21,7 @@ from ..contact.rigid import ContactState, ContactStep, Force, Move, pair_frictio
 from ..contact.status import contact_status
 from ..contact.system import StepArgs, linearize
 from ..fem.assembly import mesh_geometry
-from ..fem.element import ElementGeometry
+from ..fem.element import N_ENHANCED, ElementGeometry
 from ..fem.loading import constraint_masks, prescribed_values
 from ..numerics.newton import Linearization, NewtonOptions
 from .controller import StepControl
@@ -103,8 +103,13 @@ def step_args(model: StripModel, state: SimState, phase, t_target, ctx: StepCont
             dt = (t_target - state.time) * jnp.asarray(model.phase_seconds)[phase]
         contact, q_start, f_start = _contact_step(model, state, phase, tau, model.contact, dt)
     u_start = None if damping is None else state.u.reshape(-1)
+    predictor = None
+    if N_ENHANCED.get(model.formulation, 0) and model.enhanced_update == "iterate":
+        # The last linearisation's predictor of the converged step, kept in the point states: Newton's first
+        # point (the secant guess) gets the enhanced parameters linearised about the converged ones.
+        predictor = state.material.enhanced[:, 0]
     args = StepArgs(model.mesh, model.material, ctx.geo, state.material, ctx.masks[phase], values,
-                    contact, model.formulation, model.force_tools, damping, u_start)
+                    contact, model.formulation, model.force_tools, damping, u_start, predictor)
     return args, q_start, f_start
 
 

@@ -34,6 +34,14 @@ it would end such iterations early and change the load path of runs that converg
 flat die at eps_N = 1e9, 24 x 1, mu = 0.04 then stopped in its draw). A quadratically converging iteration
 never takes this exit. It never raises: it returns a :class:`~jaxfric.numerics.results.Result` code.
 
+Carried data. An evaluation may hand data to the next one besides x (``Linearization.carry``, passed on
+in ``Trial.data``): the enhanced parameters of the ``anst`` and ``eas`` elements, carried with the
+iterate in the enhanced-strain update of Simo and Armero (:mod:`jaxfric.fem.element`). ``args`` then has
+``carry`` (what the step's first evaluation starts from) and ``with_carry(data)``. Such unknowns are
+updated from each Newton step's linearisation, so the residual test also asks that what they still move
+(``Linearization.inner``) meets the residual tolerance. The solution's derivatives evaluate without the
+carried data, where the elements condense exactly.
+
 Derivatives. At a converged solution R(x*, args) = 0, so dx*/dargs = -J^-1 dR/dargs. The JVP rule
 computes exactly that: one JVP of the residual with respect to ``args`` and one linear solve with the
 converged Jacobian through :func:`jaxfric.numerics.linalg.linear_solve` (a ``lax.custom_linear_solve``, so reverse
@@ -109,6 +117,10 @@ class Linearization(NamedTuple):
                              # by default): positions |X + u| where the residual uses them (contact gaps)
     preselected: Any = None  # optional () bool: False where a pair the step left out could have reached
                              # its tool (jaxfric.contact.preselection)
+    carry: Any = None        # optional: what the next evaluation continues from besides x (the elements'
+                             # enhanced predictor; module doc, "Carried data")
+    inner: Any = None        # optional () the part of the residual that the carried unknowns still move
+                             # (N/mm): it must meet the residual tolerance too
 
 
 class NewtonSolution(NamedTuple):
@@ -135,6 +147,21 @@ def _all_finite(tree) -> jax.Array:
 
 # ---- the problem a Newton loop solves ---------------------------------------------------------------
 
+def carry_of(args):
+    """What the step's first evaluation continues from besides x (``args.carry``; None: nothing)."""
+    return getattr(args, "carry", None)
+
+
+def with_carry(args, carry):
+    """``args`` for an evaluation that continues from ``carry`` (module doc, "Carried data")."""
+    return args if carry is None else args.with_carry(carry)
+
+
+def without_carry(args):
+    """``args`` whose evaluations carry nothing: those of the solution itself (its derivatives)."""
+    return args.with_carry(None) if carry_of(args) is not None else args
+
+
 class Evaluation(NamedTuple):
     """One point of the Newton loop, evaluated by its problem (:meth:`AbstractNewtonProblem.evaluate`)."""
 
@@ -148,6 +175,7 @@ class Evaluation(NamedTuple):
     prescribed_error: Any = None  # () max |x - x_presc| over prescribed unknowns (mm), where there are any
     preselected: Any = None  # () False: a pair the step's pre-selection left out could have reached its
                              # tool (PRESELECTION); None: no pre-selection
+    inner: Any = None        # () the residual the carried unknowns still move (Linearization.inner); None: none
 
 
 class Trial(NamedTuple):
@@ -212,13 +240,13 @@ class LinearizedProblem(AbstractNewtonProblem):
 
     def start(self, x0, args) -> Trial:
         return Trial(jnp.zeros_like(x0), jnp.array(1.0), jnp.array(jnp.inf), jnp.array(True),
-                     jnp.zeros(0, jnp.int32))
+                     jnp.zeros(0, jnp.int32), carry_of(args))
 
     def evaluate(self, x, trial, args) -> Evaluation:
-        lin = self.linearize(x, args)
+        lin = self.linearize(x, with_carry(args, trial.data))
         return Evaluation(lin.residual, lin.scale, _all_finite((lin.residual, lin.jacobian)), lin.valid, lin,
                           merit=jnp.sum(lin.residual**2), prescribed_error=lin.prescribed_error,
-                          preselected=lin.preselected)
+                          preselected=lin.preselected, inner=lin.inner)
 
     def settled(self, new, old, trial) -> jax.Array:
         if new.state.status is None:
@@ -228,7 +256,7 @@ class LinearizedProblem(AbstractNewtonProblem):
     def direction(self, x, point, args, first) -> Trial:
         lin = point.state
         return Trial(linear_solve(lin.jacobian, -lin.residual), jnp.array(1.0), point.merit, jnp.array(True),
-                     jnp.zeros(0, jnp.int32))
+                     jnp.zeros(0, jnp.int32), lin.carry)
 
     def aux(self, x, point, args):
         return point.state.aux
@@ -271,6 +299,8 @@ def _code(k, x, x_ref, new: Evaluation, trial: Trial, step_norm, settled, r_prev
     r_norm = jnp.max(jnp.abs(new.residual))
     tol = options.atol + options.rtol * jnp.maximum(new.scale, 1e-6)
     res_ok = r_norm <= tol
+    if new.inner is not None:   # static
+        res_ok = res_ok & (new.inner <= tol)
     if options.roundoff > 0.0 and floor is not None:   # static
         stagnant = r_norm > 0.1 * r_prev
         res_ok = res_ok | (stagnant & (r_norm <= tol + options.roundoff * floor))
@@ -378,6 +408,9 @@ def _newton_solve_jvp(primals, tangents, *, linearize, residual, options, search
     args, x0, x_ref = primals
     args_dot = tangents[0]  # the initial guess and the reference do not change the solution
     solution = _newton(args, x0, x_ref, linearize, options, search, positions)
+    # The carried data does not change the solution either; at the solution the evaluations condense
+    # exactly (the elements' local solve), so the derivative's do.
+    args, args_dot = without_carry(args), without_carry(args_dot)
     # The converged point is all the derivative needs: named, so that a checkpointed load loop can
     # keep it and, in the backward pass, rebuild the Jacobian at it by one linearisation instead of
     # re-running the Newton iterations (see SOLUTION_NAME).

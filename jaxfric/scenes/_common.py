@@ -20,6 +20,7 @@ from ..contact.preselection import tool_capacity
 from ..contact.rigid import has_friction_law, max_penetration, pair_friction, split_pairs
 from ..contact.status import SLIP
 from ..contact.tools import GAP_OPEN, Arc, Segment, Tool
+from ..fem.element import ENHANCED_UPDATES
 from ..fem.kinematic import KinematicJ2Material
 from ..fem.loading import Phase, constraint_masks, schedule
 from ..fem.material import J2Material
@@ -63,6 +64,10 @@ ELEMENT_DOC = ("element formulation (jaxfric.fem.element): 'fbar' F-bar Q4, 'ans
 THICKNESS_POINTS_DOC = ("Gauss points through each element's thickness (2: the 2 x 2 rule; more integrate the "
                         "stress through the thickness more finely at the cost of more material evaluations; "
                         "jaxfric.fem.element.gauss_rule) [chosen]")
+ENHANCED_UPDATE_DOC = ("how 'anst' and 'eas' find their enhanced parameters in a Newton loop: 'iterate' with the "
+                       "Newton iterate (the enhanced-strain update: one material pass per iteration), 'local' "
+                       "by a local solve in every element evaluation (the same answer; jaxfric.fem.element) "
+                       "[chosen]")
 FRICTION_LAWS = ("coulomb", "polynomial", "velocity_decay")
 FRICTION_LAW_DOC = ("friction law of the frictional tools, in phases where mu > 0 (jaxfric.contact.friction): "
                     "coulomb (mu); polynomial: mu = max(mu + mu_p p + mu_v v + mu_pv p v + mu_pp p^2 + mu_vv v^2, "
@@ -207,6 +212,9 @@ def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=No
         raise _bad("draw_speed", config.draw_speed, "it must be > 0")
     if config.element not in ELEMENTS:
         raise _bad("element", config.element, f"choose one of {', '.join(map(repr, ELEMENTS))}")
+    if config.enhanced_update not in ENHANCED_UPDATES:
+        raise _bad("enhanced_update", config.enhanced_update,
+                   f"choose one of {', '.join(map(repr, ENHANCED_UPDATES))}")
     if not -1.0 < _number("nu", config.nu) < 0.5:
         raise _bad("nu", config.nu, "Poisson's ratio must lie in (-1, 0.5)")
     for name in ("E", "sigma_y", "eps_n", "target_gap", "d_capture"):

@@ -107,6 +107,7 @@ class BeadConfig(cm.FrictionLawFields, cm.PreselectField):
     band: int | None = cm.spec_field(512, "-", cm.BAND_DOC)
     element: str = cm.spec_field("ans", "-", cm.ELEMENT_DOC)
     thickness_points: int = cm.spec_field(2, "-", cm.THICKNESS_POINTS_DOC)
+    enhanced_update: str = cm.spec_field("iterate", "-", cm.ENHANCED_UPDATE_DOC)
     n_clamp: int = cm.spec_field(10, "-", "steps of the clamp force ramp [chosen]")
     dtheta: float = cm.spec_field(0.5, "deg", "nominal increment of the jaw angle [chosen]")
     ds: float = cm.spec_field(0.05, "mm", "nominal increment of the jaw travel [chosen]")
@@ -224,6 +225,7 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
     model = StripModel(mesh, material, phases, tools=cm.preselected(tools, mesh, config.preselect),
                        contact=law, formulation=config.element,
                        thickness_points=config.thickness_points,
+                       enhanced_update=config.enhanced_update,
                        phase_seconds=cm.phase_seconds(config, phases, config.s_draw))
     observe = BeadObserve(jaw=tuple(int(a) for a in jaw), tail=int(mesh.node_index(0, 0)), theta=theta,
                           s_draw=float(config.s_draw))

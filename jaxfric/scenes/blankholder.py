@@ -162,6 +162,7 @@ class BlankholderConfig(cm.FrictionLawFields, cm.PreselectField):
     band: int | None = cm.spec_field(256, "-", cm.BAND_DOC)
     element: str = cm.spec_field("fbar", "-", cm.ELEMENT_DOC)
     thickness_points: int = cm.spec_field(2, "-", cm.THICKNESS_POINTS_DOC)
+    enhanced_update: str = cm.spec_field("iterate", "-", cm.ENHANCED_UPDATE_DOC)
     F_clamp: float = cm.spec_field(300.0, "N/mm", "clamping force on the lower tool [chosen]")
     U_pull: float = cm.spec_field(55.0, "mm", "pull of the right end during draw [chosen]")
     lock_control: str = cm.spec_field("force", "-", "lower tool during draw: 'force' (P = F_clamp), "
@@ -331,6 +332,7 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
     model = StripModel(mesh, material, phases, tools=cm.preselected(tools, mesh, config.preselect),
                        contact=law, formulation=config.element,
                        thickness_points=config.thickness_points,
+                       enhanced_update=config.enhanced_update,
                        phase_seconds=cm.phase_seconds(config, phases, config.U_pull))
     observe = BlankholderObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)),
                                  U_pull=float(config.U_pull), x_g=float(x_g), L=float(config.L))

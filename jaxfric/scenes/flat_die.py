@@ -82,6 +82,7 @@ class FlatDieConfig(cm.FrictionLawFields, cm.PreselectField):
     band: int | None = cm.spec_field(None, "-", cm.BAND_DOC)
     element: str = cm.spec_field("fbar", "-", cm.ELEMENT_DOC)
     thickness_points: int = cm.spec_field(2, "-", cm.THICKNESS_POINTS_DOC)
+    enhanced_update: str = cm.spec_field("iterate", "-", cm.ENHANCED_UPDATE_DOC)
     F_clamp: float = cm.spec_field(50.0, "N/mm", "clamping force on the half model [paper]")
     draw_control: str = cm.spec_field("force", "-", "die during draw: 'force' (const_force) or 'position' "
                                                     "(const_position) [paper]")
@@ -165,6 +166,7 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
     model = StripModel(mesh, material, phases, tools=cm.preselected((tool,), mesh, config.preselect),
                        contact=law, formulation=config.element,
                        thickness_points=config.thickness_points,
+                       enhanced_update=config.enhanced_update,
                        phase_seconds=cm.phase_seconds(config, phases, config.U_draw))
     observe = FlatDieObserve(right=tuple(int(a) for a in mesh.right), pull=(1, 1))
 

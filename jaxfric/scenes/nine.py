@@ -136,6 +136,7 @@ class NineConfig(cm.FrictionLawFields, cm.PreselectField):
     band: int | None = cm.spec_field(128, "-", cm.BAND_DOC)
     element: str = cm.spec_field("ans", "-", cm.ELEMENT_DOC)
     thickness_points: int = cm.spec_field(2, "-", cm.THICKNESS_POINTS_DOC)
+    enhanced_update: str = cm.spec_field("iterate", "-", cm.ENHANCED_UPDATE_DOC)
     stroke: float = cm.spec_field(11.0, "mm", "downward travel of B during clamp (2 R1) [paper]")
     U_draw: float = cm.spec_field(70.0, "mm", "pull of the right end during draw [chosen]")
     dq_clamp: float = cm.spec_field(0.1, "mm", "nominal increment of B's travel [chosen]")
@@ -272,6 +273,7 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
     model = StripModel(mesh, material, phases, tools=cm.preselected(tools, mesh, config.preselect),
                        contact=law, formulation=config.element,
                        thickness_points=config.thickness_points,
+                       enhanced_update=config.enhanced_update,
                        phase_seconds=cm.phase_seconds(config, phases, config.U_draw))
     observe = NineObserve(right=tuple(int(a) for a in mesh.right), tail=int(mesh.node_index(0, 0)), pull=(1, 0))
 
