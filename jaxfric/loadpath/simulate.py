@@ -31,7 +31,15 @@ import numpy as np
 from ..contact.formulations import StepSolution, from_newton
 from ..contact.system import linearize
 from ..fem.loading import schedule
-from ..numerics.newton import SOLUTION_NAME, LinearizedProblem, NewtonOptions, newton_pass, newton_result, newton_start
+from ..numerics.newton import (
+    SOLUTION_NAME,
+    LinearizedProblem,
+    NewtonOptions,
+    newton_pass,
+    newton_result,
+    newton_start,
+    with_carry,
+)
 from ..numerics.results import Result
 from .controller import STABILIZE_RISE, Controller, ControllerState, Outcome, StepControl
 from .model import SimState, StripModel, default_observe, initial_state, tool_positions
@@ -39,6 +47,7 @@ from .step import (
     StepContext,
     continuation_on,
     continuation_stages,
+    enhanced_carry,
     softened_args,
     solve_step,
     step_args,
@@ -437,7 +446,8 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
     def attempt(c: _Loop):
         """The next attempt of ``c``: its target time, phase and Newton start."""
         t_try, phase, guess = _next_attempt(ctrl, c.path)
-        return t_try, phase, newton_start(problem0, unknowns(model, *guess), args0, newton)   # args0: shapes only
+        start = with_carry(args0, enhanced_carry(model, c.path.state))   # args0: shapes only, and the carry
+        return t_try, phase, newton_start(problem0, unknowns(model, *guess), start, newton)
 
     def body(carry):
         c, t_try, phase, nc = carry

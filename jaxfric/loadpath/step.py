@@ -103,14 +103,21 @@ def step_args(model: StripModel, state: SimState, phase, t_target, ctx: StepCont
             dt = (t_target - state.time) * jnp.asarray(model.phase_seconds)[phase]
         contact, q_start, f_start = _contact_step(model, state, phase, tau, model.contact, dt)
     u_start = None if damping is None else state.u.reshape(-1)
-    predictor = None
-    if N_ENHANCED.get(model.formulation, 0) and model.enhanced_update == "iterate":
-        # The last linearisation's predictor of the converged step, kept in the point states: Newton's first
-        # point (the secant guess) gets the enhanced parameters linearised about the converged ones.
-        predictor = state.material.enhanced[:, 0]
     args = StepArgs(model.mesh, model.material, ctx.geo, state.material, ctx.masks[phase], values,
-                    contact, model.formulation, model.force_tools, damping, u_start, predictor)
+                    contact, model.formulation, model.force_tools, damping, u_start, enhanced_carry(model, state))
     return args, q_start, f_start
+
+
+def enhanced_carry(model: StripModel, state: SimState):
+    """The enhanced parameters' predictor a step from ``state`` starts from (:class:`StepArgs`'s
+    ``predictor``), or None where the elements condense them by their local solve.
+
+    It is the last linearisation's predictor of the converged step, which the point states keep, so
+    Newton's first point (the secant guess) gets the enhanced parameters linearised about the converged
+    ones."""
+    if N_ENHANCED.get(model.formulation, 0) and model.enhanced_update == "iterate":
+        return state.material.enhanced[:, 0]
+    return None
 
 
 def unknowns(model: StripModel, u, q) -> jax.Array:
