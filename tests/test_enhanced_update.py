@@ -81,3 +81,29 @@ def test_one_carried_newton_step_is_the_condensed_newton_step(formulation):
         carried = aux[3][:, 0] + aux[3][:, 1:] @ v.ravel()
         errors.append(float(jnp.max(jnp.abs(carried - exact))))
     assert errors[0] > 0.0 and errors[0] / errors[1] > 3.0, errors   # measured 5.8 (anst): second order
+
+
+@pytest.mark.slow  # two exact-contact runs, a minute with compilation
+def test_exact_contact_with_carried_alpha_gives_the_local_solves_forces():
+    """The small flat die (tests/models.py, 20 x 2 ``anst`` elements) clamped by a force-driven die and drawn
+    with friction under exact contact (``lcp_ssn``), whose direction carries the predictor in its trial
+    (jaxfric.contact.exact.Prediction): the right end's reaction and the die's position at every step equal
+    to the local solve's to 1e-9 of their scale, in as many steps."""
+    from jaxfric.contact.formulations import Complementarity
+    from models import flat_die_strip
+
+    def run(update):
+        model = flat_die_strip(Complementarity("ssn"), nx=20, length=4.0, draw=0.02, clamp_steps=5,
+                               increments=((0.25, 20), (1.0, 30)))
+        model = dataclasses.replace(model, formulation="anst", enhanced_update=update)
+        sim = jf.simulate(model, newton=jf.NewtonOptions(rtol=1e-11, atol=1e-10))
+        n = int(sim.history.n_rows)
+        obs = sim.history.observed
+        return (int(sim.code), n, np.asarray(obs["reaction_right"][:n, 0]),
+                np.asarray(obs["tool_position"][:n]).reshape(n, -1)[:, 0])
+
+    code_l, n_l, reaction_l, die_l = run("local")
+    code_i, n_i, reaction_i, die_i = run("iterate")
+    assert code_l == code_i == 0 and n_l == n_i, (code_l, code_i, n_l, n_i)
+    np.testing.assert_allclose(reaction_i, reaction_l, atol=1e-9 * np.max(np.abs(reaction_l)))
+    np.testing.assert_allclose(die_i, die_l, atol=1e-9 * np.max(np.abs(die_l)))
