@@ -7,7 +7,9 @@ independent ``vmap`` over the two halves of the elements (which XLA could run si
 as it is and once under ``taskset -c 0``: times no shorter with two cores than with one mean the second
 core buys the loop nothing (docs/results.md, run time of the Nine test). Prints the median and the
 fastest of 30 calls and the compile time; writes nothing. ``--element E --thickness-points K
---assembled-only`` times one element's assembly (the element part of a Newton iteration).
+--assembled-only`` times one element's assembly (the element part of a Newton iteration); for ``anst``
+and ``eas`` with the enhanced parameters carried with the Newton iterate (``--enhanced-update local``: by
+the local solve, which ``one vmap`` and ``two halves`` always use).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from jaxfric import scenes
 from jaxfric.fem import assembly
 from jaxfric.fem.element import element_force_and_tangent, element_geometry
 from jaxfric.loadpath.model import initial_state
+from jaxfric.loadpath.step import enhanced_carry
 
 
 def main(argv=None) -> int:
@@ -32,15 +35,19 @@ def main(argv=None) -> int:
     parser.add_argument("--element", default=None, help="the scene's element (default: the Nine's)")
     parser.add_argument("--thickness-points", type=int, default=2, help="Gauss points through each element")
     parser.add_argument("--assembled-only", action="store_true", help="time the run's assembly only")
+    parser.add_argument("--enhanced-update", default="iterate", choices=("iterate", "local"),
+                        help="anst/eas: alpha carried with the Newton iterate (the default) or by the local solve")
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
-    overrides = {"mesh": args.mesh, "thickness_points": args.thickness_points}
+    overrides = {"mesh": args.mesh, "thickness_points": args.thickness_points, "enhanced_update": args.enhanced_update}
     if args.element is not None:
         overrides["element"] = args.element
     model = scenes.make("nine", "mu017", "lcp_ssn", overrides).model
     mesh, material, formulation = model.mesh, model.material, model.formulation
     geo = element_geometry(mesh.nodes[mesh.elements], model.thickness_points)
-    states = initial_state(model).material
+    state = initial_state(model)
+    states = state.material
+    predictor = enhanced_carry(model, state)   # None: the local solve (or no enhanced parameters)
     u = jnp.asarray(np.random.default_rng(0).normal(scale=1e-3, size=mesh.nodes.shape))
 
     def elements(u, states, part):
@@ -50,7 +57,7 @@ def main(argv=None) -> int:
             g.gradients(formulation), g.dN_dX_center, g.weight, u[mesh.elements[part]], s)
 
     def assembled(u, states):
-        a = assembly.internal_force_and_tangent(mesh, material, formulation, geo, u, states)
+        a = assembly.internal_force_and_tangent(mesh, material, formulation, geo, u, states, predictor)
         return a.f_int, a.tangent
 
     def halves(u, states):
