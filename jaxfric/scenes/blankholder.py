@@ -67,10 +67,12 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
   parasitic shear (its force falls 6.9 % from 0.5 to 0.25 mm elements, 164.61 to 153.23; ``ans`` 0.9 %)
   cancels part of its own softness (177.56 with 4 layers, where its elements are twice as long as
   thick). Neither is converged on the spec mesh. ``anst`` (a condensed through-thickness mode) removes
-  the layer error (170.85 N/mm with 2 layers, 170.00 with 4) at 1.8 times ``ans``' cost per Newton
-  iteration, and converges along x at about second order (170.85, 167.28, 166.55 at 0.5, 0.25 and
-  0.125 mm), to about 166.6: on the spec mesh +2.6 % with ``anst``, -1.2 % with F-bar as the balance
-  of a -8 % (0.25 mm) and a +7 % (4 layers) error. F-bar stays the default for its cost.
+  the layer error (170.85 N/mm with 2 layers, 170.00 with 4) at about ``ans``' cost per Newton
+  iteration (its enhanced parameter carried with the Newton iterate), and converges along x at about
+  second order (170.85, 167.28, 166.55 at 0.5, 0.25 and 0.125 mm), to about 166.6: on the spec mesh
+  +2.6 % with ``anst``, -1.2 % with F-bar as the balance of a -8 % (0.25 mm) and a +7 % (4 layers)
+  error. F-bar stays the default, the nearer on the spec mesh; ``anst``'s error is the one that its
+  companions estimate (docs/results.md, estimates against the true error).
 The spec's stop rule (a reaction above F_clamp at the end of ``close`` ends the run unconverged) needs
 the run driver: the lock ramp alone would simply lower the force.
 """
