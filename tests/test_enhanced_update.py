@@ -83,27 +83,33 @@ def test_one_carried_newton_step_is_the_condensed_newton_step(formulation):
     assert errors[0] > 0.0 and errors[0] / errors[1] > 3.0, errors   # measured 5.8 (anst): second order
 
 
-@pytest.mark.slow  # two exact-contact runs, a minute with compilation
-def test_exact_contact_with_carried_alpha_gives_the_local_solves_forces():
-    """The small flat die (tests/models.py, 20 x 2 ``anst`` elements) clamped by a force-driven die and drawn
-    with friction under exact contact (``lcp_ssn``), whose direction carries the predictor in its trial
-    (jaxfric.contact.exact.Prediction): the right end's reaction and the die's position at every step equal
-    to the local solve's to 1e-9 of their scale, in as many steps."""
+@pytest.mark.slow  # two exact-contact programs with their derivatives, a minute and a half with compilation
+def test_exact_contact_with_carried_alpha_gives_the_local_solves_forces_and_derivative():
+    """The small flat die (tests/models.py, 20 x 2 ``anst`` elements) clamped by a force-driven die of 50 N/mm
+    and drawn with friction under exact contact (``lcp_ssn``), whose direction carries the predictor in its
+    trial (jaxfric.contact.exact.Prediction), along the fixed steps: the right end's reaction at every step
+    equal to the local solve's to 1e-9 of its scale; its final value mu F, and its forward-mode derivative
+    with respect to mu, F in closed form, to 1e-8 in both (the derivative evaluates without the carried
+    predictor, exact_solve's JVP)."""
     from jaxfric.contact.formulations import Complementarity
     from models import flat_die_strip
 
-    def run(update):
-        model = flat_die_strip(Complementarity("ssn"), nx=20, length=4.0, draw=0.02, clamp_steps=5,
-                               increments=((0.25, 20), (1.0, 30)))
-        model = dataclasses.replace(model, formulation="anst", enhanced_update=update)
-        sim = jf.simulate(model, newton=jf.NewtonOptions(rtol=1e-11, atol=1e-10))
-        n = int(sim.history.n_rows)
-        obs = sim.history.observed
-        return (int(sim.code), n, np.asarray(obs["reaction_right"][:n, 0]),
-                np.asarray(obs["tool_position"][:n]).reshape(n, -1)[:, 0])
+    force = 50.0
 
-    code_l, n_l, reaction_l, die_l = run("local")
-    code_i, n_i, reaction_i, die_i = run("iterate")
-    assert code_l == code_i == 0 and n_l == n_i, (code_l, code_i, n_l, n_i)
+    def outputs(update):
+        def reactions(mu):
+            model = flat_die_strip(Complementarity("ssn"), nx=20, length=4.0, draw=0.02, clamp_steps=5,
+                                   increments=((0.25, 20), (1.0, 30)), force=force, mu=mu)
+            model = dataclasses.replace(model, formulation="anst", enhanced_update=update)
+            sim = jf.simulate_fixed(model, newton=jf.NewtonOptions(rtol=1e-11, atol=1e-10))
+            return sim.history.observed["reaction_right"][:, 0], sim.code
+
+        (value, code), (derivative, _) = jax.jit(lambda m: jax.jvp(reactions, (m,), (jnp.ones_like(m),)))(
+            jnp.asarray(0.15))
+        return int(code), np.asarray(value), float(derivative[-1])
+
+    code_l, reaction_l, d_l = outputs("local")
+    code_i, reaction_i, d_i = outputs("iterate")
+    assert code_l == code_i == 0, (code_l, code_i)
     np.testing.assert_allclose(reaction_i, reaction_l, atol=1e-9 * np.max(np.abs(reaction_l)))
-    np.testing.assert_allclose(die_i, die_l, atol=1e-9 * np.max(np.abs(die_l)))
+    np.testing.assert_allclose([reaction_i[-1], d_i, d_l], [0.15 * force, force, force], rtol=1e-8)
