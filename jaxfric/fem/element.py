@@ -77,8 +77,8 @@ Newton in every evaluation, where a batch of elements iterates as long as its sl
 to the same answer (to the Newton tolerance); derivatives condense exactly in both. Measured on the Nine
 (mu017, 300 x 3, U_draw 3 mm; docs/results.md, the through-thickness mode): the carried alpha costs
 about what ``ans`` costs per Newton iteration, with 2 and with 4 points through each element, for
-3 % fewer iterations than ``ans`` and 3 % more than the local solve, which costs 1.7 (2 points) and
-2.4 times (4 points) as much per iteration.
+4 % fewer iterations than ``ans`` and 2 to 3 % more than the local solve, which costs 1.7 to 2.3 times
+(2 points) and 2.5 times (4 points) as much per iteration.
 
 Through its thickness each element is integrated by ``thickness_points`` Gauss-Legendre points
 (:func:`gauss_rule`: 2 along xi times that many along eta; :class:`~jaxfric.loadpath.model.StripModel`'s
