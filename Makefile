@@ -7,7 +7,7 @@ export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=true
 # to 8 min 14 s on a 2-core machine. The suite also asks XLA for its faster-compiling CPU emitters
 # (tests/conftest.py): 9 min 10 s against 13.5 to 16 min on the same machine. The longest files go first
 # (tests/conftest.py's LONGEST_FIRST, with --no-loadscope-reorder): pytest-xdist's own order, the files
-# with the most tests first, leaves the single long test of test_fit_nine.py for the end
+# with the most tests first, leaves the single long tests of one-test files for the end
 # (python experiments/suite_files.py REPORT.xml models both orders on a run's measured times).
 WORKERS ?= 2
 

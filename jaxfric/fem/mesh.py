@@ -106,15 +106,16 @@ class StripMesh(eqx.Module):
     @classmethod
     def from_coordinates(cls, xs, ys) -> StripMesh:
         """Tensor-product mesh from 1D node coordinates ``xs`` (nx+1,) and ``ys`` (ny+1,)."""
-        xs = jnp.asarray(xs, dtype=jnp.float64)
-        ys = jnp.asarray(ys, dtype=jnp.float64)
+        xp = _array_module(xs, ys)
+        xs = xp.asarray(xs, dtype=np.float64)
+        ys = xp.asarray(ys, dtype=np.float64)
         for name, c in (("xs", xs), ("ys", ys)):
             if c.ndim != 1 or c.shape[0] < 2:
                 raise ValueError(f"mesh field '{name}' must be a 1D array of at least 2 coordinates")
-            if not isinstance(c, jax.core.Tracer) and not bool(jnp.all(jnp.diff(c) > 0)):
+            if xp is np and not np.all(np.diff(c) > 0):
                 raise ValueError(f"mesh field '{name}' must be strictly increasing")
-        X, Y = jnp.meshgrid(xs, ys, indexing="ij")
-        nodes = jnp.stack([X.ravel(), Y.ravel()], axis=1)
+        X, Y = xp.meshgrid(xs, ys, indexing="ij")
+        nodes = jnp.asarray(xp.stack([X.ravel(), Y.ravel()], axis=1))
         return cls(nodes=nodes, nx=xs.shape[0] - 1, ny=ys.shape[0] - 1)
 
 
@@ -122,15 +123,23 @@ def graded_coordinates(start, stop, n: int, ratio=1.0):
     """n+1 coordinates from ``start`` to ``stop`` whose successive spacings grow by ``ratio``.
 
     ``ratio`` = 1 gives a uniform spacing; ``ratio`` > 1 refines towards ``start``, < 1 towards ``stop``.
-    Differentiable in ``start``, ``stop`` and ``ratio``.
+    Differentiable in ``start``, ``stop`` and ``ratio``; computed in NumPy where none of them is traced.
     """
-    k = jnp.arange(n + 1, dtype=jnp.float64)
-    ratio = jnp.asarray(ratio, dtype=jnp.float64)
+    xp = _array_module(start, stop, ratio)
+    k = xp.arange(n + 1, dtype=np.float64)
+    ratio = xp.asarray(ratio, dtype=np.float64)
     # Cumulative geometric series normalised to [0, 1]; the uniform limit is taken exactly.
-    is_uniform = jnp.abs(ratio - 1.0) < 1e-12
-    safe_ratio = jnp.where(is_uniform, 2.0, ratio)
-    s = jnp.where(is_uniform, k / n, (safe_ratio**k - 1.0) / (safe_ratio**n - 1.0))
-    return start + (stop - start) * s
+    is_uniform = xp.abs(ratio - 1.0) < 1e-12
+    safe_ratio = xp.where(is_uniform, 2.0, ratio)
+    with np.errstate(over="ignore", invalid="ignore"):   # an overflowing grading is named by strip_mesh
+        s = xp.where(is_uniform, k / n, (safe_ratio**k - 1.0) / (safe_ratio**n - 1.0))
+    return xp.asarray(start, dtype=np.float64) + (xp.asarray(stop, dtype=np.float64) - start) * s
+
+
+def _array_module(*values):
+    """NumPy for concrete values, jax.numpy where any is traced: a mesh built from numbers runs no JAX
+    operation one by one, each of which would compile a program of its own (seconds per scene)."""
+    return np if is_concrete(values) else jnp
 
 
 def strip_mesh(x_left, x_right, y_bottom, thickness, nx: int, ny: int,

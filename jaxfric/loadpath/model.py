@@ -137,12 +137,26 @@ def _project_all(geometry, points):
     return jax.vmap(project, in_axes=(None, 0, None))(geometry, points, jnp.zeros(2))
 
 
+_PLACEMENT_CHUNK = 128   # points per call of _project_all
+
+
+def _project_chunks(geometry, points: np.ndarray):
+    """Gap and validity of ``points`` (n, 2) on ``geometry``, in calls of a fixed number of points (the
+    last padded with its last point): tools of one structure (a scene's circles, whatever their
+    candidates and the mesh) share one compiled projection."""
+    n = points.shape[0]
+    size = -(-n // _PLACEMENT_CHUNK) * _PLACEMENT_CHUNK
+    padded = np.concatenate([points, np.broadcast_to(points[-1:], (size - n, 2))])
+    parts = [_project_all(geometry, padded[k:k + _PLACEMENT_CHUNK]) for k in range(0, size, _PLACEMENT_CHUNK)]
+    return (np.concatenate([np.asarray(p.gap) for p in parts])[:n],
+            np.concatenate([np.asarray(p.valid) for p in parts])[:n])
+
+
 def _check_tool_placement(tool, nodes) -> None:
     """Before any computation: a tool must not cut into the sheet at rest, and a force-driven tool
     must have a candidate node that projects on it (otherwise no force can ever balance it)."""
     idx = np.asarray(tool.candidates)
-    proj = _project_all(tool.geometry, nodes[idx])
-    gap, valid = np.asarray(proj.gap), np.asarray(proj.valid)
+    gap, valid = _project_chunks(tool.geometry, np.asarray(nodes)[idx])
     scale = 1e-9 * max(1.0, float(np.max(np.abs(np.asarray(nodes)))))
     inside = valid & (gap < -scale)
     if inside.any():

@@ -32,7 +32,9 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
     force stays steady while the tail is inside. The tail reaches the exit after the steady window:
     at U = 35 mm it is at x = -5.2 (``mu000``) and -7.9 mm (``mu017``) on 300 x 3; a longer lever would
     let it out inside the window. The short lever presses the strip on A: with ``mu017`` its friction
-    adds about 3 % to the steady force (docs/results.md, the tail leaving the bead);
+    adds about 3 % to the steady force (docs/results.md, the tail leaving the bead), and the span's shear
+    force (the channel's 26 N/mm) adds a layer error of its own (``mu000``, ``anst``: 3 to 6 layers -0.69 %
+    with this lever, -0.34 % with 6 mm; docs/results.md, ``anst`` with 4 points and the entry channel);
   * ``guide_length`` = 5 mm, ``guide_clearance`` = 0.01 mm, ``guide_lip`` = 1 mm: a channel long
     enough to hold the strip's slope, short enough that the nodes inside it (15 per face on 300 x 3)
     leave ``band`` room for the wraps; the clearance keeps the unloaded faces off the strip (no
