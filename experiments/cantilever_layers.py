@@ -1,13 +1,13 @@
 """Layers through the thickness in plastic bending with a moment gradient: ``python experiments/cantilever_layers.py``.
 
-A 1 mm thick cantilever of the Nine test's steel, clamped on its left face (u = v = 0), its right face
-moved by D across the strip in 20 steps (v only, the face free to rotate): the moment grows linearly from the tip to
-the clamp, where the strip yields, and the shear force is the moment over the length. Two lengths,
-with the largest plastic strain at the clamp 0.02 to 0.07: 3 mm (D = 0.15 mm; a shear force of about 27 N/mm, that of the
-Nine's span between the entry channel's exit and A) and 12 mm (D = 0.75 mm; a fifth of it). ``anst``
-with 4 points through each element, elements 1/12 mm long, 3, 6, 12 and 24 layers: the tip force (N/mm)
-against the layers. Pure bending, without shear, is within 1 % at 3 layers
-(``tests/test_element_anst.py``). The clamp's corners are singular and are refined with the layers too.
+A 1 mm thick cantilever of the Nine test's steel, clamped on its left face (u = v = 0), its right face moved
+by D across the strip in 20 steps (v only, the face free to rotate): the moment grows linearly from the tip to
+the clamp, where the strip yields, and the shear force is the moment over the length. Two lengths, with the
+largest plastic strain at the clamp 0.02 to 0.07: 3 mm (D = 0.15 mm; a shear force of about 27 N/mm, that of
+the Nine's span between the entry channel's exit and A) and 12 mm (D = 0.75 mm; a fifth of it). ``anst`` with
+4 points through each element, elements 1/12 mm long, 3, 6, 12 and 24 layers: the tip force (N/mm) against the
+layers. Pure bending, without shear, is within 1 % at 3 layers (``tests/test_element_anst.py``). The clamp's
+corners are singular and are refined with the layers too.
 
 Writes ``experiments/results/cantilever_layers.csv`` and prints the table.
 """
