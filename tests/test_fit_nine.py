@@ -1,4 +1,4 @@
-"""A Nine identification on a curve the fitting model did not make (slow: a validation run).
+"""A Nine identification in the fast suite on a curve the fitting model did not make.
 
 The data: the drawing force of ``experiments/fit_bias_mesh.py``'s reference (``nine --variant mu017``,
 mu = 0.17, exact contact on 1200 x 3 at half the nominal increments: the accuracy tests' reference
@@ -14,16 +14,12 @@ import csv
 import os
 
 import numpy as np
-import pytest
 
 from jaxfric.identification.fit import fit
 
 DATA = os.path.join(os.path.dirname(__file__), os.pardir, "experiments", "results", "fit_bias_mesh", "reference.csv")
 
 
-# A long validation run (two to two and a half minutes on 2 cores, most of it the forward-mode programs'
-# compilation): the fits of the fast suite (tests/test_fit.py) exercise the same code on the flat die.
-@pytest.mark.slow
 def test_nine_mu_from_a_finer_exact_model_at_the_recommended_fit_mesh():
     with open(DATA, newline="") as fh:
         rows = list(csv.DictReader(fh))
