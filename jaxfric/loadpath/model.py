@@ -131,9 +131,10 @@ class StripModel(eqx.Module):
         return tuple(k for k, t in enumerate(self.tools) if t.force_driven)
 
 
-@eqx.filter_jit
+@jax.jit
 def _project_all(geometry, points):
-    # Compiled once per tool structure and size: building many scenes does not re-dispatch op by op.
+    # Compiled once per tool structure (:func:`_project_chunks` keeps the size): building many scenes
+    # does not re-dispatch op by op. A tool geometry's leaves are arrays.
     return jax.vmap(project, in_axes=(None, 0, None))(geometry, points, jnp.zeros(2))
 
 
