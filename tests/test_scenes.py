@@ -542,11 +542,11 @@ def test_blankholder_starts_closing_at_the_spec_mesh():
 
 def test_a_scene_on_another_mesh_compiles_no_new_placement_check():
     """StripModel checks that no tool cuts into the sheet at rest by projecting the candidates on each tool,
-    in calls of a fixed number of points: the Nine on another mesh (other candidate counts) and the bead
-    (circles again) compile no new projection; a compilation takes about a second per tool structure."""
+    in calls of a fixed number of points: the Nine and the bead on another mesh (other candidate counts)
+    compile no new projection; a compilation takes about a second per tool structure."""
     from jaxfric.loadpath.model import _project_all
-    make("nine", "mu017", overrides={"mesh": "40x2"})
-    compiled = _project_all._cache_size()
-    make("nine", "mu017", overrides={"mesh": "90x3"})
-    make("bead", "th090_mu000", overrides={"mesh": "100x2"})
-    assert _project_all._cache_size() == compiled
+    for scene, variant, meshes in (("nine", "mu017", ("40x2", "90x3")), ("bead", "th090_mu000", ("100x2", "60x3"))):
+        make(scene, variant, overrides={"mesh": meshes[0]})
+        compiled = _project_all._cache_size()
+        make(scene, variant, overrides={"mesh": meshes[1]})
+        assert _project_all._cache_size() == compiled, scene
