@@ -34,9 +34,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jax.tree_util as jtu
 
 from ..numerics.linalg import linear_solve
+from ..numerics.newton import moving_part
 from .alart_curnier import OPEN, SLIP_NEG, SLIP_POS, STICK
 from .exact_active_set import Frames, classify, contact_frames, piece_data, piece_system
 from .exact_iterate import Iterate, iterate_residual, iterate_values, linearize_iterate, pair_status, tangents
@@ -111,9 +111,7 @@ def exact_step_tangents(args, args_dot, x_star, p_star, contact_out):
     count = _prescribed_dofs(args, fr)
     undetermined = jnp.any((state != OPEN) & ((count == 2) | ((count == 1) & (state == STICK))))
 
-    diff, static = eqx.partition(args, eqx.is_inexact_array)
-    diff_dot = jtu.tree_map(lambda a, t: None if a is None else (jnp.zeros_like(a) if t is None else t),
-                            diff, args_dot, is_leaf=lambda v: v is None)
+    diff, diff_dot, static = moving_part(args, args_dot)
     held = (p_star, frames, K, state)
 
     _, r_dot = jax.jvp(lambda dd: _piece_residual(x_star, eqx.combine(dd, static), *held), (diff,), (diff_dot,))

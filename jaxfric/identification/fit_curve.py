@@ -16,7 +16,7 @@ from ..numerics.newton import NewtonOptions
 from .fit_data import bin_means
 from .params import Parameterization, plan_steps, replay_function
 
-__all__ = ["Curve", "refined_plan", "REPLAY_ITERATIONS", "PROGRAMS"]
+__all__ = ["Curve", "curve_function", "forward_jacobian", "refined_plan", "REPLAY_ITERATIONS", "PROGRAMS"]
 
 REPLAY_ITERATIONS = 60  # Newton iterations per step allowed in the frozen-sequence replays
 
@@ -58,6 +58,12 @@ PROGRAMS: LRU = LRU(4)
 def _compiled_curve(par: Parameterization, x, edges, newton: NewtonOptions):
     """``fn(p, steps) -> (Jacobian, (observations, pointwise force, result code, cutbacks))``, jitted, the
     step sequence ``steps`` an argument (not differentiated)."""
+    return jax.jit(forward_jacobian(curve_function(par, x, edges, newton), len(par.names)))
+
+
+def curve_function(par: Parameterization, x, edges, newton: NewtonOptions):
+    """``curve(p, steps) -> (observations, (observations, pointwise force, result code, cutbacks))``: the
+    replay of the step sequence ``steps`` at parameter values ``p`` (n,), not compiled."""
     replay = replay_function(par, newton)
 
     def curve(p, steps):
@@ -70,7 +76,23 @@ def _compiled_curve(par: Parameterization, x, edges, newton: NewtonOptions):
         obs = pointwise if edges is None else bin_means(xr, fr, jnp.asarray(edges))
         return obs, (obs, pointwise, code, jnp.sum(h.cutbacks))
 
-    return jax.jit(jax.jacfwd(curve, has_aux=True))
+    return curve
+
+
+def forward_jacobian(curve, n: int):
+    """``jac(p, steps) -> (Jacobian (m, n), aux)`` of ``curve(p, steps) -> (observations (m,), aux)`` by
+    forward mode: ``jax.jacfwd`` (a ``vmap`` of the JVP) for several parameters; for one, the JVP
+    itself: batching the whole loading path's loops for a single tangent doubles the tracing, which every
+    fit pays, its programs in the cache or not, and saves nothing in compilation or in the replay
+    (docs/results.md, identification: the curve's program)."""
+    if n > 1:
+        return jax.jacfwd(curve, has_aux=True)
+
+    def jac(p, steps):
+        _, obs_dot, aux = jax.jvp(lambda q: curve(q, steps), (p,), (jnp.ones_like(p),), has_aux=True)
+        return obs_dot[:, None], aux
+
+    return jac
 
 
 def refined_plan(history: dict, substeps: int) -> dict:

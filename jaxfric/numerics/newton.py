@@ -68,7 +68,7 @@ from .results import Result
 
 __all__ = ["NewtonOptions", "Linearization", "NewtonSolution", "Evaluation", "Trial", "AbstractNewtonProblem",
            "LinearizedProblem", "NewtonCarry", "newton_start", "newton_pass", "newton_result", "newton_loop",
-           "newton_solve", "roundoff_floor", "SOLUTION_NAME"]
+           "newton_solve", "roundoff_floor", "moving_part", "SOLUTION_NAME"]
 
 # ``jax.ad_checkpoint.checkpoint_name`` of a converged step solution, for a rematerialisation policy
 # that saves it (``jax.checkpoint_policies.save_only_these_names(SOLUTION_NAME)``).
@@ -388,6 +388,22 @@ def _newton(args, x0, x_ref, linearize: Callable, options: NewtonOptions, search
     return newton_result(newton_loop(problem, args, x0, x_ref, options, search), problem, args)
 
 
+def moving_part(args, args_dot):
+    """``(moving, moving_dot, held)``: the floating-point leaves of ``args`` that carry a tangent in
+    ``args_dot`` (``None``: a symbolic zero, as :func:`equinox.filter_custom_jvp` passes it), their
+    tangents, and the rest of ``args``, with ``eqx.combine(moving, held) == args``.
+
+    A JVP rule differentiates its evaluations with respect to ``moving`` only: the leaves that hold
+    still (the mesh, the material, the tools' data that no differentiated parameter moves) stay
+    constants of the traced program, so neither tracing nor the compiled derivative works through
+    their zero tangents."""
+    diff, static = eqx.partition(args, eqx.is_inexact_array)
+    mask = jtu.tree_map(lambda a, t: a is not None and t is not None, diff, args_dot, is_leaf=lambda v: v is None)
+    moving, held = eqx.partition(diff, mask)
+    moving_dot = jtu.tree_map(lambda t, m: t if m else None, args_dot, mask, is_leaf=lambda v: v is None)
+    return moving, moving_dot, eqx.combine(held, static)
+
+
 @eqx.filter_custom_jvp
 def newton_solve(args, x0, x_ref, *, linearize: Callable, residual: Callable,
                  options: NewtonOptions, search=True, positions=False) -> NewtonSolution:
@@ -417,10 +433,7 @@ def _newton_solve_jvp(primals, tangents, *, linearize, residual, options, search
     x_star = checkpoint_name(solution.x, SOLUTION_NAME)
     jacobian = linearize(x_star, args).jacobian
     solution = solution._replace(x=x_star)
-    diff, static = eqx.partition(args, eqx.is_inexact_array)
-    diff_dot = jtu.tree_map(
-        lambda a, t: None if a is None else (jnp.zeros_like(a) if t is None else t),
-        diff, args_dot, is_leaf=lambda v: v is None)
+    diff, diff_dot, static = moving_part(args, args_dot)
 
     def res(x, d):
         return residual(x, eqx.combine(d, static))
