@@ -31,17 +31,16 @@ reuses the first one's compiled program where each phase's steps stay within the
 then the parameters at which the ordinary adaptive run (``jaxfric run``) reproduces the data best, to the
 accuracy the data resolve.
 
-**The optimiser.** ``scipy.optimize.least_squares`` (trust-region reflective, bounded) on the
-residuals r = F_sim(x_k; p) - F_k, with the Jacobian from forward-mode differentiation through the whole
-loading path (one ``jax.jacfwd``: the primal plus n tangents per simulation). For a handful of
-parameters and a few hundred smooth residuals this converges quadratically near the optimum in a few
-simulations, where L-BFGS (gradient-only) would need many more, each costing a full simulation; and
-J^T J gives the Gauss-Newton covariance for free. **Stopping**: when the Gauss-Newton step from the
-current point moves every parameter by at most ``STOP_FRACTION`` (a tenth) of its standard error there
-(never less than ``xtol`` relative), or when the solver's trial steps shrink below that without
-decreasing the misfit (the replays' discretisation noise, a few 1e-5 in mu on the Nine at 100 x 2,
-which no step of the optimiser can resolve): a further change could not be told apart from the
-uncertainty the fit reports.
+**The optimiser.** ``scipy.optimize.least_squares`` (trust-region reflective, bounded) on the residuals r =
+F_sim(x_k; p) - F_k, with the Jacobian from forward-mode differentiation through the whole loading path (the
+primal plus n tangents per simulation: :func:`~jaxfric.identification.fit_curve.forward_jacobian`). For a
+handful of parameters and a few hundred smooth residuals this converges quadratically near the optimum in a
+few simulations, where L-BFGS (gradient-only) would need many more, each costing a full simulation; and J^T
+J gives the Gauss-Newton covariance for free. **Stopping**: when the Gauss-Newton step from the current
+point moves every parameter by at most ``STOP_FRACTION`` (a tenth) of its standard error there (never less
+than ``xtol`` relative), or when the solver's trial steps shrink below that without decreasing the misfit
+(the replays' discretisation noise, a few 1e-5 in mu on the Nine at 100 x 2, which no step of the optimiser
+can resolve): a further change could not be told apart from the uncertainty the fit reports.
 
 **Uncertainty.** With independent measurement errors of equal variance, cov(p) = s^2 (J^T J)^-1 with
 s^2 = |r|^2 / (m - n) at the optimum; ``stderr`` is the square root of its diagonal and the 95 %
