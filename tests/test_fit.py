@@ -146,6 +146,29 @@ def test_fit_with_noise_reports_an_interval_that_holds_the_truth(flat_history):
     assert res.residual_rms == pytest.approx(0.075, rel=0.2)
 
 
+def test_one_parameter_jacobian_is_the_jacfwd_one():
+    """The curve's Jacobian for one parameter (a JVP, not ``jax.jacfwd``'s vmap of it) has jacfwd's shape
+    (m, 1), values and aux; for two parameters it is jacfwd's."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxfric.identification.fit_curve import forward_jacobian
+
+    def curve(p, scale):
+        obs = jnp.stack([scale * p[0] ** 2, jnp.sin(p[0]), p[0] * p[-1]])
+        return obs, (obs, scale)
+
+    for p in (jnp.array([0.3]), jnp.array([0.3, 2.0])):
+        jac, (obs, scale) = forward_jacobian(curve, p.shape[0])(p, 2.0)
+        ref, (obs_ref, _) = jax.jacfwd(curve, has_aux=True)(p, 2.0)
+        assert jac.shape == ref.shape == (3, p.shape[0])
+        np.testing.assert_allclose(jac, ref, rtol=1e-14)
+        np.testing.assert_allclose(obs, obs_ref, rtol=0)
+        assert scale == 2.0
+    np.testing.assert_allclose(forward_jacobian(curve, 1)(jnp.array([0.3]), 2.0)[0][:, 0],
+                               [1.2, np.cos(0.3), 0.6], rtol=1e-14)
+
+
 def test_bin_means_are_exact_for_a_piecewise_linear_curve():
     x = np.array([0.0, 0.0, 1.0, 3.0])
     f = np.array([5.0, 0.0, 2.0, 2.0])
