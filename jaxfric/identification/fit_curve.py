@@ -6,6 +6,7 @@ parameters by forward-mode differentiation through the whole loading path.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -88,6 +89,7 @@ def forward_jacobian(curve, n: int):
     if n > 1:
         return jax.jacfwd(curve, has_aux=True)
 
+    @functools.wraps(curve)   # the compiled program keeps the curve's name (experiments/suite_compile.py)
     def jac(p, steps):
         _, obs_dot, aux = jax.jvp(lambda q: curve(q, steps), (p,), (jnp.ones_like(p),), has_aux=True)
         return obs_dot[:, None], aux
