@@ -16,7 +16,6 @@ the Jacobian, which both forms must give alike (``max_rel_diff``). Writes
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import subprocess
@@ -35,15 +34,14 @@ def measure(form: str, mesh: str, stroke: float, param: str) -> dict:
     import jax.numpy as jnp
     import numpy as np
 
-    from jaxfric.identification.fit_curve import REPLAY_ITERATIONS, curve_function, forward_jacobian
+    from jaxfric.identification.fit_curve import curve_function, forward_jacobian, replay_options
     from jaxfric.identification.params import adaptive_run, parameterize, plan_steps
 
     par = parameterize("nine", [param], variant="mu017", algorithm="lcp_ssn",
                        overrides={"mesh": mesh, "U_draw": stroke, "mu": 0.12})
     plan = adaptive_run(par, par.p0).history
     steps = plan_steps(par, plan)
-    newton = dataclasses.replace(par.scene.newton, max_iterations=max(par.scene.newton.max_iterations,
-                                                                         REPLAY_ITERATIONS))
+    newton = replay_options(par)
     edges = np.arange(0.0, stroke + 1e-9, 1.0)
     curve = curve_function(par, 0.5 * (edges[1:] + edges[:-1]), edges, newton)
     fn = jax.jit(forward_jacobian(curve, 1) if form == "jvp" else jax.jacfwd(curve, has_aux=True))

@@ -17,7 +17,8 @@ from ..numerics.newton import NewtonOptions
 from .fit_data import bin_means
 from .params import Parameterization, plan_steps, replay_function
 
-__all__ = ["Curve", "curve_function", "forward_jacobian", "refined_plan", "REPLAY_ITERATIONS", "PROGRAMS"]
+__all__ = ["Curve", "curve_function", "forward_jacobian", "replay_options", "refined_plan", "REPLAY_ITERATIONS",
+           "PROGRAMS"]
 
 REPLAY_ITERATIONS = 60  # Newton iterations per step allowed in the frozen-sequence replays
 
@@ -40,8 +41,7 @@ class Curve:
 
     def __init__(self, par: Parameterization, plan_history: dict, x: np.ndarray, edges, newton: NewtonOptions | None):
         self.times = np.asarray(plan_history["time"][1:])
-        newton = par.scene.newton if newton is None else newton
-        newton = dataclasses.replace(newton, max_iterations=max(newton.max_iterations, REPLAY_ITERATIONS))
+        newton = replay_options(par, newton)
         self._steps = plan_steps(par, plan_history)
         key = (id(par), newton, np.asarray(x).tobytes(), None if edges is None else np.asarray(edges).tobytes())
         self._fn = PROGRAMS.get(key, lambda: (par, _compiled_curve(par, x, edges, newton)))[1]
@@ -54,6 +54,13 @@ class Curve:
 # Compiled curves by (parameterisation, Newton's options, measurement): each entry holds its
 # parameterisation, so that the key's id() names no other object while the entry lives.
 PROGRAMS: LRU = LRU(4)
+
+
+def replay_options(par: Parameterization, newton: NewtonOptions | None = None) -> NewtonOptions:
+    """Newton's options of a replay: ``newton`` (None: the scene's) with at least
+    :data:`REPLAY_ITERATIONS` iterations per step."""
+    newton = par.scene.newton if newton is None else newton
+    return dataclasses.replace(newton, max_iterations=max(newton.max_iterations, REPLAY_ITERATIONS))
 
 
 def _compiled_curve(par: Parameterization, x, edges, newton: NewtonOptions):
