@@ -319,3 +319,50 @@ def test_semismooth_newton_equals_lemke_on_a_common_step_sequence(scene_name):
     gap = max(float(np.max(np.abs(g[c] - h[c]))) for c in ("drawing_force", "clamping_force")) / scale
     print(f"{scene_name}: {len(h['time']) - 1} common steps, largest force difference {gap:.1e} of the "
           f"force scale; Lemke refined its answer on {int(np.sum(g['ssn_iters'] > 0))} of them")
+
+
+@pytest.mark.parametrize("solver", ["ssn", "lemke"])
+def test_the_exact_solvers_solve_the_damped_equilibrium_of_the_stabilised_attempt(runs, solver):
+    """StepControl.stabilize with exact contact: with StepArgs.damping = eta the iterate's internal force
+    gains eta (u - u_n) on the free dofs (u_n: the step's start) and its tangent eta on the diagonal,
+    and a step solved that way is the damped problem's solution: at it the undamped residual of every
+    free dof is -eta (u - u_n), with the contact forces the solver found; both solvers find the same one.
+    The flat die's final state taken back to the middle of its draw, so that the step pushes the drawn
+    end back by half the stroke (0.005 mm, on which the damper's force is 5 N/mm)."""
+    import equinox as eqx
+
+    from jaxfric.contact.exact_iterate import iterate_residual, linearize_iterate
+    from jaxfric.loadpath.model import tool_positions
+    from jaxfric.loadpath.step import StepContext, step_args, unknowns
+
+    eta = 1e3
+    model = flat_die_strip(Complementarity(solver), **SMALL)
+    final = runs["lcp_ssn"].simulation.final
+    state = eqx.tree_at(lambda s: s.time, final, jnp.asarray(1.5))
+    ctx, t = StepContext.build(model), 1.51
+    args = eqx.filter_jit(lambda damping: step_args(model, state, 1, t, ctx, damping=damping)[0])
+    plain, damped = args(None), args(jnp.asarray(eta))
+    x_n = unknowns(model, state.u, tool_positions(state))
+    n, free = model.mesh.n_dofs, ~np.asarray(plain.mask)
+
+    x = x_n + 1e-4 * jnp.sin(jnp.arange(x_n.size, dtype=float))
+    it0, it1 = eqx.filter_jit(linearize_iterate)(x, plain), eqx.filter_jit(linearize_iterate)(x, damped)
+    expected = np.where(free, eta * np.asarray(x[:n] - x_n[:n]), 0.0)
+    np.testing.assert_allclose(np.asarray(it1.f_int - it0.f_int).reshape(-1), expected, rtol=0,
+                               atol=1e-13 * float(jnp.max(jnp.abs(it0.f_int))))
+    np.testing.assert_allclose(np.asarray(it1.K.to_dense() - it0.K.to_dense()), eta * np.eye(n), rtol=0,
+                               atol=1e-9 * eta)
+
+    sol, new = eqx.filter_jit(lambda s: solve_step(model, s, 1, t, ctx=ctx, damping=eta))(state)
+    assert int(sol.code) == Result.SUCCESS
+    x_new = unknowns(model, new.u, tool_positions(new))
+    du = np.asarray(x_new[:n] - x_n[:n])
+    assert np.max(np.abs(du)) > 4e-3
+    p = jnp.stack([new.contact.rn, new.contact.rt], -1)
+    residual = eqx.filter_jit(lambda y: iterate_residual(y, linearize_iterate(y, plain), p, plain)[0])(x_new)
+    tol = 1e-7 * float(jnp.max(jnp.abs(new.f_int)))
+    np.testing.assert_allclose(np.asarray(residual[:n])[free], -eta * du[free], rtol=0, atol=tol)
+    other = flat_die_strip(Complementarity("lemke" if solver == "ssn" else "ssn"), **SMALL)
+    _, new_other = eqx.filter_jit(lambda s: solve_step(other, s, 1, t, ctx=StepContext.build(other),
+                                                       damping=eta))(state)
+    np.testing.assert_allclose(np.asarray(new_other.u), np.asarray(new.u), rtol=0, atol=1e-10)

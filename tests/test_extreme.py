@@ -164,8 +164,7 @@ def _assert_cuts_recorded(scene, res, control):
     stages = _stage_attempts(scene, control)
     # max_cuts halvings, the retry of a predicted first attempt, the unsearched attempt, the stages, the
     # stabilised attempts
-    law = scene.model.contact
-    damped = 2 if control.stabilize > 0 and (law is None or law.stabilized) else 0
+    damped = 2 if control.stabilize > 0 else 0
     assert np.all(cuts >= 0) and np.all(cuts <= control.max_cuts + 2 + stages + damped), cuts.max()
     t = h["time"]
     assert np.all(np.diff(t) > 0)

@@ -179,10 +179,9 @@ def _derivatives(variant, algorithm, overrides, names, history, window) -> dict:
 
 
 def _run(scene, variant: str, overrides: dict, algorithm: str, notes: list, what: str):
-    """One run of the card, and the algorithm that completed it: where ``algorithm`` stops, the penalty
-    law (the spec's eps_n; a step failing at the smallest increment is damped, StepControl.stabilize)
-    takes its place and ``notes`` says so. The exact-contact path stops on the 12 mm beads in the draw
-    (shape6 at half depth: Newton's iteration limit at the smallest increment, U = 51 of 58 mm)."""
+    """One run of the card, and the algorithm that completed it: where ``algorithm`` stops (after the
+    stabilised attempts of StepControl.stabilize, which every algorithm has), the penalty law (the spec's
+    eps_n) takes its place and ``notes`` says so."""
     try:
         return run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
                    progress=False), algorithm

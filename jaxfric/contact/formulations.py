@@ -84,8 +84,8 @@ class AbstractContactFormulation(eqx.Module):
             driver may advance it one iteration at a time (:func:`jaxfric.loadpath.simulate.simulate_flat`).
         solver_stats: names of the history columns of ``History.solver_stats`` (empty: none kept).
         differentiable: steps carry derivatives (implicit function theorem).
-        stabilized: the step controller's stabilised attempt exists: the formulation's residual is
-            :func:`jaxfric.contact.system.linearize`'s, which carries the damper of ``StepArgs.damping``.
+    Every formulation's residual carries the damper of the step controller's stabilised attempt
+    (``StepArgs.damping``: :func:`jaxfric.contact.system.linearize`, and the exact solvers' iterate).
     """
 
     warm_start: ClassVar[bool] = False
@@ -94,7 +94,6 @@ class AbstractContactFormulation(eqx.Module):
     one_newton_solve: ClassVar[bool] = False
     solver_stats: ClassVar[tuple] = ()
     differentiable: ClassVar[bool] = True
-    stabilized: ClassVar[bool] = True
 
     @abc.abstractmethod
     def solve_step(self, args: StepArgs, x0, x_ref, newton: NewtonOptions, search=True,
@@ -351,7 +350,6 @@ class Complementarity(AbstractContactFormulation):
     unsearched_retry: ClassVar[bool] = False
     solver_stats: ClassVar[tuple] = ("lcp_pivots", "ssn_iters", "ssn_fallbacks")
     differentiable: ClassVar[bool] = True
-    stabilized: ClassVar[bool] = False
 
     def __check_init__(self):
         if self.solver not in SOLVERS:

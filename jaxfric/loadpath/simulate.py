@@ -250,9 +250,8 @@ def _controller(model: StripModel, control: StepControl, max_rows=None) -> Contr
     on = continuation_on(model, control)
     has_line_search = model.contact is None or not model.tools or model.contact.unsearched_retry
     n_stages = continuation_stages(model) if on else jnp.array(0, jnp.int32)
-    # The stabilised attempt: a formulation whose residual carries the damper, and a sheet modulus to scale it.
-    damper = (model.contact is None or not model.tools or model.contact.stabilized)
-    modulus = getattr(model.material, "E", None) if damper else None
+    # The stabilised attempt (every formulation's residual carries the damper): a sheet modulus scales it.
+    modulus = getattr(model.material, "E", None)
     return Controller.build(model.phases, control, on, has_line_search, n_stages, modulus, max_rows)
 
 

@@ -172,8 +172,8 @@ def solve_step(model: StripModel, state: SimState, phase, t_target,
     :class:`StepControl` when >= 0: the formulation's ``softened(soften)`` (penalty: eps_n and eps_t
     divided by 10^soften; 0: the model's law), and Newton's round-off floor
     relative to the positions (:mod:`jaxfric.numerics.newton`); None or < 0: a plain attempt.
-    ``damping`` (may be traced; formulations with ``stabilized``): the stabilisation's eta (N/mm per mm)
-    on the increment from ``state`` (:class:`StepControl`, ``stabilize``); 0 or None: none.
+    ``damping`` (may be traced): the stabilisation's eta (N/mm per mm) on the increment from ``state``
+    (:class:`StepControl`, ``stabilize``); 0 or None: none.
 
     Returns the :class:`StepSolution` (iterations, code, residual history, AL augmentations) and the
     new :class:`SimState` (meaningful only when ``solution.code == Result.SUCCESS``).
