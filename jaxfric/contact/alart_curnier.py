@@ -58,21 +58,24 @@ def alart_curnier_residual(R_N, R_T, g, s, mu, c_n, c_t):
     return state.astype(jnp.int32), jnp.stack([C_N, C_T], axis=-1), sig_n
 
 
-def piece_jacobian(state, mu, c_n, c_t):
+def piece_jacobian(state, mu, c_n, c_t, mu_force=None):
     """Generalised Jacobian of (C_N, C_T) on the linear piece ``state``: C = W_F p + W_K (g, s).
 
     open:   C = (R_N, R_T)                                W_F = I,  W_K = 0
     stick:  C = (c_N g, c_T s)                            W_F = 0,  W_K = diag(c_N, c_T)
     slip:   C = (c_N g, R_T - mu xi (R_N - c_N g))        W_F = [[0, 0], [-mu xi, 1]],
                                                           W_K = [[c_N, 0], [mu xi c_N, 0]]
-    with xi = sign(sigma_T). Returns W_F, W_K of shape (n_c, 2, 2).
+    with xi = sign(sigma_T). Returns W_F, W_K of shape (n_c, 2, 2). ``mu_force`` (n_c,), where mu is a
+    function of R_N (a friction law of the pressure): the slip row's derivative in R_N,
+    mu + mu'(R_N) (R_N - c_N g), in W_F in place of mu (the derivative of C_T, not a linear piece).
     """
     one, zero = jnp.ones_like(mu), jnp.zeros_like(mu)
     xi = jnp.where(state == SLIP_NEG, -1.0, 1.0)
     is_open, is_stick = state == OPEN, state == STICK
     is_slip = ~is_open & ~is_stick
+    mu_f = mu if mu_force is None else mu_force
     w_f = jnp.stack([jnp.stack([jnp.where(is_open, one, zero), zero], -1),
-                     jnp.stack([jnp.where(is_slip, -mu * xi, zero), jnp.where(is_stick, zero, one)], -1)], -2)
+                     jnp.stack([jnp.where(is_slip, -mu_f * xi, zero), jnp.where(is_stick, zero, one)], -1)], -2)
     closed = jnp.where(is_open, zero, c_n * one)
     w_k = jnp.stack([jnp.stack([closed, zero], -1),
                      jnp.stack([jnp.where(is_slip, mu * xi * c_n, zero), jnp.where(is_stick, c_t * one, zero)],

@@ -219,13 +219,14 @@ def classify(d: PieceData, args, R_N, R_T, g, s) -> jax.Array:
     return state
 
 
-def piece_system(d: PieceData, args, state, constrained=None, x=None):
+def piece_system(d: PieceData, args, state, constrained=None, x=None, mu_force=None):
     """The semismooth system on the active set ``state``: its matrix (BlockTridiag, Bordered with a
     force-driven tool) and its residual F (the equilibrium rows with each candidate node's two rows
     replaced by C_a = W_F (n, t)^T f~_a + W_K (g, s), then the tool's row), so that the increment solves
     ``M dx = -F``. ``constrained`` (n_u,) bool, with the iterate ``x``: candidates whose second row (the slip law) is
     replaced by the row of their one prescribed dof, kappa (u_i - u_presc,i)
-    (:mod:`jaxfric.contact.exact_derivative`)."""
+    (:mod:`jaxfric.contact.exact_derivative`). ``mu_force`` (n_u,): the matrix's slip rows take it as the
+    coefficient of R_N (:func:`~jaxfric.contact.alart_curnier.piece_jacobian`; the residual keeps mu)."""
     c = args.contact
     fr, K = d.fr, d.K
     n = args.mesh.n_dofs
@@ -234,10 +235,12 @@ def piece_system(d: PieceData, args, state, constrained=None, x=None):
     ny1 = bs // 2
     col, loc = nodes // ny1, nodes % ny1
     w_f, w_k = piece_jacobian(state, fr.mu, fr.c_n, fr.c_t)
-    A = jnp.einsum("uij,ukj->uik", w_f, rotation)                    # W_F R^T
-    local = jnp.einsum("uij,ujk->uik", w_f, d.d_u[pairs, :2]) + jnp.einsum("uij,ujk->uik", w_k, d.d_u[pairs, 2:])
     C_rows = jnp.einsum("uij,uj->ui", w_f, jnp.stack([d.R_N, d.R_T], -1)) + \
         jnp.einsum("uij,uj->ui", w_k, jnp.stack([d.gap, d.slip], -1))
+    if mu_force is not None:
+        w_f = piece_jacobian(state, fr.mu, fr.c_n, fr.c_t, mu_force)[0]
+    A = jnp.einsum("uij,ukj->uik", w_f, rotation)                    # W_F R^T
+    local = jnp.einsum("uij,ujk->uik", w_f, d.d_u[pairs, :2]) + jnp.einsum("uij,ujk->uik", w_k, d.d_u[pairs, 2:])
     if constrained is not None:
         e = args.mask[:n].reshape(-1, 2)[nodes].astype(A.dtype)          # the prescribed dof of each node
         A = A.at[:, 1, :].set(jnp.where(constrained[:, None], e, A[:, 1, :]))

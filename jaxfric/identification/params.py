@@ -31,7 +31,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import scenes
-from ..contact.rigid import has_friction_law
 from ..fem.loading import with_steps
 from ..loadpath.run import run
 from ..loadpath.simulate import simulate, simulate_fixed
@@ -115,9 +114,6 @@ def parameterize(scene: str, names, *, variant: str | None = None, algorithm: st
         raise ValueError(f"field 'param' names a parameter twice: {', '.join(names)}")
     overrides = dict(overrides or {})
     base = scenes.make(scene, variant, algorithm, overrides)
-    if algorithm in ("lcp_ssn", "lcp_lemke") and has_friction_law(base.model.tools):
-        raise ValueError(f"field 'algorithm': {algorithm} has no derivatives with friction_law = "
-                         f"{getattr(base.config, 'friction_law')!r} (jaxfric.contact.friction); use penalty or auglag")
     config = base.config
     assert dataclasses.is_dataclass(config)  # a scene's config is its config dataclass (Scene.config: object)
     start = []
