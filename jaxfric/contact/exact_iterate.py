@@ -15,6 +15,7 @@ from .pair_batches import PairTool, map_pairs
 from .preselection import expand, gather
 from .rigid import ContactStep, pair_nodes, split_pairs
 from .status import contact_status
+from .system import damped
 from .tools import GAP_OPEN
 
 __all__ = ["KAPPA", "REFINE_ITER", "GAP_FAR", "Iterate", "linearize_iterate", "iterate_values", "iterate_residual",
@@ -103,24 +104,11 @@ def _iterate(x, args, derivatives: bool) -> Iterate:
     else:
         a = internal_force(args.mesh, args.material, args.formulation, args.geo, u, args.states)
     gap, normal, zeta, slip, valid, jac = _geometry(args.contact, args.mesh.nodes, u, q, derivatives)
-    f_int, K = _damped(x[:n], args, a.f_int, a.tangent)
+    # The stabilised attempt's damper: the exact solvers solve f_int + eta (u - u_n) = f_c (their contact
+    # forces read off that equilibrium are the damped problem's).
+    f_int, K = damped(args, x[:n], a.f_int, a.tangent)
     return Iterate(f_int, K, a.states, a.det_min, q, gap, normal, zeta, slip, valid, jac,
                    a.predictor, a.enhanced_gap)
-
-
-def _damped(u, args, f_int, K):
-    """The step controller's damper (``StepArgs.damping``, :class:`jaxfric.loadpath.controller.StepControl`'s
-    ``stabilize``), eta (u - u_n) on the free dofs, added to the internal force and eta to the tangent's
-    diagonal: the exact solvers then solve the damped equilibrium f_int + eta (u - u_n) = f_c, and the contact
-    forces they read off equilibrium are the damped problem's (:mod:`jaxfric.contact.system` for the
-    penalty laws). The prescribed dofs keep their force (the reactions). ``u``: (n_dofs,)."""
-    if args.damping is None:   # static: a run without the stabilised attempt
-        return f_int, K
-    damper = jnp.where(args.mask, 0.0, args.damping * (u - args.u_start))
-    f_int = f_int + damper.reshape(f_int.shape)
-    if K is not None:
-        K = BlockTridiag(K.lower, K.diag + args.damping * jnp.eye(K.diag.shape[-1]), K.upper)
-    return f_int, K
 
 
 @shared_trace     # the loop's shapes (filter_eval_shape before the loop) and its body: one trace

@@ -35,7 +35,7 @@ from .rigid import ContactStep, evaluate_pairs, pair_friction, pair_nodes, pair_
 from .status import settled_status
 from .tools import GAP_OPEN
 
-__all__ = ["StepArgs", "residual", "linearize"]
+__all__ = ["StepArgs", "residual", "linearize", "damped"]
 
 
 class StepArgs(eqx.Module):
@@ -108,10 +108,7 @@ def _evaluate(x, args: StepArgs, jacobian: bool):
                                        args.predictor)
     else:
         a = internal_force(args.mesh, args.material, args.formulation, args.geo, u, args.states)
-    r_u = a.f_int
-    if args.damping is not None:
-        assert args.u_start is not None
-        r_u = r_u + (args.damping * (x[:n] - args.u_start)).reshape(-1, 2)
+    r_u, _ = damped(args, x[:n], f_int=a.f_int)
     contact = None
     if args.contact is not None:
         q, pairs, f_c, tool_f = _contact_terms(args, u, qf, jacobian)
@@ -191,14 +188,28 @@ def _contact_jacobian(args: StepArgs, K: BlockTridiag, pairs, keep):
     return Bordered(A=K, B=jnp.stack(B_cols, axis=1), C=jnp.stack(C_rows), D=jnp.diag(jnp.stack(D_diag)))
 
 
+def damped(args: StepArgs, u, f_int=None, K=None):
+    """The step controller's damper (module docstring) where the attempt has one (``args.damping``): the
+    internal force ``f_int`` (n_nodes, 2) plus eta (u - u_n) on the free dofs, and the tangent ``K``
+    (BlockTridiag) plus eta on its diagonal; either may be None (not asked for). Without a damper both come
+    back as given. ``u``: (n_dofs,). The exact solvers' iterate carries it too
+    (:mod:`jaxfric.contact.exact_iterate`)."""
+    if args.damping is None:   # static: a run without the stabilised attempt
+        return f_int, K
+    assert args.u_start is not None
+    if f_int is not None:
+        f_int = f_int + jnp.where(args.mask, 0.0, args.damping * (u - args.u_start)).reshape(f_int.shape)
+    if K is not None:
+        K = BlockTridiag(K.lower, K.diag + args.damping * jnp.eye(K.diag.shape[-1]), K.upper)
+    return f_int, K
+
+
 @shared_trace     # a Newton loop's shapes (filter_eval_shape before the loop) and its body: one trace
 def linearize(x, args: StepArgs) -> Linearization:
     R, a, contact = _evaluate(x, args, jacobian=True)
     keep = jnp.where(args.mask, 0.0, 1.0)
     assert a.tangent is not None
-    strip: BlockTridiag = a.tangent
-    if args.damping is not None:
-        strip = BlockTridiag(strip.lower, strip.diag + args.damping * jnp.eye(strip.diag.shape[-1]), strip.upper)
+    _, strip = damped(args, x[:args.mesh.n_dofs], K=a.tangent)
     K: BlockTridiag | Bordered = strip
     status = None
     aux_contact = None
