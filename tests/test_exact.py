@@ -288,7 +288,7 @@ COMMON_STEPS = {
 # The bead's wind: at its 13th step (t = 1.0667) semismooth Newton needs 34 line-searched iterations, and
 # Lemke's Newton, which has no merit to search on (jaxfric.contact.exact: the condensed solve), inverts an
 # element with its full steps (a residual of 1e7 N/mm); it takes the step only after a cut, so the two
-# solvers no longer share the sequence (the same at dtheta = 1 degree). A line search on Lemke's
+# solvers do not share the sequence (the same at dtheta = 1 degree). A line search on Lemke's
 # directions would decide it.
 LEMKE_UNSEARCHED = "Lemke's unsearched Newton inverts an element on a step the line-searched one takes"
 
