@@ -103,14 +103,15 @@ class StepControl(eqx.Module):
             15 steps stabilised at 1e-5 E (drawing work 1.2e-3 N mm/mm), while with 1e-3 E from the
             start 259 steps are stabilised and the drawing work is 1.6 N mm/mm, the damper's force
             (``tests/test_extreme.py::test_bead_edges``). Exact contact solves the damped equilibrium
-            likewise (:mod:`jaxfric.contact.exact_iterate`): the blankholder's 12 mm bead (shape6) held at
-            half depth stopped at U = 50.2 mm, where a node of the sheet pressed into the groove has a
+            likewise (:mod:`jaxfric.contact.exact_iterate`): without it the blankholder's 12 mm bead (shape6)
+            held at half depth stops at U = 50.2 mm, where a node of the sheet pressed into the groove has a
             negative stiffness along its tool's normal once its neighbours' statuses are fixed, so that
             closed it pulls (-2.3e-3 N/mm) and open it penetrates (1.6e-5 mm): the linearised
             complementarity problem has no solution there, the semismooth active set cycles through four
             states in every iteration, and Newton with Lemke's pivoting stalls at a residual of 1.6e-4
-            N/mm (60 iterations at the smallest increment, either solver). With eta = 1e-5 E (0.71 N/mm per mm) the
-            first active set settles at once; the run then finishes its 58 mm with 13 steps stabilised,
+            N/mm (60 iterations at the smallest increment, either solver). With eta = 1e-5 E (0.71 N/mm per
+            mm) the first active set settles at once; restarted from its last converged step the run finishes
+            its 58 mm with 13 steps stabilised,
             the damper taking 5e-5 N mm/mm. A fixed-step replay
             (:func:`jaxfric.loadpath.simulate.simulate_fixed`) has no damper.
         step_error: 0 (default): the nominal increments, cut and grown as above. > 0: the increments
