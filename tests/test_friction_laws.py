@@ -31,11 +31,30 @@ def test_law_values_clip_and_frictionless_phase():
     # A phase without friction stays without it, whatever the law's terms.
     assert float(law.coefficient(0.0, 3.0, 1.0)) == 0.0
     assert Polynomial(0.002).describe() == {"law": "polynomial", "c_p": 0.002, "c_v": 0.0, "c_pv": 0.0,
-                                             "c_pp": 0.0, "c_vv": 0.0}
+                                             "c_pp": 0.0, "c_vv": 0.0, "period": 0.0}
     decay = VelocityDecay(0.1, 0.5)
     np.testing.assert_allclose(decay.coefficient(0.2, 7.0, jnp.array([0.0, 2.0, 1e3])),
                                [0.2, 0.1 + 0.1 * np.exp(-1.0), 0.1], rtol=1e-14)
     assert float(sliding_speed(-2e-4, 1e-4)) == pytest.approx(2.0) and float(sliding_speed(1e-3, 0.0)) == 0.0
+    # The filter: a rate held over a step of one period closes 1 - 1/e of the way from the last speed.
+    assert float(sliding_speed(-2e-4, 1e-4, 5.0, 1e-4)) == pytest.approx(2.0 + 3.0 / np.e, rel=1e-14)
+    assert float(sliding_speed(1e-3, 0.0, 5.0, 1e-4)) == 0.0
+
+
+def test_steady_sliding_reads_the_drawing_speed():
+    """The flat die slides as a whole at the drawing speed, so its steady drawing force is mu(v) F_clamp
+    with v = draw_speed, for a coefficient rising with speed (mu = 0.12 + 0.01 v). Through the default
+    speed filter (5 ms) it is, at 0.5 and 2 mm/s, to 1e-4 (measured 5e-5 at 2 mm/s: the filter's approach
+    after 0.1 mm of drawing); reading each step's raw rate instead (period 0),
+    the stuck pairs alternate between rest and twice the speed, and the force between two values below
+    mu(v) F_clamp (measured at 1 mm/s: 6.02 and 6.09 N/mm for 6.5; jaxfric.contact.friction)."""
+    law = {**SMALL, "friction_law": "polynomial", "mu": 0.12, "mu_v": 0.01, "F_clamp": 50.0, "U_draw": 0.1}
+    for v in (0.5, 2.0):
+        force = run(scenes.make("flat_die", "const_force", "lcp_ssn", {**law, "draw_speed": v})).history["drawing_force"]
+        assert force[-20:] == pytest.approx(np.full(20, (0.12 + 0.01 * v) * 50.0), rel=1e-4), v
+    raw = run(scenes.make("flat_die", "const_force", "lcp_ssn", {**law, "draw_speed": 1.0, "speed_period": 0.0}))
+    tail = np.asarray(raw.history["drawing_force"])[-20:]
+    assert np.all(np.abs(np.diff(tail)) > 0.05) and np.max(tail) < 0.95 * 0.13 * 50.0
 
 
 def test_tributary_lengths_of_a_graded_row():
@@ -157,6 +176,7 @@ def test_derivatives_of_the_law_parameters_match_central_differences(algorithm):
     ({"mu_d": 0.1}, "mu_d"),
     ({"friction_law": "velocity_decay", "decay": -1.0}, "decay"),
     ({"friction_law": "velocity_decay", "draw_speed": 0.0}, "draw_speed"),
+    ({"friction_law": "velocity_decay", "speed_period": -1e-3}, "speed_period"),
     ({"friction_law": "stribeck"}, "friction_law"),
 ])
 def test_bad_friction_fields_name_the_field(overrides, field):

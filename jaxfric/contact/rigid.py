@@ -46,7 +46,7 @@ from .tools import GAP_OPEN, Tool
 
 __all__ = ["Move", "Force", "RigidTool", "ContactState", "ContactStep", "PairResult", "initial_contact_state",
            "evaluate_pairs", "tool_forces", "split_pairs", "pair_nodes", "pair_mu", "pair_friction",
-           "pair_speeds", "has_friction_law", "max_penetration"]
+           "pair_speeds", "pair_speed_periods", "has_friction_law", "max_penetration"]
 
 
 class Move(eqx.Module):
@@ -335,6 +335,13 @@ def has_friction_law(tools) -> bool:
 def pair_speeds(step: ContactStep) -> jax.Array:
     """(m,) the pairs' sliding speeds of the last step (mm/s), tool after tool."""
     return jnp.concatenate(step.speed) if step.speed else jnp.zeros(sum(len(t.candidates) for t in step.tools))
+
+
+def pair_speed_periods(tools) -> jax.Array:
+    """(m,) the time constant of the speed filter of every candidate pair (s), tool after tool: its tool's
+    friction law's ``period``, 0 without a law (:func:`jaxfric.contact.friction.sliding_speed`)."""
+    return jnp.concatenate([jnp.full(len(t.candidates), 0.0 if t.friction is None else t.friction.period)
+                            for t in tools])
 
 
 def pair_friction(tools, mu, nodes_ref, rn, speed=None) -> jax.Array:

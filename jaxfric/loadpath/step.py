@@ -17,7 +17,8 @@ import numpy as np
 from ..contact.formulations import newton_step
 from ..contact.friction import sliding_speed
 from ..contact.preselection import complete_geometry, select_pairs
-from ..contact.rigid import ContactState, ContactStep, Force, Move, pair_friction, pair_speeds, split_pairs
+from ..contact.rigid import (ContactState, ContactStep, Force, Move, pair_friction, pair_speed_periods, pair_speeds,
+                             split_pairs)
 from ..contact.status import contact_status
 from ..contact.system import StepArgs, linearize
 from ..fem.assembly import mesh_geometry
@@ -208,7 +209,8 @@ def step_state(model: StripModel, args, sol, t_target, phase, q_start, f_start) 
         kept["status"] = contact_status(kept["rn"], kept["rt"],
                                         pair_friction(model.tools, args.contact.mu, model.mesh.nodes, kept["rn"],
                                                       pair_speeds(args.contact)))
-        kept["speed"] = sliding_speed(c_out["slip"], args.contact.dt)
+        kept["speed"] = sliding_speed(c_out["slip"], args.contact.dt, pair_speeds(args.contact),
+                                      pair_speed_periods(model.tools))
         new_contact = ContactState(q_start=q_start, f_start=f_start, **kept)
     return SimState(u=sol.x[: model.mesh.n_dofs].reshape(-1, 2), material=states, f_int=f_int,
                     time=t_target, phase=phase, contact=new_contact)

@@ -81,6 +81,9 @@ MU_PP_DOC = "friction_law=polynomial: coefficient of p^2 (1/MPa^2; OpenRadioss C
 MU_VV_DOC = "friction_law=polynomial: coefficient of v^2 (s^2/mm^2; OpenRadioss C5) [chosen]"
 MU_D_DOC = "friction_law=velocity_decay: dynamic coefficient (LS-DYNA FD; None: mu, no decay) [chosen]"
 DECAY_DOC = "friction_law=velocity_decay: decay coefficient (s/mm; LS-DYNA DC) [chosen]"
+SPEED_PERIOD_DOC = ("friction laws of speed: time constant of the first-order filter through which a pair's slip "
+                    "rate becomes the speed its law reads (s; 0: the last step's rate, which oscillates at short "
+                    "steps; jaxfric.contact.friction) [chosen]")
 DRAW_SPEED_DOC = ("drawing speed (mm/s): the drawing phase lasts its stroke over this speed, which gives a friction "
                   "law its sliding speeds; the other phases have none (v = 0) [chosen]")
 
@@ -98,6 +101,7 @@ class FrictionLawFields:
     mu_d: float | None = spec_field(None, "-", MU_D_DOC)
     decay: float | None = spec_field(None, "s/mm", DECAY_DOC)
     draw_speed: float = spec_field(1.0, "mm/s", DRAW_SPEED_DOC)
+    speed_period: float = spec_field(0.005, "s", SPEED_PERIOD_DOC)
 
 
 PRESELECT_DOC = ("evaluate, in each load step, only the candidate nodes nearest to each tool that can reach it "
@@ -210,6 +214,8 @@ def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=No
             raise _bad(name, v, "it needs --set friction_law=velocity_decay")
     if not _number("draw_speed", config.draw_speed) > 0.0:
         raise _bad("draw_speed", config.draw_speed, "it must be > 0")
+    if not _number("speed_period", config.speed_period) >= 0.0 or not np.isfinite(config.speed_period):
+        raise _bad("speed_period", config.speed_period, "it must be finite and >= 0")
     if config.element not in ELEMENTS:
         raise _bad("element", config.element, f"choose one of {', '.join(map(repr, ELEMENTS))}")
     if config.enhanced_update not in ENHANCED_UPDATES:
@@ -426,13 +432,13 @@ def friction_table(tool_names, phase_names, mu) -> dict:
 def friction_law(config):
     """The frictional tools' law (:mod:`jaxfric.contact.friction`) about each tool's mu: None for
     Coulomb, the :class:`Polynomial` of ``mu_p`` .. ``mu_vv``, or the :class:`VelocityDecay` of ``mu_d``
-    (None: mu) and ``decay`` (None: 0)."""
+    (None: mu) and ``decay`` (None: 0), each reading speeds filtered with ``speed_period``."""
     if config.friction_law == "coulomb":
         return None
     if config.friction_law == "polynomial":
-        return Polynomial(*(getattr(config, name) for name in POLYNOMIAL_TERMS))
+        return Polynomial(*(getattr(config, name) for name in POLYNOMIAL_TERMS), period=config.speed_period)
     mu_d = config.mu if config.mu_d is None else config.mu_d
-    return VelocityDecay(mu_d, 0.0 if config.decay is None else config.decay)
+    return VelocityDecay(mu_d, 0.0 if config.decay is None else config.decay, period=config.speed_period)
 
 
 def phase_seconds(config, phases, stroke: float) -> tuple | None:
