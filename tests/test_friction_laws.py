@@ -50,7 +50,8 @@ def test_steady_sliding_reads_the_drawing_speed():
     mu(v) F_clamp (measured at 1 mm/s: 6.02 and 6.09 N/mm for 6.5; jaxfric.contact.friction)."""
     law = {**SMALL, "friction_law": "polynomial", "mu": 0.12, "mu_v": 0.01, "F_clamp": 50.0, "U_draw": 0.1}
     for v in (0.5, 2.0):
-        force = run(scenes.make("flat_die", "const_force", "lcp_ssn", {**law, "draw_speed": v})).history["drawing_force"]
+        force = run(scenes.make("flat_die", "const_force", "lcp_ssn", {**law, "draw_speed": v}))
+        force = force.history["drawing_force"]
         assert force[-20:] == pytest.approx(np.full(20, (0.12 + 0.01 * v) * 50.0), rel=1e-4), v
     raw = run(scenes.make("flat_die", "const_force", "lcp_ssn", {**law, "draw_speed": 1.0, "speed_period": 0.0}))
     tail = np.asarray(raw.history["drawing_force"])[-20:]

@@ -17,8 +17,16 @@ import numpy as np
 from ..contact.formulations import newton_step
 from ..contact.friction import sliding_speed
 from ..contact.preselection import complete_geometry, select_pairs
-from ..contact.rigid import (ContactState, ContactStep, Force, Move, pair_friction, pair_speed_periods, pair_speeds,
-                             split_pairs)
+from ..contact.rigid import (
+    ContactState,
+    ContactStep,
+    Force,
+    Move,
+    pair_friction,
+    pair_speed_periods,
+    pair_speeds,
+    split_pairs,
+)
 from ..contact.status import contact_status
 from ..contact.system import StepArgs, linearize
 from ..fem.assembly import mesh_geometry
