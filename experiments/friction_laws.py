@@ -50,8 +50,8 @@ import numpy as np  # noqa: E402
 from scipy import optimize, stats  # noqa: E402
 
 from benchutil import write_rows  # noqa: E402
-from jaxfric.cards.friction import friction_csv, radioss_friction  # noqa: E402
-from jaxfric.contact.friction import Polynomial  # noqa: E402
+from jaxfric.cards.friction import friction_csv, lsdyna_friction, radioss_friction  # noqa: E402
+from jaxfric.contact.friction import Polynomial, VelocityDecay  # noqa: E402
 from jaxfric.identification.params import parameterize, path_function  # noqa: E402
 from jaxfric.io.batch import run_case  # noqa: E402
 
@@ -67,10 +67,21 @@ REFERENCE_MESH = "480x4"
 START = {"mu": 0.15, "mu_p": 0.0}
 BOUNDS = {"mu": (0.0, 1.0), "mu_p": (-0.05, 0.05)}
 
+# The speed law (--speed): LS-DYNA's decay, curves at three drawing speeds, one clamping force, drawn
+# 0.1 mm so that each curve has its breakaway (mu_0) and its steady sliding at its speed (mu(v)).
+SPEEDS = (0.25, 1.0, 4.0)
+SPEED_TRUTH = {"mu": 0.18, "mu_d": 0.10, "decay": 1.0}
+SPEED_LAW = {"friction_law": "velocity_decay"}
+SPEED_CASE = {"U_draw": 0.1, "F_clamp": 50.0, "steady_window": (0.08, 0.1)}
+# The fits take increments five times the reference's (the scene's 0.1 um after the fine start).
+FIT_INCREMENTS = {"dU": 5e-4}
+SPEED_START = {"mu": 0.15, "mu_d": 0.12, "decay": 0.5}
+SPEED_BOUNDS = {"mu": (0.0, 1.0), "mu_d": (0.0, 1.0), "decay": (0.0, 20.0)}
+
 
 def reference_curves(root: str, cases: dict, truth: dict) -> dict:
     """Per case (label -> config values), the measured curve (displacement, force) of the reference
-    discretisation made with ``truth``."""
+    discretisation (exact contact at ``REFERENCE_MESH`` and the scene's increments) made with ``truth``."""
     out = {}
     for label, values in cases.items():
         done = run_case(os.path.join(root, f"reference_{label}"), "flat_die", "const_force", "lcp_ssn",
@@ -91,7 +102,9 @@ class JointModel:
     force) become fixed parameters of a shared path function after ``names``; the others (the drawing
     speed, which sets the phases' static durations) give each distinct set its own path function."""
 
-    def __init__(self, names: tuple, overrides: dict, data: dict, cases: dict, extra: tuple = ()):
+    def __init__(self, names: tuple, overrides: dict, data: dict, cases: dict, extra: tuple = (),
+                 algorithm: str = "penalty", start: dict | None = None):
+        start = START if start is None else start
         self.names, self.data, self.extra, self.labels = names, data, extra, tuple(cases)
         self._extra_values = {label: jnp.asarray([cases[label][k] for k in extra], jnp.float64) for label in cases}
         self._groups, functions = {}, {}
@@ -99,8 +112,8 @@ class JointModel:
             static = tuple(sorted((k, v) for k, v in values.items() if k not in extra))
             if static not in functions:
                 first = dict(values)
-                par = parameterize("flat_die", [*names, *extra], variant="const_force", algorithm="penalty",
-                                   overrides={**overrides, **first, **{k: START[k] for k in names}})
+                par = parameterize("flat_die", [*names, *extra], variant="const_force", algorithm=algorithm,
+                                   overrides={**overrides, **first, **{k: start[k] for k in names}})
                 functions[static] = self._compile(path_function(par))
             self._groups[label] = functions[static]
         self.evaluations = 0
@@ -139,11 +152,12 @@ class JointModel:
                                for label in self.labels])
 
 
-def fit(model: JointModel, measured: dict) -> dict:
+def fit(model: JointModel, measured: dict, start: dict | None = None, bounds: dict | None = None) -> dict:
     """Bounded least squares on every curve at once; the estimate, its standard errors and intervals."""
+    start, bounds = START if start is None else start, BOUNDS if bounds is None else bounds
     t0 = time.perf_counter()
-    x0 = np.array([START[k] for k in model.names])
-    lo, hi = np.array([BOUNDS[k][0] for k in model.names]), np.array([BOUNDS[k][1] for k in model.names])
+    x0 = np.array([start[k] for k in model.names])
+    lo, hi = np.array([bounds[k][0] for k in model.names]), np.array([bounds[k][1] for k in model.names])
     sol = optimize.least_squares(lambda th: model.residual(th, measured), x0, jac=model.jacobian, bounds=(lo, hi),
                                  x_scale="jac", xtol=1e-10, ftol=1e-12, gtol=1e-12)
     J, r = model.jacobian(sol.x), model.residual(sol.x, measured)
@@ -164,9 +178,15 @@ def main(argv=None) -> None:
                     help="noise of the noisy fit, times each curve's largest force")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--card", action="store_true", help="only the bead cards of the fitted laws (after the fits)")
+    ap.add_argument("--speed", action="store_true", help="only the speed law's identification")
+    ap.add_argument("--period", action="store_true", help="only the speed filter's period against steady sliding")
     a = ap.parse_args(argv)
+    if a.period:
+        return periods()
     if a.card:
         return cards(a.root)
+    if a.speed:
+        return speed(a.root, a.noise, a.seed)
 
     rows = []
     clamps = {f"F{F:g}": {**LAW, **STROKE, "F_clamp": F} for F in CLAMPS}
@@ -199,22 +219,124 @@ def main(argv=None) -> None:
     cards(a.root)
 
 
-def _fits(fits: dict, truth: dict, rows: list) -> dict:
+def _fits(fits: dict, truth: dict, rows: list, start: dict | None = None, bounds: dict | None = None) -> dict:
     """Each fit (name -> (model, measured)), its row appended to ``rows``; the results by name."""
     results = {}
     for name, (model, measured) in fits.items():
-        res = fit(model, measured)
+        res = fit(model, measured, start, bounds)
         results[name] = res
         row = {"fit": name, "parameters": " ".join(model.names)}
         for k, key in enumerate(model.names):
             row.update({key: res["x"][k], f"{key}_stderr": res["stderr"][k], f"{key}_lo95": res["lo"][k],
-                        f"{key}_hi95": res["hi"][k], f"{key}_truth": truth[key],
-                        f"{key}_in_interval": bool(res["lo"][k] <= truth[key] <= res["hi"][k])})
+                        f"{key}_hi95": res["hi"][k], f"{key}_truth": truth.get(key, ""),
+                        f"{key}_in_interval": bool(res["lo"][k] <= truth.get(key, np.nan) <= res["hi"][k])})
         row.update({"rms_misfit": res["rms"], "max_misfit": res["max_misfit"], "evaluations": res["nfev"],
                     "seconds": round(res["seconds"], 1)})
         rows.append(row)
         print(name, {k: v for k, v in row.items() if not k.endswith("_truth")}, flush=True)
     return results
+
+
+def speed(root: str, noise: float, seed: int) -> None:
+    """The decay law mu = mu_d + (mu_0 - mu_d) exp(-decay v) from curves at three drawing speeds, fitted on
+    the exact path (``lcp_ssn``'s implicit derivatives) at the spec mesh with five times the reference's
+    increments; and the constant mu fitted to the same curves."""
+    rows: list = []
+    cases = {f"v{v:g}": {**SPEED_LAW, **SPEED_CASE, "draw_speed": v} for v in SPEEDS}
+    data = reference_curves(root, cases, {**SPEED_LAW, **SPEED_TRUTH})
+    clean = {label: f for label, (_, f) in data.items()}
+    rng = np.random.default_rng(seed)
+    noisy = {label: f + noise * np.max(np.abs(f)) * rng.standard_normal(f.shape) for label, f in clean.items()}
+    names = ("mu", "mu_d", "decay")
+    law_model = JointModel(names, {**SPEED_LAW, **FIT_INCREMENTS}, data, cases, algorithm="lcp_ssn",
+                           start=SPEED_START)
+    # A constant mu does not read the speed: one path function serves the three curves.
+    coulomb_cases = {label: SPEED_CASE for label in cases}
+    coulomb_model = JointModel(("mu",), FIT_INCREMENTS, data, coulomb_cases, algorithm="lcp_ssn", start=SPEED_START)
+    results = _fits({"speed_law": (law_model, clean), "speed_coulomb": (coulomb_model, clean),
+                     "speed_law_noisy": (law_model, noisy)}, SPEED_TRUTH, rows, SPEED_START, SPEED_BOUNDS)
+    fitted = {"law": law_model.curves(results["speed_law"]["x"]),
+              "coulomb": coulomb_model.curves(results["speed_coulomb"]["x"])}
+    _write_curves(os.path.join(RESULTS, "friction_laws_speed_curves.csv"), data, fitted, cases)
+    keys: list = []
+    for row in rows:
+        keys += [k for k in row if k not in keys]
+    write_rows(os.path.join(RESULTS, "friction_laws_speed.csv"), [{k: row.get(k, "") for k in keys} for row in rows])
+    mu, mu_d, decay = results["speed_law"]["x"]
+    out = os.path.join(RESULTS, "friction_laws")
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, "friction_speed.k"), "w") as fh:
+        fh.write(lsdyna_friction(VelocityDecay(mu_d, decay), mu))
+    _speed_figure(data, fitted, results, os.path.join(RESULTS, "friction_laws_speed.png"))
+
+
+def periods() -> None:
+    """Steady sliding through the speed filter (jaxfric.contact.friction): the flat die at 24 x 2 drawn
+    0.2 mm at 1 mm/s with mu = 0.12 + 0.01 v, at 50 and 200 N/mm, for filter periods from 0 (the last
+    step's raw rate) to 20 ms. Steady sliding at 1 mm/s is mu(1) F_clamp; per case, the last 100 steps'
+    mean, range and sign changes of the force's increments. ``friction_laws_period.csv``."""
+    from jaxfric import scenes
+    from jaxfric.loadpath.run import run
+
+    rows = []
+    for F in (50.0, 200.0):
+        for period in (0.0, 3e-4, 1e-3, 2e-3, 5e-3, 1e-2, 2e-2):
+            s = scenes.make("flat_die", "const_force", "lcp_ssn",
+                            {"mesh": "24x2", "friction_law": "polynomial", "mu": 0.12, "mu_v": 0.01, "U_draw": 0.2,
+                             "steady_window": (0.1, 0.2), "F_clamp": F, "speed_period": period})
+            res = run(s.model, newton=s.newton, control=s.control, observe=s.observe, progress=False)
+            tail = np.asarray(res.history["drawing_force"])[-100:]
+            rows.append({"F_clamp (N/mm)": F, "period (s)": period, "steady sliding mu(1) F (N/mm)": 0.13 * F,
+                         "mean (N/mm)": float(np.mean(tail)), "range (N/mm)": float(np.ptp(tail)),
+                         "relative error of the mean": float(np.mean(tail) / (0.13 * F) - 1.0),
+                         "sign changes": int(np.sum(np.diff(np.sign(np.diff(tail))) != 0)),
+                         "steps": len(res.history["time"])})
+            print(rows[-1], flush=True)
+    write_rows(os.path.join(RESULTS, "friction_laws_period.csv"), rows)
+
+
+def _speed_figure(data, fitted, results, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.4))
+    colours = plt.cm.viridis(np.linspace(0.0, 0.85, len(SPEEDS)))
+    window = SPEED_CASE["steady_window"]
+    steady = {}
+    for v, col in zip(SPEEDS, colours, strict=True):
+        u, f = data[f"v{v:g}"]
+        ax[0].plot(1e3 * u, f, "o", ms=2.0, color=col, label=f"measured, v = {v:g} mm/s")
+        ax[0].plot(1e3 * u, fitted["law"][f"v{v:g}"], "-", color=col, lw=1.2)
+        ax[0].plot(1e3 * u, fitted["coulomb"][f"v{v:g}"], "--", color=col, lw=1.0)
+        keep = (u >= window[0]) & (u <= window[1])
+        steady[v] = [np.mean(f[keep]), np.mean(fitted["law"][f"v{v:g}"][keep]),
+                     np.mean(fitted["coulomb"][f"v{v:g}"][keep])]
+    ax[0].set(xlabel="drawing displacement (um)", ylabel="drawing force (N/mm)",
+              title="curves: points measured, - decay law fit, -- constant mu fit")
+    ax[0].legend(fontsize=7)
+    table = np.array([steady[v] for v in SPEEDS])
+    ax[1].plot(SPEEDS, table[:, 0], "ko", label="measured (reference, decay law)")
+    ax[1].plot(SPEEDS, table[:, 1], "-", color="C0", label="decay law fit")
+    ax[1].plot(SPEEDS, table[:, 2], "--", color="C3",
+               label=f"constant mu = {results['speed_coulomb']['x'][0]:.4f}")
+    ax[1].set(xscale="log", xlabel="drawing speed (mm/s)", ylabel="steady drawing force (N/mm)",
+              title=f"steady force, U in [{window[0] * 1e3:g}, {window[1] * 1e3:g}] um")
+    ax[1].legend(fontsize=8)
+    v = np.linspace(0.0, 5.0, 101)
+    truth = SPEED_TRUTH
+    mu, mu_d, decay = results["speed_law"]["x"]
+    ax[2].plot(v, truth["mu_d"] + (truth["mu"] - truth["mu_d"]) * np.exp(-truth["decay"] * v), "k-", lw=2.5,
+               alpha=0.4, label="law of the data")
+    ax[2].plot(v, mu_d + (mu - mu_d) * np.exp(-decay * v), "-", color="C0",
+               label=f"fit: {mu_d:.4f} + {mu - mu_d:.4f} exp(-{decay:.3f} v)")
+    ax[2].axhline(results["speed_coulomb"]["x"][0], color="C3", ls="--", label="constant mu fit")
+    ax[2].set(xlabel="sliding speed v (mm/s)", ylabel="friction coefficient", title="mu(v)")
+    ax[2].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    print("written", path)
 
 
 def _write_curves(path: str, data: dict, fitted: dict, cases: dict) -> None:

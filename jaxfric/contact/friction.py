@@ -31,9 +31,10 @@ its uniqueness (the flat die with mu falling from 0.15 to 0.09 over 0.05 mm/s st
 draw, Newton failing at every increment).
 
 Read raw, that one-step lag is an explicit coupling whose gain grows as the steps shrink, R_N |dmu/dv| /
-(k_t Delta t) with k_t the pair's tangential stiffness: on the flat die (24 x 2, 50 N/mm, 1 um steps at
-1 mm/s, mu = 0.12 + 0.01 v) the stuck pairs alternate between v = 0 and v = 2 mm/s from step to step
-and the drawing force between 6.02 and 6.09 N/mm, where steady sliding at 1 mm/s is mu(1) F = 6.5 N/mm.
+(k_t Delta t) with k_t the pair's tangential stiffness: on the flat die (24 x 2, 50 N/mm, 0.1 um steps
+at 1 mm/s, i.e. 0.1 ms each, mu = 0.12 + 0.01 v) the stuck pairs alternate between v = 0 and v = 2 mm/s
+from step to step and the drawing force between 6.02 and 6.09 N/mm, where steady sliding at 1 mm/s is
+mu(1) F = 6.5 N/mm.
 So the speed a law reads is the slip rate through a first-order low-pass filter of time constant
 ``period`` (s), exact for a rate held over the step (:func:`sliding_speed`):
 
@@ -41,12 +42,13 @@ So the speed a law reads is the slip rate through a first-order low-pass filter 
 
 Its gain per step is about Delta t / period times the raw one, which no longer grows as the steps shrink;
 steady sliding reads the steady rate exactly, and a change of speed reaches the law within a few periods.
-On that flat die a period of 1 ms (the step's duration) settles at 6.5 N/mm and 0.3 ms still oscillates;
-the scenes' default ``speed_period`` is 5 ms, 5 um of drawing at 1 mm/s (``python
-experiments/friction_laws.py --speed`` measures it). ``period`` = 0 reads the last step's rate raw.
-A coefficient that falls with speed is unstable in any case (the stick-slip of velocity weakening, which
-a quasi-static path cannot resolve): it drives the penalty path into stick-slip and cuts, and exact
-contact's drawing force into a sawtooth (docs/results.md, friction laws of pressure and speed).
+The period it needs grows with the pressure and the law's slope: on that flat die 1 ms (ten steps)
+settles at 50 N/mm where 0.3 ms still oscillates, and at 200 N/mm 2 ms oscillates where 5 ms
+settles (``python experiments/friction_laws.py --period``). The scenes' default ``speed_period`` is 5 ms,
+5 um of drawing at 1 mm/s. ``period`` = 0 reads the last step's rate raw.
+A coefficient that falls with speed (velocity weakening, stick-slip's cause) is no exception: through the
+filter the flat die breaks away at the static coefficient and then slides steadily at mu(draw_speed)
+(``python experiments/friction_laws.py --speed``, whose curves a decay law makes at three speeds).
 
 Every formulation takes the law: the penalty and augmented-Lagrangian pair laws evaluate mu(p, v) inside
 the pair force, so the tangent (by forward mode) and the parameters' derivatives carry its derivatives.
