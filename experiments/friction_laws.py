@@ -180,7 +180,10 @@ def main(argv=None) -> None:
     ap.add_argument("--card", action="store_true", help="only the bead cards of the fitted laws (after the fits)")
     ap.add_argument("--speed", action="store_true", help="only the speed law's identification")
     ap.add_argument("--period", action="store_true", help="only the speed filter's period against steady sliding")
+    ap.add_argument("--speed-figure", action="store_true", help="only the speed fit's figure, from its CSV files")
     a = ap.parse_args(argv)
+    if a.speed_figure:
+        return speed_figure()
     if a.period:
         return periods()
     if a.card:
@@ -267,7 +270,29 @@ def speed(root: str, noise: float, seed: int) -> None:
     os.makedirs(out, exist_ok=True)
     with open(os.path.join(out, "friction_speed.k"), "w") as fh:
         fh.write(lsdyna_friction(VelocityDecay(mu_d, decay), mu))
+    speed_figure()
+
+
+def speed_figure() -> None:
+    """``friction_laws_speed.png`` from ``friction_laws_speed_curves.csv`` and ``friction_laws_speed.csv``
+    (``--speed-figure``: only this)."""
+    data, fitted = {}, {"law": {}, "coulomb": {}}
+    with open(os.path.join(RESULTS, "friction_laws_speed_curves.csv")) as fh:
+        rows = list(csv.DictReader(fh))
+    for label in dict.fromkeys(r["case"] for r in rows):
+        mine = [r for r in rows if r["case"] == label]
+        data[label] = (_column(mine, "drawing displacement (mm)"), _column(mine, "measured force (N/mm)"))
+        fitted["law"][label] = _column(mine, "law fit (N/mm)")
+        fitted["coulomb"][label] = _column(mine, "coulomb fit (N/mm)")
+    with open(os.path.join(RESULTS, "friction_laws_speed.csv")) as fh:
+        fits = {r["fit"]: r for r in csv.DictReader(fh)}
+    results = {name: {"x": np.array([float(fits[name][k]) for k in fits[name]["parameters"].split()])}
+               for name in fits}
     _speed_figure(data, fitted, results, os.path.join(RESULTS, "friction_laws_speed.png"))
+
+
+def _column(rows: list, name: str) -> np.ndarray:
+    return np.array([float(r[name]) for r in rows])
 
 
 def periods() -> None:
@@ -323,6 +348,8 @@ def _speed_figure(data, fitted, results, path) -> None:
                label=f"constant mu = {results['speed_coulomb']['x'][0]:.4f}")
     ax[1].set(xscale="log", xlabel="drawing speed (mm/s)", ylabel="steady drawing force (N/mm)",
               title=f"steady force, U in [{window[0] * 1e3:g}, {window[1] * 1e3:g}] um")
+    ax[1].set_xticks(SPEEDS, [f"{v:g}" for v in SPEEDS])
+    ax[1].minorticks_off()
     ax[1].legend(fontsize=8)
     v = np.linspace(0.0, 5.0, 101)
     truth = SPEED_TRUTH
