@@ -181,7 +181,11 @@ def main(argv=None) -> None:
     ap.add_argument("--speed", action="store_true", help="only the speed law's identification")
     ap.add_argument("--period", action="store_true", help="only the speed filter's period against steady sliding")
     ap.add_argument("--speed-figure", action="store_true", help="only the speed fit's figure, from its CSV files")
+    ap.add_argument("--speed-increments", action="store_true",
+                    help="only the model at the true speed law against the reference curves, by increments")
     a = ap.parse_args(argv)
+    if a.speed_increments:
+        return speed_increments(a.root)
     if a.speed_figure:
         return speed_figure()
     if a.period:
@@ -295,6 +299,33 @@ def _column(rows: list, name: str) -> np.ndarray:
     return np.array([float(r[name]) for r in rows])
 
 
+def speed_increments(root: str) -> None:
+    """Where the speed fit's misfit comes from: the model at the true law against the reference curves
+    (``--speed``'s, read from ``root``), at the fit mesh with the reference's increments and with the
+    fit's, and at the reference mesh with the fit's. ``friction_laws_speed_increments.csv``."""
+    from jaxfric import scenes
+    from jaxfric.loadpath.run import run
+
+    cases = {f"v{v:g}": {**SPEED_LAW, **SPEED_CASE, "draw_speed": v} for v in SPEEDS}
+    data = reference_curves(root, cases, {**SPEED_LAW, **SPEED_TRUTH})
+    models = {"240x2, reference increments": {"mesh": "240x2"},
+              "240x2, fit increments": {"mesh": "240x2", **FIT_INCREMENTS},
+              f"{REFERENCE_MESH}, fit increments": {"mesh": REFERENCE_MESH, **FIT_INCREMENTS}}
+    rows = []
+    for label, values in cases.items():
+        U, F = data[label]
+        for name, extra in models.items():
+            s = scenes.make("flat_die", "const_force", "lcp_ssn", {**values, **SPEED_TRUTH, **extra})
+            res = run(s.model, newton=s.newton, control=s.control, observe=s.observe, progress=False)
+            miss = np.interp(U, res.history["drawing_displacement"], res.history["drawing_force"]) - F
+            rows.append({"case": label, "model at the true law": name,
+                         "rms misfit (N/mm)": float(np.sqrt(np.mean(miss**2))),
+                         "largest misfit (N/mm)": float(np.max(np.abs(miss))),
+                         "where (um)": float(1e3 * U[np.argmax(np.abs(miss))]), "steps": len(res.history["time"]) - 1})
+            print(rows[-1], flush=True)
+    write_rows(os.path.join(RESULTS, "friction_laws_speed_increments.csv"), rows)
+
+
 def periods() -> None:
     """Steady sliding through the speed filter (jaxfric.contact.friction): the flat die at 24 x 2 drawn
     0.2 mm at 1 mm/s with mu = 0.12 + 0.01 v, at 50 and 200 N/mm, for filter periods from 0 (the last
@@ -354,13 +385,22 @@ def _speed_figure(data, fitted, results, path) -> None:
     v = np.linspace(0.0, 5.0, 101)
     truth = SPEED_TRUTH
     mu, mu_d, decay = results["speed_law"]["x"]
-    ax[2].plot(v, truth["mu_d"] + (truth["mu"] - truth["mu_d"]) * np.exp(-truth["decay"] * v), "k-", lw=2.5,
-               alpha=0.4, label="law of the data")
-    ax[2].plot(v, mu_d + (mu - mu_d) * np.exp(-decay * v), "-", color="C0",
-               label=f"fit: {mu_d:.4f} + {mu - mu_d:.4f} exp(-{decay:.3f} v)")
-    ax[2].axhline(results["speed_coulomb"]["x"][0], color="C3", ls="--", label="constant mu fit")
-    ax[2].set(xlabel="sliding speed v (mm/s)", ylabel="friction coefficient", title="mu(v)")
-    ax[2].legend(fontsize=8)
+    _law_panel(ax[2], v, truth["mu_d"] + (truth["mu"] - truth["mu_d"]) * np.exp(-truth["decay"] * v),
+               mu_d + (mu - mu_d) * np.exp(-decay * v), f"fit: {mu_d:.4f} + {mu - mu_d:.4f} exp(-{decay:.3f} v)",
+               results["speed_coulomb"]["x"][0], "sliding speed v (mm/s)", "mu(v)")
+    _save(fig, path)
+
+
+def _law_panel(ax, x, truth, fitted, label, constant, xlabel, title) -> None:
+    """The law of the data, the fitted law and the constant mu fit against ``x``."""
+    ax.plot(x, truth, "k-", lw=2.5, alpha=0.4, label="law of the data")
+    ax.plot(x, fitted, "-", color="C0", label=label)
+    ax.axhline(constant, color="C3", ls="--", label="constant mu fit")
+    ax.set(xlabel=xlabel, ylabel="friction coefficient", title=title)
+    ax.legend(fontsize=8)
+
+
+def _save(fig, path: str) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     print("written", path)
@@ -466,14 +506,9 @@ def _figure(data, fitted, results, path) -> None:
     ax[1].legend(fontsize=8)
     p = np.linspace(0.0, 30.0, 61)
     mu, mu_p = results["law"]["x"]
-    ax[2].plot(p, TRUTH["mu"] + TRUTH["mu_p"] * p, "k-", lw=2.5, alpha=0.4, label="law of the data")
-    ax[2].plot(p, mu + mu_p * p, "-", color="C0", label=f"fit: {mu:.4f} {mu_p:+.5f} p")
-    ax[2].axhline(results["coulomb"]["x"][0], color="C3", ls="--", label="constant mu fit")
-    ax[2].set(xlabel="contact pressure p (MPa)", ylabel="friction coefficient", title="mu(p)")
-    ax[2].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    print("written", path)
+    _law_panel(ax[2], p, TRUTH["mu"] + TRUTH["mu_p"] * p, mu + mu_p * p, f"fit: {mu:.4f} {mu_p:+.5f} p",
+               results["coulomb"]["x"][0], "contact pressure p (MPa)", "mu(p)")
+    _save(fig, path)
 
 
 if __name__ == "__main__":

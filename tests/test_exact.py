@@ -2,6 +2,8 @@
 and against a tight augmented Lagrangian, the force-driven die's balance, zero penetration, global
 Coulomb sliding, the proximity band, and derivatives on the converged active set."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -285,18 +287,16 @@ COMMON_STEPS = {
 }
 
 
-# The bead's wind: at its 13th step (t = 1.0667) semismooth Newton needs 34 line-searched iterations, and
-# Lemke's Newton, which has no merit to search on (jaxfric.contact.exact: the condensed solve), inverts an
-# element with its full steps (a residual of 1e7 N/mm); it takes the step only after a cut, so the two
-# solvers do not share the sequence (the same at dtheta = 1 degree). A line search on Lemke's
-# directions would decide it.
-LEMKE_UNSEARCHED = "Lemke's unsearched Newton inverts an element on a step the line-searched one takes"
+# The bead's wind: at t = 1.0444 (history row 12) semismooth Newton cuts once (the iteration limit, 25) and
+# takes the shorter step in 9 iterations. Lemke's full Newton steps invert an element there; line-searched
+# (Complementarity(search=True), jaxfric.contact.exact step 6) it takes that step in 28 iterations. The
+# replays search Lemke's steps and allow it 40 iterations, so that it takes the steps semismooth Newton
+# took: what is compared is the solution, not the path to it.
+LEMKE_ITERATIONS = 40
 
 
 @pytest.mark.slow  # three scenes, two algorithms each: about four minutes of runs and compilations
-@pytest.mark.parametrize("scene_name", [
-    pytest.param(name, marks=pytest.mark.xfail(reason=LEMKE_UNSEARCHED, strict=True)) if name == "bead" else name
-    for name in COMMON_STEPS])
+@pytest.mark.parametrize("scene_name", list(COMMON_STEPS))
 def test_semismooth_newton_equals_lemke_on_a_common_step_sequence(scene_name):
     """Spec 1.7 on whole paths: Lemke replays the accepted steps of the semismooth Newton run (their
     times become its nominal steps, :func:`jaxfric.fem.loading.with_steps`). It takes every step without a
@@ -316,7 +316,9 @@ def test_semismooth_newton_equals_lemke_on_a_common_step_sequence(scene_name):
     h = a.history
     model = eqx.tree_at(lambda m: m.phases, lemke.model,
                         with_steps(lemke.model.phases, np.asarray(h["time"][1:]), np.asarray(h["phase"][1:])))
-    b = jf.run(model, newton=lemke.newton, control=lemke.control, observe=lemke.observe, progress=False)
+    model = eqx.tree_at(lambda m: m.contact, model, Complementarity("lemke", model.contact.band, search=True))
+    newton = dataclasses.replace(lemke.newton, max_iterations=max(lemke.newton.max_iterations, LEMKE_ITERATIONS))
+    b = jf.run(model, newton=newton, control=lemke.control, observe=lemke.observe, progress=False)
     g = b.history
     assert g["cutbacks"].sum() == 0 and np.array_equal(g["time"], h["time"])
     scale = float(np.max(np.abs(h["drawing_force"]))) + float(np.max(np.abs(h["clamping_force"])))

@@ -51,6 +51,17 @@ exactly; the contact status comes out of that solve. Two ways:
    piece boundary within its round-off, settled by a few semismooth Newton iterations on the same
    problem (:func:`jaxfric.contact.alart_curnier.polish`).
 5. Back-substitution ``du_f = K_ff^-1 (b_f - K_fc du_c)``; x <- x + (du, dq).
+6. With ``Complementarity(search=True)`` the steps are line-searched on the semismooth residual as
+   ``lcp_ssn``'s (the merit is the problem's, not the direction's, so it measures Lemke's trials as
+   well), except the first of each load step. Without the search, on the bead's wind (120 x 2, 2 degree
+   steps) a full Lemke step inverts an element on a step that ``lcp_ssn`` takes; with it, Lemke takes
+   ``lcp_ssn``'s steps (``tests/test_exact.py``, the solvers on common steps). Searching the first step
+   too doubled the flat die's Newton iterations (12,232 against 6,170 at 24 x 2 drawn 0.3 mm: that step
+   starts from the last converged forces, which the condensed solve replaces at once), and a guard
+   against inverted elements alone did not take the bead's steps. It is not the default: on the short
+   runs of ``experiments/refactor_equivalence.py`` it leaves the flat die unchanged, costs the
+   blankholder 6 % more iterations, and moves the Nine's and the bead's step sequences (their forces
+   where the steps meet by up to 0.8 % and 3e-5 of the force scale).
 
 The iterations are those of the one Newton loop (:func:`jaxfric.numerics.newton.newton_pass`): this module
 provides the problem it solves, :class:`ExactContactProblem` (the point's evaluation, the semismooth
@@ -133,8 +144,8 @@ class ExactContactProblem(AbstractNewtonProblem):
     searches_first_step: ClassVar[bool] = True
 
     @property
-    def searched(self) -> bool:   # static: the condensed solve (Lemke) has no merit to search on
-        return self.law.solver == "ssn" and self.options.line_search
+    def searched(self) -> bool:   # static: "ssn" searches on the semismooth merit, "lemke" on request (step 6)
+        return self.options.line_search and (self.law.solver == "ssn" or self.law.search)
 
     def start(self, x0, args) -> Trial:
         m = pair_mu(args.contact.tools, args.contact.mu).shape[0]
@@ -166,9 +177,9 @@ class ExactContactProblem(AbstractNewtonProblem):
         # An open pair of the solve that penetrates at the new iterate closes at the next one.
         settled = (jnp.all(new.state.status == old.state.status)
                    & ~jnp.any(pred.in_band & new.state.penetrating & (pred.p[:, 0] <= 0.0)))
-        if self.law.solver == "ssn":   # static: not on an active set that did not settle, nor a shortened step
-            settled = settled & (trial.stats[2] == 0) & (trial.alpha == 1.0)
-        return settled
+        if self.law.solver == "ssn":   # static: not on an active set that did not settle
+            settled = settled & (trial.stats[2] == 0)
+        return settled & (trial.alpha == 1.0)   # nor on a shortened step
 
     def direction(self, x, point, args, first) -> Trial:
         it, p = point.state.it, point.state.p
@@ -184,7 +195,10 @@ class ExactContactProblem(AbstractNewtonProblem):
         # The frames (nodes, constants, kappa rows) serve the direction and the merit alike.
         frames = contact_frames(it, args)
         frames = (frames_at_forces(frames[0], args, hint), frames[1])
-        dx, p_new, in_band, stats, solved = active_set_step(it, args, x, p, self.law, hint, frames=frames)
+        if self.law.solver == "ssn":   # static
+            dx, p_new, in_band, stats, solved = active_set_step(it, args, x, p, self.law, hint, frames=frames)
+        else:
+            dx, p_new, in_band, stats, solved = contact_newton_step(it, args, x, p, self.law, hint)
         merit = semismooth_merit(x, it, args, hint, frames[0])
         return Trial(dx, jnp.array(1.0), merit, solved, stats, Prediction(p_new, in_band, frames[0], it.predictor))
 
@@ -192,6 +206,13 @@ class ExactContactProblem(AbstractNewtonProblem):
         it, p = point.state.it, point.state.p
         _, tool_f = iterate_residual(x, it, p, args)
         return it.f_int, it.states, _contact_out(it, p, tool_f, point.state.status)
+
+
+class LemkeContactProblem(ExactContactProblem):
+    """:class:`ExactContactProblem` with Lemke's condensed direction, whose first step of a load step is
+    not searched (module doc, step 6)."""
+
+    searches_first_step: ClassVar[bool] = False
 
 
 @eqx.filter_custom_jvp
@@ -204,7 +225,7 @@ def exact_solve(args, x0, x_ref, *, options: NewtonOptions, law):
     settle) summed over the step's iterations; the solution's ``aux`` has the layout of the penalty
     path: (f_int, material states, contact outputs).
     """
-    problem = ExactContactProblem(law, options)
+    problem = (ExactContactProblem if law.solver == "ssn" else LemkeContactProblem)(law, options)
     c = newton_loop(problem, args, x0, x_ref, options)
     solution: NewtonSolution = newton_result(c, problem, args)
     return solution, c.stats

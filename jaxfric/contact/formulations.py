@@ -341,11 +341,14 @@ class Complementarity(AbstractContactFormulation):
             outside it penetrates) and fails the attempt. Not used by "ssn" (every candidate).
         ssn_max_iter: semismooth Newton iterations on one linearised problem (static): "ssn" then
             takes its last active set. Not used by "lemke".
+        search: static, "lemke" only: line-search its Newton steps on the semismooth merit as "ssn"'s
+            are (:mod:`jaxfric.contact.exact`, step 6). Default False: Lemke's Newton steps are full.
     """
 
     solver: str = eqx.field(static=True, default="ssn")
     band: int | None = eqx.field(static=True, default=None)
     ssn_max_iter: int = eqx.field(static=True, default=50)
+    search: bool = eqx.field(static=True, default=False)
     warm_start: ClassVar[bool] = True
     unsearched_retry: ClassVar[bool] = False
     solver_stats: ClassVar[tuple] = ("lcp_pivots", "ssn_iters", "ssn_fallbacks")
