@@ -1,6 +1,7 @@
-"""A pressure-dependent friction law identified from drawing curves: ``python experiments/friction_laws.py``.
+"""Friction laws of pressure and speed identified from drawing curves: ``python experiments/friction_laws.py``.
 
     python experiments/friction_laws.py [--root DIR] [--noise 0.005] [--seed 1]
+        [--card | --speed | --speed-figure | --speed-increments | --period]
 
 The flat die (spec section 2, ``const_force``) at four clamping forces, 25, 50, 100 and 200 N/mm, so the
 contact pressures span 0 to about 30 MPa. The "measured" curves (drawing force against drawing
@@ -25,6 +26,16 @@ curves), ``friction_laws.png`` (the curves, the steady force against the clampin
 and, for the law fit, the OpenRadioss ``/FRICTION`` card and the mu(p) table
 (``experiments/results/friction_laws/friction.rad``, ``friction.csv``). Reference runs go under
 ``--root`` (default ``runs/friction_laws``; a second call reads them back).
+
+The speed law (``--speed``): LS-DYNA's decay law mu = mu_d + (mu_0 - mu_d) exp(-decay v), the curves of
+the flat die at 50 N/mm drawn 0.1 mm at 0.25, 1 and 4 mm/s made by ``lcp_ssn`` at 480 x 4, fitted by
+``lcp_ssn`` at 240 x 2 with five times the reference's increments (the Jacobian through the exact path's
+implicit derivatives); the constant mu fitted to the same curves; ``friction_laws_speed.csv``,
+``friction_laws_speed_curves.csv``, ``friction_laws_speed.png`` (``--speed-figure`` redraws it from the
+two) and LS-DYNA's card 2 of the fitted law (``friction_laws/friction_speed.k``).
+``--speed-increments``: the model at the true law against those curves, by mesh and increments
+(``friction_laws_speed_increments.csv``). ``--period``: steady sliding against the speed filter's period
+(``friction_laws_period.csv``).
 
 Then what the two fitted laws predict elsewhere (``--card``: only this part, from the table on disk):
 shape1's bead card (restraining force against
