@@ -47,7 +47,7 @@ settles at 50 N/mm where 0.3 ms still oscillates, and at 200 N/mm 2 ms oscillate
 settles (``python experiments/friction_laws.py --period``). The scenes' default ``speed_period`` is 5 ms,
 5 um of drawing at 1 mm/s. ``period`` = 0 reads the last step's rate raw.
 A coefficient that falls with speed (velocity weakening, stick-slip's cause) is no exception: through the
-filter the flat die breaks away at the static coefficient and then slides steadily at mu(draw_speed)
+filter the flat die breaks away near the static coefficient and then slides steadily at mu(draw_speed)
 (``python experiments/friction_laws.py --speed``, whose curves a decay law makes at three speeds).
 
 Every formulation takes the law: the penalty and augmented-Lagrangian pair laws evaluate mu(p, v) inside
