@@ -1,5 +1,6 @@
 """The identification's compiled curve for one parameter, as a JVP or as ``jax.jacfwd``:
-``python experiments/bench_curve_program.py [--mesh 100x2] [--stroke 3] [--param mu] [--repeats 1]``.
+``python experiments/bench_curve_program.py [--mesh 100x2] [--stroke 3] [--param mu] [--repeats 1]
+[--forms jvp,jacfwd] [--code DIR ...]``.
 
 The curve (:mod:`jaxfric.identification.fit_curve`) is the replay of a frozen step sequence with its
 Jacobian by forward mode through the whole loading path. ``jax.jacfwd`` is a ``vmap`` of the JVP, which
@@ -9,8 +10,9 @@ forward_jacobian` calls the JVP itself for one parameter. Each form is compiled 
 as ``jaxfric fit`` compiles it: the Nine ``mu017`` at the fit's start value mu = 0.12, the windows of 1 mm
 of ``jaxfric fit --window 1``, the step sequence of an adaptive run. Per form: the program's size in
 StableHLO lines, JAX's tracing and lowering, XLA's compilation, one replay (the second call, compiled), and
-the Jacobian, which both forms must give alike (``max_rel_diff``). Writes
-``experiments/results/bench_curve_program.csv``.
+the Jacobian, which both forms must give alike (``max_rel_diff``). ``--code DIR ...``: the package from
+each checkout in turn (first on ``PYTHONPATH``; default this one), so that two versions are compared in
+one sitting (``package`` column). Writes ``experiments/results/bench_curve_program.csv``.
 """
 
 from __future__ import annotations
@@ -25,7 +27,9 @@ import time
 from benchutil import write_rows
 
 FORMS = ("jvp", "jacfwd")
-OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "bench_curve_program.csv")
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+OUT = os.path.join(HERE, "results", "bench_curve_program.csv")
 
 
 def measure(form: str, mesh: str, stroke: float, param: str) -> dict:
@@ -70,6 +74,9 @@ def main(argv=None) -> None:
     ap.add_argument("--stroke", type=float, default=3.0, help="U_draw (mm)")
     ap.add_argument("--param", default="mu")
     ap.add_argument("--repeats", type=int, default=1, help="processes per form, taken in turns")
+    ap.add_argument("--forms", default=",".join(FORMS), help="comma list of jvp, jacfwd")
+    ap.add_argument("--code", nargs="+", default=[ROOT], help="package checkouts to compare (default: this one)")
+    ap.add_argument("--out", default=OUT)
     ap.add_argument("--form", choices=FORMS, help=argparse.SUPPRESS)   # a child's one form
     args = ap.parse_args(argv)
     if args.form:
@@ -80,18 +87,21 @@ def main(argv=None) -> None:
     env = dict(os.environ, JAXFRIC_CACHE_DIR="off")
     use_fast_compilation(env)
     rows = []
-    for form in FORMS * args.repeats:
-        out = subprocess.run([sys.executable, __file__, "--form", form, "--mesh", args.mesh, "--stroke",
-                              str(args.stroke), "--param", args.param], env=env, check=True, text=True,
-                             capture_output=True).stdout
-        rows.append(json.loads(out.strip().splitlines()[-1]))
-        print({k: v for k, v in rows[-1].items() if k != "jacobian"}, flush=True)
+    for _ in range(args.repeats):
+        for code in args.code:
+            for form in args.forms.split(","):
+                out = subprocess.run([sys.executable, os.path.abspath(__file__), "--form", form, "--mesh", args.mesh,
+                                      "--stroke", str(args.stroke), "--param", args.param],
+                                     env={**env, "PYTHONPATH": os.path.abspath(code)}, cwd=code, check=True, text=True,
+                                     capture_output=True).stdout
+                rows.append({"package": os.path.abspath(code), **json.loads(out.strip().splitlines()[-1])})
+                print({k: v for k, v in rows[-1].items() if k != "jacobian"}, flush=True)
     ref = rows[0]["jacobian"]
     scale = max(abs(v) for v in ref)
     for row in rows:
         row["max_rel_diff"] = f"{max(abs(a - b) for a, b in zip(row.pop('jacobian'), ref)) / scale:.2e}"
-    write_rows(OUT, rows)
-    print("wrote", OUT)
+    write_rows(args.out, rows)
+    print("wrote", args.out)
 
 
 if __name__ == "__main__":

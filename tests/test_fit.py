@@ -169,6 +169,34 @@ def test_one_parameter_jacobian_is_the_jacfwd_one():
                                [1.2, np.cos(0.3), 0.6], rtol=1e-14)
 
 
+def test_the_curve_traces_the_exact_steps_derivative_once(monkeypatch):
+    """The replay's loop carry is anchored to the parameters' tangents (``tangent_anchor``), so that JAX's
+    while-loop JVP finds its nonzero tangents in one pass and traces the step's derivative (the exact
+    path's implicit tangents) once, not twice; the anchor changes no value, signed zeros included."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxfric.contact import exact
+    from jaxfric.identification.fit_curve import curve_function, forward_jacobian, replay_options
+    from jaxfric.identification.params import plan_steps
+    from jaxfric.loadpath.simulate import tangent_anchor
+
+    anchor = tangent_anchor(jnp.array([0.3, -2.0]))
+    assert float(anchor) == 0.0 and np.signbit(anchor)
+    x = jnp.array([-0.0, 0.0, 1e-300, -3.5])
+    assert np.array_equal(np.signbit(x + anchor), np.signbit(x)) and np.array_equal(x + anchor, x)
+
+    traced = []
+    tangents = exact.exact_step_tangents
+    monkeypatch.setattr(exact, "exact_step_tangents", lambda *a: traced.append(1) or tangents(*a))
+    par = parameterize("flat_die", ["mu"], variant="const_force", algorithm="lcp_ssn",
+                       overrides={"mesh": "6x1", "U_draw": 0.003})
+    plan = {"time": np.array([0.0, 0.5, 1.0, 1.5, 2.0]), "phase": np.array([0, 0, 0, 1, 1])}
+    curve = curve_function(par, np.array([0.001, 0.002]), None, replay_options(par))
+    jax.make_jaxpr(forward_jacobian(curve, 1))(jnp.asarray(par.p0), plan_steps(par, plan))
+    assert len(traced) == 1
+
+
 def test_bin_means_are_exact_for_a_piecewise_linear_curve():
     x = np.array([0.0, 0.0, 1.0, 3.0])
     f = np.array([5.0, 0.0, 2.0, 2.0])

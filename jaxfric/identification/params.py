@@ -33,7 +33,7 @@ import numpy as np
 from .. import scenes
 from ..fem.loading import with_steps
 from ..loadpath.run import run
-from ..loadpath.simulate import simulate, simulate_fixed
+from ..loadpath.simulate import simulate, simulate_fixed, tangent_anchor
 from ..numerics.newton import NewtonOptions
 
 __all__ = ["Parameterization", "parameterize", "adaptive_run", "path_function", "replay_function", "plan_steps",
@@ -234,7 +234,8 @@ def path_function(par: Parameterization, *, newton: NewtonOptions | None = None,
         def f(p):
             model = par.model(p)
             model = eqx.tree_at(lambda m: m.phases, model, with_steps(model.phases, times, step_phase))
-            sim = simulate_fixed(model, newton=newton, observe=scene.observe, checkpoint=checkpoint, fresh=fresh)
+            sim = simulate_fixed(model, newton=newton, observe=scene.observe, checkpoint=checkpoint, fresh=fresh,
+                                 anchor=tangent_anchor(p))
             return sim.history, sim.code
         return f
     replay, steps = replay_function(par, newton), plan_steps(par, plan)
@@ -263,7 +264,7 @@ def replay_function(par: Parameterization, newton: NewtonOptions | None = None):
         phases = tuple(eqx.tree_at(lambda ph: (ph.tau_ends, ph.n_steps), phase, tuple(step))
                        for phase, step in zip(model.phases, steps))
         model = eqx.tree_at(lambda m: m.phases, model, phases)
-        sim = simulate(model, newton=newton, control=scene.control, observe=scene.observe)
+        sim = simulate(model, newton=newton, control=scene.control, observe=scene.observe, anchor=tangent_anchor(p))
         return sim.history, sim.code
 
     return g

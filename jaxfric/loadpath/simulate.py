@@ -57,7 +57,7 @@ from .step import (
 from .step_error import FlowMemory
 
 __all__ = ["History", "Simulation", "LoadPathState", "Chunk", "begin", "advance", "restart", "simulate",
-           "simulate_flat", "simulate_fixed"]
+           "simulate_flat", "simulate_fixed", "tangent_anchor"]
 
 
 class History(eqx.Module):
@@ -145,6 +145,31 @@ def _record(h: History, row, pred, state: SimState, iters, cuts, augmentations, 
                    damping_energy=put(h.damping_energy, jnp.asarray(damping_energy, h.damping_energy.dtype)),
                    observed=jax.tree_util.tree_map(put, h.observed, observed),
                    n_rows=jnp.where(pred, row + 1, h.n_rows))
+
+
+def tangent_anchor(p) -> jax.Array:
+    """-0.0, computed from the parameters ``p`` so that it carries their tangents under ``jax.jvp``:
+    added to a loop's initial carry (``anchor`` of :func:`simulate` and :func:`simulate_fixed`), it changes
+    no value (x + -0.0 is x for every x, signed zeros included) and makes every floating-point leaf of
+    the carry a tangent from the start.
+
+    Why: JAX differentiates a ``while_loop`` or ``scan`` by tracing its body's JVP for the carry leaves
+    whose tangents are nonzero, and traces it again, with more of them, until that set no longer
+    grows. A load path's initial state does not depend on the parameters (zero displacements, the
+    virgin material), its first step makes it depend on them: without the anchor the whole step, its
+    exact contact derivative included, is traced twice. With it, once: the Nine's curve program at
+    100 x 2 traces in 8.6 to 10.9 s against 12.7 to 15.6 s (``python experiments/bench_curve_program.py``,
+    docs/results.md, identification: the curve's program), and its values agree to round-off."""
+    p = jnp.asarray(p)
+    return -(0.0 * jnp.sum(jnp.abs(p)))
+
+
+def _anchored(carry, anchor):
+    """``carry`` with ``anchor`` (:func:`tangent_anchor`, or None: unchanged) added to its floating-point
+    leaves."""
+    if anchor is None:
+        return carry
+    return jax.tree_util.tree_map(lambda a: a + anchor if jnp.issubdtype(a.dtype, jnp.inexact) else a, carry)
 
 
 # ---- drivers --------------------------------------------------------------------------------------
@@ -336,19 +361,22 @@ def _attempt_body(model: StripModel, ctrl: Controller, newton: NewtonOptions, ct
 
 
 def simulate(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
-             control: StepControl = StepControl(), observe: Callable = default_observe) -> Simulation:
+             control: StepControl = StepControl(), observe: Callable = default_observe,
+             anchor: jax.Array | None = None) -> Simulation:
     """Run the whole load path with adaptive steps, inside one ``lax.while_loop``.
 
     Pure and jit-able (wrap with ``eqx.filter_jit``); ``observe(model, state) -> pytree`` is recorded at
     every accepted step and must be a static (hashable) function. :func:`begin` and :func:`advance` run
     the same attempts in chunks. The history buffer holds ``control.max_steps`` rows; with the model an
     argument of the compiled function (its increments then traced), give ``max_steps``: its default
-    counts the nominal steps, which needs their values.
+    counts the nominal steps, which needs their values. ``anchor``: :func:`tangent_anchor` of the
+    parameters that forward mode differentiates, or None (no effect on the values).
     """
     ctx = StepContext.build(model)
     ctrl = _controller(model, control)
     body = _attempt_body(model, ctrl, newton, ctx, observe, None)
-    out = jax.lax.while_loop(lambda c: c.path.ctrl.code == Result.CONTINUE, body, _init_loop(model, ctrl, observe))
+    init = _anchored(_init_loop(model, ctrl, observe), anchor)
+    out = jax.lax.while_loop(lambda c: c.path.ctrl.code == Result.CONTINUE, body, init)
     return _simulation(out)
 
 
@@ -474,7 +502,8 @@ def simulate_flat(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
 
 
 def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
-                   observe: Callable = default_observe, checkpoint: bool = True, fresh=None) -> Simulation:
+                   observe: Callable = default_observe, checkpoint: bool = True, fresh=None,
+                   anchor: jax.Array | None = None) -> Simulation:
     """Run the nominal steps of the load path in a fixed-length ``lax.scan`` (no step cutting).
 
     Reverse-mode differentiable. If a step fails the state stays at the last converged step, the
@@ -494,7 +523,8 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
     linearisation, without re-running Newton, so the memory grows as n_steps x state size, whatever
     the cost of a step's linearisation and factorisation. Without it every step's Newton residuals and factors are
     kept (n_steps x step intermediates), several times more; the factor is measured by
-    ``experiments/bench_grad_memory.py``. Forward mode (``jax.jvp``) is unaffected.
+    ``experiments/bench_grad_memory.py``. Forward mode (``jax.jvp``) is unaffected. ``anchor``: as for
+    :func:`simulate`.
     """
     times, phases = schedule(model.phases).nominal_steps()
     ctx = StepContext.build(model)
@@ -521,8 +551,8 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
 
     policy = jax.checkpoint_policies.save_only_these_names(SOLUTION_NAME)
     step = jax.checkpoint(body, policy=policy) if checkpoint else body
-    init = (state0, _Predictor.empty(state0), jnp.array(Result.CONTINUE, jnp.int32), jnp.array(jnp.nan),
-            jnp.array(0.0))
+    init = _anchored((state0, _Predictor.empty(state0), jnp.array(Result.CONTINUE, jnp.int32), jnp.array(jnp.nan),
+                      jnp.array(0.0)), anchor)
     (state, _, code, failed_t, r_norm), rows = jax.lax.scan(
         step, init, (jnp.asarray(times), jnp.asarray(phases, jnp.int32), jnp.asarray(fresh)))
     ok, t, ph, iters, augs, stats, predicted, observed = rows
