@@ -170,7 +170,8 @@ def _anchored(carry, anchor):
     leaves."""
     if anchor is None:
         return carry
-    return jax.tree_util.tree_map(lambda a: a + anchor if jnp.issubdtype(a.dtype, jnp.inexact) else a, carry)
+    return jax.tree_util.tree_map(
+        lambda a: a + anchor.astype(a.dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, carry)
 
 
 # ---- drivers --------------------------------------------------------------------------------------
