@@ -56,12 +56,11 @@ exactly; the contact status comes out of that solve. Two ways:
    well), except the first of each load step. Without the search, on the bead's wind (120 x 2, 2 degree
    steps) a full Lemke step inverts an element on a step that ``lcp_ssn`` takes; with it, Lemke takes
    ``lcp_ssn``'s steps (``tests/test_exact.py``, the solvers on common steps). Searching the first step
-   too doubled the flat die's Newton iterations (12,232 against 6,170 at 24 x 2 drawn 0.3 mm: that step
-   starts from the last converged forces, which the condensed solve replaces at once), and a guard
-   against inverted elements alone did not take the bead's steps. It is not the default: on the short
-   runs of ``experiments/refactor_equivalence.py`` it leaves the flat die unchanged, costs the
-   blankholder 6 % more iterations, and moves the Nine's and the bead's step sequences (their forces
-   where the steps meet by up to 0.8 % and 3e-5 of the force scale).
+   too doubles the flat die's Newton iterations (12,232 against 6,170 at 24 x 2 drawn 0.3 mm: that step
+   starts from the last converged forces, which the condensed solve replaces at once). It is not the
+   default: on the short runs of ``experiments/refactor_equivalence.py`` it leaves the flat die
+   unchanged, costs the blankholder 6 % more iterations, and moves the Nine's and the bead's step
+   sequences (their forces where the steps meet by up to 0.8 % and 3e-5 of the force scale).
 
 The iterations are those of the one Newton loop (:func:`jaxfric.numerics.newton.newton_pass`): this module
 provides the problem it solves, :class:`ExactContactProblem` (the point's evaluation, the semismooth
