@@ -60,8 +60,13 @@ CASES = {
                       ["mu", "R1"], NewtonOptions(rtol=1e-11, atol=1e-9, max_iterations=60)),
     # The smoothed law lets Newton reach atol 1e-8 on the roller (the exact law stalls at 2.5e-9 with
     # atol 1e-9, see KNOWN); ~1e-9 N/mm of residual over 2h is below 1e-5 of every row's largest entry.
-    # The R_r column takes h = 1e-5 |p| (REL_H): at 1e-4 it differs by 2.2e-5 of its row (truncation),
-    # at 1e-5 by 4.8e-6.
+    # The R_r column takes h = 1e-6 |p| (REL_H): R_r +/- h moves switches of the path onto other steps (a
+    # pair's stick/slip status at row 158, the plastic loading of Gauss points at rows 166 and 175 for
+    # h = 1e-5 |p|; 6 plastic switches at 1e-4), where the force is not differentiable, so the differences
+    # do not converge as h^2: the last row's R_r entry differs from forward mode by 2.1e-3 of the column
+    # at h = 1e-4 |p|, 9.2e-5 at 1e-5, 2.2e-6 at 1e-6, where the pair's switch at row 158 and one plastic
+    # switch at row 175 remain, closer to p (rows before the first switch agree to 1e-6 at every h).
+    # Measured with the default element, ans.
     # The smoothed law: the fixed replay then survives H +/- h (with the exact law an element inverts).
     "blankholder_smoothed": ("shape3", {"element_length": 2.0, "U_pull": 1.0, "smoothing": 10.0},
                              ["R", "H", "mu", "F_clamp"], NewtonOptions(rtol=1e-11, atol=1e-9, max_iterations=60)),
@@ -85,8 +90,8 @@ ALGORITHM = {**{case: "lcp_ssn" for case in CASES if case.endswith("_exact")}, "
 # Relative steps h / |p| other than 1e-4, by case, and by parameter within a case. The tool-geometry
 # columns differ from their differences at h = 1e-4 |p| by truncation (the force is strongly curved
 # in the geometry), not by a wrong derivative: blankholder R and H (smoothed law) by 0.6 % and 0.14 %
-# of their values at 1e-4, 3e-8 of the row at 1e-5; bead R_r 2.2e-5 of the row at 1e-4, 4.8e-6 at
-# 1e-5. The other columns keep 1e-4: at 1e-5 the blankholder's clamping-force
+# of their values at 1e-4, 3e-8 of the row at 1e-5; bead R_r: switches within +/- h down to 1e-5 |p|
+# (CASES, bead_smoothed). The other columns keep 1e-4: at 1e-5 the blankholder's clamping-force
 # round-off (~4e-10 N/mm, its Newton tolerance) over 2h reaches 1.4e-4 of its row in the mu column.
 # nine_exact: at h = 1e-4 |p| the differences cross status switches (R1: 2.7e-2 of the row, mu 8e-4),
 # at 1e-5 R1 and stroke still do (1.1e-3, 1.8e-3); at 1e-6 both agree to 1e-8, mu to 2e-8 at 1e-5.
@@ -94,7 +99,7 @@ ALGORITHM = {**{case: "lcp_ssn" for case in CASES if case.endswith("_exact")}, "
 # step 80 (the differences still agree to 8e-8); at 1e-5 none does, and mu agrees to 8.3e-6 of its row
 # (round-off over 2h), F_clamp to 6e-8, E to 9e-12. blankholder_exact: at 1e-4 |p| R and H cross a
 # switch at step 130 (H: 3e-4 of the row); at 1e-5 they agree to 1e-10 and 1.4e-9, mu (1e-4) to 4e-10.
-REL_H = {"nine_smoothed": 1e-6, "blankholder_smoothed": {"R": 1e-5, "H": 1e-5}, "bead_smoothed": {"R_r": 1e-5},
+REL_H = {"nine_smoothed": 1e-6, "blankholder_smoothed": {"R": 1e-5, "H": 1e-5}, "bead_smoothed": {"R_r": 1e-6},
          "nine_exact": {"mu": 1e-5, "R1": 1e-6, "stroke": 1e-6}, "flat_die_exact": 1e-5,
          "blankholder_exact": {"R": 1e-5, "H": 1e-5}}
 # Differences along the adaptive replay (the fixed one fails at p +/- h there; see _check).
