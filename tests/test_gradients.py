@@ -65,8 +65,9 @@ CASES = {
     # h = 1e-5 |p|; 6 plastic switches at 1e-4), where the force is not differentiable, so the differences
     # do not converge as h^2: the last row's R_r entry differs from forward mode by 2.1e-3 of the column
     # at h = 1e-4 |p|, 9.2e-5 at 1e-5, 2.2e-6 at 1e-6, where the pair's switch at row 158 and one plastic
-    # switch at row 175 remain, closer to p (rows before the first switch agree to 1e-6 at every h).
-    # Measured with the default element, ans.
+    # switch at row 175 remain, closer to p (at 1e-4 and 1e-5 the rows before the first switch agree to
+    # 1e-6 of the column); the clamping row's R_r difference stays at 6e-8 there, where that row's largest
+    # entry is 1 (F_clamp's). Measured with the default element, ans.
     # The smoothed law: the fixed replay then survives H +/- h (with the exact law an element inverts).
     "blankholder_smoothed": ("shape3", {"element_length": 2.0, "U_pull": 1.0, "smoothing": 10.0},
                              ["R", "H", "mu", "F_clamp"], NewtonOptions(rtol=1e-11, atol=1e-9, max_iterations=60)),
