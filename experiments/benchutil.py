@@ -22,6 +22,14 @@ def median_time(fn, *args, repeat: int = 20, clock=time.perf_counter) -> float:
     return float(np.median(times))
 
 
+def read_rows(path: str) -> list[dict]:
+    """The rows of the CSV at ``path`` as dicts of strings ([] where there is no such file)."""
+    if not os.path.exists(path):
+        return []
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
 def write_rows(path: str, rows: list[dict]) -> None:
     """Write dict rows as CSV (header from the first row) and say where, with the device."""
     os.makedirs(os.path.dirname(path), exist_ok=True)

@@ -38,7 +38,6 @@ are kept in ``experiments/results/calibrate_intervals/``.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import time
@@ -46,7 +45,7 @@ import time
 import numpy as np
 
 import jaxfric
-from benchutil import write_rows
+from benchutil import read_rows, write_rows
 from jaxfric import scenes
 from jaxfric.identification.fit import fit
 
@@ -90,7 +89,7 @@ def _study_truth(a, names, k, path) -> None:
     truth = TRUTHS[a.params][k]
     clean = _data(a, truth)
     error = _model_error(a, names, k, truth, clean)
-    done = {(int(r["truth"]), int(r["draw"])) for r in _read(path)}
+    done = {(int(r["truth"]), int(r["draw"])) for r in read_rows(path)}
     for j in range(a.draws):
         if (k, j) in done:
             continue
@@ -168,25 +167,14 @@ def _data(a, truth) -> dict:
         print(f"data at {truth}: {len(res.history['time'])} rows, {time.perf_counter() - t0:.1f} s", flush=True)
         write_rows(path, [{"drawing_displacement": u, "drawing_force": f} for u, f in
                           zip(res.history["drawing_displacement"].tolist(), res.history["drawing_force"].tolist())])
-    rows = _read(path)
+    rows = read_rows(path)
     return {k: np.array([float(r[k]) for r in rows]) for k in ("drawing_displacement", "drawing_force")}
 
 
-def _read(path: str) -> list[dict]:
-    if not os.path.exists(path):
-        return []
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
-
-
 def _append(path: str, row: dict) -> None:
-    rows = _read(path) + [{k: str(v) for k, v in row.items()}]
+    rows = read_rows(path) + [{k: str(v) for k, v in row.items()}]
     columns = list(dict.fromkeys(k for r in rows for k in r))
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=columns)
-        writer.writeheader()
-        writer.writerows({c: r.get(c, "") for c in columns} for r in rows)
+    write_rows(path, [{c: r.get(c, "") for c in columns} for r in rows])
 
 
 def wilson(hits: int, n: int) -> tuple[float, float]:
@@ -201,9 +189,11 @@ def _summary() -> None:
     """Coverage per study, parameter and interval (and per truth), and the figure."""
     rows_out, studies = [], {}
     for tag in ("mu", "mu_R1"):
-        rows = list({(r["truth"], r["draw"]): r for r in
-                     reversed(_read(os.path.join(RESULTS, f"calibrate_intervals_{tag}.csv")))}.values())[::-1]
-        if not rows:  # (a data set fitted twice, by two processes resuming one study, counts once)
+        first: dict = {}  # a data set fitted twice (two processes resuming one study) counts once
+        for r in read_rows(os.path.join(RESULTS, f"calibrate_intervals_{tag}.csv")):
+            first.setdefault((r["truth"], r["draw"]), r)
+        rows = list(first.values())
+        if not rows:
             continue
         studies[tag] = rows
         names = tag.split("_")

@@ -28,14 +28,13 @@ force), so a rerun fits them without simulating them again.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import time
 
 import numpy as np
 
 import jaxfric
-from benchutil import write_rows
+from benchutil import read_rows, write_rows
 from jaxfric import scenes
 from jaxfric.identification.fit import fit
 
@@ -91,10 +90,10 @@ def main(argv=None) -> None:
         print(" ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
         # Merged with the file as it is now (other invocations may have written rows meanwhile).
         done = {_key(r) for r in mine}
-        rows = [r for r in _read(path) if _key(r) not in done] + mine
+        rows = [r for r in read_rows(path) if _key(r) not in done] + mine
         columns = list(dict.fromkeys(k for r in rows for k in r))
         write_rows(path, [{k: r.get(k, "") for k in columns} for r in rows])
-    _plot(_read(path), os.path.join(RESULTS, "fit_bias_mesh.png"))
+    _plot(read_rows(path), os.path.join(RESULTS, "fit_bias_mesh.png"))
 
 
 def _key(row: dict) -> tuple:
@@ -129,7 +128,7 @@ def _data(name: str) -> dict:
         os.makedirs(DATA_DIR, exist_ok=True)
         write_rows(path, [{"drawing_displacement": u, "drawing_force": f} for u, f in
                           zip(res.history["drawing_displacement"].tolist(), res.history["drawing_force"].tolist())])
-    rows = _read(path)
+    rows = read_rows(path)
     u = np.array([float(r["drawing_displacement"]) for r in rows])
     f = np.array([float(r["drawing_force"]) for r in rows])
     if name.startswith("noise"):
@@ -137,13 +136,6 @@ def _data(name: str) -> dict:
         draw = u > 0
         f = f + NOISE * float(np.mean(f[draw])) * np.random.default_rng(seed).standard_normal(f.size)
     return {"drawing_displacement": u, "drawing_force": f}
-
-
-def _read(path: str) -> list[dict]:
-    if not os.path.exists(path):
-        return []
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
 
 
 def _plot(rows: list[dict], path: str) -> None:
