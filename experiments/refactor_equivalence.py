@@ -78,10 +78,13 @@ def force_difference(a: dict, b: dict) -> float:
 
 def compare_case(a: dict, b: dict) -> dict:
     """Largest scaled difference over the columns both runs have, and whether their steps agree; the
-    forces' difference where their steps meet (:func:`force_difference`) and both runs' Newton iterations."""
+    forces' difference where their steps meet (:func:`force_difference`), both runs' Newton iterations
+    and, for exact contact, their semismooth active-set passes (``ssn_iters``; blank for the others)."""
     same_steps = a["time"].shape == b["time"].shape and bool(np.array_equal(a["time"], b["time"]))
     extra = {"force_diff": force_difference(a, b), "newton_iters_before": int(np.sum(a["newton_iters"])),
-             "newton_iters_after": int(np.sum(b["newton_iters"]))}
+             "newton_iters_after": int(np.sum(b["newton_iters"])),
+             **{f"passes_{when}": int(np.sum(r["ssn_iters"])) if "ssn_iters" in r else ""
+                for when, r in (("before", a), ("after", b))}}
     worst, column = 0.0, ""
     for key in sorted(set(a) & set(b)):
         x, y = np.asarray(a[key], float), np.asarray(b[key], float)
@@ -108,7 +111,8 @@ def compare(before: str, after: str, out_csv: str | None = None) -> list:
         os.makedirs(os.path.dirname(out_csv) or ".", exist_ok=True)
         with open(out_csv, "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=["case", "rows", "same_steps", "max_scaled_diff", "column",
-                                                   "force_diff", "newton_iters_before", "newton_iters_after"])
+                                                   "force_diff", "newton_iters_before", "newton_iters_after",
+                                                   "passes_before", "passes_after"])
             writer.writeheader()
             writer.writerows(rows)
     return rows

@@ -11,8 +11,12 @@ exactly; the contact status comes out of that solve. Two ways:
   is re-read from the forces and gaps that solve predicts until it repeats (the linearised problem
   solved exactly). If it cycles for ``ssn_max_iter`` passes, the last pass's increment is taken
   (counted in ``ssn_fallbacks``) and the Newton loop goes on; a step converges only on an iteration
-  whose active set settled. (Solving such iterates the condensed way instead was tried: on the
-  three-cylinder bench it cost 7.8 s against 4.6 s, for 84 against 88 steps.) The Newton step is
+  whose active set settled. A pass depends on its active set alone, so once a set repeats one of the
+  last ``CYCLE_WINDOW`` the passes repeat with that period: the loop then solves the set the last of the
+  ``ssn_max_iter`` passes would solve, and stops there (the same increment, bit for bit, without the
+  passes in between: on the Nine's entry channel, cycles of period 5 between the channel's faces).
+  (Solving such iterates the condensed way instead was tried: on the three-cylinder bench it cost 7.8 s
+  against 4.6 s, for 84 against 88 steps.) The Newton step is
   line-searched on the semismooth residual (:func:`semismooth_merit`: the equilibrium rows with each candidate's
   rows replaced by its Alart-Curnier residual), quartering a step that raises it, at most twice. The
   trial is measured with the forces its direction predicts, which are the hint the next direction's

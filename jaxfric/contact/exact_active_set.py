@@ -33,6 +33,10 @@ from .exact_iterate import (
 from .rigid import has_friction_law, pair_friction, pair_mu, pair_nodes, pair_speeds
 from .system import _constrain_rows
 
+# Active sets kept to recognise a cycle of the passes: at most ``ssn_max_iter`` of them, every set of the
+# linearised problem, so that every cycle that repeats within its passes is seen.
+CYCLE_WINDOW = 64
+
 __all__ = ["active_set_step", "contact_frames", "frames_at_forces", "semismooth_merit", "Frames", "PieceData",
            "piece_data", "classify", "piece_system"]
 
@@ -326,19 +330,34 @@ def active_set_step(it: Iterate, args, x, p_prev, law, hint, frames=None):
         slip = jnp.where(p_l[:, 1] >= 0.0, SLIP_POS, SLIP_NEG)
         return jnp.where((state == STICK) & (new == OPEN) & (gap < 0.0) & (mu > 0.0), slip, new)
 
+    # A cycle: the next set is one that a pass of the window (the last CYCLE_WINDOW sets) solved. The
+    # passes are a function of the set alone, so from there they repeat with the cycle's period, and the
+    # set that pass ssn_max_iter - 1 would solve is known: the loop solves it and stops, with the
+    # increment of ssn_max_iter passes in fewer (module docstring). ``iters`` counts the passes made.
+    n_max = law.ssn_max_iter
+    window_len = min(CYCLE_WINDOW, n_max)
+
     def more(carry):
-        i, state, _, p_l, g_l, s_l = carry
-        return (i == 0) | ((i < law.ssn_max_iter) & jnp.any(next_state(state, p_l, g_l, s_l) != state))
+        i, state, _, p_l, g_l, s_l, _, _, last = carry
+        return (i == 0) | (~last & (i < n_max) & jnp.any(next_state(state, p_l, g_l, s_l) != state))
 
     def again(carry):
-        i, state, _, p_l, g_l, s_l = carry
-        state = jnp.where(i == 0, state0, next_state(state, p_l, g_l, s_l))
-        return (i + 1, state) + solve(state)
+        i, state, _, p_l, g_l, s_l, seen, seen_at, _ = carry
+        new = jnp.where(i == 0, state0, next_state(state, p_l, g_l, s_l))
+        match = jnp.all(seen == new, axis=1) & (seen_at >= 0)
+        cycle = (i > 0) & jnp.any(match)
+        j = jnp.max(jnp.where(match, seen_at, -1))           # the pass that solved ``new`` before
+        last_pass = j + (n_max - 1 - j) % jnp.maximum(i - j, 1)
+        state = jnp.where(cycle, seen[last_pass % window_len], new)
+        seen = seen.at[i % window_len].set(jnp.where(cycle, seen[i % window_len], state))
+        seen_at = seen_at.at[i % window_len].set(jnp.where(cycle, seen_at[i % window_len], i))
+        return (i + 1, state) + solve(state) + (seen, seen_at, cycle)
 
     n_u = nodes.shape[0]
     start = (jnp.array(0, jnp.int32), state0, jnp.zeros(n + len(args.force_idx)), jnp.zeros((n_u, 2)),
-             jnp.zeros(n_u), jnp.zeros(n_u))
-    iters, state, dx, p_new, g_l, s_l = jax.lax.while_loop(more, again, start)
+             jnp.zeros(n_u), jnp.zeros(n_u), jnp.zeros((window_len, n_u), state0.dtype),
+             jnp.full(window_len, -1, jnp.int32), jnp.array(False))
+    iters, state, dx, p_new, g_l, s_l, _, _, _ = jax.lax.while_loop(more, again, start)
     settled = jnp.all(next_state(state, p_new, g_l, s_l) == state)
     p_new = jnp.where((state != 0)[:, None], p_new, 0.0)
     p = jnp.zeros((m, 2)).at[pairs].set(p_new)
