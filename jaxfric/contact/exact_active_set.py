@@ -345,12 +345,12 @@ def active_set_step(it: Iterate, args, x, p_prev, law, hint, frames=None):
         i, state, _, p_l, g_l, s_l, seen, seen_at, _ = carry
         new = jnp.where(i == 0, state0, next_state(state, p_l, g_l, s_l))
         match = jnp.all(seen == new, axis=1) & (seen_at >= 0)
-        cycle = (i > 0) & jnp.any(match)
+        cycle = jnp.any(match)
         j = jnp.max(jnp.where(match, seen_at, -1))           # the pass that solved ``new`` before
         last_pass = j + (n_max - 1 - j) % jnp.maximum(i - j, 1)
         state = jnp.where(cycle, seen[last_pass % window_len], new)
-        seen = seen.at[i % window_len].set(jnp.where(cycle, seen[i % window_len], state))
-        seen_at = seen_at.at[i % window_len].set(jnp.where(cycle, seen_at[i % window_len], i))
+        # (after a cycle's pass the loop stops: what this pass writes to the window is not read)
+        seen, seen_at = seen.at[i % window_len].set(state), seen_at.at[i % window_len].set(i)
         return (i + 1, state) + solve(state) + (seen, seen_at, cycle)
 
     n_u = nodes.shape[0]
