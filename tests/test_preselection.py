@@ -1,7 +1,8 @@
 """Pair pre-selection (jaxfric.contact.preselection): the distance bound is a lower bound of the distance
 to the tool; a run evaluating only the selected pairs gives the run evaluating every pair, step by step,
-with exact contact and with the penalty law; and a capacity too small for the contact zone stops the run
-with PRESELECTION instead of missing a contact."""
+with exact contact and with the penalty law; a capacity too small for the contact zone stops the run
+with PRESELECTION instead of missing a contact; and the scenes pre-select by default only where it leaves out
+enough pairs to repay its compilation."""
 
 import math
 
@@ -13,7 +14,7 @@ import pytest
 
 import jaxfric as jf
 from jaxfric.contact.formulations import Complementarity
-from jaxfric.contact.preselection import distance_bound, tool_capacity
+from jaxfric.contact.preselection import PAYS_FROM, distance_bound, tool_capacity
 from jaxfric.contact.rigid import Move, RigidTool
 from jaxfric.contact.tools import Arc, Segment, Tool
 from jaxfric.loadpath.simulate import simulate
@@ -88,6 +89,18 @@ def test_a_run_on_the_selected_pairs_is_the_run_on_every_pair(algorithm):
     # The left-out pairs' geometry is that of their evaluation: the state does not depend on the selection.
     np.testing.assert_allclose(ca.gap, cb.gap, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(ca.zeta, cb.zeta, rtol=1e-9, atol=1e-9)
+
+
+def test_the_scenes_preselect_by_default_where_enough_pairs_are_left_out():
+    """``preselect`` None (the default) selects where the capacities leave out PAYS_FROM pairs or more: not on the
+    Nine's spec mesh (about 1250 left out), on 1200 x 3 (about 5000); True and False force either way."""
+    def left_out(mesh, preselect="none"):
+        tools = make("nine", "mu017", "lcp_ssn", {"mesh": mesh, "preselect": preselect}).model.tools
+        return sum(len(t.candidates) - (t.capacity or len(t.candidates)) for t in tools)
+
+    assert left_out("300x3") == 0 < left_out("300x3", True) < PAYS_FROM
+    assert left_out("1200x3") == left_out("1200x3", True) >= PAYS_FROM
+    assert left_out("1200x3", False) == 0
 
 
 def test_a_capacity_too_small_for_the_contact_zone_stops_the_run_with_preselection():

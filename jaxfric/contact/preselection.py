@@ -41,10 +41,18 @@ from .pair_batches import PairTool, map_pairs, pair_part, stack, tool_batches
 from .tools import Arc, Segment, Tool
 
 __all__ = ["distance_bound", "tool_capacity", "select", "select_pairs", "gather", "expand", "holds",
-           "complete_geometry", "PAIR_REACH"]
+           "complete_geometry", "PAIR_REACH", "PAYS_FROM"]
 
 PAIR_REACH = 1.5   # mm: how far from a tool its capacity covers candidates [chosen: 15 of the Nine's 0.1 mm
                    # increments, and one and a half of the thickness of the Nine's and the bead's sheets]
+
+# Pairs left out (candidates less capacities, over a model's tools) from which the scenes pre-select by default
+# [chosen]. The selection adds about 2 s to a program's compilation (the Nine mu017 on 300 x 3: 10.6 s with it,
+# 8.4 s without, the same runs), and saves about 0.1 to 0.2 us per left-out pair and Newton iteration (the pairs'
+# geometry, experiments/bench_preselection.py: 0.44 ms for 5070 pairs left out on 1200 x 3, 1.78 ms for 10,168
+# on 2400 x 3, 0.04 ms for 1244 on 300 x 3): over the 5,000 or so Newton iterations of a Nine run it repays its
+# compilation from about 4000 left-out pairs on (docs/results.md, pair pre-selection).
+PAYS_FROM = 4000
 
 
 def _segment_distance(seg: Segment, y: jax.Array) -> jax.Array:

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..contact.formulations import ALGORITHMS, STIFF_PENALTY_RATIO
 from ..contact.friction import Polynomial, VelocityDecay
-from ..contact.preselection import tool_capacity
+from ..contact.preselection import PAYS_FROM, tool_capacity
 from ..contact.rigid import has_friction_law, max_penetration, pair_friction, split_pairs
 from ..contact.status import SLIP
 from ..contact.tools import GAP_OPEN, Arc, Segment, Tool
@@ -106,27 +106,33 @@ class FrictionLawFields:
 
 PRESELECT_DOC = ("evaluate, in each load step, only the candidate nodes nearest to each tool that can reach it "
                  "within the step (jaxfric.contact.preselection; results unchanged); False: every candidate at "
-                 "every Newton iteration [chosen]")
+                 "every Newton iteration; None: where it leaves out 4000 pairs or more (PAYS_FROM), below which "
+                 "the selection costs more compilation than it saves [chosen]")
 
 
 @dataclasses.dataclass(frozen=True)
 class PreselectField:
     """The pair pre-selection switch every scene's config has (:func:`preselected`)."""
 
-    preselect: bool = spec_field(True, "-", PRESELECT_DOC)
+    preselect: bool | None = spec_field(None, "-", PRESELECT_DOC)
 
 
-def preselected(tools, mesh, on: bool) -> tuple:
+def preselected(tools, mesh, on: bool | None) -> tuple:
     """``tools`` with their pair pre-selection's capacities (:func:`jaxfric.contact.preselection.tool_capacity`;
-    a tool that reaches most of its candidates keeps them all), or unchanged where ``on`` is False."""
-    if not on:
+    a tool that reaches most of its candidates keeps them all); unchanged where ``on`` is False, or where it
+    is None and the capacities leave out fewer than :data:`~jaxfric.contact.preselection.PAYS_FROM` pairs."""
+    if on is False:
         return tuple(tools)
     nodes = np.asarray(mesh.nodes)
-    out = []
+    out, left_out = [], 0
     for tool in tools:
         idx = np.asarray(tool.candidates)
         along = idx[np.argsort(nodes[idx, 0], kind="stable")]   # consecutive along the strip
-        out.append(dataclasses.replace(tool, capacity=tool_capacity(tool.geometry, nodes[along])))
+        capacity = tool_capacity(tool.geometry, nodes[along])
+        left_out += 0 if capacity is None else len(idx) - capacity
+        out.append(dataclasses.replace(tool, capacity=capacity))
+    if on is None and left_out < PAYS_FROM:
+        return tuple(tools)
     return tuple(out)
 
 
