@@ -17,6 +17,8 @@ from jaxfric import cli, scenes
 from jaxfric.io import checkpoint, output
 from jaxfric.io.contract import check_run_dir
 from jaxfric.io.instants import InstantRows
+from jaxfric.loadpath import run as run_module
+from jaxfric.numerics.lru import LRU
 
 # A flat die of a few seconds' solve (24 x 2 elements, 120 draw steps): long enough to be stopped in the
 # middle, from a command line or a stop request.
@@ -93,6 +95,20 @@ def test_chunked_run_is_the_single_loop(whole):
     for key, value in sim.history.observed.items():
         scale = np.max(np.abs(result.history[key]))
         np.testing.assert_allclose(np.asarray(value[:n]), result.history[key], rtol=0, atol=1e-9 * scale, err_msg=key)
+
+
+def test_the_chunk_traced_from_the_start_programs_own_output_runs_the_same(whole, monkeypatch):
+    """The chunk's program is traced from host arrays of the types of the start's output, while XLA compiles
+    the start's program (``jaxfric.loadpath.run._compile``); where a type has no such array (a weakly typed
+    array, not a scalar) it is traced from the start's output itself. Either way the same run, bit for bit."""
+    weak = jax.ShapeDtypeStruct((), np.float64, weak_type=True)
+    assert run_module._example(weak).weak_type and run_module._example(weak).dtype == np.float64
+    assert run_module._example(jax.ShapeDtypeStruct((3,), np.float64, weak_type=True)) is None
+    assert run_module._example(jax.ShapeDtypeStruct((2, 3), np.int32)).dtype == np.int32
+    scene, result = whole
+    monkeypatch.setattr(run_module, "_example", lambda shape: None)
+    monkeypatch.setattr(run_module, "_COMPILED", LRU(1))   # compiled anew, the fallback's way
+    _same_rows(_run(scene).history, result.history)
 
 
 def test_a_stopped_run_resumes_bit_for_bit_from_its_checkpoint_on_disk(whole, tmp_path):

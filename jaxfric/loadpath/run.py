@@ -8,6 +8,7 @@ chunks (:class:`Checkpoint`) is all a run needs to continue, bit for bit, in thi
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import os
 import time
@@ -222,14 +223,38 @@ def _compiled(model, newton, control, observe, snapshot):
 def _compile(model, newton, control, observe, snapshot):
     """The two compiled programs of ``model``'s structure: the start of its load path (with history row
     0) and one chunk (:func:`~jaxfric.loadpath.simulate.advance`), each taking the run's most accepted
-    steps as its last argument. Neither calls the host."""
+    steps as its last argument. Neither calls the host.
+
+    XLA compiles the start's program on a second thread (it releases the GIL) while this one traces the
+    chunk's, which needs only the shapes of the start's output: the tracing is Python, on one core, and the
+    start's compilation leaves the critical path (docs/results.md, compilation)."""
     start = eqx.filter_jit(lambda m, r: begin(m, control=control, observe=observe, snapshot=snapshot, max_steps=r))
     step = eqx.filter_jit(lambda m, p, k, r: advance(m, p, k, size=CHUNK_ROWS, newton=newton, control=control,
                                                      observe=observe, snapshot=snapshot, max_steps=r))
     rows = jnp.array(1, jnp.int32)
-    start = start.lower(model, rows).compile()
-    path, _ = start(model, rows)
-    return start, step.lower(model, path, jnp.array(1, jnp.int32), rows).compile()
+    lowered = start.lower(model, rows)
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        compiling = pool.submit(lowered.compile)
+        shapes, _ = lowered.postprocess(lowered.lowered.out_info)   # the start's path, shapes only
+        leaves, treedef = jax.tree_util.tree_flatten(shapes)
+        examples = [_example(x) if isinstance(x, jax.ShapeDtypeStruct) else x for x in leaves]
+        if any(e is None for e in examples):   # a type no host array gives: the start's own output
+            path, _ = compiling.result()(model, rows)
+        else:
+            path = jax.tree_util.tree_unflatten(treedef, examples)
+        chunk = step.lower(model, path, jnp.array(1, jnp.int32), rows)
+        return compiling.result(), chunk.compile()
+
+
+def _example(shape: jax.ShapeDtypeStruct):
+    """An array of ``shape``'s type made on the host without compiling (a weak type from a Python number), or
+    None where that does not give the type."""
+    if not shape.weak_type:
+        return np.zeros(shape.shape, shape.dtype)
+    if shape.shape != ():
+        return None
+    x = jnp.asarray(np.zeros((), shape.dtype).item())
+    return x if x.dtype == shape.dtype and x.weak_type else None
 
 
 def _next_limit(rows: int, seconds: float, limit: int) -> int:
