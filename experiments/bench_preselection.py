@@ -3,7 +3,8 @@
     python experiments/bench_preselection.py [--mesh 300x3 1200x3 2400x3] [--steps-mesh 300x3]
                                              [--algorithm lcp_ssn] [--out results/bench_preselection.csv]
 
-Three parts, each with the pre-selection on (``preselect=true``, the default) and off:
+Three parts, each with the pre-selection on (``preselect=true``) and off (the scenes' default, ``preselect``
+None, is off below ``jaxfric.contact.preselection.PAYS_FROM`` left-out pairs):
 
 - ``pairs``: per scene and variant at its spec mesh, the candidate pairs and the pairs a step evaluates
   (the tools' capacities summed);

@@ -104,10 +104,10 @@ class FrictionLawFields:
     speed_period: float = spec_field(0.005, "s", SPEED_PERIOD_DOC)
 
 
-PRESELECT_DOC = ("evaluate, in each load step, only the candidate nodes nearest to each tool that can reach it "
-                 "within the step (jaxfric.contact.preselection; results unchanged); False: every candidate at "
-                 "every Newton iteration; None: where it leaves out 4000 pairs or more (PAYS_FROM), below which "
-                 "the selection costs more compilation than it saves [chosen]")
+PRESELECT_DOC = ("True: evaluate, in each load step, only the candidate nodes nearest to each tool that can reach "
+                 "it within the step (jaxfric.contact.preselection; results unchanged); False: every candidate at "
+                 "every Newton iteration; None: True where the tools' capacities leave out 4000 pairs or more "
+                 "(PAYS_FROM), False below, where the selection costs more compilation than it saves [chosen]")
 
 
 @dataclasses.dataclass(frozen=True)
