@@ -106,7 +106,7 @@ class FrictionLawFields:
 
 PRESELECT_DOC = ("True: evaluate, in each load step, only the candidate nodes nearest to each tool that can reach "
                  "it within the step (jaxfric.contact.preselection; results unchanged); False: every candidate at "
-                 "every Newton iteration; None: True where the tools' capacities leave out 4000 pairs or more "
+                 f"every Newton iteration; None: True where the tools' capacities leave out {PAYS_FROM} pairs or more "
                  "(PAYS_FROM), False below, where the selection costs more compilation than it saves [chosen]")
 
 
