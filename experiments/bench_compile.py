@@ -5,6 +5,11 @@
 ``--repeats N``: each algorithm's program compiled N times, each in a fresh process (XLA's compile time
 of one program varies by 10 to 25 % from process to process on a 2-core machine).
 
+``--xla-flags=A --xla-flags=B ...``: instead, XLA's compile time of the run's chunk program (the program
+:func:`jaxfric.loadpath.run.run` repeats, :func:`~jaxfric.loadpath.simulate.advance`) with ``XLA_FLAGS`` set
+to each of A, B, ... in turn (``--repeats`` rounds, the settings alternated, a fresh process each), and how
+many windowed reductions the compiled program holds; writes ``experiments/results/bench_compile_flags.csv``.
+
 ``--scene-build``: instead, the time to build the scene (``jaxfric.scenes.make``) in two fresh processes in
 turn that share a new persistent compilation cache (:mod:`jaxfric.io.cache`, as the command lines enable
 it): the first compiles the programs of the build, the second reads them.
@@ -51,6 +56,30 @@ print(json.dumps({"lower_s": lower, "compile_s": compile_s, "compile_cpu_s": com
                   "tangent_traces": len(traced)}))
 """
 
+_CHUNK = r"""
+import dataclasses, json, sys, time
+import jax
+import jax.numpy as jnp
+import equinox as eqx
+jax.config.update("jax_enable_x64", True)
+from jaxfric import scenes
+from jaxfric.loadpath.run import CHUNK_ROWS
+from jaxfric.loadpath.simulate import advance, begin
+sc = scenes.make(sys.argv[1], sys.argv[2], sys.argv[3], {"mesh": sys.argv[4]})
+control = dataclasses.replace(sc.control, max_steps=None)
+rows = jnp.array(1, jnp.int32)
+path, _ = eqx.filter_jit(lambda m, r: begin(m, control=control, observe=sc.observe, snapshot=sc.snapshot,
+                                            max_steps=r))(sc.model, rows)
+chunk = eqx.filter_jit(lambda m, p, k, r: advance(m, p, k, size=CHUNK_ROWS, newton=sc.newton, control=control,
+                                                  observe=sc.observe, snapshot=sc.snapshot, max_steps=r))
+t = time.perf_counter(); lowered = chunk.lower(sc.model, path, jnp.array(1, jnp.int32), rows)
+lower = time.perf_counter() - t
+cpu = time.process_time(); t = time.perf_counter(); compiled = lowered.compile()
+compile_s, compile_cpu_s = time.perf_counter() - t, time.process_time() - cpu
+print(json.dumps({"lower_s": lower, "compile_s": compile_s, "compile_cpu_s": compile_cpu_s,
+                  "reduce_windows": compiled.compiled.as_text().count(" reduce-window(")}))
+"""
+
 _BUILD = r"""
 import json, sys, time
 import jax
@@ -77,6 +106,28 @@ def scene_build(scene: str, variant: str, mesh: str) -> list[float]:
     return times
 
 
+FLAGS_OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "bench_compile_flags.csv")
+
+
+def chunk_with_flags(args) -> list[dict]:
+    """The chunk program compiled with each ``XLA_FLAGS`` setting of ``args.xla_flags`` in turn, a fresh
+    process each, ``args.repeats`` rounds."""
+    rows = []
+    algorithm = args.algorithms.split(",")[0]
+    for round_ in range(args.repeats):
+        for flags in args.xla_flags:
+            env = {**os.environ, "XLA_FLAGS": flags}
+            out = subprocess.run([sys.executable, "-c", _CHUNK, args.scene, args.variant, algorithm, args.mesh],
+                                 capture_output=True, text=True, check=True, env=env)
+            row = json.loads(out.stdout.strip().splitlines()[-1])
+            rows.append({"round": round_, "xla_flags": flags, "scene": args.scene, "variant": args.variant,
+                         "algorithm": algorithm, "mesh": args.mesh,
+                         **{k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}})
+            print(f"[{flags}] trace and lower {row['lower_s']:.2f} s, XLA compile {row['compile_s']:.2f} s "
+                  f"({row['compile_cpu_s']:.2f} s CPU), {row['reduce_windows']} windowed reductions", flush=True)
+    return rows
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", default="nine")
@@ -85,7 +136,21 @@ def main(argv=None) -> int:
     parser.add_argument("--mesh", default="300x3")
     parser.add_argument("--repeats", type=int, default=1, help="compilations of each program, a process each")
     parser.add_argument("--scene-build", action="store_true", help="time the scene's build, compiled then cached")
+    parser.add_argument("--xla-flags", action="append", metavar="FLAGS",
+                        help="compile the chunk program with XLA_FLAGS=FLAGS; repeat the option for each setting, "
+                             "given as --xla-flags=FLAGS (the settings are taken in turn)")
     args = parser.parse_args(argv)
+    if args.xla_flags:
+        from jaxfric.io.batch import write_csv
+        rows = chunk_with_flags(args)
+        if os.path.exists(FLAGS_OUT):   # keep the rows of other scenes, variants, algorithms and meshes
+            import csv
+            case = [rows[0][k] for k in ("scene", "variant", "algorithm", "mesh")]
+            with open(FLAGS_OUT, newline="") as fh:
+                rows = [r for r in csv.DictReader(fh)
+                        if [r[k] for k in ("scene", "variant", "algorithm", "mesh")] != case] + rows
+        write_csv(FLAGS_OUT, rows)
+        return 0
     if args.scene_build:
         first, second = scene_build(args.scene, args.variant, args.mesh)
         print(f"{args.scene} {args.variant} {args.mesh}: scene built in {first:.2f} s compiling, "

@@ -3,15 +3,16 @@
 The fast suite is almost all XLA compilation: measured with `make test` on a 2-core machine,
 compilation took 1426 s of the 1559 s that the tests ran (backend 1185 s, lowering 95 s, tracing
 147 s, in 3176 compilations). The suite therefore asks XLA to compile faster, for results equal to
-round-off: its older CPU fusion emitters (the same two test files, each pinned to a core of its own:
-451 s against 715 s), and, where exactly the slow runs are deselected (``-m "not slow"``, as ``make
-test`` does), its backend optimisation level 0 (LLVM's cheap passes: the fast suite 8 min 14 s and
-8 min 49 s against 10 min 1 s; its longest runs take up to twice as long, the many short ones less, so
-the slow runs, which are mostly run time, keep the default level). The flags are probed in a child
+round-off: the command lines' flags (:mod:`jaxfric.io.xla_flags`: its older CPU fusion emitters, the same
+two test files, each pinned to a core of its own, 451 s against 715 s; reductions in one loop), and,
+where exactly the slow runs are deselected (``-m "not slow"``, as ``make test`` does), its backend
+optimisation level 0 (LLVM's cheap passes: the fast suite 8 min 14 s and 8 min 49 s against 10 min 1 s;
+its longest runs take up to twice as long, the many short ones less, so the slow runs, which are mostly
+run time, keep the default level). The flags are probed in a child
 process first, because an XLA that no longer knows one aborts the process at start-up; they are then
 left out. Flags already in ``XLA_FLAGS`` are kept, and ``JAXFRIC_TEST_XLA_DEFAULTS=1`` runs the suite
-with XLA's defaults (the package's functions set no XLA flag; the command lines ask for the older emitters
-only, :mod:`jaxfric.io.xla_flags`).
+with XLA's defaults (the package's functions set no XLA flag; the command lines ask for
+:data:`~jaxfric.io.xla_flags.FAST_COMPILE_FLAGS` only).
 
 The suite's processes (pytest-xdist's two workers and the command lines that tests start) share one JAX
 persistent compilation cache, a fresh folder per test run (removed at its end), so that a program

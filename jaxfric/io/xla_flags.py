@@ -7,6 +7,15 @@ computations in less time, and the code runs as fast: the Nine ``mu017`` on 300 
 ``XLA_FLAGS``) compiled in 16.7 s against 27.2 s and solved in 23.5 s against 24.8 s, in the same 210 steps
 and 1379 Newton iterations (``docs/results.md``, run time of the Nine test). Results agree to round-off.
 
+XLA's CPU pipeline also rewrites every reduction over more than 32 elements (a norm, a largest entry, an
+``all`` over the dofs or the pairs) as a tree of windowed reductions, for the round-off of long sums; each
+window is a kernel of its own, about 10 ms of code generation, and the Nine's chunk program holds 56 of
+them. Leaving that pass out (``--xla_disable_hlo_passes=tree_reduction_rewriter``) reduces in one loop
+instead: the Nine's chunk compiles in 4.5 to 4.9 s against 5.1 to 5.7 s, and the ``make run`` case takes
+the same 810 steps and 5035 Newton iterations to the same steady force (``python
+experiments/bench_compile.py --xla-flags=...``; ``docs/results.md``, compilation). The sums concerned run
+over at most a few thousand terms, where one loop's round-off is far below the Newton tolerance.
+
 The command lines (:mod:`jaxfric.cli`) call :func:`use_fast_compilation` before their first computation;
 the package's functions set nothing, and a script or notebook may call it first thing. XLA reads
 ``XLA_FLAGS`` once, when its backend starts, and an XLA that does not know a flag aborts the process
@@ -29,7 +38,7 @@ from .cache import cache_dir
 
 __all__ = ["FAST_COMPILE_FLAGS", "use_fast_compilation", "xla_accepts"]
 
-FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
+FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_disable_hlo_passes=tree_reduction_rewriter")
 
 
 def xla_accepts(flags: str) -> bool:
@@ -70,8 +79,9 @@ def _remembered(flags: str, folder: str | None, probe: Callable[[str], bool]) ->
 def use_fast_compilation(environ: MutableMapping[str, str] | None = None,
                          probe: Callable[[str], bool] = xla_accepts) -> bool:
     """Add :data:`FAST_COMPILE_FLAGS` to ``XLA_FLAGS`` in ``environ`` (default ``os.environ``) where XLA
-    accepts them; call it before the process's first computation. Returns whether they are in effect
-    (False: ``JAXFRIC_XLA_DEFAULTS=1``, refused by this XLA, or a flag already given its own value)."""
+    accepts them; call it before the process's first computation. Returns whether they are all in effect
+    (False: ``JAXFRIC_XLA_DEFAULTS=1``, refused by this XLA, or a flag already given its own value, which is
+    kept while the others are added)."""
     env = os.environ if environ is None else environ
     current = env.get("XLA_FLAGS", "")
     if env.get("JAXFRIC_XLA_DEFAULTS") == "1":
@@ -84,4 +94,4 @@ def use_fast_compilation(environ: MutableMapping[str, str] | None = None,
     if not _remembered(flags, cache_dir(env), probe):
         return False
     env["XLA_FLAGS"] = flags
-    return True
+    return all(flag in flags.split() for flag in FAST_COMPILE_FLAGS)
