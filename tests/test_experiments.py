@@ -328,3 +328,29 @@ def test_bench_preselection_times_the_pairs_with_and_without_the_selection():
 
     (row,) = bench_preselection.geometry("40x2", "lcp_ssn")
     assert 0 < row["evaluated"] < row["candidates"] and row["ms_on"] > 0 and row["ms_off"] > 0
+
+
+def test_nine_tool_forces_averages_the_steady_window_and_takes_the_change_between_meshes(tmp_path):
+    import nine_tool_forces as ntf
+
+    u = np.linspace(0.0, 36.0, 73)   # rows every 0.5 mm: the window [20, 35] holds 31 of them
+    history = {"drawing_displacement": u, **{c: u + i for i, c in enumerate(ntf.COLUMNS)}}
+    means = ntf.steady_means(history)
+    assert means == pytest.approx({c: 27.5 + i for i, c in enumerate(ntf.COLUMNS)}, rel=1e-14)
+    with pytest.raises(ValueError, match="no history row"):
+        ntf.steady_means({**history, "drawing_displacement": u / 10.0})
+    rows = [{"variant": "mu017", "mesh": "300x3", **means},
+            {"variant": "mu017", "mesh": "600x3", **{c: v - 1.5 for c, v in means.items()}},
+            {"variant": "mu000", "mesh": "300x3", **means}]   # no finer mesh: no change row
+    (change,) = ntf.changes(rows)
+    assert change["variant"] == "mu017" and all(change[c] == pytest.approx(-1.5) for c in ntf.COLUMNS)
+    # The split at an instant: a normal force n = (0.6, 0.8) of 10 N/mm and a friction force of 2 along
+    # t = (-0.8, 0.6) give x components 6 and -1.6; an open pair of another tool counts for nothing.
+    path = tmp_path / "contact.npz"
+    np.savez(path, tool_names=np.array(["A", "B", "C"]), pair_tool=np.array([0, 1, 2]),
+             steady__rn=np.array([10.0, 0.0, 4.0]), steady__rt=np.array([2.0, 0.0, 0.0]),
+             steady__normal=np.array([[0.6, 0.8], [0.0, 1.0], [1.0, 0.0]]))
+    a, b, c = ntf.split_at_instant(str(path))
+    assert (a["closed_pairs"], a["normal_force"]) == (1, 10.0)
+    assert a["normal_x"] == pytest.approx(6.0) and a["friction_x"] == pytest.approx(-1.6)
+    assert b["closed_pairs"] == 0 and b["normal_x"] == 0.0 and c["normal_x"] == pytest.approx(4.0)
