@@ -75,8 +75,9 @@ def run_one(name: str, root: str) -> dict:
 
 def split_at_instant(path: str, instant: str = "steady", tools=("A", "B", "C")) -> list[dict]:
     """Per tool, at ``instant`` of a run's contact snapshot ``path``: its closed pairs, the sum of their normal
-    forces R_N, and the x components of R_N n and of R_T t (t = n turned +90 degrees, the library's
-    convention: the pair force on the sheet is R_N n + R_T t), N/mm."""
+    forces R_N, the resultant of R_N n (its components, and its tilt from the vertical towards +x in
+    degrees), and the x component of R_T t (t = n turned +90 degrees, the library's convention: the pair
+    force on the sheet is R_N n + R_T t), N/mm."""
     z = np.load(path)
     names = [str(n) for n in z["tool_names"]]
     rows = []
@@ -85,8 +86,10 @@ def split_at_instant(path: str, instant: str = "steady", tools=("A", "B", "C")) 
         rn, rt, n = z[f"{instant}__rn"][on], z[f"{instant}__rt"][on], z[f"{instant}__normal"][on]
         closed = rn > 0
         t = np.stack([-n[:, 1], n[:, 0]], axis=-1)
+        normal = (rn[:, None] * n)[closed].sum(axis=0)
         rows.append({"tool": tool, "closed_pairs": int(closed.sum()), "normal_force": float(rn[closed].sum()),
-                     "normal_x": float((rn[:, None] * n)[closed, 0].sum()),
+                     "normal_x": float(normal[0]), "normal_y": float(normal[1]),
+                     "normal_tilt_deg": float(np.degrees(np.arctan2(normal[0], abs(normal[1])))),
                      "friction_x": float((rt[:, None] * t)[closed, 0].sum())})
     return rows
 
@@ -116,7 +119,8 @@ def main(argv=None) -> int:
              for r in split_at_instant(os.path.join(a.root, n, "contact.npz"))]
     for r in split:
         print(f"{r['case']:<16} {r['tool']}: {r['closed_pairs']:3d} closed, R_N {r['normal_force']:8.2f}, "
-              f"x of R_N n {r['normal_x']:+8.2f}, x of R_T t {r['friction_x']:+8.2f}")
+              f"R_N n ({r['normal_x']:+8.2f}, {r['normal_y']:+8.2f}), tilt {r['normal_tilt_deg']:+6.2f} deg, "
+              f"x of R_T t {r['friction_x']:+8.2f}")
     if not a.only:
         write_rows(os.path.join(HERE, "results", "nine_tool_forces.csv"), rows)
         write_rows(os.path.join(HERE, "results", "nine_tool_forces_instant.csv"), split)

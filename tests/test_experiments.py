@@ -353,4 +353,5 @@ def test_nine_tool_forces_averages_the_steady_window_and_takes_the_change_betwee
     a, b, c = ntf.split_at_instant(str(path))
     assert (a["closed_pairs"], a["normal_force"]) == (1, 10.0)
     assert a["normal_x"] == pytest.approx(6.0) and a["friction_x"] == pytest.approx(-1.6)
+    assert a["normal_tilt_deg"] == pytest.approx(np.degrees(np.arctan2(6.0, 8.0)))
     assert b["closed_pairs"] == 0 and b["normal_x"] == 0.0 and c["normal_x"] == pytest.approx(4.0)
