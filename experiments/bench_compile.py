@@ -141,15 +141,13 @@ def main(argv=None) -> int:
                              "given as --xla-flags=FLAGS (the settings are taken in turn)")
     args = parser.parse_args(argv)
     if args.xla_flags:
+        from benchutil import read_rows
         from jaxfric.io.batch import write_csv
         rows = chunk_with_flags(args)
-        if os.path.exists(FLAGS_OUT):   # keep the rows of other scenes, variants, algorithms and meshes
-            import csv
-            case = [rows[0][k] for k in ("scene", "variant", "algorithm", "mesh")]
-            with open(FLAGS_OUT, newline="") as fh:
-                rows = [r for r in csv.DictReader(fh)
-                        if [r[k] for k in ("scene", "variant", "algorithm", "mesh")] != case] + rows
-        write_csv(FLAGS_OUT, rows)
+        case = [rows[0][k] for k in ("scene", "variant", "algorithm", "mesh")]
+        # Keep the rows of other scenes, variants, algorithms and meshes.
+        kept = [r for r in read_rows(FLAGS_OUT) if [r[k] for k in ("scene", "variant", "algorithm", "mesh")] != case]
+        write_csv(FLAGS_OUT, kept + rows)
         return 0
     if args.scene_build:
         first, second = scene_build(args.scene, args.variant, args.mesh)

@@ -11,8 +11,8 @@ the tools' own changes. Each case is the scene's default (``ans``, the entry cha
 U_draw 36 mm at half the nominal increments, as the reference ladder of docs/results.md (``jaxfric run nine
 --variant V --mesh M --set U_draw=36 --set dq_clamp=0.05 --set dU=0.05``); it is a run directory under
 ``--root`` (default ``runs/nine_tool_forces``, kept: a second call reads it back, and a run directory of
-that command may be put there). Each
-history column of :data:`COLUMNS` is averaged over the steady window (U in [20, 35] mm); the table goes to
+that command may be put there). Each history column of :data:`COLUMNS` is averaged over the run's steady
+window (``summary.json``: U in [20, 35] mm unless the run shortened it); the table goes to
 ``experiments/results/nine_tool_forces.csv``, one row per case and one per variant with the change from
 the coarser mesh to the finer. At the scene's ``steady`` instant (its contact snapshot, ``contact.npz``)
 each of A's, B's and C's x components is split into its normal forces' and its friction forces' share
@@ -23,7 +23,7 @@ leaving the arcs make these shares less steady than the window's means.
 from __future__ import annotations
 
 import argparse
-import csv
+import json
 import os
 import sys
 
@@ -32,7 +32,9 @@ import numpy as np
 import jaxfric as jf
 from benchutil import write_rows
 from jaxfric import scenes
+from jaxfric.contact.exact_iterate import tangents
 from jaxfric.io import output
+from jaxfric.io.batch import read_history
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 BASE = {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05}
@@ -41,10 +43,9 @@ CASES = {f"{variant}_{mesh}": (variant, mesh) for variant in ("mu000", "mu017") 
 # The steady drawing force, B's clamping force, and each tool's resultant on the strip (N/mm).
 COLUMNS = ("drawing_force", "clamping_force", "cyl_a_fx", "cyl_a_fy", "bead_fx", "cyl_c_fx", "cyl_c_fy",
            "cyl_d_fy", "cyl_e_fy", "guide_top_fy", "guide_bottom_fy")
-WINDOW = (20.0, 35.0)
 
 
-def steady_means(history: dict, window=WINDOW) -> dict:
+def steady_means(history: dict, window) -> dict:
     """Each of :data:`COLUMNS` averaged over the rows whose drawing displacement lies in ``window`` (mm)."""
     u = np.asarray(history["drawing_displacement"], dtype=float)
     keep = (u >= window[0]) & (u <= window[1])
@@ -53,31 +54,26 @@ def steady_means(history: dict, window=WINDOW) -> dict:
     return {c: float(np.mean(np.asarray(history[c], dtype=float)[keep])) for c in COLUMNS}
 
 
-def read_history(path: str) -> dict:
-    """The numeric columns of a run directory's ``history.csv``."""
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    return {k: [float(r[k]) for r in rows] for k in rows[0] if k in COLUMNS or k == "drawing_displacement"}
-
-
 def run_one(name: str, root: str) -> dict:
     variant, mesh = CASES[name]
     out = os.path.join(root, name)
-    path = os.path.join(out, "history.csv")
-    if not os.path.exists(path):
+    if not os.path.exists(os.path.join(out, "summary.json")):
         scene = scenes.make("nine", variant, "lcp_ssn", {**BASE, "mesh": mesh})
         print(f"{name}: running", file=sys.stderr, flush=True)
         result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
                         snapshot=scene.snapshot, progress=False)
         output.write_run(scene, result, out, tag="nine_tool_forces", figures=False)
-    return {"case": name, "variant": variant, "mesh": mesh, **steady_means(read_history(path))}
+    with open(os.path.join(out, "summary.json")) as fh:
+        window = json.load(fh)["steady_window"]
+    return {"case": name, "variant": variant, "mesh": mesh,
+            **steady_means(read_history(os.path.join(out, "history.csv")), window)}
 
 
 def split_at_instant(path: str, instant: str = "steady", tools=("A", "B", "C")) -> list[dict]:
     """Per tool, at ``instant`` of a run's contact snapshot ``path``: its closed pairs, the sum of their normal
     forces R_N, the resultant of R_N n (its components, and its tilt from the vertical towards +x in
-    degrees), and the x component of R_T t (t = n turned +90 degrees, the library's convention: the pair
-    force on the sheet is R_N n + R_T t), N/mm."""
+    degrees), and the x component of R_T t (the library's tangent t of n: the pair force on the sheet is
+    R_N n + R_T t), N/mm."""
     z = np.load(path)
     names = [str(n) for n in z["tool_names"]]
     rows = []
@@ -85,7 +81,7 @@ def split_at_instant(path: str, instant: str = "steady", tools=("A", "B", "C")) 
         on = z["pair_tool"] == names.index(tool)
         rn, rt, n = z[f"{instant}__rn"][on], z[f"{instant}__rt"][on], z[f"{instant}__normal"][on]
         closed = rn > 0
-        t = np.stack([-n[:, 1], n[:, 0]], axis=-1)
+        t = np.asarray(tangents(n))
         normal = (rn[:, None] * n)[closed].sum(axis=0)
         rows.append({"tool": tool, "closed_pairs": int(closed.sum()), "normal_force": float(rn[closed].sum()),
                      "normal_x": float(normal[0]), "normal_y": float(normal[1]),
@@ -111,12 +107,12 @@ def main(argv=None) -> int:
     p.add_argument("--root", default=os.path.join("runs", "nine_tool_forces"))
     p.add_argument("--only", nargs="*", choices=sorted(CASES), help="run these cases only")
     a = p.parse_args(argv)
-    rows = [run_one(n, a.root) for n in (a.only or CASES)]
+    names = a.only or list(CASES)
+    rows = [run_one(n, a.root) for n in names]
     rows += changes(rows)
     for r in rows:
         print(f"{r['case']:<16} " + " ".join(f"{c} {r[c]:+.3f}" for c in COLUMNS))
-    split = [{"case": n, **r} for n in (a.only or CASES)
-             for r in split_at_instant(os.path.join(a.root, n, "contact.npz"))]
+    split = [{"case": n, **r} for n in names for r in split_at_instant(os.path.join(a.root, n, "contact.npz"))]
     for r in split:
         print(f"{r['case']:<16} {r['tool']}: {r['closed_pairs']:3d} closed, R_N {r['normal_force']:8.2f}, "
               f"R_N n ({r['normal_x']:+8.2f}, {r['normal_y']:+8.2f}), tilt {r['normal_tilt_deg']:+6.2f} deg, "

@@ -335,10 +335,10 @@ def test_nine_tool_forces_averages_the_steady_window_and_takes_the_change_betwee
 
     u = np.linspace(0.0, 36.0, 73)   # rows every 0.5 mm: the window [20, 35] holds 31 of them
     history = {"drawing_displacement": u, **{c: u + i for i, c in enumerate(ntf.COLUMNS)}}
-    means = ntf.steady_means(history)
+    means = ntf.steady_means(history, (20.0, 35.0))
     assert means == pytest.approx({c: 27.5 + i for i, c in enumerate(ntf.COLUMNS)}, rel=1e-14)
     with pytest.raises(ValueError, match="no history row"):
-        ntf.steady_means({**history, "drawing_displacement": u / 10.0})
+        ntf.steady_means({**history, "drawing_displacement": u / 10.0}, (20.0, 35.0))
     rows = [{"variant": "mu017", "mesh": "300x3", **means},
             {"variant": "mu017", "mesh": "600x3", **{c: v - 1.5 for c, v in means.items()}},
             {"variant": "mu000", "mesh": "300x3", **means}]   # no finer mesh: no change row
