@@ -355,3 +355,49 @@ def test_nine_tool_forces_averages_the_steady_window_and_takes_the_change_betwee
     assert a["normal_x"] == pytest.approx(6.0) and a["friction_x"] == pytest.approx(-1.6)
     assert a["normal_tilt_deg"] == pytest.approx(np.degrees(np.arctan2(6.0, 8.0)))
     assert b["closed_pairs"] == 0 and b["normal_x"] == 0.0 and c["normal_x"] == pytest.approx(4.0)
+
+
+def test_nine_tool_forces_finds_a_curvature_reversal_and_splits_a_tools_pairs_along_the_strip(tmp_path):
+    import nine_tool_forces as ntf
+
+    # A strip of 3 rows (the middle one not a face) whose centre line turns with curvature -k up to
+    # s = 3 mm, then +k from s = 4 mm, linearly in between: the reversal from -0.9 k to +0.9 k is 0.9 mm
+    # long, centred on s = 3.5 mm.
+    h, k, cols = 0.1, 0.2, 81
+    s = h * np.arange(cols)
+    mid = s[:-1] + 0.5 * h
+
+    def turned(a):   # the centre line's angle: the integral of the curvature
+        return np.where(a < 3.0, -k * a, np.where(a < 4.0, -3 * k + k * ((a - 3.0) ** 2 - (a - 3.0)),
+                                                  -3 * k + k * (a - 4.0)))
+    chord = h * np.stack([np.cos(turned(mid)), np.sin(turned(mid))], axis=1)
+    c = np.concatenate([[[0.0, 0.0]], np.cumsum(chord, axis=0)])
+    normal = np.stack([-np.sin(turned(s)), np.cos(turned(s))], axis=1)
+    x0 = np.concatenate([np.stack([s, np.full(cols, y)], axis=1) for y in (0.0, 0.5, 1.0)])
+    x = np.concatenate([c - 0.5 * normal, c, c + 0.5 * normal])
+    column, bottom, top = ntf.strip_columns(x0)
+    assert list(bottom) == list(range(cols)) and list(top) == list(range(2 * cols, 3 * cols))
+    assert list(column[cols:2 * cols]) == list(range(cols))
+    arc, kappa = ntf.centreline(x, bottom, top)
+    assert arc == pytest.approx(s, abs=1e-12) and np.isnan(kappa[[0, -1]]).all()
+    assert kappa[5:25] == pytest.approx(-k, rel=1e-9) and kappa[45:75] == pytest.approx(k, rel=1e-9)
+    (turn,) = ntf.reversals(arc, kappa, 0.9 * k)
+    assert turn["to"] == "+" and turn["s_mid"] == pytest.approx(3.5, abs=0.01)
+    assert turn["length"] == pytest.approx(0.9, abs=0.02)
+    assert ntf.reversals(arc, -kappa, 0.9 * k)[0]["to"] == "-" and ntf.reversals(arc, kappa, 1.1 * k) == []
+
+    # Tool A closed at the bottom nodes of columns 0, 1, 2 (the entry end, within 0.5 mm of the first),
+    # 10 (the middle) and 20, 21 (the exit end); a pair of column 15 open, one of tool B elsewhere.
+    cols_a = [0, 1, 2, 10, 20, 21, 15]
+    path = tmp_path / "contact.npz"
+    rn = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 0.0, 7.0])
+    np.savez(path, tool_names=np.array(["A", "B"]), pair_tool=np.array([0] * 7 + [1]),
+             pair_node=np.array(cols_a + [40]), x0=x0, steady__x=x0, steady__rn=rn, steady__rt=0.5 * rn,
+             steady__normal=np.tile([[0.6, 0.8]], (8, 1)))
+    parts = {(r["tool"], r["part"]): r for r in ntf.split_by_patch(str(path), tools=("A", "B"), end_arc=0.5)}
+    assert [parts[("A", p)]["closed_pairs"] for p in ("entry", "middle", "exit")] == [3, 1, 2]
+    assert [parts[("A", p)]["normal_force"] for p in ("entry", "middle", "exit")] == [6.0, 4.0, 11.0]
+    assert parts[("A", "exit")]["normal_x"] == pytest.approx(6.6)
+    assert parts[("A", "exit")]["friction_x"] == pytest.approx(-0.8 * 0.5 * 11.0)   # t = (-0.8, 0.6)
+    assert (parts[("A", "exit")]["arc_from"], parts[("A", "exit")]["arc_to"]) == pytest.approx((2.0, 2.1))
+    assert parts[("B", "entry")]["normal_force"] == 7.0 and ("B", "exit") not in parts
