@@ -401,3 +401,21 @@ def test_nine_tool_forces_finds_a_curvature_reversal_and_splits_a_tools_pairs_al
     assert parts[("A", "exit")]["friction_x"] == pytest.approx(-0.8 * 0.5 * 11.0)   # t = (-0.8, 0.6)
     assert (parts[("A", "exit")]["arc_from"], parts[("A", "exit")]["arc_to"]) == pytest.approx((2.0, 2.1))
     assert parts[("B", "entry")]["normal_force"] == 7.0 and ("B", "exit") not in parts
+
+
+def test_plastic_integration_takes_each_rules_limit_and_the_errors_against_the_midpoint_rules():
+    import plastic_integration as pi
+
+    # Forces of a first-order (radial) and a second-order (midpoint) ladder towards 100 and 100.5 N/mm.
+    rows = [{"case": f"{v}_{i}_{d:g}", "variant": v, "integration": i, "increment": d, "steps": 1,
+             "newton_iterations": 1, "cutbacks": 0,
+             "steady_force": (100.0 + 20.0 * d) if i == "radial" else (100.5 - 50.0 * d * d)}
+            for v in ("mu017",) for i in pi.INTEGRATIONS for d in pi.INCREMENTS]
+    out = {r["case"]: r for r in pi.with_errors(rows)}
+    assert out["mu017_radial_0.1"]["limit"] == pytest.approx(100.0)
+    assert out["mu017_radial_0.1"]["q"] == pytest.approx(2.0)
+    assert out["mu017_midpoint_0.1"]["limit"] == pytest.approx(100.5)
+    assert out["mu017_midpoint_0.1"]["q"] == pytest.approx(4.0)
+    assert out["mu017_midpoint_0.1"]["step_error_pct"] == pytest.approx(-0.5 / 100.5 * 100.0)
+    assert out["mu017_radial_0.05"]["step_error_pct"] == pytest.approx((101.0 / 100.5 - 1.0) * 100.0)
+    assert pi.with_errors([r for r in rows if r["integration"] == "radial"]) == []   # no midpoint ladder

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfric.fem.material import J2Material, MaterialState, von_mises
+from jaxfric.fem.material import INTEGRATIONS, J2Material, MaterialState, von_mises
 
 # Sheet materials of the benchmark scenes (spec tables 1 and 2): a very steep initial hardening
 # (A = 1e4) and a moderate one.
@@ -178,9 +178,10 @@ def central_difference_tangent(material, F, state, h=1e-7):
     return np.stack(columns, axis=1)
 
 
+@pytest.mark.parametrize("integration", INTEGRATIONS)
 @pytest.mark.parametrize("name", MATERIALS)
-def test_consistent_tangent_matches_finite_differences(name):
-    material = J2Material(**MATERIALS[name])
+def test_consistent_tangent_matches_finite_differences(name, integration):
+    material = J2Material(**MATERIALS[name], integration=integration)
     state_n = plastic_state(material)
     F = jnp.asarray(F_SECOND)
     _, state = update(material, F, state_n)
@@ -298,8 +299,9 @@ def test_elastic_never_yields():
 
 
 @pytest.mark.parametrize("name", MATERIALS)
-def test_objectivity(name):
-    material = J2Material(**MATERIALS[name])
+@pytest.mark.parametrize("integration", INTEGRATIONS)
+def test_objectivity(name, integration):
+    material = J2Material(**MATERIALS[name], integration=integration)
     state_n = plastic_state(material)
     angle = 0.7
     Q = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
@@ -431,3 +433,60 @@ def test_good_edge_values_and_tracers_accepted():
     # Inside jit the leaves are tracers: no check, no error, values flow through.
     built = jax.jit(lambda E: J2Material(E=E, nu=0.3, sigma_y=1.0, A=0.0, n=0.0).shear_modulus)(260.0)
     np.testing.assert_allclose(float(built), 100.0, rtol=1e-15)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Integration of a step's flow: the radial return against the midpoint rule.
+
+
+def turning_path(t):
+    """A strain path whose direction turns: a stretch up and back, a growing shear, a rigid rotation."""
+    a, g, th = 0.02 * jnp.sin(jnp.pi * t), 0.03 * t * t, 0.5 * t
+    rot = jnp.array([[jnp.cos(th), -jnp.sin(th)], [jnp.sin(th), jnp.cos(th)]])
+    return rot @ jnp.array([[1.0 + a, g], [0.0, 1.0 / (1.0 + a)]])
+
+
+def proportional_path(t):
+    """An isochoric stretch whose principal axes turn with the material: proportional in the rotated
+    frame (a constant direction of the deviatoric log strain there)."""
+    th = 0.8 * t
+    rot = jnp.array([[jnp.cos(th), -jnp.sin(th)], [jnp.sin(th), jnp.cos(th)]])
+    lam = 1.0 + 0.03 * t
+    return rot @ jnp.diag(jnp.stack([lam, 1.0 / lam]))
+
+
+@eqx.filter_jit
+def integrate(material, path, n):
+    """tau (3, 3) and eqps at the end of ``path`` (t from 0 to 1) in ``n`` equal steps."""
+    def step(state, k):
+        tau, new = material.update(path(k / n), state)
+        return new, tau
+
+    state, taus = jax.lax.scan(step, material.init_state(), jnp.arange(1, n + 1, dtype=jnp.float64))
+    return taus[-1], state.eqps
+
+
+def test_midpoint_return_is_second_order_where_the_path_turns_and_the_radial_return_first():
+    errors = {}
+    for integration in INTEGRATIONS:
+        material = J2Material(**BEAD, integration=integration)
+        tau_ref, eqps_ref = integrate(material, turning_path, 1280)
+        errors[integration] = [abs(float(integrate(material, turning_path, n)[1] - eqps_ref)) for n in (20, 40, 80)]
+        assert float(eqps_ref) > 0.02
+    radial, midpoint = (np.array(errors[k]) for k in INTEGRATIONS)
+    assert np.all((radial[:-1] / radial[1:] > 1.7) & (radial[:-1] / radial[1:] < 2.3))   # first order
+    assert np.all(midpoint[:-1] / midpoint[1:] > 3.4)                                    # second order
+    assert np.all(midpoint < radial / 5)
+
+
+def test_midpoint_return_is_the_radial_return_on_a_proportional_path():
+    radial, midpoint = (integrate(J2Material(**BEAD, integration=k), proportional_path, 40) for k in INTEGRATIONS)
+    assert float(radial[1]) > 0.02
+    np.testing.assert_allclose(np.asarray(midpoint[0]), np.asarray(radial[0]), rtol=0,
+                               atol=1e-9 * float(np.abs(radial[0]).max()))
+    assert float(midpoint[1]) == pytest.approx(float(radial[1]), rel=1e-10)
+
+
+def test_unknown_integration_is_named():
+    with pytest.raises(ValueError, match="integration = 'trapezoid'"):
+        J2Material(**BEAD, integration="trapezoid")

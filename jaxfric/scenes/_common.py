@@ -23,7 +23,7 @@ from ..contact.tools import GAP_OPEN, Arc, Segment, Tool
 from ..fem.element import ENHANCED_UPDATES
 from ..fem.kinematic import KinematicJ2Material
 from ..fem.loading import Phase, constraint_masks, schedule
-from ..fem.material import J2Material
+from ..fem.material import INTEGRATIONS, J2Material
 from ..loadpath.controller import STABILIZE, StepControl
 from ..loadpath.model import reactions
 
@@ -108,6 +108,20 @@ PRESELECT_DOC = ("True: evaluate, in each load step, only the candidate nodes ne
                  "it within the step (jaxfric.contact.preselection; results unchanged); False: every candidate at "
                  f"every Newton iteration; None: True where the tools' capacities leave out {PAYS_FROM} pairs or more "
                  "(PAYS_FROM), False below, where the selection costs more compilation than it saves [chosen]")
+
+
+PLASTIC_INTEGRATION_DOC = ("how a load step's plastic flow is integrated (jaxfric.fem.material.J2Material): 'radial' "
+                           "the exponential-map radial return along the end point's flow direction (backward "
+                           "Euler, first order in the increment where the strain path turns), 'midpoint' along "
+                           "the mean of the plastic part's ends, consistent at the step's end (second order; "
+                           "isotropic hardening only) [chosen]")
+
+
+@dataclasses.dataclass(frozen=True)
+class PlasticIntegrationField:
+    """The plastic integration switch every scene's config has (:func:`material`)."""
+
+    plastic_integration: str = spec_field("radial", "-", PLASTIC_INTEGRATION_DOC)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -204,6 +218,9 @@ def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=No
         for v in getattr(config, name):
             if not (_number(name, v) >= 0 or name == "Q_voce"):
                 raise _bad(name, getattr(config, name), "every entry must be >= 0")
+    if config.plastic_integration not in INTEGRATIONS:
+        raise _bad("plastic_integration", config.plastic_integration,
+                   f"choose one of {', '.join(map(repr, INTEGRATIONS))}")
     if config.friction_law not in FRICTION_LAWS:
         raise _bad("friction_law", config.friction_law, f"choose one of {', '.join(map(repr, FRICTION_LAWS))}")
     for name in POLYNOMIAL_TERMS:
@@ -462,7 +479,10 @@ def material(config):
     ValueError names the field of a radius that would not stay positive."""
     iso = (config.E, config.nu, config.sigma_y, config.A, config.n)
     if not (config.C_kin or config.Q_voce):
-        return J2Material(*iso)
+        return J2Material(*iso, integration=config.plastic_integration)
+    if config.plastic_integration != "radial":
+        raise _bad("plastic_integration", config.plastic_integration,
+                   "the back stresses and Voce terms (C_kin, Q_voce) integrate by the radial return only")
     try:
         return KinematicJ2Material(*iso, C=config.C_kin, gamma=config.gamma_kin, Q=config.Q_voce, b=config.b_voce,
                                    keep_monotonic=True)

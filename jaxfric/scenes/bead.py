@@ -68,7 +68,7 @@ ROLLER_SEAM = math.radians(202.5)
 
 
 @dataclasses.dataclass(frozen=True)
-class BeadConfig(cm.FrictionLawFields, cm.PreselectField):
+class BeadConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationField):
     """Every value of the bead scene (spec section 3); defaults are the spec's (``th090_mu017``)."""
 
     x_left: float = cm.spec_field(-100.0, "mm", "left (clamped, free) end of the strip [chosen]")

@@ -119,7 +119,7 @@ TABLE7 = ((6, 6, 3, 7.25, 25), (6, 6, 3, 7.25, 50), (9, 6, 4.5, 10.2, 25), (9, 6
 
 
 @dataclasses.dataclass(frozen=True)
-class BlankholderConfig(cm.FrictionLawFields, cm.PreselectField):
+class BlankholderConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationField):
     """Every value of the blankholder scene (spec section 5); defaults are the spec's (``shape1``)."""
 
     H: float = cm.spec_field(6.0, "mm", "bead height above the lower lands = closing stroke (Table 7) [paper]")

@@ -52,7 +52,7 @@ INSTANTS = tuple(INSTANT_RULES)
 
 
 @dataclasses.dataclass(frozen=True)
-class FlatDieConfig(cm.FrictionLawFields, cm.PreselectField):
+class FlatDieConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationField):
     """Every value of the flat die scene (spec section 2); defaults are the spec's (``const_force``)."""
 
     L: float = cm.spec_field(48.0, "mm", "sheet length, x in [0, L] [chosen]")

@@ -102,7 +102,7 @@ INSTANTS = tuple(INSTANT_RULES)
 
 
 @dataclasses.dataclass(frozen=True)
-class NineConfig(cm.FrictionLawFields, cm.PreselectField):
+class NineConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationField):
     """Every value of the Nine scene (spec section 4); defaults are the spec's (variant ``mu017``)."""
 
     x_left: float = cm.spec_field(-50.0, "mm", "left (free) end of the strip; -Delta x1 [chosen reading]")
