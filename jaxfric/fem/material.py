@@ -12,8 +12,8 @@ the step's plastic part, with consistency at the step's end (``integration="midp
 generalized midpoint rule at alpha = 1/2 in log strains: second order; Ortiz & Popov, Int. J. Numer.
 Meth. Engng 21, 1985; Simo & Hughes 1998, ch. 3). On the Nine it takes the steady force's step error
 at the nominal increments from -0.63 / -0.92 % to -0.35 / -0.58 % (mu000 / mu017), for about 10 %
-more Newton iterations (``python experiments/plastic_integration.py``; docs/results.md, integration
-of the plastic flow).
+more Newton iterations and 1.4 to 1.6 times the solve time (``python experiments/plastic_integration.py``;
+docs/results.md, integration of the plastic flow).
 
 Units: stresses (E, sigma_y, tau) in MPa; strains, A, n and eqps dimensionless.
 Plane strain: F = [[F_2D, 0], [0, 1]]; every 3x3 tensor is block diagonal (in-plane 2x2 block + zz).
@@ -63,6 +63,9 @@ class MaterialState(eqx.Module):
         F_n: (2, 2) the in-plane deformation gradient of the last converged step, which the midpoint
             return (``J2Material(..., integration="midpoint")``) needs to rotate that step's stress into
             the current configuration (identity initially); None for the radial return.
+        dev_n: (5,) that step's deviatoric elastic log strain (xx, xy, yx, yy, zz; zero initially), kept
+            by the midpoint return so that no Newton iteration takes its logarithm again; None for the
+            radial return.
     """
 
     cp_inv: jax.Array
@@ -71,6 +74,7 @@ class MaterialState(eqx.Module):
     enhanced: jax.Array | None = None
     back: jax.Array | None = None
     F_n: jax.Array | None = None
+    dev_n: jax.Array | None = None
 
 
 def von_mises(tau: jax.Array) -> jax.Array:
@@ -191,6 +195,7 @@ class J2Material(eqx.Module):
             cp_inv_zz=jnp.asarray(1.0, jnp.float64),
             eqps=jnp.asarray(0.0, jnp.float64),
             F_n=jnp.eye(2, dtype=jnp.float64) if self.integration == "midpoint" else None,
+            dev_n=jnp.zeros(5, jnp.float64) if self.integration == "midpoint" else None,
         )
 
     def _return_residual(self, dg, q_trial, eqps_n):
@@ -283,6 +288,7 @@ class J2Material(eqx.Module):
             eqps=state.eqps + dg,
             enhanced=state.enhanced,
             F_n=F if self.integration == "midpoint" else None,
+            dev_n=jnp.concatenate([dev.ravel(), dev_zz[None]]) if self.integration == "midpoint" else None,
         )
         return tau, new_state
 
@@ -303,9 +309,9 @@ class J2Material(eqx.Module):
 
         In the 5 components v = (dev eps_xx, _xy, _yx, _yy, _zz) of the deviatoric log strain (where the
         stress deviator is 2G v and the yield surface the sphere |v| = r = sigma_Y / (sqrt(6) G)):
-        - v_n, the last converged step's, rotated into the current configuration by the rotation of
-          the step's relative deformation f = F F_n^-1 (its polar decomposition), so the rule is
-          objective;
+        - v_n, the last converged step's (kept in ``state.dev_n``), rotated into the current
+          configuration by the rotation of the step's relative deformation f = F F_n^-1 (its polar
+          decomposition), so the rule is objective;
         - v_c = v_n + theta (v_tr - v_n), where the straight path from v_n to the trial leaves the yield
           surface (the larger root theta of |v_c| = r, clipped to [0, 1]: 0 where the path leaves it at
           once, as for a point that was plastic and keeps flowing);
@@ -319,14 +325,11 @@ class J2Material(eqx.Module):
         (``tests/test_material.py``). Elastic points take the double-where route of :meth:`update`:
         their residual is evaluated on the yield surface, so that no branch divides by zero."""
         G = self.shear_modulus
-        e_n, e_n_zz = trial_log_strain(state.F_n, state)
-        tr_n = jnp.trace(e_n) + e_n_zz
         f = F @ inv2(state.F_n)
         angle = jnp.arctan2(f[1, 0] - f[0, 1], f[0, 0] + f[1, 1])
         c, s = jnp.cos(angle), jnp.sin(angle)
         rot = jnp.stack([jnp.stack([c, -s]), jnp.stack([s, c])])
-        d_n = rot @ (e_n - (tr_n / 3.0) * jnp.eye(2, dtype=F.dtype)) @ rot.T
-        v_n = jnp.concatenate([d_n.ravel(), (e_n_zz - tr_n / 3.0)[None]])
+        v_n = jnp.concatenate([(rot @ state.dev_n[:4].reshape(2, 2) @ rot.T).ravel(), state.dev_n[4:]])
         v_tr = jnp.concatenate([dev_trial.ravel(), dev_trial_zz[None]])
 
         _, sigma_y = self._sigma_y_finite()

@@ -50,7 +50,9 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
   error of the Nine test): at 300 x 3 with the default element the steady drawing force carries a step
   error of about -0.6 % (``mu000``) and -0.8 % (``mu017``), first order in the increment, from the return
   mapping along the plastic bending path; halve both fields for half the error at 1.4x the Newton
-  iterations;
+  iterations, or integrate the flow by the midpoint rule (``plastic_integration`` = ``midpoint``: with
+  the entry channel -0.35 and -0.58 % against -0.63 and -0.92 %, at 1.4 to 1.6 times the solve time;
+  docs/results.md, integration of the plastic flow);
 - ``element`` = ``ans`` (F-bar on assumed natural strains, :mod:`jaxfric.fem.element`): F-bar's parasitic
   shear put the steady force on 300 x 3 6.9 % (``mu000``) and 9.3 % (``mu017``) above its limit along
   the strip; ``ans`` 1.4 % and 3.5 % (docs/results.md, discretisation error of the Nine test, with
