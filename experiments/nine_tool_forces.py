@@ -143,15 +143,21 @@ def reversals(s: np.ndarray, kappa: np.ndarray, level: float) -> list[dict]:
     return out
 
 
-def split_by_patch(path: str, instant: str = "steady", tools=("A", "B", "C"), end_arc: float = 1.0) -> list[dict]:
+def snapshot_strip(path: str, instant: str):
+    """A run's contact snapshot ``path`` (the loaded npz), its tool names, each node's column and, at
+    ``instant``, the centre line's arc length and curvature per column (:func:`centreline`)."""
+    z = np.load(path)
+    column, bottom, top = strip_columns(z["x0"])
+    s, kappa = centreline(z[f"{instant}__x"], bottom, top)
+    return z, [str(n) for n in z["tool_names"]], column, s, kappa
+
+
+def split_by_patch(path: str, instant: str = "steady", tools=("A", "B", "C"), end_arc: float = END_ARC) -> list[dict]:
     """Each tool's closed pairs at ``instant`` split along the strip: the ``entry`` and ``exit`` ends (the
     closed nodes within ``end_arc`` mm of centre-line arc of the first and of the last closed node in the
     strip's direction of travel, +x) and the ``middle``; per part its closed pairs, the sum of R_N, the x
     components of R_N n and of R_T t (N/mm), and its arc extent from the tool's first closed node (mm)."""
-    z = np.load(path)
-    names = [str(n) for n in z["tool_names"]]
-    column, bottom, top = strip_columns(z["x0"])
-    s, _ = centreline(z[f"{instant}__x"], bottom, top)
+    z, names, column, s, _ = snapshot_strip(path, instant)
     rows = []
     for tool in tools:
         on = (z["pair_tool"] == names.index(tool)) & (z[f"{instant}__rn"] > 0)
@@ -172,13 +178,6 @@ def split_by_patch(path: str, instant: str = "steady", tools=("A", "B", "C"), en
     return rows
 
 
-def centreline_at(path: str, instant: str) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`centreline` of a run's contact snapshot ``path`` at ``instant``."""
-    z = np.load(path)
-    _, bottom, top = strip_columns(z["x0"])
-    return centreline(z[f"{instant}__x"], bottom, top)
-
-
 def level(root: str, name: str) -> float:
     """The curvature a reversal is measured between: 0.9 of the centre line's on a wrap of A, B or C,
     1 / (R1 + t / 2), from the run's ``summary.json``."""
@@ -190,10 +189,7 @@ def level(root: str, name: str) -> float:
 def normal_force_profile(path: str, instant: str, tools=("A", "B", "C")) -> tuple[np.ndarray, np.ndarray]:
     """The closed pairs of ``tools`` at ``instant``, ordered along the strip: their centre-line arc position
     (mm) and R_N (N/mm)."""
-    z = np.load(path)
-    names = [str(n) for n in z["tool_names"]]
-    column, bottom, top = strip_columns(z["x0"])
-    s, _ = centreline(z[f"{instant}__x"], bottom, top)
+    z, names, column, s, _ = snapshot_strip(path, instant)
     on = np.isin(z["pair_tool"], [names.index(t) for t in tools]) & (z[f"{instant}__rn"] > 0)
     at, rn = s[column[z["pair_node"][on]]], z[f"{instant}__rn"][on]
     order = np.argsort(at, kind="stable")
@@ -218,7 +214,7 @@ def profile_figure(root: str, names, path: str, instant: str = "steady") -> None
             if name not in names:
                 continue
             contact = os.path.join(root, name, "contact.npz")
-            s, kappa = centreline_at(contact, instant)
+            _, _, _, s, kappa = snapshot_strip(contact, instant)
             turns = reversals(s, kappa, level(root, name))
             origin = turns[0]["s_mid"] if turns else 0.0
             axes[0, j].plot(s - origin, kappa, ".-", ms=3, lw=0.8, color=colour, label=mesh)
@@ -267,8 +263,8 @@ def main(argv=None) -> int:
     for n in names:
         path = os.path.join(a.root, n, "contact.npz")
         for instant in INSTANTS:
-            parts += [{"case": n, "instant": instant, **r} for r in split_by_patch(path, instant, end_arc=END_ARC)]
-            s, kappa = centreline_at(path, instant)
+            parts += [{"case": n, "instant": instant, **r} for r in split_by_patch(path, instant)]
+            _, _, _, s, kappa = snapshot_strip(path, instant)
             turns += [{"case": n, "instant": instant, **r} for r in reversals(s, kappa, level(a.root, n))]
     for r in parts:
         print(f"{r['case']:<12} {r['instant']:<7} {r['tool']} {r['part']:<6} {r['closed_pairs']:3d} closed, "

@@ -26,13 +26,18 @@ import jaxfric as jf
 from benchutil import write_rows
 from error_estimates import richardson
 from jaxfric import scenes
+from jaxfric.fem.material import INTEGRATIONS
 from jaxfric.io import output
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 VARIANTS = ("mu000", "mu017")
-INTEGRATIONS = ("radial", "midpoint")
 INCREMENTS = (0.1, 0.05, 0.025, 0.0125)   # mm
 CASES = {f"{v}_{i}_{d:g}": (v, i, d) for v in VARIANTS for i in INTEGRATIONS for d in INCREMENTS}
+
+
+def _summary(path: str) -> dict:
+    with open(path) as fh:
+        return json.load(fh)
 
 
 def run_one(name: str, root: str) -> dict:
@@ -40,16 +45,14 @@ def run_one(name: str, root: str) -> dict:
     variant, integration, increment = CASES[name]
     out = os.path.join(root, name)
     summary = os.path.join(out, "summary.json")
-    done = os.path.exists(summary) and json.load(open(summary)).get("converged")
-    if not done:
+    if not (os.path.exists(summary) and _summary(summary)["converged"]):
         scene = scenes.make("nine", variant, "lcp_ssn", {"U_draw": 36.0, "dU": increment, "dq_clamp": increment,
                                                          "plastic_integration": integration})
         print(f"{name}: running", file=sys.stderr, flush=True)
         result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
                         snapshot=scene.snapshot, progress=False)
         output.write_run(scene, result, out, tag="plastic_integration", figures=False)
-    with open(summary) as fh:
-        s = json.load(fh)
+    s = _summary(summary)
     if not s["converged"] or s["steady_drawing_force"] is None:
         raise SystemExit(f"{name}: the run in {out} did not finish ({s['message']})")
     return {"case": name, "variant": variant, "integration": integration, "increment": increment,

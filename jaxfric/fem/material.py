@@ -250,16 +250,15 @@ class J2Material(eqx.Module):
         # Overshoots below 1e-10 sigma_Y are taken as elastic; the stress error is below that.
         plastic = q_trial - self.yield_stress(state.eqps) > _YIELD_TOL * self.yield_stress(state.eqps)
 
-        # Double where: the elastic case hands the return a trial stress already on the yield surface
-        # (R(0) = 0 exactly, zero iterations, dg = 0 with zero derivative) and divides by 1, not q_tr.
-        _, sigma_y = self._sigma_y_finite()
-        q_on_surface = sigma_y * self._hardening_factor(state.eqps, self.n)
-        q_return = jnp.where(plastic, q_trial, q_on_surface)
-        q_divisor = jnp.where(plastic, q_trial, jnp.ones_like(q_trial))
-
         if self.integration == "midpoint":
             dev, dev_zz, dg = self._midpoint_return(F, state, dev_trial, dev_trial_zz, plastic)
         else:
+            # Double where: the elastic case hands the return a trial stress already on the yield surface
+            # (R(0) = 0 exactly, zero iterations, dg = 0 with zero derivative) and divides by 1, not q_tr.
+            _, sigma_y = self._sigma_y_finite()
+            q_on_surface = sigma_y * self._hardening_factor(state.eqps, self.n)
+            q_return = jnp.where(plastic, q_trial, q_on_surface)
+            q_divisor = jnp.where(plastic, q_trial, jnp.ones_like(q_trial))
             dg_star = _newton_return(
                 jax.lax.stop_gradient(self), jax.lax.stop_gradient(q_return), jax.lax.stop_gradient(state.eqps)
             )
