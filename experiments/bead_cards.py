@@ -1,6 +1,6 @@
 """Bead cards of the blankholder's nine bead shapes: ``python experiments/bead_cards.py``.
 
-    python experiments/bead_cards.py [--only shapeN ...] [--table] [--kinematic]
+    python experiments/bead_cards.py [--only shapeN ...] [--table] [--rewrite] [--kinematic] [--s355]
 
 Per shape (spec Table 7, the paper's aluminium sheet, mu = 0.15, the spec mesh, ``lcp_ssn``): the card of
 :func:`jaxfric.cards.bead_card` at 0.25, 0.5, 0.75 and 1 times the bead height (with the derivatives for
@@ -10,14 +10,18 @@ the spec's steady window [35, 55] mm, against the card's full-depth point (pulle
 6, 9 and 12 mm beads, the last 10 mm its window: :func:`jaxfric.cards.bead.card_pull`), within that run's
 error estimate. ``--kinematic``: shape1's card again with one Armstrong-Frederick
 back stress (``C_kin=2000, gamma_kin=20``, the same monotonic curve; :mod:`jaxfric.fem.kinematic`), into
-``bead_cards/shape1_kinematic``.
+``bead_cards/shape1_kinematic``. ``--s355``: shape1's card with the sheet of a published cyclic fit,
+Hartloper et al.'s S355J2+N with its two back stresses, and with the isotropic law of the same monotonic
+curve (``experiments/kinematic_hardening.py``'s ``s355`` pair), into ``bead_cards/shape1_s355_kinematic`` and
+``bead_cards/shape1_s355_isotropic``.
 
 The table (``experiments/results/bead_cards.csv``) has, per shape, the full-depth forces, thinning and
 plastic strain, the consistency run's force and error estimate (``bead_cards_derivatives.csv``: the
 derivatives per penetration); the figure
 (``experiments/results/bead_cards.png``) the restraining and normal forces of every shape against the
 penetration as a fraction of its height. ``--only`` computes some shapes (to spread them over processes),
-``--table`` only reads back what is on disk.
+``--table`` only reads back what is on disk; ``--rewrite`` writes each card's files again from its
+``bead_card.json`` (:func:`jaxfric.cards.formats.load_card`), with the current writers, without running it.
 """
 
 from __future__ import annotations
@@ -31,13 +35,17 @@ import numpy as np
 
 from benchutil import write_rows
 from jaxfric.cards import bead_card, write_card
+from jaxfric.cards.formats import line_friction, load_card
 from jaxfric.io.batch import run_case
+from kinematic_hardening import LAWS
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = os.path.join(HERE, "results", "bead_cards")
 SHAPES = tuple(f"shape{k}" for k in range(1, 10))
 DERIVATIVES = {"shape3": ("R", "t", "mu")}
-KINEMATIC = {"C_kin": (2000.0,), "gamma_kin": (20.0,)}
+KINEMATIC = LAWS["kinematic"]
+S355 = {"shape1_s355_isotropic": LAWS["s355_isotropic"], "shape1_s355_kinematic": LAWS["s355_kinematic"]}
+LABELS = (*SHAPES, "shape1_kinematic", *S355)
 
 
 def compute(name: str, overrides: dict | None = None, label: str | None = None) -> None:
@@ -66,12 +74,21 @@ def row(label: str) -> dict:
     full = s["restraining_force"][-1]
     out = {"shape": label, "H": s["depth"], "restraining_force": full, "bending_force": s["bending_force"][-1],
            "friction_force": s["friction_force"][-1], "normal_force": s["normal_force"][-1],
+           "line_friction": line_friction(load_card(os.path.join(OUT, label, "bead_card.json"))),
            "scatter": s["scatter"][-1], "thinning": s["thinning"][-1], "eqps_after": s["eqps_after"][-1],
            "eqps_after_max": s["eqps_after_max"][-1],
            "full_run_force": check["steady_drawing_force"], "full_run_error": check["error_estimate"],
            "difference": None if check["steady_drawing_force"] is None else full - check["steady_drawing_force"],
            "full_run_converged": check.get("converged", True), "penalty_runs": len(s.get("notes", []))}
     return out
+
+
+def rewrite(label: str) -> None:
+    """The files of the card ``label`` written again from its JSON, its consistency entry kept."""
+    path = os.path.join(OUT, label, "bead_card.json")
+    with open(path) as fh:
+        extra = {"consistency": json.load(fh)["consistency"]}
+    write_card(load_card(path), os.path.dirname(path), extra=extra)
 
 
 def derivative_rows(label: str) -> list[dict]:
@@ -99,7 +116,7 @@ def figure(labels: list[str], path: str) -> None:
         with open(os.path.join(OUT, label, "bead_card.json")) as fh:
             s = json.load(fh)
         d = np.asarray(s["penetration"]) / s["depth"]
-        style = {"color": colours(k % 10), "ls": "--" if label.endswith("_kinematic") else "-", "marker": "o"}
+        style = {"color": colours(k % 10), "ls": "--" if label.startswith("shape1_") else "-", "marker": "o"}
         axes[0].plot(d, s["restraining_force"], label=label, **style)
         axes[1].plot(d, s["normal_force"], label=label, **style)
     for ax, what in zip(axes, ("restraining force", "normal (opening) force"), strict=True):
@@ -114,16 +131,26 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--only", nargs="+", choices=SHAPES)
     p.add_argument("--kinematic", action="store_true", help="shape1's card with a back stress")
+    p.add_argument("--s355", action="store_true", help="shape1's card with a published steel's cyclic fit and "
+                   "with the isotropic law of its monotonic curve")
     p.add_argument("--table", action="store_true", help="only read back the cards on disk")
+    p.add_argument("--rewrite", action="store_true", help="write the cards' files again from their JSON")
     a = p.parse_args(argv)
-    if not a.table:
-        for name in a.only or ([] if a.kinematic else SHAPES):
+    if a.rewrite:
+        for label in LABELS:
+            if os.path.exists(os.path.join(OUT, label, "bead_card.json")):
+                rewrite(label)
+    elif not a.table:
+        for name in a.only or ([] if a.kinematic or a.s355 else SHAPES):
             compute(name)
         if a.kinematic:
             compute("shape1", KINEMATIC, "shape1_kinematic")
-        if a.only or a.kinematic:
+        if a.s355:
+            for label, law in S355.items():
+                compute("shape1", law, label)
+        if a.only or a.kinematic or a.s355:
             return 0
-    labels = [s for s in (*SHAPES, "shape1_kinematic") if os.path.exists(os.path.join(OUT, s, "bead_card.json"))]
+    labels = [s for s in LABELS if os.path.exists(os.path.join(OUT, s, "bead_card.json"))]
     if not labels:
         print("no card on disk", file=sys.stderr)
         return 1

@@ -1,13 +1,18 @@
 """A bead card in the input formats of stamping codes (``../shared/spec/drawbead_cards.md``).
 
 - LS-DYNA (:func:`lsdyna_deck`): ``*CONTACT_DRAWBEAD`` with its card 4 ``LCIDRF LCIDNF DBDTH DFSCL NUMINT
-  DBPID ELOFF`` and two ``*DEFINE_CURVE``: the restraining force's bending component (``LCIDRF``; the
-  contact adds its friction as FS times the normal force, so FS = FD = the card's mu) and the normal
-  force (``LCIDNF``), per unit bead length against the bead displacement 0 .. DBDTH. With ``total`` the
-  first curve is the whole restraining force and FS = FD = 0 (the friction then is in the curve). Fields
-  of 10 characters on the cards, abscissa and ordinate in two fields of 20 on the curves' lines, ``$``
-  comment lines giving the units and what to fill in (the bead line's node set SSID and the blank's part
-  MSID are the deck's).
+  DBPID ELOFF`` and two ``*DEFINE_CURVE`` (header ``LCID SIDR SFA SFO OFFA OFFO DATTYP LCINT``): the
+  restraining force's bending component (``LCIDRF``) and the normal force (``LCIDNF``), per unit bead
+  length against the bead displacement 0 .. DBDTH. The contact adds its friction as FS times the normal
+  force, so FS = FD = the bead line's effective coefficient (:func:`line_friction`: the card's friction
+  component over its normal force at full depth), with which the deck's restraining force at full depth
+  is the card's. It is not the sheet's mu: the friction acts on the sheet's wraps around the bead's
+  radii, whose normal forces add up to more than the bead's opening force (0.30 to 0.33 against mu = 0.15
+  on the nine shapes; docs/results.md, bead cards). With ``total`` the first curve is the whole
+  restraining force and FS = FD = 0 (the friction then is in the curve, exact at every penetration).
+  Fields of 10 characters on the cards, abscissa and ordinate in two fields of 20 on the curves' lines,
+  ``$`` comment lines giving the units and what to fill in (the bead line's node set SSID and the blank's
+  part MSID are the deck's).
 - OpenRadioss (:func:`radioss_interface`): ``/INTER/TYPE8`` with the full-depth values Fn (normal force)
   and Ft (restraining force) per unit length and DEPTH, the block format's integers in fields of 10
   characters and reals in fields of 20. The solver ramps the normal force linearly with penetration up
@@ -30,7 +35,8 @@ import numpy as np
 from ..io.output import json_ready
 from .bead import BeadCard
 
-__all__ = ["lsdyna_deck", "radioss_interface", "csv_table", "CSV_COLUMNS", "card_summary", "write_card"]
+__all__ = ["lsdyna_deck", "radioss_interface", "csv_table", "CSV_COLUMNS", "card_summary", "write_card", "load_card",
+           "line_friction"]
 
 # (header, attribute or function of the card) of the CSV, in order.
 CSV_COLUMNS = (
@@ -69,13 +75,22 @@ def _meta(card: BeadCard, comment: str) -> list[str]:
             f"{comment} units: mm, N/mm (force per unit bead length); overrides {card.overrides or {}}"]
 
 
+def line_friction(card: BeadCard) -> float:
+    """The bead line's effective friction coefficient: the card's friction component over its normal force at
+    full depth (the sheet's mu where the normal force is zero), so that bending component + coefficient x
+    normal force is the card's restraining force at full depth (LS-DYNA's FS, FD; module docstring)."""
+    normal = float(card.normal_force[-1])
+    return float(card.friction_force[-1]) / normal if normal > 0.0 else float(card.mu)
+
+
 def _law_note(card: BeadCard, total: bool) -> list[str]:
-    """A comment for a card made with a friction law of pressure or speed: FS and FD hold only its mu_0."""
+    """A comment for a card made with a friction law of pressure or speed: FS = FD holds the law's effect at the
+    card's pressures and speed, and no decay of its own."""
     law = (card.overrides or {}).get("friction_law", "coulomb")
     if law == "coulomb" or total:
         return []
-    return [f"$ friction_law = {law}: the runs' friction varies with pressure or speed, FS = FD = its mu_0 only;",
-            "$ the restraining force with that law is the card's total (write it with --total)"]
+    return [f"$ friction_law = {law}: FS = FD is the effective coefficient at the card's pressures and drawing speed,",
+            "$ with no pressure or speed dependence of its own (DC = 0)"]
 
 
 def lsdyna_deck(card: BeadCard, *, ssid: int = 1, msid: int = 2, sstyp: int = 4, mstyp: int = 3,
@@ -84,26 +99,35 @@ def lsdyna_deck(card: BeadCard, *, ssid: int = 1, msid: int = 2, sstyp: int = 4,
     (module docstring). ``ssid``/``sstyp``: the bead line's set and its type (4: node set), ``msid``/
     ``mstyp``: the blank (3: part)."""
     lcid_rf, lcid_nf = lcids
-    mu = 0.0 if total else card.mu
+    fs = 0.0 if total else line_friction(card)
     rf = card.restraining_force if total else card.bending_force
     what = "restraining force (total)" if total else "bending component of the restraining force"
+    if total:
+        friction = ["$ FS = FD = 0: the friction component is in the LCIDRF curve"]
+    else:
+        ff, nf, rf_h = float(card.friction_force[-1]), float(card.normal_force[-1]), float(card.restraining_force[-1])
+        friction = [f"$ FS = FD = {fs:.6g}: the bead line's effective friction, friction component / normal",
+                    f"$ force at full depth ({ff:.6g} / {nf:.6g} N/mm), not the sheet's mu = {card.mu:g}; with it",
+                    f"$ the restraining force at full depth is the card's {rf_h:.6g} N/mm, "
+                    f"of which {float(card.bending_force[-1]):.6g} bending"]
     out = ["*KEYWORD", *_meta(card, "$"),
            f"$ LCIDRF: {what}; LCIDNF: normal force; abscissa: bead displacement 0 .. DBDTH (mm)",
            "$ set SSID (the bead line) and MSID (the blank) to the deck's own ids",
+           *friction,
            *_law_note(card, total),
            "*CONTACT_DRAWBEAD",
            "$     SSID      MSID     SSTYP     MSTYP    SBOXID    MBOXID       SPR       MPR",
            "".join(_f10(v) for v in (ssid, msid, sstyp, mstyp, 0, 0, 0, 0)),
            "$       FS        FD        DC        VC       VDC    PENCHK        BT        DT",
-           "".join(_f10(v) for v in (mu, mu, 0.0, 0.0, 0.0, 0, 0.0, 1e20)),
+           "".join(_f10(v, digits=6) for v in (fs, fs, 0.0, 0.0, 0.0, 0, 0.0, 1e20)),
            "$      SFS       SFM       SST       MST      SFST      SFMT       FSF       VSF",
            "".join(_f10(v) for v in (1.0, 1.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0)),
            "$   LCIDRF    LCIDNF     DBDTH     DFSCL    NUMINT     DBPID     ELOFF",
            "".join(_f10(v) for v in (lcid_rf, lcid_nf, card.depth, 1.0, 0, 0, 0))]
     for lcid, title, values in ((lcid_rf, what, rf), (lcid_nf, "normal force", card.normal_force)):
         out += ["*DEFINE_CURVE", f"$ {title} (N/mm) against bead displacement (mm)",
-                "$     LCID      SIDR       SFA       SFO      OFFA      OFFO    DATTYP",
-                "".join(_f10(v) for v in (lcid, 0, 1.0, 1.0, 0.0, 0.0, 0)),
+                "$     LCID      SIDR       SFA       SFO      OFFA      OFFO    DATTYP     LCINT",
+                "".join(_f10(v) for v in (lcid, 0, 1.0, 1.0, 0.0, 0.0, 0, 0)),
                 "$                 A1                  O1"]
         out += [_f20(a) + _f20(o) for a, o in zip(card.penetration, values, strict=True)]
     out.append("*END")
@@ -141,8 +165,28 @@ def csv_table(card: BeadCard) -> str:
 
 
 def card_summary(card: BeadCard) -> dict:
-    """Every field of the card and its friction part, JSON-ready (``bead_card.json``)."""
-    return json_ready(dict(card.__dict__, friction_force=card.friction_force))
+    """Every field of the card, its friction part and its line's effective friction, JSON-ready
+    (``bead_card.json``; :func:`load_card` reads it back)."""
+    return json_ready(dict(card.__dict__, friction_force=card.friction_force, line_friction=line_friction(card)))
+
+
+def load_card(path: str) -> BeadCard:
+    """The :class:`BeadCard` of a ``bead_card.json`` that :func:`write_card` wrote (its other entries, such as
+    the experiments' ``consistency``, are left out)."""
+    import dataclasses
+
+    with open(path) as fh:
+        s = json.load(fh)
+    arrays = {f.name for f in dataclasses.fields(BeadCard)} - {"variant", "overrides", "depth", "thickness", "mu",
+                                                                "derivatives", "wall_s", "notes"}
+    fields = {f.name: s[f.name] for f in dataclasses.fields(BeadCard) if f.name in s}
+    fields.update({k: np.asarray(s[k], dtype=float) for k in arrays})
+    fields["derivatives"] = {name: {k: np.asarray(v, dtype=float) for k, v in d.items()}
+                             for name, d in s.get("derivatives", {}).items()}
+    fields["notes"] = tuple(s.get("notes", ()))
+    # JSON has no tuples: the config's sequence fields (back stresses, a steady window) come back as lists.
+    fields["overrides"] = {k: tuple(v) if isinstance(v, list) else v for k, v in (s.get("overrides") or {}).items()}
+    return BeadCard(**fields)
 
 
 def write_card(card: BeadCard, out_dir: str, *, total: bool = False, extra: dict | None = None) -> dict:
