@@ -32,7 +32,8 @@ the flat die at 50 N/mm drawn 0.1 mm at 0.25, 1 and 4 mm/s made by ``lcp_ssn`` a
 ``lcp_ssn`` at 240 x 2 with five times the reference's increments (the Jacobian through the exact path's
 implicit derivatives); the constant mu fitted to the same curves; ``friction_laws_speed.csv``,
 ``friction_laws_speed_curves.csv``, ``friction_laws_speed.png`` (``--speed-figure`` redraws it from the
-two) and LS-DYNA's card 2 of the fitted law (``friction_laws/friction_speed.k``).
+two) and the fitted law's cards: LS-DYNA's card 2 (``friction_laws/friction_speed.k``) and OpenRadioss's
+``/FRICTION`` with its exponential decay, ``Ifric`` = 4 (``friction_laws/friction_speed.rad``).
 ``--speed-increments``: the model at the true law against those curves, by mesh and increments
 (``friction_laws_speed_increments.csv``). ``--period``: steady sliding against the speed filter's period
 (``friction_laws_period.csv``).
@@ -280,17 +281,13 @@ def speed(root: str, noise: float, seed: int) -> None:
     for row in rows:
         keys += [k for k in row if k not in keys]
     write_rows(os.path.join(RESULTS, "friction_laws_speed.csv"), [{k: row.get(k, "") for k in keys} for row in rows])
-    mu, mu_d, decay = results["speed_law"]["x"]
-    out = os.path.join(RESULTS, "friction_laws")
-    os.makedirs(out, exist_ok=True)
-    with open(os.path.join(out, "friction_speed.k"), "w") as fh:
-        fh.write(lsdyna_friction(VelocityDecay(mu_d, decay), mu))
     speed_figure()
 
 
 def speed_figure() -> None:
-    """``friction_laws_speed.png`` from ``friction_laws_speed_curves.csv`` and ``friction_laws_speed.csv``
-    (``--speed-figure``: only this)."""
+    """``friction_laws_speed.png`` from ``friction_laws_speed_curves.csv`` and ``friction_laws_speed.csv``, and the
+    fitted law's cards, LS-DYNA's card 2 and OpenRadioss's ``/FRICTION`` (``Ifric`` = 4), in
+    ``friction_laws/friction_speed.k`` and ``.rad`` (``--speed-figure``: only this)."""
     data, fitted = {}, {"law": {}, "coulomb": {}}
     with open(os.path.join(RESULTS, "friction_laws_speed_curves.csv")) as fh:
         rows = list(csv.DictReader(fh))
@@ -304,6 +301,15 @@ def speed_figure() -> None:
     results = {name: {"x": np.array([float(fits[name][k]) for k in fits[name]["parameters"].split()])}
                for name in fits}
     _speed_figure(data, fitted, results, os.path.join(RESULTS, "friction_laws_speed.png"))
+    mu, mu_d, decay = results["speed_law"]["x"]
+    out = os.path.join(RESULTS, "friction_laws")
+    os.makedirs(out, exist_ok=True)
+    law = VelocityDecay(mu_d, decay)
+    title = "flat die, mu(v) fitted by jaxfric (experiments/friction_laws.py --speed)"
+    for name, text in (("friction_speed.k", lsdyna_friction(law, mu)), ("friction_speed.rad",
+                                                                          radioss_friction(law, mu, title=title))):
+        with open(os.path.join(out, name), "w") as fh:
+            fh.write(text)
 
 
 def _column(rows: list, name: str) -> np.ndarray:

@@ -210,8 +210,23 @@ def test_openradioss_friction_card_reads_back_to_the_law():
     p, v = 12.0, 3.0
     card_mu = float(fric) + c[0] * p + c[1] * v + c[2] * p * v + c[3] * p * p + c[4] * v * v
     assert card_mu == pytest.approx(float(law.coefficient(0.18, p, v)), rel=1e-12)
+
+
+def test_openradioss_friction_card_of_the_decay_law_reads_back_to_the_law():
+    """/FRICTION with Ifric = 4 (OpenRadioss's exponential decay mu = C1 + (Fric - C1) exp(-C2 v)): Fric the
+    static coefficient, C1 the dynamic one, C2 the decay (s/mm); C3 .. C6 unused."""
+    law = VelocityDecay(0.11, 0.35)
+    lines = [line for line in radioss_friction(law, 0.17, fric_id=3).splitlines() if not line.startswith("#")]
+    assert lines[0] == "/FRICTION/3"
+    assert int(_fields(lines[2], (10, 10, 20, 10))[0]) == 4
+    c = [float(v) for v in _fields(lines[3], (20,) * 5)]
+    fric = float(_fields(lines[4], (20, 20, 20))[1])
+    assert fric == 0.17 and c == [0.11, 0.35, 0.0, 0.0, 0.0]
+    for v in (0.0, 1.0, 4.0):
+        card_mu = c[0] + (fric - c[0]) * np.exp(-c[1] * v)
+        assert card_mu == pytest.approx(float(law.coefficient(0.17, 20.0, v)), rel=1e-14)
     with pytest.raises(ValueError, match="law"):
-        radioss_friction(VelocityDecay(0.1, 1.0), 0.18)
+        radioss_friction(object(), 0.18)
 
 
 def test_lsdyna_friction_card_reads_back_to_the_decay_law():

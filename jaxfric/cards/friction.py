@@ -2,10 +2,13 @@
 
 - OpenRadioss (:func:`radioss_friction`): ``/FRICTION`` with ``Ifric`` = 1, the generalised viscous law
   mu = Fric + C1 p + C2 v + C3 p v + C4 p^2 + C5 v^2, which a :class:`~jaxfric.contact.friction.Polynomial`
-  fills term by term (Fric = mu_0). Lines: the integers ``Ifric``, ``Ifiltr`` in fields of 10 characters,
-  ``Xfreq`` in 20 and ``Iform`` in 10; then C1 .. C5 and C6, Fric, VISF in fields of 20 (blank fields
-  take the code's defaults). The parts or groups it applies to, and the interfaces that use it, are the
-  deck's.
+  fills term by term (Fric = mu_0); or ``Ifric`` = 4, the exponential decay mu = C1 + (Fric - C1)
+  exp(-C2 v), v the magnitude of the sliding speed, which a :class:`~jaxfric.contact.friction.VelocityDecay`
+  fills as Fric = mu_0, C1 = mu_d, C2 = decay (OpenRadioss's contact force routines, for example
+  ``engine/source/interfaces/int07/i7for3.F``, and its starter's printout of the law). Lines: the
+  integers ``Ifric``, ``Ifiltr`` in fields of 10 characters, ``Xfreq`` in 20 and ``Iform`` in 10; then
+  C1 .. C5 and C6, Fric, VISF in fields of 20 (blank fields take the code's defaults). The parts or groups
+  it applies to, and the interfaces that use it, are the deck's.
 - LS-DYNA (:func:`lsdyna_friction`): card 2 of a ``*CONTACT_...`` keyword, ``FS FD DC VC VDC PENCHK BT
   DT`` in fields of 10, for a :class:`~jaxfric.contact.friction.VelocityDecay` (FS = mu_0, FD = mu_d,
   DC = decay; the rest blank: the code's defaults). LS-DYNA's contact friction has no pressure term, so a
@@ -27,19 +30,24 @@ __all__ = ["radioss_friction", "lsdyna_friction", "friction_csv"]
 
 
 def radioss_friction(law: FrictionLaw, mu0: float, *, fric_id: int = 1, title: str = "jaxfric friction law") -> str:
-    """The OpenRadioss ``/FRICTION`` block of a :class:`Polynomial` ``law`` about the Coulomb coefficient
-    ``mu0`` (module doc)."""
-    if not isinstance(law, Polynomial):
+    """The OpenRadioss ``/FRICTION`` block of a :class:`Polynomial` (``Ifric`` = 1) or :class:`VelocityDecay`
+    (``Ifric`` = 4) ``law`` about the Coulomb (static) coefficient ``mu0`` (module doc)."""
+    if isinstance(law, Polynomial):
+        ifric, c = 1, [float(getattr(law, k)) for k in Polynomial.TERMS]
+        formula = (f"mu = max({float(mu0):.6g} + {c[0]:.6g} p + {c[1]:.6g} v + {c[2]:.6g} p v + {c[3]:.6g} p^2 "
+                   f"+ {c[4]:.6g} v^2, 0)")
+    elif isinstance(law, VelocityDecay):
+        ifric, c = 4, [float(law.mu_d), float(law.decay), 0.0, 0.0, 0.0]
+        formula = f"mu = {c[0]:.6g} + ({float(mu0):.6g} - {c[0]:.6g}) exp(-{c[1]:.6g} v)"
+    else:
         raise ValueError(f"field 'law': no OpenRadioss /FRICTION form for {type(law).__name__} here")
-    c = [float(getattr(law, k)) for k in Polynomial.TERMS]
     lines = [
-        f"# jaxfric: mu = max({float(mu0):.6g} + {c[0]:.6g} p + {c[1]:.6g} v + {c[2]:.6g} p v + {c[3]:.6g} p^2 "
-        f"+ {c[4]:.6g} v^2, 0)",
+        f"# jaxfric: {formula}",
         "# p: contact pressure (MPa), v: sliding speed (mm/s); units mm, N, s",
         f"/FRICTION/{int(fric_id)}",
         title[:100],
         "#   I_fric   I_filtr              X_freq    I_form",
-        _f10(1) + _f10(0) + " " * 20 + " " * 10,
+        _f10(ifric) + _f10(0) + " " * 20 + " " * 10,
         "#                 C1                  C2                  C3                  C4                  C5",
         "".join(_f20(v) for v in c),
         "#                 C6                FRIC               VIS_f",
