@@ -175,7 +175,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="also the forces' derivatives for these config fields, e.g. R,mu")
     card.add_argument("--total", action="store_true",
                       help="LS-DYNA: LCIDRF is the whole restraining force and FS = FD = 0 (default: its "
-                           "bending component, the contact adding mu times the normal force)")
+                           "bending component, the contact adding FS times the normal force, FS = FD the bead "
+                           "line's effective friction: the card's friction part over its normal force at full depth)")
     card.add_argument("--out", action=_Once, metavar="DIR", help="output directory (default cards/VARIANT)")
     card.add_argument("--quiet", action="store_true", help="no progress lines")
     report = sub.add_parser("report", help="studies across many runs (accuracy-cost)",

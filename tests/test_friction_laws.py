@@ -143,6 +143,48 @@ def test_speed_limits_of_the_decay_law_are_coulomb_runs():
     assert slow_run.compile_s < 0.05
 
 
+DECAY = {"friction_law": "velocity_decay", "mu": 0.18, "mu_d": 0.1, "decay": 1.0, "F_clamp": 50.0, "U_draw": 0.1,
+         "draw_speed": 1.0}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algorithm", ["penalty", "auglag", "lcp_ssn", "lcp_lemke"])
+def test_every_formulation_slides_at_the_decay_law_s_coefficient(algorithm):
+    """The speed law on every contact formulation: the flat die slides as a whole at 1 mm/s, so its steady
+    drawing force is mu(1) F_clamp = (0.1 + 0.08 e^-1) 50 N/mm, to 1e-4 (the speed filter's approach, as
+    for the pressure-and-speed polynomial above)."""
+    res = run(scenes.make("flat_die", "const_force", algorithm, {**SMALL, **DECAY}))
+    assert res.converged, res.message
+    expected = (0.1 + 0.08 * np.exp(-1.0)) * 50.0
+    assert res.history["drawing_force"][-20:] == pytest.approx(np.full(20, expected), rel=1e-4)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algorithm", ["penalty", "lcp_ssn"])
+def test_derivatives_of_the_decay_law_s_parameters_match_central_differences(algorithm):
+    """d(drawing force)/d(mu_0, mu_d, decay) at the end of the slide, forward mode through the whole path
+    against central differences (the Newton increment test at 1e-6 on the exact path, as above)."""
+    par = parameterize("flat_die", ["mu", "mu_d", "decay"], variant="const_force", algorithm=algorithm,
+                       overrides={**SMALL, **DECAY})
+    f = path_function(par, newton=NewtonOptions(du_rtol=1e-6, max_iterations=60) if algorithm == "lcp_ssn" else None)
+
+    @jax.jit
+    def force(p):
+        hist, _ = f(p)
+        return hist.observed["drawing_force"][hist.n_rows - 1]
+
+    p0 = jnp.asarray(par.p0)
+    grad = np.asarray(jax.jacfwd(force)(p0))
+    for i, h in enumerate((1e-6, 1e-6, 1e-6)):
+        e = np.zeros(3)
+        e[i] = h
+        fd = (float(force(p0 + e)) - float(force(p0 - e))) / (2 * h)
+        assert grad[i] == pytest.approx(fd, rel=1e-5), par.names[i]
+    # At v = 1 mm/s: dF/dmu_0 = e^-1 F_clamp, dF/dmu_d = (1 - e^-1) F_clamp, dF/ddecay = -(mu_0 - mu_d) e^-1 F_clamp.
+    np.testing.assert_allclose(grad, np.array([np.exp(-1.0), 1.0 - np.exp(-1.0), -0.08 * np.exp(-1.0)]) * 50.0,
+                               rtol=1e-3)
+
+
 @pytest.mark.parametrize("algorithm", ["penalty", "lcp_ssn"])
 def test_derivatives_of_the_law_parameters_match_central_differences(algorithm):
     """Forward mode through the whole path against central differences, for the law's constant, pressure
