@@ -8,7 +8,7 @@ R, t and mu on shape3), written as ``experiments/results/bead_cards/<shape>/bead
 and its consistency check: the full-depth bead (``lock_control=depth``) drawn the spec's whole 55 mm with
 the spec's steady window [35, 55] mm, against the card's full-depth point (pulled 35, 46 or 58 mm for the
 6, 9 and 12 mm beads, the last 10 mm its window: :func:`jaxfric.cards.bead.card_pull`), within that run's
-error estimate. ``--kinematic``: shape1's card again with one Armstrong-Frederick
+error estimate, for the restraining force and for the normal force. ``--kinematic``: shape1's card again with one Armstrong-Frederick
 back stress (``C_kin=2000, gamma_kin=20``, the same monotonic curve; :mod:`jaxfric.fem.kinematic`), into
 ``bead_cards/shape1_kinematic``. ``--s355``: shape1's card with the sheet of a published cyclic fit,
 Hartloper et al.'s S355J2+N with its two back stresses, and with the isotropic law of the same monotonic
@@ -17,11 +17,13 @@ curve (``experiments/kinematic_hardening.py``'s ``s355`` pair), into ``bead_card
 
 The table (``experiments/results/bead_cards.csv``) has, per shape, the full-depth forces, thinning and
 plastic strain, the consistency run's force and error estimate (``bead_cards_derivatives.csv``: the
-derivatives per penetration); the figure
+derivatives per penetration of the restraining force, its bending part, the normal force, the thinning
+and the mean and largest plastic strain after the bead); the figure
 (``experiments/results/bead_cards.png``) the restraining and normal forces of every shape against the
 penetration as a fraction of its height. ``--only`` computes some shapes (to spread them over processes),
 ``--table`` only reads back what is on disk; ``--rewrite`` writes each card's files again from its
-``bead_card.json`` (:func:`jaxfric.cards.formats.load_card`), with the current writers, without running it.
+``bead_card.json`` (:func:`jaxfric.cards.formats.load_card`), with the current writers, without running it;
+``--recheck LABEL ...`` runs those cards' consistency runs again.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 
 import numpy as np
@@ -37,6 +40,7 @@ from benchutil import write_rows
 from jaxfric.cards import bead_card, write_card
 from jaxfric.cards.formats import line_friction, load_card
 from jaxfric.io.batch import run_case
+from jaxfric.io.instants import steady_drawing_force, steady_rows
 from kinematic_hardening import LAWS
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -48,23 +52,52 @@ S355 = {"shape1_s355_isotropic": LAWS["s355_isotropic"], "shape1_s355_kinematic"
 LABELS = (*SHAPES, "shape1_kinematic", *S355)
 
 
+def consistency(name: str, overrides: dict | None, out: str) -> dict:
+    """The full-depth bead (``lock_control=depth``) drawn the spec's whole 55 mm (run into ``out``/
+    full_depth_run, its summary kept): its steady drawing force with the run's error estimate, and its
+    steady normal force (on the lower tool) with the estimate of the same components (contact, Newton
+    tolerance, the force's own scatter over the window)."""
+    log = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    run_dir = os.path.join(out, "full_depth_run")
+    done = run_case(run_dir, "blankholder", name, "lcp_ssn", {**(overrides or {}), "lock_control": "depth"},
+                    tag="bead_cards", log=log)
+    s, h = done["summary"], done["history"]
+    for f in os.listdir(run_dir):  # keep its summary only: the history is long and the card is the result
+        if f != "summary.json":
+            os.remove(os.path.join(run_dir, f))
+    window = s.get("steady_window")
+    estimate = s.get("error_estimate", {})
+    check = {"steady_drawing_force": s.get("steady_drawing_force"), "converged": s["converged"],
+             "error_estimate": estimate.get("absolute"), "steady_window": window, "message": s["message"]}
+    values = {"phase": h["phase_name"], "drawing_displacement": h["drawing_displacement"]}
+    normal = None if window is None else steady_drawing_force({**values, "drawing_force": h["clamping_force"]},
+                                                                window)
+    if normal is not None:
+        rows = steady_rows(h["phase_name"], h["drawing_displacement"], window)
+        scatter = float(np.std(np.asarray(h["clamping_force"])[rows])) / abs(normal)
+        parts = estimate.get("components", {})
+        relative = float(np.sqrt(parts.get("contact", 0.0) ** 2 + parts.get("solver", 0.0) ** 2 + scatter**2))
+        check.update(steady_normal_force=normal, normal_error_estimate=relative * abs(normal))
+    return check
+
+
 def compute(name: str, overrides: dict | None = None, label: str | None = None) -> None:
     """The card of shape ``name`` and its consistency run, into ``OUT/<label>``."""
     label = label or name
     out = os.path.join(OUT, label)
     log = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     card = bead_card(name, overrides=overrides, derivatives=DERIVATIVES.get(label, ()), progress=log)
-    run_dir = os.path.join(out, "full_depth_run")
-    done = run_case(run_dir, "blankholder", name, "lcp_ssn", {**(overrides or {}), "lock_control": "depth"},
-                    tag="bead_cards", log=log)
-    for f in os.listdir(run_dir):  # keep its summary only: the history is long and the card is the result
-        if f != "summary.json":
-            os.remove(os.path.join(run_dir, f))
-    s = done["summary"]
-    check = {"steady_drawing_force": s.get("steady_drawing_force"), "converged": s["converged"],
-             "error_estimate": s.get("error_estimate", {}).get("absolute"), "steady_window": s.get("steady_window"),
-             "message": s["message"]}
-    write_card(card, out, extra={"consistency": check})
+    write_card(card, out, extra={"consistency": consistency(name, overrides, out)})
+
+
+def recheck(label: str) -> None:
+    """The consistency run of the card ``label`` on disk again, its entry and files rewritten."""
+    path = os.path.join(OUT, label, "bead_card.json")
+    card = load_card(path)
+    name = label.split("_")[0]
+    overrides = card.overrides or None
+    shutil.rmtree(os.path.join(OUT, label, "full_depth_run"), ignore_errors=True)
+    write_card(card, os.path.dirname(path), extra={"consistency": consistency(name, overrides, os.path.dirname(path))})
 
 
 def row(label: str) -> dict:
@@ -78,6 +111,8 @@ def row(label: str) -> dict:
            "scatter": s["scatter"][-1], "thinning": s["thinning"][-1], "eqps_after": s["eqps_after"][-1],
            "eqps_after_max": s["eqps_after_max"][-1],
            "full_run_force": check["steady_drawing_force"], "full_run_error": check["error_estimate"],
+           "full_run_normal_force": check.get("steady_normal_force"),
+           "full_run_normal_error": check.get("normal_error_estimate"),
            "difference": None if check["steady_drawing_force"] is None else full - check["steady_drawing_force"],
            "full_run_converged": check.get("converged", True), "penalty_runs": len(s.get("notes", []))}
     return out
@@ -99,8 +134,10 @@ def derivative_rows(label: str) -> list[dict]:
     for k, d in enumerate(s["penetration"]):
         r = {"shape": label, "penetration": d}
         for name, values in s["derivatives"].items():
-            r[f"dF_d{name}"] = values["restraining_force"][k]
-            r[f"dN_d{name}"] = values["normal_force"][k]
+            for short, output in (("F", "restraining_force"), ("Fb", "bending_force"), ("N", "normal_force"),
+                                  ("thinning", "thinning"), ("eqps", "eqps_after"), ("eqps_max", "eqps_after_max")):
+                if output in values:
+                    r[f"d{short}_d{name}"] = values[output][k]
         out.append(r)
     return out if s["derivatives"] else []
 
@@ -135,8 +172,13 @@ def main(argv=None) -> int:
                    "with the isotropic law of its monotonic curve")
     p.add_argument("--table", action="store_true", help="only read back the cards on disk")
     p.add_argument("--rewrite", action="store_true", help="write the cards' files again from their JSON")
+    p.add_argument("--recheck", nargs="+", choices=LABELS, metavar="LABEL",
+                   help="run these cards' consistency runs again (their files rewritten), then the table")
     a = p.parse_args(argv)
-    if a.rewrite:
+    if a.recheck:
+        for label in a.recheck:
+            recheck(label)
+    elif a.rewrite:
         for label in LABELS:
             if os.path.exists(os.path.join(OUT, label, "bead_card.json")):
                 rewrite(label)

@@ -1,7 +1,7 @@
 """Friction laws of pressure and speed identified from drawing curves: ``python experiments/friction_laws.py``.
 
     python experiments/friction_laws.py [--root DIR] [--noise 0.005] [--seed 1]
-        [--card | --speed | --speed-figure | --speed-increments | --period]
+        [--card | --speed | --speed-figure | --speed-increments | --period | --pressure-speed]
 
 The flat die (spec section 2, ``const_force``) at four clamping forces, 25, 50, 100 and 200 N/mm, so the
 contact pressures span 0 to about 30 MPa. The "measured" curves (drawing force against drawing
@@ -37,6 +37,13 @@ two) and the fitted law's cards: LS-DYNA's card 2 (``friction_laws/friction_spee
 ``--speed-increments``: the model at the true law against those curves, by mesh and increments
 (``friction_laws_speed_increments.csv``). ``--period``: steady sliding against the speed filter's period
 (``friction_laws_period.csv``).
+
+The pressure-and-speed law (``--pressure-speed``): mu(p, v) = 0.18 - 0.004 p + 0.01 v (OpenRadioss's
+``Ifric`` = 1 with C1 and C2), the flat die at 25 and 100 N/mm each drawn 50 um at 0.5 and 2 mm/s, the
+four curves made as the pressure law's (``lcp_ssn`` at 480 x 4), fitted as they are (``penalty`` at
+240 x 2): (mu, mu_p, mu_v) jointly from the four curves, with and without noise, and a constant mu;
+``friction_laws_pressure_speed.csv``, ``friction_laws_pressure_speed_curves.csv`` and the fitted law's
+``/FRICTION`` block, ``friction_laws/friction_pressure_speed.rad``.
 
 Then what the two fitted laws predict elsewhere (``--card``: only this part, from the table on disk):
 shape1's bead card (restraining force against
@@ -76,8 +83,13 @@ LAW = {"friction_law": "polynomial"}
 # Drawn 50 um, beyond the spec's 30: at 200 N/mm the sheet slides as a whole only from about 38 um on.
 STROKE = {"U_draw": 0.05}
 REFERENCE_MESH = "480x4"
-START = {"mu": 0.15, "mu_p": 0.0}
-BOUNDS = {"mu": (0.0, 1.0), "mu_p": (-0.05, 0.05)}
+START = {"mu": 0.15, "mu_p": 0.0, "mu_v": 0.0}
+BOUNDS = {"mu": (0.0, 1.0), "mu_p": (-0.05, 0.05), "mu_v": (-0.05, 0.05)}
+
+# The pressure-and-speed law (--pressure-speed): two clamping forces, each at two drawing speeds.
+PS_TRUTH = {"mu": 0.18, "mu_p": -0.004, "mu_v": 0.01}
+PS_CASES = {f"F{F:g}_v{v:g}": {**LAW, **STROKE, "F_clamp": F, "draw_speed": v} for F in (25.0, 100.0)
+            for v in (0.5, 2.0)}
 
 # The speed law (--speed): LS-DYNA's decay, curves at three drawing speeds, one clamping force, drawn
 # 0.1 mm so that each curve has its breakaway (mu_0) and its steady sliding at its speed (mu(v)).
@@ -195,7 +207,10 @@ def main(argv=None) -> None:
     ap.add_argument("--speed-figure", action="store_true", help="only the speed fit's figure, from its CSV files")
     ap.add_argument("--speed-increments", action="store_true",
                     help="only the model at the true speed law against the reference curves, by increments")
+    ap.add_argument("--pressure-speed", action="store_true", help="only the pressure-and-speed law's identification")
     a = ap.parse_args(argv)
+    if a.pressure_speed:
+        return pressure_speed(a.root, a.noise, a.seed)
     if a.speed_increments:
         return speed_increments(a.root)
     if a.speed_figure:
@@ -254,6 +269,35 @@ def _fits(fits: dict, truth: dict, rows: list, start: dict | None = None, bounds
         rows.append(row)
         print(name, {k: v for k, v in row.items() if not k.endswith("_truth")}, flush=True)
     return results
+
+
+def pressure_speed(root: str, noise: float, seed: int) -> None:
+    """mu(p, v) = mu + mu_p p + mu_v v from the flat die's curves at two clamping forces and two speeds, fitted
+    jointly on the penalty path (module docstring), and a constant mu fitted to the same curves."""
+    rows: list = []
+    data = reference_curves(root, PS_CASES, {**LAW, **PS_TRUTH})
+    clean = {label: f for label, (_, f) in data.items()}
+    rng = np.random.default_rng(seed)
+    noisy = {label: f + noise * np.max(np.abs(f)) * rng.standard_normal(f.shape) for label, f in clean.items()}
+    law_model = JointModel(("mu", "mu_p", "mu_v"), LAW, data, PS_CASES, extra=("F_clamp",))
+    coulomb_cases = {k: {kk: vv for kk, vv in v.items() if kk != "friction_law"} for k, v in PS_CASES.items()}
+    coulomb_model = JointModel(("mu",), {}, data, coulomb_cases, extra=("F_clamp",))
+    results = _fits({"pv_law": (law_model, clean), "pv_coulomb": (coulomb_model, clean),
+                     "pv_law_noisy": (law_model, noisy)}, PS_TRUTH, rows)
+    fitted = {"law": law_model.curves(results["pv_law"]["x"]),
+              "coulomb": coulomb_model.curves(results["pv_coulomb"]["x"])}
+    _write_curves(os.path.join(RESULTS, "friction_laws_pressure_speed_curves.csv"), data, fitted, PS_CASES)
+    keys: list = []
+    for row in rows:
+        keys += [k for k in row if k not in keys]
+    write_rows(os.path.join(RESULTS, "friction_laws_pressure_speed.csv"),
+               [{k: row.get(k, "") for k in keys} for row in rows])
+    mu, mu_p, mu_v = results["pv_law"]["x"]
+    out = os.path.join(RESULTS, "friction_laws")
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, "friction_pressure_speed.rad"), "w") as fh:
+        fh.write(radioss_friction(Polynomial(c_p=mu_p, c_v=mu_v), mu,
+                                  title="flat die, mu(p, v) fitted by jaxfric (experiments/friction_laws.py)"))
 
 
 def speed(root: str, noise: float, seed: int) -> None:

@@ -253,3 +253,64 @@ def test_card_derivatives_match_central_differences_along_the_same_steps():
             pytest.fail(f"a contact status changes within +-1e-8 of {name}")
         got = [card.derivatives[name][k][-1] for k in ("restraining_force", "normal_force")]
         np.testing.assert_allclose(got, (up - down) / (2 * step[i]), rtol=1e-5, err_msg=f"{name}, h = {rel:g}")
+
+
+@pytest.mark.slow
+def test_card_derivatives_of_the_bending_part_thinning_and_plastic_strain_match_central_differences():
+    """shape1 on 1 mm elements at full depth, pulled the card's 35 mm (the sheet that lay upstream then lies
+    over the downstream land): d(thinning, mean and largest eqps after the bead)/d(mu, t) from the final
+    state and d(bending part)/d(t) from the frictionless run, against central differences of the replayed
+    steps (h = 1e-6 of the value, or less where a contact status changes between the two replays), to
+    1e-5 of the row's largest entry."""
+    import jax.numpy as jnp
+
+    from jaxfric.cards.bead import _after_bead_columns, _after_bead_values, card_overrides
+    from jaxfric.identification.params import adaptive_run, parameterize, path_function
+    from jaxfric.io.instants import steady_rows
+
+    names = ("mu", "t")
+    base = {"element_length": 1.0}
+    card = bead_card("shape1", penetrations=(1.0,), overrides=base, derivatives=names)
+    assert np.isfinite(card.thinning[-1]) and card.thinning[-1] > 0.05
+    assert card.derivatives["mu"]["bending_force"][-1] == 0.0
+
+    def differences(mu: float, outputs, names):
+        par = parameterize("blankholder", names, variant="shape1", algorithm="lcp_ssn",
+                           overrides=card_overrides("shape1", 6.0, {**base, "mu": mu}))
+        plan = adaptive_run(par, par.p0).history
+        f = path_function(par, plan=plan, final=True)
+        scene = par.scene
+        mesh = scene.model.mesh
+        u = np.asarray(plan["drawing_displacement"])
+        rows = steady_rows(plan["phase_name"], u, scene.steady_window)
+        cols = None
+
+        def values(p):
+            nonlocal cols
+            h, _, final, nodes = f(jnp.asarray(p))
+            if cols is None:
+                cols = _after_bead_columns(scene, final)
+            force = np.trapezoid(np.asarray(h.observed["drawing_force"])[rows], u[rows]) / (u[rows][-1] - u[rows][0])
+            after = _after_bead_values(cols, nodes, final.u, final.material.eqps, p[-1], mesh.nx, mesh.ny)
+            status = np.stack([np.asarray(h.observed[k]) for k in ("n_active", "n_slip")])
+            return np.array([force, *(float(v) for v in after)])[outputs], status
+
+        out = {}
+        values(par.p0)
+        for i, name in enumerate(names):
+            for rel in (1e-6, 1e-7, 1e-8):
+                step = rel * par.p0[i] * np.eye(len(names))[i]
+                (up, status_up), (down, status_down) = values(par.p0 + step), values(par.p0 - step)
+                if np.array_equal(status_up, status_down):
+                    break
+            else:
+                pytest.fail(f"a contact status changes within +-1e-8 of {name}")
+            out[name] = (up - down) / (2 * step[i])
+        return out
+
+    with_friction = differences(0.15, [1, 2, 3], names)
+    for name in names:
+        got = [card.derivatives[name][k][-1] for k in ("thinning", "eqps_after", "eqps_after_max")]
+        np.testing.assert_allclose(got, with_friction[name], rtol=0, atol=1e-5 * np.max(np.abs(got)), err_msg=name)
+    frictionless = differences(0.0, [0], ("t",))
+    assert card.derivatives["t"]["bending_force"][-1] == pytest.approx(frictionless["t"][0], rel=1e-5)

@@ -17,9 +17,11 @@ is the 3D model's contact). Per penetration:
 - after the bead (the columns that started upstream of the groove and now lie over the downstream
   land): the sheet's thinning 1 - h / t from its current thickness h, and its equivalent plastic strain
   (mean over the columns' points, and the largest);
-- with ``derivatives``: the derivatives of the restraining and normal forces for config fields of the
-  scene (geometry R, r, Rp, H, the sheet's t, friction mu, ...), by forward mode along the run's own
-  step sequence (:func:`jaxfric.identification.params.path_function`).
+- with ``derivatives``: the derivatives of the restraining force, its bending part, the normal force and
+  the thinning and plastic strain after the bead for config fields of the scene (geometry R, r, Rp, H,
+  the sheet's t, friction mu, ...), by forward mode along each run's own step sequence
+  (:func:`jaxfric.identification.params.path_function`; the bending part's from the frictionless run,
+  zero for mu; the thinning's and plastic strain's from the final state, over the same columns).
 
 Schedule [chosen]: every penetration closes in the same number of steps as the full depth does at the
 scene's ``ds_close`` (so that all of them share one compiled program: the closure is a value, not
@@ -71,8 +73,10 @@ class BeadCard:
             error estimate from the steady regime (the runs' discretisation error is not in it).
         thinning: 1 - h / t of the sheet after the bead (-); eqps_after, eqps_after_max: its equivalent
             plastic strain there, mean and largest.
-        derivatives: {field: {"restraining_force": (k,), "normal_force": (k,)}} per unit of the field
-            (empty without ``derivatives``; 0 at penetration 0).
+        derivatives: {field: {output: (k,)}} per unit of the field, for the outputs
+            ``restraining_force``, ``bending_force``, ``normal_force``, ``thinning``, ``eqps_after`` and
+            ``eqps_after_max`` (empty without ``derivatives``; 0 at penetration 0, NaN where the thinning
+            is).
         wall_s: the runs' solve time (s).
         notes: one line per run that the card's algorithm did not complete and the penalty law (with the
             step controller's damper) ran instead.
@@ -129,22 +133,38 @@ def card_overrides(variant: str, penetration: float, overrides: dict | None = No
     return out
 
 
-def _after_bead(scene, final) -> tuple[float, float, float]:
-    """Thinning, mean and largest eqps of the columns that started upstream of the groove (X < -x_g - r)
-    and lie over the downstream land (x_g + r < x < x_g + L) at the end."""
+def _after_bead_columns(scene, final) -> np.ndarray:
+    """The node columns that started upstream of the groove (X < -x_g - r) and lie over the downstream land
+    (x_g + r < x < x_g + L) at the end."""
     config, mesh = scene.config, scene.model.mesh
     groove = groove_geometry(config)
     nx, ny = mesh.nx, mesh.ny
     nodes = np.asarray(mesh.nodes).reshape(nx + 1, ny + 1, 2)
     x = nodes + np.asarray(final.u).reshape(nx + 1, ny + 1, 2)
     X_mid, x_mid = nodes[:, ny // 2, 0], x[:, ny // 2, 0]
-    cols = np.flatnonzero((X_mid < -groove["x_g"] - config.r) & (x_mid > groove["x_g"] + config.r)
+    return np.flatnonzero((X_mid < -groove["x_g"] - config.r) & (x_mid > groove["x_g"] + config.r)
                           & (x_mid < groove["x_g"] + config.L))
+
+
+def _after_bead_values(cols, nodes, u, eqps, t, nx: int, ny: int):
+    """Thinning 1 - h / t and the mean and largest eqps of the columns ``cols``, from the reference nodes
+    (n, 2), the displacements (n, 2) and the points' eqps (n_el, gp): NumPy or JAX arrays (the latter
+    differentiated for the card's derivatives)."""
+    x = (nodes + u).reshape(nx + 1, ny + 1, 2)
+    h = jnp.linalg.norm(x[cols, ny] - x[cols, 0], axis=-1)
+    e = eqps.reshape(nx, ny, -1)[np.minimum(cols, nx - 1)]
+    return 1.0 - jnp.mean(h) / t, jnp.mean(e), jnp.max(e)
+
+
+def _after_bead(scene, final) -> tuple[float, float, float]:
+    """Thinning, mean and largest eqps after the bead (:func:`_after_bead_columns`); NaN where no column has
+    crossed the whole groove."""
+    cols = _after_bead_columns(scene, final)
     if cols.size == 0:
         return math.nan, math.nan, math.nan
-    h = np.linalg.norm(x[cols, ny] - x[cols, 0], axis=-1)
-    eqps = np.asarray(final.material.eqps).reshape(nx, ny, -1)[np.minimum(cols, nx - 1)]
-    return float(1.0 - np.mean(h) / config.t), float(np.mean(eqps)), float(np.max(eqps))
+    mesh = scene.model.mesh
+    values = _after_bead_values(cols, mesh.nodes, final.u, final.material.eqps, scene.config.t, mesh.nx, mesh.ny)
+    return tuple(float(v) for v in values)  # type: ignore[return-value]
 
 
 def _steady(history: dict, window) -> tuple[float, float, float]:
@@ -158,24 +178,34 @@ def _steady(history: dict, window) -> tuple[float, float, float]:
     return drawing, float(np.std(np.asarray(history["drawing_force"])[rows])), normal
 
 
-def _derivatives(variant, algorithm, overrides, names, history, window) -> dict:
-    """d(steady restraining force, steady normal force) / d(config field), along the run's steps."""
+DERIVED = ("restraining_force", "normal_force", "thinning", "eqps_after", "eqps_after_max")
+
+
+def _derivatives(variant, algorithm, overrides, names, history, window, cols=None) -> dict:
+    """d(steady restraining force, steady normal force) / d(config field), along the run's steps, and with
+    ``cols`` (:func:`_after_bead_columns`, not empty) d(thinning, mean and largest eqps after the bead):
+    {field: {output: value}} with the outputs of :data:`DERIVED`."""
     par = parameterize("blankholder", names, variant=variant, algorithm=algorithm, overrides=overrides)
-    f = path_function(par, plan=history)
+    f = path_function(par, plan=history, final=cols is not None)
     u = np.asarray(history["drawing_displacement"])
     rows = steady_rows(history["phase_name"], u, window)
     du = np.diff(u[rows])
+    nx, ny = par.scene.model.mesh.nx, par.scene.model.mesh.ny
 
-    def steady(p):
-        h, _ = f(p)
+    def outputs(p):
+        h, _, *end = f(p)
         out = []
         for name in ("drawing_force", "clamping_force"):
             v = h.observed[name][rows]
             out.append(jnp.sum(0.5 * (v[1:] + v[:-1]) * du) / (u[rows][-1] - u[rows][0]))
+        if end:
+            final, nodes = end
+            t = p[list(names).index("t")] if "t" in names else par.scene.config.t
+            out += list(_after_bead_values(cols, nodes, final.u, final.material.eqps, t, nx, ny))
         return jnp.stack(out)
 
-    jac = np.asarray(jax.jacfwd(steady)(jnp.asarray(par.p0)))
-    return {n: (float(jac[0, i]), float(jac[1, i])) for i, n in enumerate(names)}
+    jac = np.asarray(jax.jacfwd(outputs)(jnp.asarray(par.p0)))
+    return {n: dict(zip(DERIVED, (float(v) for v in jac[:, i]), strict=False)) for i, n in enumerate(names)}
 
 
 def _run(scene, variant: str, overrides: dict, algorithm: str, notes: list, what: str):
@@ -232,7 +262,8 @@ def bead_card(variant: str = "shape1", *, penetrations: Sequence[float] = DEFAUL
         ready()
     frictions: list[tuple[float, dict]] = [(config.mu, {})] + ([(0.0, {"mu": 0.0})] if config.mu > 0 else [])
     rows: dict = {k: [0.0] for k in ("F", "Fb", "N", "Nb", "s", "thin", "e", "emax")}
-    derived: dict = {n: ([0.0], [0.0]) for n in derivatives}
+    keys = (*DERIVED, "bending_force")
+    derived: dict = {n: {k: [0.0] for k in keys} for n in derivatives}
     wall, notes = 0.0, []  # type: float, list[str]
     for d in depths:
         for mu, extra in frictions:
@@ -253,19 +284,30 @@ def bead_card(variant: str = "shape1", *, penetrations: Sequence[float] = DEFAUL
                 rows["e"].append(e)
                 rows["emax"].append(emax)
                 if derivatives:
-                    for n, (dF, dN) in _derivatives(variant, used, run_over, tuple(derivatives), history,
-                                                    scene.steady_window).items():
-                        derived[n][0].append(dF)
-                        derived[n][1].append(dN)
+                    cols = _after_bead_columns(scene, result.final)
+                    for n, dd in _derivatives(variant, used, run_over, tuple(derivatives), history,
+                                              scene.steady_window, cols if cols.size else None).items():
+                        for k in DERIVED:
+                            derived[n][k].append(dd.get(k, math.nan))
+                        if config.mu == 0.0:   # no frictionless run: the bending part is the run itself
+                            derived[n]["bending_force"].append(0.0 if n == "mu" else dd["restraining_force"])
             if mu == 0.0:
                 rows["Fb"].append(force)
                 rows["Nb"].append(normal)
+            if mu == 0.0 and config.mu > 0.0:
+                # The bending part is the frictionless run's: its derivatives are that run's (zero for mu,
+                # which the part does not contain).
+                fields = tuple(n for n in derivatives if n != "mu")
+                if fields:
+                    for n, dd in _derivatives(variant, used, run_over, fields, history, scene.steady_window).items():
+                        derived[n]["bending_force"].append(dd["restraining_force"])
+                if "mu" in derivatives:
+                    derived["mu"]["bending_force"].append(0.0)
     arr = {k: np.asarray(v) for k, v in rows.items()}
     return BeadCard(variant=variant, overrides=overrides, depth=float(config.H), thickness=float(config.t),
                     mu=float(config.mu), penetration=np.concatenate([[0.0], depths]),
                     restraining_force=arr["F"], bending_force=arr["Fb"], normal_force=arr["N"],
                     normal_force_bending=arr["Nb"], scatter=arr["s"], thinning=arr["thin"], eqps_after=arr["e"],
                     eqps_after_max=arr["emax"],
-                    derivatives={n: {"restraining_force": np.asarray(a), "normal_force": np.asarray(b)}
-                                 for n, (a, b) in derived.items()},
+                    derivatives={n: {k: np.asarray(v) for k, v in d.items()} for n, d in derived.items()},
                     wall_s=wall, notes=tuple(notes))

@@ -196,9 +196,11 @@ def adaptive_run(par: Parameterization, p, newton: NewtonOptions | None = None):
 
 
 def path_function(par: Parameterization, *, newton: NewtonOptions | None = None, reverse: bool = False,
-                  checkpoint: bool = True, plan: dict | None = None):
+                  checkpoint: bool = True, plan: dict | None = None, final: bool = False):
     """``f(p) -> (history, result code)`` along the step sequence of the adaptive run at the start
-    values: differentiable through every step of the loading path.
+    values: differentiable through every step of the loading path. ``final``: ``f(p) -> (history, result
+    code, final state, reference node coordinates)``, for outputs of the final configuration (the mesh
+    at ``p``: a geometry or thickness parameter moves its nodes).
 
     ``history`` is the simulation's :class:`~jaxfric.loadpath.simulate.History`: ``history.observed`` holds the
     scene's columns (``drawing_force``, ``clamping_force``, ...), rows 0 .. ``history.n_rows`` - 1
@@ -236,9 +238,9 @@ def path_function(par: Parameterization, *, newton: NewtonOptions | None = None,
             model = eqx.tree_at(lambda m: m.phases, model, with_steps(model.phases, times, step_phase))
             sim = simulate_fixed(model, newton=newton, observe=scene.observe, checkpoint=checkpoint, fresh=fresh,
                                  anchor=tangent_anchor(p))
-            return sim.history, sim.code
+            return (sim.history, sim.code, sim.final, model.mesh.nodes) if final else (sim.history, sim.code)
         return f
-    replay, steps = replay_function(par, newton), plan_steps(par, plan)
+    replay, steps = replay_function(par, newton, final=final), plan_steps(par, plan)
     return lambda p: replay(p, steps)
 
 
@@ -251,11 +253,12 @@ def plan_steps(par: Parameterization, plan: dict) -> tuple:
     return tuple((phase.tau_ends, phase.n_steps) for phase in phases)
 
 
-def replay_function(par: Parameterization, newton: NewtonOptions | None = None):
+def replay_function(par: Parameterization, newton: NewtonOptions | None = None, final: bool = False):
     """``g(p, steps) -> (history, result code)``: the model at parameter values ``p`` run by the adaptive
     loop with the nominal steps ``steps`` (:func:`plan_steps`), which are data: one compiled ``g`` (or
     its derivative) replays every step sequence of the same padded length. Forward mode; the history
-    buffer is the scene's (``StepControl.max_steps``), which bounds the steps of a replay."""
+    buffer is the scene's (``StepControl.max_steps``), which bounds the steps of a replay. ``final``: the
+    final state and the reference node coordinates too (:func:`path_function`)."""
     scene = par.scene
     newton = scene.newton if newton is None else newton
 
@@ -265,6 +268,6 @@ def replay_function(par: Parameterization, newton: NewtonOptions | None = None):
                        for phase, step in zip(model.phases, steps))
         model = eqx.tree_at(lambda m: m.phases, model, phases)
         sim = simulate(model, newton=newton, control=scene.control, observe=scene.observe, anchor=tangent_anchor(p))
-        return sim.history, sim.code
+        return (sim.history, sim.code, sim.final, model.mesh.nodes) if final else (sim.history, sim.code)
 
     return g
