@@ -69,11 +69,11 @@ def consistency(name: str, overrides: dict | None, out: str) -> dict:
     estimate = s.get("error_estimate", {})
     check = {"steady_drawing_force": s.get("steady_drawing_force"), "converged": s["converged"],
              "error_estimate": estimate.get("absolute"), "steady_window": window, "message": s["message"]}
-    values = {"phase": h["phase_name"], "drawing_displacement": h["drawing_displacement"]}
+    values = {"phase": h["phase"], "drawing_displacement": h["drawing_displacement"]}
     normal = None if window is None else steady_drawing_force({**values, "drawing_force": h["clamping_force"]},
                                                                 window)
     if normal is not None:
-        rows = steady_rows(h["phase_name"], h["drawing_displacement"], window)
+        rows = steady_rows(h["phase"], h["drawing_displacement"], window)
         scatter = float(np.std(np.asarray(h["clamping_force"])[rows])) / abs(normal)
         parts = estimate.get("components", {})
         relative = float(np.sqrt(parts.get("contact", 0.0) ** 2 + parts.get("solver", 0.0) ** 2 + scatter**2))

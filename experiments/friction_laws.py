@@ -226,8 +226,7 @@ def main(argv=None) -> None:
     clamps = {f"F{F:g}": {**LAW, **STROKE, "F_clamp": F} for F in CLAMPS}
     data = reference_curves(a.root, clamps, {**LAW, **TRUTH})
     clean = {label: f for label, (_, f) in data.items()}
-    rng = np.random.default_rng(a.seed)
-    noisy = {label: f + a.noise * np.max(np.abs(f)) * rng.standard_normal(f.shape) for label, f in clean.items()}
+    noisy = _noisy(clean, a.noise, a.seed)
     law_model = JointModel(("mu", "mu_p"), LAW, data, clamps, extra=("F_clamp",))
     coulomb_model = JointModel(("mu",), {}, data, {k: {kk: vv for kk, vv in v.items() if kk != "friction_law"}
                                                     for k, v in clamps.items()}, extra=("F_clamp",))
@@ -236,10 +235,7 @@ def main(argv=None) -> None:
     fitted = {"law": law_model.curves(results["law"]["x"]), "coulomb": coulomb_model.curves(results["coulomb"]["x"])}
     _write_curves(os.path.join(RESULTS, "friction_laws_curves.csv"), data, fitted, clamps)
 
-    keys = []
-    for row in rows:
-        keys += [k for k in row if k not in keys]
-    write_rows(os.path.join(RESULTS, "friction_laws.csv"), [{k: row.get(k, "") for k in keys} for row in rows])
+    _write_fit_rows(os.path.join(RESULTS, "friction_laws.csv"), rows)
 
     out = os.path.join(RESULTS, "friction_laws")
     os.makedirs(out, exist_ok=True)
@@ -251,6 +247,20 @@ def main(argv=None) -> None:
         fh.write(friction_csv(law, mu, 30.0))
     _figure(data, fitted, results, os.path.join(RESULTS, "friction_laws.png"))
     cards(a.root)
+
+
+def _noisy(clean: dict, noise: float, seed: int) -> dict:
+    """Each curve with Gaussian noise of ``noise`` times its largest force added to every point (seeded)."""
+    rng = np.random.default_rng(seed)
+    return {label: f + noise * np.max(np.abs(f)) * rng.standard_normal(f.shape) for label, f in clean.items()}
+
+
+def _write_fit_rows(path: str, rows: list) -> None:
+    """The fits' rows as CSV, every column any row has (blank where a fit has none)."""
+    keys: list = []
+    for row in rows:
+        keys += [k for k in row if k not in keys]
+    write_rows(path, [{k: row.get(k, "") for k in keys} for row in rows])
 
 
 def _fits(fits: dict, truth: dict, rows: list, start: dict | None = None, bounds: dict | None = None) -> dict:
@@ -277,8 +287,7 @@ def pressure_speed(root: str, noise: float, seed: int) -> None:
     rows: list = []
     data = reference_curves(root, PS_CASES, {**LAW, **PS_TRUTH})
     clean = {label: f for label, (_, f) in data.items()}
-    rng = np.random.default_rng(seed)
-    noisy = {label: f + noise * np.max(np.abs(f)) * rng.standard_normal(f.shape) for label, f in clean.items()}
+    noisy = _noisy(clean, noise, seed)
     law_model = JointModel(("mu", "mu_p", "mu_v"), LAW, data, PS_CASES, extra=("F_clamp",))
     coulomb_cases = {k: {kk: vv for kk, vv in v.items() if kk != "friction_law"} for k, v in PS_CASES.items()}
     coulomb_model = JointModel(("mu",), {}, data, coulomb_cases, extra=("F_clamp",))
@@ -287,11 +296,7 @@ def pressure_speed(root: str, noise: float, seed: int) -> None:
     fitted = {"law": law_model.curves(results["pv_law"]["x"]),
               "coulomb": coulomb_model.curves(results["pv_coulomb"]["x"])}
     _write_curves(os.path.join(RESULTS, "friction_laws_pressure_speed_curves.csv"), data, fitted, PS_CASES)
-    keys: list = []
-    for row in rows:
-        keys += [k for k in row if k not in keys]
-    write_rows(os.path.join(RESULTS, "friction_laws_pressure_speed.csv"),
-               [{k: row.get(k, "") for k in keys} for row in rows])
+    _write_fit_rows(os.path.join(RESULTS, "friction_laws_pressure_speed.csv"), rows)
     mu, mu_p, mu_v = results["pv_law"]["x"]
     out = os.path.join(RESULTS, "friction_laws")
     os.makedirs(out, exist_ok=True)
@@ -308,8 +313,7 @@ def speed(root: str, noise: float, seed: int) -> None:
     cases = {f"v{v:g}": {**SPEED_LAW, **SPEED_CASE, "draw_speed": v} for v in SPEEDS}
     data = reference_curves(root, cases, {**SPEED_LAW, **SPEED_TRUTH})
     clean = {label: f for label, (_, f) in data.items()}
-    rng = np.random.default_rng(seed)
-    noisy = {label: f + noise * np.max(np.abs(f)) * rng.standard_normal(f.shape) for label, f in clean.items()}
+    noisy = _noisy(clean, noise, seed)
     names = ("mu", "mu_d", "decay")
     law_model = JointModel(names, {**SPEED_LAW, **FIT_INCREMENTS}, data, cases, algorithm="lcp_ssn",
                            start=SPEED_START)
@@ -321,10 +325,7 @@ def speed(root: str, noise: float, seed: int) -> None:
     fitted = {"law": law_model.curves(results["speed_law"]["x"]),
               "coulomb": coulomb_model.curves(results["speed_coulomb"]["x"])}
     _write_curves(os.path.join(RESULTS, "friction_laws_speed_curves.csv"), data, fitted, cases)
-    keys: list = []
-    for row in rows:
-        keys += [k for k in row if k not in keys]
-    write_rows(os.path.join(RESULTS, "friction_laws_speed.csv"), [{k: row.get(k, "") for k in keys} for row in rows])
+    _write_fit_rows(os.path.join(RESULTS, "friction_laws_speed.csv"), rows)
     speed_figure()
 
 

@@ -143,6 +143,27 @@ def test_speed_limits_of_the_decay_law_are_coulomb_runs():
     assert slow_run.compile_s < 0.05
 
 
+def _last_force_derivatives(par, algorithm: str, steps) -> tuple[np.ndarray, np.ndarray]:
+    """The last drawing force's derivatives by forward mode through the whole path, and by central
+    differences with the steps ``steps`` (one per parameter); the exact path with Newton's increment test at
+    1e-6 (the test below says why)."""
+    f = path_function(par, newton=NewtonOptions(du_rtol=1e-6, max_iterations=60) if algorithm == "lcp_ssn" else None)
+
+    @jax.jit
+    def force(p):
+        hist, _ = f(p)
+        return hist.observed["drawing_force"][hist.n_rows - 1]
+
+    p0 = jnp.asarray(par.p0)
+    grad = np.asarray(jax.jacfwd(force)(p0))
+    fd = []
+    for i, h in enumerate(steps):
+        e = np.zeros(len(steps))
+        e[i] = h
+        fd.append((float(force(p0 + e)) - float(force(p0 - e))) / (2 * h))
+    return grad, np.array(fd)
+
+
 DECAY = {"friction_law": "velocity_decay", "mu": 0.18, "mu_d": 0.1, "decay": 1.0, "F_clamp": 50.0, "U_draw": 0.1,
          "draw_speed": 1.0}
 
@@ -166,20 +187,9 @@ def test_derivatives_of_the_decay_law_s_parameters_match_central_differences(alg
     against central differences (the Newton increment test at 1e-6 on the exact path, as above)."""
     par = parameterize("flat_die", ["mu", "mu_d", "decay"], variant="const_force", algorithm=algorithm,
                        overrides={**SMALL, **DECAY})
-    f = path_function(par, newton=NewtonOptions(du_rtol=1e-6, max_iterations=60) if algorithm == "lcp_ssn" else None)
-
-    @jax.jit
-    def force(p):
-        hist, _ = f(p)
-        return hist.observed["drawing_force"][hist.n_rows - 1]
-
-    p0 = jnp.asarray(par.p0)
-    grad = np.asarray(jax.jacfwd(force)(p0))
-    for i, h in enumerate((1e-6, 1e-6, 1e-6)):
-        e = np.zeros(3)
-        e[i] = h
-        fd = (float(force(p0 + e)) - float(force(p0 - e))) / (2 * h)
-        assert grad[i] == pytest.approx(fd, rel=1e-5), par.names[i]
+    grad, fd = _last_force_derivatives(par, algorithm, (1e-6, 1e-6, 1e-6))
+    for i, name in enumerate(par.names):
+        assert grad[i] == pytest.approx(fd[i], rel=1e-5), name
     # At v = 1 mm/s: dF/dmu_0 = e^-1 F_clamp, dF/dmu_d = (1 - e^-1) F_clamp, dF/ddecay = -(mu_0 - mu_d) e^-1 F_clamp.
     np.testing.assert_allclose(grad, np.array([np.exp(-1.0), 1.0 - np.exp(-1.0), -0.08 * np.exp(-1.0)]) * 50.0,
                                rtol=1e-3)
@@ -196,20 +206,9 @@ def test_derivatives_of_the_law_parameters_match_central_differences(algorithm):
     from them, mu_p's 4e-6); with the increment test at 1e-6 they agree to 2e-6 and 3e-7."""
     par = parameterize("flat_die", ["mu", "mu_p", "mu_v"], algorithm=algorithm,
                        overrides={**SMALL, **LAW, "mu_v": -0.01, "U_draw": 0.01})
-    f = path_function(par, newton=NewtonOptions(du_rtol=1e-6, max_iterations=60) if algorithm == "lcp_ssn" else None)
-
-    @jax.jit
-    def force(p):
-        hist, _ = f(p)
-        return hist.observed["drawing_force"][hist.n_rows - 1]
-
-    p0 = jnp.asarray(par.p0)
-    grad = np.asarray(jax.jacfwd(force)(p0))
-    for i, h in enumerate((1e-6, 1e-7, 1e-6)):
-        e = np.zeros(3)
-        e[i] = h
-        fd = (float(force(p0 + e)) - float(force(p0 - e))) / (2 * h)
-        assert grad[i] == pytest.approx(fd, rel=1e-5), par.names[i]
+    grad, fd = _last_force_derivatives(par, algorithm, (1e-6, 1e-7, 1e-6))
+    for i, name in enumerate(par.names):
+        assert grad[i] == pytest.approx(fd[i], rel=1e-5), name
     assert np.all(np.abs(grad) > 1.0)    # every parameter is felt (N/mm per unit)
 
 
