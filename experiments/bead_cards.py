@@ -8,12 +8,12 @@ R, t and mu on shape3), written as ``experiments/results/bead_cards/<shape>/bead
 and its consistency check: the full-depth bead (``lock_control=depth``) drawn the spec's whole 55 mm with
 the spec's steady window [35, 55] mm, against the card's full-depth point (pulled 35, 46 or 58 mm for the
 6, 9 and 12 mm beads, the last 10 mm its window: :func:`jaxfric.cards.bead.card_pull`), within that run's
-error estimate, for the restraining force and for the normal force. ``--kinematic``: shape1's card again with one Armstrong-Frederick
-back stress (``C_kin=2000, gamma_kin=20``, the same monotonic curve; :mod:`jaxfric.fem.kinematic`), into
-``bead_cards/shape1_kinematic``. ``--s355``: shape1's card with the sheet of a published cyclic fit,
-Hartloper et al.'s S355J2+N with its two back stresses, and with the isotropic law of the same monotonic
-curve (``experiments/kinematic_hardening.py``'s ``s355`` pair), into ``bead_cards/shape1_s355_kinematic`` and
-``bead_cards/shape1_s355_isotropic``.
+error estimate, for the restraining force and for the normal force. ``--kinematic``: shape1's card again
+with one Armstrong-Frederick back stress (``C_kin=2000, gamma_kin=20``, the same monotonic curve;
+:mod:`jaxfric.fem.kinematic`), into ``bead_cards/shape1_kinematic``. ``--s355``: shape1's card with the
+sheet of a published cyclic fit, Hartloper et al.'s S355J2+N with its two back stresses, and with the
+isotropic law of the same monotonic curve (``experiments/kinematic_hardening.py``'s ``s355`` pair), into
+``bead_cards/shape1_s355_kinematic`` and ``bead_cards/shape1_s355_isotropic``.
 
 The table (``experiments/results/bead_cards.csv``) has, per shape, the full-depth forces, thinning and
 plastic strain, the consistency run's force and error estimate (``bead_cards_derivatives.csv``: the
