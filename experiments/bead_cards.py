@@ -38,7 +38,7 @@ import numpy as np
 
 from benchutil import write_rows
 from jaxfric.cards import bead_card, write_card
-from jaxfric.cards.formats import line_friction, load_card
+from jaxfric.cards.formats import load_card
 from jaxfric.io.batch import run_case
 from jaxfric.io.instants import steady_drawing_force, steady_rows
 from kinematic_hardening import LAWS
@@ -107,7 +107,7 @@ def row(label: str) -> dict:
     full = s["restraining_force"][-1]
     out = {"shape": label, "H": s["depth"], "restraining_force": full, "bending_force": s["bending_force"][-1],
            "friction_force": s["friction_force"][-1], "normal_force": s["normal_force"][-1],
-           "line_friction": line_friction(load_card(os.path.join(OUT, label, "bead_card.json"))),
+           "line_friction": s["line_friction"],
            "scatter": s["scatter"][-1], "thinning": s["thinning"][-1], "eqps_after": s["eqps_after"][-1],
            "eqps_after_max": s["eqps_after_max"][-1],
            "full_run_force": check["steady_drawing_force"], "full_run_error": check["error_estimate"],

@@ -284,7 +284,7 @@ def _fits(fits: dict, truth: dict, rows: list, start: dict | None = None, bounds
 
 def pressure_speed(root: str, noise: float, seed: int) -> None:
     """mu(p, v) = mu + mu_p p + mu_v v from the flat die's curves at two clamping forces and two speeds, fitted
-    jointly on the penalty path (module docstring), and a constant mu fitted to the same curves."""
+    jointly on the exact path (module docstring), and a constant mu fitted to the same curves."""
     rows: list = []
     data = reference_curves(root, PS_CASES, {**LAW, **PS_TRUTH})
     clean = {label: f for label, (_, f) in data.items()}

@@ -96,7 +96,8 @@ def _check_files_read_back(card: BeadCard, deck_text: str, radioss_text: str, cs
 
 def test_lsdyna_deck_reads_back_the_bending_and_normal_force_curves():
     card = _card()
-    deck = _read_lsdyna(lsdyna_deck(card))
+    text = lsdyna_deck(card)
+    deck = _read_lsdyna(text)
     card1, card2, card3, card4 = deck["drawbead"]
     assert len(card1) == len(card2) == len(card3) == 8 and len(card4) == 7
     # FS, FD: the bead line's effective friction, with which the contact's FS times the normal force is the
@@ -106,13 +107,12 @@ def test_lsdyna_deck_reads_back_the_bending_and_normal_force_curves():
     assert dbdth == card.depth
     np.testing.assert_allclose(deck["curves"][lcid_rf], np.c_[card.penetration, card.bending_force], rtol=1e-11)
     np.testing.assert_allclose(deck["curves"][lcid_nf], np.c_[card.penetration, card.normal_force], rtol=1e-11)
-    headers = [ln for ln in lsdyna_deck(card).splitlines() if ln.startswith("*DEFINE_CURVE")]
-    assert len(headers) == 2
-    text = lsdyna_deck(card).splitlines()
-    curve_headers = [text[i + 3] for i, ln in enumerate(text) if ln.startswith("*DEFINE_CURVE")]
+    lines = text.splitlines()
+    curve_headers = [lines[i + 3] for i, ln in enumerate(lines) if ln.startswith("*DEFINE_CURVE")]
+    assert len(curve_headers) == 2
     assert all(len(_fields(h, 10)) == 8 for h in curve_headers)   # LCID SIDR SFA SFO OFFA OFFO DATTYP LCINT
-    assert all(len(line) <= 80 for line in lsdyna_deck(card).splitlines() if not line.startswith("$"))
-    _check_files_read_back(card, lsdyna_deck(card), radioss_interface(card), csv_table(card), rtol=1e-11)
+    assert all(len(line) <= 80 for line in lines if not line.startswith("$"))
+    _check_files_read_back(card, text, radioss_interface(card), csv_table(card), rtol=1e-11)
 
 
 def test_lsdyna_total_option_puts_the_whole_restraining_force_in_the_curve_and_no_friction():
