@@ -248,8 +248,10 @@ def main(argv=None) -> int:
         if args.command == "scenes":
             return _scenes()
         from .io.cache import enable_compilation_cache
-        from .io.xla_flags import use_fast_compilation
+        from .io.xla_flags import use_fast_compilation, use_host_cores
 
+        if args.command == "run":
+            use_host_cores()     # a run's work split over the process's cores (_run)
         use_fast_compilation()   # before the first computation: XLA reads its flags when it starts
         enable_compilation_cache()
         if args.command == "fit":
@@ -260,7 +262,11 @@ def main(argv=None) -> int:
             return _report(args)
         if args.command == "bead-card":
             return _bead_card(args)
-        return _run(args)
+        from .io.xla_flags import host_devices
+        from .numerics.devices import run_devices
+
+        with run_devices(host_devices()):   # the run and its companions, their work split over the cores
+            return _run(args)
     except UsageError as err:
         return _error(err, EXIT_USAGE)
 

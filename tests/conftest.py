@@ -29,6 +29,10 @@ import tempfile
 from jaxfric.io.xla_flags import FAST_COMPILE_FLAGS, xla_accepts
 
 FAST_SUITE_FLAGS = ("--xla_backend_optimization_level=0",)   # when the slow runs are deselected
+# One host device: `jaxfric run` would otherwise ask for one per core (jaxfric.io.xla_flags.use_host_cores) in
+# the command lines that tests start, whose cores the two workers already keep busy; the split over two
+# host devices is tested in a child process of its own (tests/test_host_devices.py).
+ONE_DEVICE_FLAGS = ("--xla_force_host_platform_device_count=1",)
 
 
 def _ask_for_fast_compilation(wanted):
@@ -46,7 +50,7 @@ def _ask_for_fast_compilation(wanted):
 
 def pytest_configure(config):
     fast_suite = " ".join((config.option.markexpr or "").split()) == "not slow"
-    _ask_for_fast_compilation(FAST_COMPILE_FLAGS + (FAST_SUITE_FLAGS if fast_suite else ()))
+    _ask_for_fast_compilation(FAST_COMPILE_FLAGS + ONE_DEVICE_FLAGS + (FAST_SUITE_FLAGS if fast_suite else ()))
 
 
 def _share_compiled_programs():

@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..numerics.devices import run_devices, traced_run_devices
 from ..numerics.linalg import BlockTridiag
 from .element import ElementGeometry, element_force, element_force_and_tangent, element_geometry
 from .mesh import StripMesh
@@ -121,13 +122,13 @@ def shared_trace(fn):
     trace made under one setting is never reused under another.
     """
     @eqx.filter_jit
-    def jitted(chunk, *args):
-        with element_chunk(chunk):
+    def jitted(chunk, devices, *args):
+        with element_chunk(chunk), run_devices(devices):
             return fn(*args)
 
     @functools.wraps(fn)
     def wrapper(*args):
-        return jitted(_CHUNK.get(), *args)
+        return jitted(_CHUNK.get(), traced_run_devices(), *args)
 
     return wrapper
 
@@ -143,18 +144,46 @@ def _element_map(fn, material, formulation, geo, u_el, states, *extra):
     matters too: two chunks of 450 made the Nine's run 13 % slower (a two-trip loop in the Newton loop,
     76 s against 67 s of solve on the 2-core CPU), one chunk of 900 runs as fast as before.
     ``extra``: further per-element arguments of ``fn`` (leading axis n_el).
+
+    Under :func:`~jaxfric.numerics.devices.run_devices` each device maps ``fn`` over an equal share of the
+    elements (the chunks counted per share) and the shares are gathered onto every device in one
+    exchange, so that everything after the loop (the scatter into the global force and tangent, in the
+    one-device order) runs replicated: the results equal the one-device loop's to round-off (the Nine's
+    ``make run`` case to the last bit; ``tests/test_host_devices.py``). Gathering the elements' results
+    costs one exchange per loop; scattering each share on its own device and summing the two global
+    arrays costs two (the force and tangent, and the smallest determinant), and was no faster
+    (docs/results.md, run time of the Nine test).
     """
     def one(args):
         return fn(material, formulation, *args)
 
+    devices = traced_run_devices()
+    parts = 1 if devices is None else len(devices)
     n = u_el.shape[0]
-    n_chunks = max(1, n // _CHUNK.get())
-    size = -(-n // n_chunks)
-    pad = n_chunks * size - n
+    share = -(-n // parts)                   # elements per device
+    n_chunks = max(1, share // _CHUNK.get())
+    size = -(-share // n_chunks)
+    pad = parts * n_chunks * size - n
     xs = (geo.gradients(formulation), geo.dN_dX_center, geo.weight, u_el, states, *extra)
     if pad:
         xs = jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]), xs)
-    ys = jax.lax.map(one, xs, batch_size=size)
+    if devices is None:
+        ys = jax.lax.map(one, xs, batch_size=size)
+    else:
+        def on_device(xs):
+            first = jax.lax.axis_index("elements") * (n_chunks * size)
+            mine = jax.tree_util.tree_map(lambda a: jax.lax.dynamic_slice_in_dim(a, first, n_chunks * size), xs)
+            ys = jax.lax.map(one, mine, batch_size=size)
+            return jax.tree_util.tree_map(lambda a: jax.lax.all_gather(a, "elements", tiled=True), ys)
+
+        # Every device takes its share of the whole (replicated) arrays and returns the whole gathered result:
+        # nothing outside the loop is split, so XLA partitions nothing else of the program, and every device
+        # runs the rest on the same values (a share given by in_specs let XLA split the work around the loop
+        # too: Lemke's pivoting then took different paths on the two devices and waited on each other). The
+        # gathered results are the same on every device (check_vma off: shard_map cannot see it).
+        replicated = jax.sharding.PartitionSpec()
+        ys = jax.shard_map(on_device, mesh=jax.sharding.Mesh(np.asarray(devices), ("elements",)),
+                           in_specs=(replicated,), out_specs=replicated, check_vma=False)(xs)
     return jax.tree_util.tree_map(lambda a: a[:n], ys) if pad else ys
 
 

@@ -320,6 +320,7 @@ def _summary(scene, result, tag, values, instants, fallback, window, steady, not
         "error_estimate": error_estimate(scene, values, window, steady, penalty_tangent, checks),
         "dtype": "float64",
         "device": _device(),
+        "run_devices": int(result.devices),
         "jax_version": jax.__version__,
         "created_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }

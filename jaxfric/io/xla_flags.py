@@ -17,6 +17,10 @@ experiments/bench_compile.py --xla-flags=...``; ``docs/results.md``, compilation
 over a mesh's dofs, pairs or points: one loop's round-off, about n eps of the sum of magnitudes (2e-11 for
 n = 1e5), stays far below the Newton tolerance (1e-8 of the force scale).
 
+``jaxfric run`` also shows XLA the process's cores as host devices, up to two (:func:`use_host_cores`), and
+splits the run's element loops and block-tridiagonal solves over them (:func:`host_devices`,
+:mod:`jaxfric.numerics.devices`): one run then uses two cores.
+
 The command lines (:mod:`jaxfric.cli`) call :func:`use_fast_compilation` before their first computation;
 the package's functions set nothing, and a script or notebook may call it first thing. XLA reads
 ``XLA_FLAGS`` once, when its backend starts, and an XLA that does not know a flag aborts the process
@@ -37,7 +41,8 @@ from importlib import metadata
 
 from .cache import cache_dir
 
-__all__ = ["FAST_COMPILE_FLAGS", "use_fast_compilation", "xla_accepts"]
+__all__ = ["FAST_COMPILE_FLAGS", "HOST_DEVICES", "host_devices", "use_fast_compilation", "use_host_cores",
+           "xla_accepts"]
 
 FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_disable_hlo_passes=tree_reduction_rewriter")
 
@@ -96,3 +101,44 @@ def use_fast_compilation(environ: MutableMapping[str, str] | None = None,
         return False
     env["XLA_FLAGS"] = flags
     return all(flag in flags.split() for flag in FAST_COMPILE_FLAGS)
+
+
+# `jaxfric run` shows XLA this many of the process's cores as host devices (at most) and splits the run's
+# work over them (:func:`jaxfric.numerics.devices.run_devices`). Two is the count measured (docs/results.md,
+# run time of the Nine test: two cores).
+HOST_DEVICES = 2
+_DEVICE_COUNT = "--xla_force_host_platform_device_count"
+
+
+def use_host_cores(environ: MutableMapping[str, str] | None = None, cores: int | None = None) -> int:
+    """Ask XLA for one host device per core, up to :data:`HOST_DEVICES`, in ``XLA_FLAGS`` of ``environ``
+    (default ``os.environ``); call it before the process's first computation. ``cores``: the cores this
+    process may use (default: its CPU affinity). A count already in ``XLA_FLAGS`` is kept, and
+    ``JAXFRIC_XLA_DEFAULTS=1`` adds nothing. Returns the host devices XLA will show (1 where nothing is
+    added)."""
+    env = os.environ if environ is None else environ
+    current = env.get("XLA_FLAGS", "")
+    for flag in current.split():
+        name, _, value = flag.partition("=")
+        if name == _DEVICE_COUNT:
+            return int(value) if value.isdigit() else 1
+    if env.get("JAXFRIC_XLA_DEFAULTS") == "1":
+        return 1
+    if cores is None:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    count = max(1, min(HOST_DEVICES, cores))
+    if count > 1:
+        env["XLA_FLAGS"] = " ".join([current, f"{_DEVICE_COUNT}={count}"]).strip()
+    return count
+
+
+def host_devices() -> tuple | None:
+    """The devices to split a run's element loops over: JAX's CPU devices where the default backend is the
+    CPU and shows two or more of them (:func:`use_host_cores`), else None (one device, or an accelerator,
+    which runs a whole loop at once)."""
+    import jax
+
+    if jax.default_backend() != "cpu":
+        return None
+    devices = jax.local_devices(backend="cpu")
+    return tuple(devices) if len(devices) > 1 else None

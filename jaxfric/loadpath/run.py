@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..numerics.devices import run_devices, traced_run_devices
 from ..numerics.lru import LRU
 from ..numerics.newton import NewtonOptions
 from ..numerics.results import Result, SimulationError, describe
@@ -190,6 +191,7 @@ class RunResult:
         snapshots: with ``run(..., snapshot=fn)``, ``fn(model, state)`` as NumPy pytrees per history
             row kept (row 0: the initial state); empty otherwise.
         checkpoint: what :func:`run` needs to continue this run (``resume``).
+        devices: how many devices the run's work was split over (:func:`split_over`; 1: not split).
     """
 
     model: StripModel
@@ -204,20 +206,38 @@ class RunResult:
     cpu_s: float
     snapshots: dict = dataclasses.field(default_factory=dict)
     checkpoint: Checkpoint | None = None
+    devices: int = 1
 
 
 # Compiled programs by structure (shapes, static fields, options), the most recently used few.
 _COMPILED: LRU = LRU(8)
 
 
+def split_over(model: StripModel) -> tuple | None:
+    """The devices a run of ``model`` traced now splits its work over: the
+    :func:`~jaxfric.numerics.devices.run_devices` setting in effect, but none where the model's contact is
+    Lemke's, whose pivoting calls the host (``jax.pure_callback``): in a program split over two host
+    devices the callback ran on one of them, and the Nine with ``lcp_lemke`` stopped, each device waiting
+    on the other (``tests/test_host_devices.py``, slow)."""
+    if getattr(model.contact, "solver", None) == "lemke":
+        return None
+    return traced_run_devices()
+
+
 def _compiled(model, newton, control, observe, snapshot):
-    """AOT-compile once per structure (shapes, static fields, options); values never recompile, nor do
+    """AOT-compile once per structure (shapes, static fields, options, the devices its work is split over:
+    :func:`~jaxfric.numerics.devices.run_devices`); values never recompile, nor do
     the nominal increments or ``control.max_steps``, which the programs take as data."""
     leaves, treedef = jax.tree_util.tree_flatten(model)
     program_control = dataclasses.replace(control, max_steps=None)
     key = (treedef, tuple((np.shape(x), str(getattr(x, "dtype", type(x)))) for x in leaves),
-           newton, program_control, observe, snapshot)
-    return _COMPILED.get(key, lambda: _compile(model, newton, program_control, observe, snapshot))
+           newton, program_control, observe, snapshot, split_over(model))
+
+    def compile_split():
+        with run_devices(split_over(model)):
+            return _compile(model, newton, program_control, observe, snapshot)
+
+    return _COMPILED.get(key, compile_split)
 
 
 def _compile(model, newton, control, observe, snapshot):
@@ -431,4 +451,4 @@ def _result(model, path: LoadPathState, record: Record, code: Result, compile_s:
                                                                   snapshots=dict(record.snapshots)))
     return RunResult(model=model, history=history, final=final, simulation=simulation, converged=converged,
                      code=code, message=message, compile_s=compile_s, wall_s=record.wall_s, cpu_s=record.cpu_s,
-                     snapshots=snapshots, checkpoint=checkpoint)
+                     snapshots=snapshots, checkpoint=checkpoint, devices=len(split_over(model) or (None,)))

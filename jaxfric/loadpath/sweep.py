@@ -39,6 +39,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from ..fem.assembly import ELEMENT_CHUNK, element_chunk
+from ..numerics.devices import run_devices
 from ..numerics.linalg import on_gpu
 from ..numerics.newton import NewtonOptions
 from .controller import StepControl, max_steps
@@ -170,7 +171,9 @@ def sweep(models: Sequence[StripModel], *, newton: NewtonOptions = NewtonOptions
     t0 = time.perf_counter()
     # On a CPU, chunks n times smaller under vmap over n members (16 flat-die members: one batched
     # iteration 2x cheaper, docs/results.md).
-    with element_chunk(default_chunk(per_device) if chunk is None else chunk):
+    # The members, not a member's work, are split over the devices: each member runs on its own device
+    # (run_devices(None), whatever the caller's setting).
+    with element_chunk(default_chunk(per_device) if chunk is None else chunk), run_devices(None):
         compiled = jax.jit(program).lower(values).compile()
     compile_s = time.perf_counter() - t0
     t1 = time.perf_counter()
