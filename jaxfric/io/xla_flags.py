@@ -18,8 +18,8 @@ over a mesh's dofs, pairs or points: one loop's round-off, about n eps of the su
 n = 1e5), stays far below the Newton tolerance (1e-8 of the force scale).
 
 ``jaxfric run`` also shows XLA the process's cores as host devices, up to two (:func:`use_host_cores`), and
-splits the run's element loops and block-tridiagonal solves over them (:func:`host_devices`,
-:mod:`jaxfric.numerics.devices`): one run then uses two cores.
+splits the run's element loops over them (:func:`host_devices`, :mod:`jaxfric.numerics.devices`): one run
+then uses two cores.
 
 The command lines (:mod:`jaxfric.cli`) call :func:`use_fast_compilation` before their first computation;
 the package's functions set nothing, and a script or notebook may call it first thing. XLA reads
