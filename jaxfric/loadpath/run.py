@@ -219,7 +219,7 @@ def split_over(model: StripModel) -> tuple | None:
     Lemke's, whose pivoting calls the host (``jax.pure_callback``): in a program split over two host
     devices the callback ran on one of them, and the Nine with ``lcp_lemke`` stopped, each device waiting
     on the other (``tests/test_host_devices.py``, slow)."""
-    if getattr(model.contact, "solver", None) == "lemke":
+    if getattr(getattr(model, "contact", None), "solver", None) == "lemke":
         return None
     return traced_run_devices()
 
