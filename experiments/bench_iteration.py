@@ -3,9 +3,10 @@
     python experiments/bench_iteration.py [--u0 20] [--mesh 300x3 ...] [--variant mu017] [--steps 6]
                                           [--set KEY=VALUE ...] [--out CSV]
 
-With several meshes (``--mesh 300x3 600x3 1200x3 1200x6 2400x6 --u0 2 --out
-results/bench_iteration_scaling.csv``) the rows of each, with its elements, unknowns and candidate pairs:
-the cost per iteration against the problem's size.
+With several meshes (``--mesh 300x3 600x3 --u0 2``) the rows of each, with its elements, unknowns and
+candidate pairs: the cost per iteration against the problem's size (``results/bench_iteration_scaling.csv``
+holds one process per mesh: more than three meshes in one process ran LLVM out of memory; and
+``bench_scaling.py`` times the size-dependent parts of every mesh in alternation, in one process).
 
 Runs the Nine (``lcp_ssn``, the scene's defaults) to U = u0 mm, then times, at the state of a drawing
 step's converged solution (the program pieces compiled apart, median process CPU time of 15 calls):

@@ -1,6 +1,7 @@
 """The experiment scripts run at a tiny size (they compute when called, write only under __main__)."""
 
 
+import csv
 import math
 import os
 
@@ -328,6 +329,18 @@ def test_bench_preselection_times_the_pairs_with_and_without_the_selection():
 
     (row,) = bench_preselection.geometry("40x2", "lcp_ssn")
     assert 0 < row["evaluated"] < row["candidates"] and row["ms_on"] > 0 and row["ms_off"] > 0
+
+
+def test_bench_scaling_times_each_part_of_every_mesh_in_every_round(tmp_path):
+    import bench_scaling
+
+    out = tmp_path / "scaling.csv"
+    bench_scaling.main(["--mesh", "30x2", "--u0", "0.2", "--rounds", "2", "--calls", "1", "--out", str(out)])
+    with open(out, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["part"] for r in rows] == ["elements", "pairs", "solve"]
+    assert all(float(r["ms"]) > 0 and r["rounds"] == "2" for r in rows)
+    assert {(r["elements"], r["blocks"], r["block_size"]) for r in rows} == {("60", "31", "6")}
 
 
 def test_nine_tool_forces_averages_the_steady_window_and_takes_the_change_between_meshes(tmp_path):
