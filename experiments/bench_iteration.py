@@ -91,6 +91,19 @@ def main(argv=None) -> None:
 HALVINGS = 3
 
 
+def size_parts(args, u, q, K=None) -> dict:
+    """The parts whose cost grows with the mesh, as ``{name: (compiled function, *its arguments)}``, at the
+    step arguments ``args``, displacements ``u`` and tool positions ``q``: the element forces and tangents,
+    assembled (``elements``), the pairs' projections and derivatives (``pairs``) and one block-Thomas solve
+    of ``K`` (``solve``; default: the assembled tangent)."""
+    elements = eqx.filter_jit(lambda ar: internal_force_and_tangent(ar.mesh, ar.material, ar.formulation, ar.geo,
+                                                                    u, ar.states))
+    K = elements(args).tangent if K is None else K
+    return {"elements": (elements, args),
+            "pairs": (eqx.filter_jit(lambda ar: _geometry(ar.contact, ar.mesh.nodes, u, q)), args),
+            "solve": (eqx.filter_jit(block_tridiag_solve), K, jnp.ones(K.diag.shape[0] * K.diag.shape[1]))}
+
+
 def bench(variant: str, overrides: dict, u0: float, steps: int, label: str = "") -> list[dict]:
     """The rows of one mesh (module docstring)."""
     scene = scenes.make("nine", variant, "lcp_ssn", overrides)
@@ -140,20 +153,19 @@ def bench(variant: str, overrides: dict, u0: float, steps: int, label: str = "")
     c0 = newton_start(problem, x, args, opts)
     c1 = eqx.filter_jit(lambda c, ar: newton_pass(c, ar, x, problem, opts))(c0, args)   # evaluated x
     u = state.u
+    sized = size_parts(args, u, tool_positions(state), c1.point.state.it.K)
     parts = {
-        "elements": (eqx.filter_jit(lambda ar: internal_force_and_tangent(
-            ar.mesh, ar.material, ar.formulation, ar.geo, u, ar.states)), args),
+        "elements": sized["elements"],
         "elements_force": (eqx.filter_jit(lambda ar: internal_force(
             ar.mesh, ar.material, ar.formulation, ar.geo, u, ar.states)), args),
-        "pairs": (eqx.filter_jit(lambda ar: _geometry(ar.contact, ar.mesh.nodes, u, tool_positions(state))), args),
+        "pairs": sized["pairs"],
         "evaluate": (eqx.filter_jit(lambda ar: problem.evaluate(x, c1.trial, ar)), args),
         "direction": (eqx.filter_jit(lambda ar: problem.direction(x, c1.point, ar, jnp.array(False))), args),
         "frames": (eqx.filter_jit(lambda ar: contact_frames(c1.point.state.it, ar)), args),
         "merit": (eqx.filter_jit(lambda ar: semismooth_merit(x, c1.point.state.it, ar, c1.point.state.p,
                                                              contact_frames(c1.point.state.it, ar)[0])), args),
+        "solve": sized["solve"],
     }
-    K = c1.point.state.it.K
-    parts["solve"] = (eqx.filter_jit(block_tridiag_solve), K, jnp.ones(K.diag.shape[0] * K.diag.shape[1]))
 
     n_passes = int(eqx.filter_jit(lambda ar: problem.direction(x, c1.point, ar, jnp.array(False)).stats[1])(args))
     m = int(sum(len(t.candidates) for t in model.tools))

@@ -29,14 +29,12 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from bench_iteration import size_parts  # noqa: E402
 from benchutil import median_time, write_rows  # noqa: E402
 from jaxfric import scenes  # noqa: E402
-from jaxfric.contact.exact_iterate import _geometry  # noqa: E402
-from jaxfric.fem.assembly import internal_force_and_tangent  # noqa: E402
 from jaxfric.loadpath.model import tool_positions  # noqa: E402
 from jaxfric.loadpath.simulate import simulate  # noqa: E402
 from jaxfric.loadpath.step import StepContext, step_args  # noqa: E402
-from jaxfric.numerics.linalg import block_tridiag_solve  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -50,13 +48,8 @@ def parts_of(mesh: str, u0: float) -> tuple[dict, dict]:
         raise RuntimeError(f"{mesh}: the run to U = {u0} mm did not converge (code {int(sim.code)})")
     state = sim.final
     args, _, _ = step_args(model, state, 1, state.time, StepContext.build(model))
-    u, q = state.u, tool_positions(state)
-    elements = eqx.filter_jit(lambda ar: internal_force_and_tangent(ar.mesh, ar.material, ar.formulation, ar.geo,
-                                                                    u, ar.states))
-    K = elements(args).tangent
-    parts = {"elements": (elements, args),
-             "pairs": (eqx.filter_jit(lambda ar: _geometry(ar.contact, ar.mesh.nodes, u, q)), args),
-             "solve": (eqx.filter_jit(block_tridiag_solve), K, jnp.ones(K.diag.shape[0] * K.diag.shape[1]))}
+    parts = size_parts(args, state.u, tool_positions(state))
+    K = parts["solve"][1]
     size = {"mesh": mesh, "elements": int(model.mesh.n_elements), "dofs": int(model.mesh.n_dofs),
             "blocks": int(K.diag.shape[0]), "block_size": int(K.diag.shape[1]),
             "pairs": int(sum(len(t.candidates) for t in model.tools)),

@@ -248,7 +248,7 @@ def main(argv=None) -> int:
         if args.command == "scenes":
             return _scenes()
         from .io.cache import enable_compilation_cache
-        from .io.xla_flags import use_fast_compilation, use_host_cores
+        from .io.xla_flags import host_devices, use_fast_compilation, use_host_cores
 
         if args.command == "run":
             use_host_cores()     # a run's work split over the process's cores (_run)
@@ -262,7 +262,6 @@ def main(argv=None) -> int:
             return _report(args)
         if args.command == "bead-card":
             return _bead_card(args)
-        from .io.xla_flags import host_devices
         from .numerics.devices import run_devices
 
         with run_devices(host_devices()):   # the run and its companions, their work split over the cores
