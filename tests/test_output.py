@@ -513,7 +513,7 @@ def test_compilation_cache_keeps_a_program_for_the_next_process(tmp_path):
 
 
 def test_fast_compilation_flags_are_added_once_asked_once_and_never_override_the_user(tmp_path):
-    from jaxfric.io.xla_flags import FAST_COMPILE_FLAGS, use_fast_compilation
+    from jaxfric.io.xla_flags import FAST_COMPILE_FLAGS, ONE_THREAD_PER_DEVICE, use_fast_compilation
 
     asked = []
 
@@ -526,11 +526,23 @@ def test_fast_compilation_flags_are_added_once_asked_once_and_never_override_the
     folder = str(tmp_path / "cache")
     env = {"JAXFRIC_CACHE_DIR": folder, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
     assert use_fast_compilation(env, accepts(True))
-    assert env["XLA_FLAGS"].split() == ["--xla_force_host_platform_device_count=2", *FAST_COMPILE_FLAGS]
+    # Two host devices: each computes on one thread as well.
+    assert env["XLA_FLAGS"].split() == ["--xla_force_host_platform_device_count=2", *FAST_COMPILE_FLAGS,
+                                        ONE_THREAD_PER_DEVICE]
     # Another process of the same jaxlib finds the answer in the cache folder and does not ask again.
     again = {"JAXFRIC_CACHE_DIR": folder, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
     assert use_fast_compilation(again, accepts(False)) and again["XLA_FLAGS"] == env["XLA_FLAGS"]
     assert len(asked) == 1
+    # One device: XLA's own threads. A thread setting of the user's: kept.
+    one = {"XLA_FLAGS": "--xla_force_host_platform_device_count=1", "JAXFRIC_CACHE_DIR": "off"}
+    assert use_fast_compilation(one, accepts(True))
+    assert one["XLA_FLAGS"].split() == ["--xla_force_host_platform_device_count=1", *FAST_COMPILE_FLAGS]
+    threads = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2 --xla_cpu_multi_thread_eigen=true",
+               "JAXFRIC_CACHE_DIR": "off"}
+    assert use_fast_compilation(threads, accepts(True))
+    assert threads["XLA_FLAGS"].split()[:2] == ["--xla_force_host_platform_device_count=2",
+                                                "--xla_cpu_multi_thread_eigen=true"]
+    assert ONE_THREAD_PER_DEVICE not in threads["XLA_FLAGS"]
     # Already in effect: nothing added twice; one given another value by the user: kept, the others added,
     # reported not all in effect.
     assert use_fast_compilation(env, accepts(True)) and env["XLA_FLAGS"].count("fusion_emitters") == 1
@@ -546,13 +558,16 @@ def test_fast_compilation_flags_are_added_once_asked_once_and_never_override_the
         assert not use_fast_compilation(refused, accepts(False)) and "XLA_FLAGS" not in refused
     defaults = {"JAXFRIC_XLA_DEFAULTS": "1", "JAXFRIC_CACHE_DIR": "off"}
     assert not use_fast_compilation(defaults, accepts(True)) and "XLA_FLAGS" not in defaults
-    assert len(asked) == 4   # the first, the user's own value with the others added, the two refusals
+    # the first, one device, the user's threads, the user's own value with the others added, the two refusals
+    assert len(asked) == 6
 
 
 def test_this_xla_accepts_the_fast_compilation_flags():
     """The flags the command lines ask for start this jaxlib's XLA (where they did not, the command lines
     would fall back to XLA's defaults, slower to compile)."""
-    from jaxfric.io.xla_flags import FAST_COMPILE_FLAGS, xla_accepts
+    from jaxfric.io.xla_flags import FAST_COMPILE_FLAGS, ONE_THREAD_PER_DEVICE, xla_accepts
 
     assert xla_accepts(" ".join(FAST_COMPILE_FLAGS))
+    assert xla_accepts(" ".join(["--xla_force_host_platform_device_count=2", *FAST_COMPILE_FLAGS,
+                                 ONE_THREAD_PER_DEVICE]))
     assert not xla_accepts("--xla_no_such_flag_in_any_xla=1")

@@ -19,7 +19,8 @@ n = 1e5), stays far below the Newton tolerance (1e-8 of the force scale).
 
 ``jaxfric run`` also shows XLA the process's cores as host devices, up to two (:func:`use_host_cores`), and
 splits the run's element loops over them (:func:`host_devices`, :mod:`jaxfric.numerics.devices`): one run
-then uses two cores.
+then uses two cores, each device computing on one thread (:data:`ONE_THREAD_PER_DEVICE`, which
+:func:`use_fast_compilation` adds where two host devices are asked for).
 
 The command lines (:mod:`jaxfric.cli`) call :func:`use_fast_compilation` before their first computation;
 the package's functions set nothing, and a script or notebook may call it first thing. XLA reads
@@ -41,8 +42,8 @@ from importlib import metadata
 
 from .cache import cache_dir
 
-__all__ = ["FAST_COMPILE_FLAGS", "HOST_DEVICES", "host_devices", "use_fast_compilation", "use_host_cores",
-           "xla_accepts"]
+__all__ = ["FAST_COMPILE_FLAGS", "HOST_DEVICES", "ONE_THREAD_PER_DEVICE", "host_devices", "use_fast_compilation",
+           "use_host_cores", "xla_accepts"]
 
 FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_disable_hlo_passes=tree_reduction_rewriter")
 
@@ -85,15 +86,17 @@ def _remembered(flags: str, folder: str | None, probe: Callable[[str], bool]) ->
 def use_fast_compilation(environ: MutableMapping[str, str] | None = None,
                          probe: Callable[[str], bool] = xla_accepts) -> bool:
     """Add :data:`FAST_COMPILE_FLAGS` to ``XLA_FLAGS`` in ``environ`` (default ``os.environ``) where XLA
-    accepts them; call it before the process's first computation. Returns whether they are all in effect
-    (False: ``JAXFRIC_XLA_DEFAULTS=1``, refused by this XLA, or a flag already given its own value, which is
-    kept while the others are added)."""
+    accepts them, and :data:`ONE_THREAD_PER_DEVICE` where ``XLA_FLAGS`` already asks for two host devices or
+    more (:func:`use_host_cores`); call it before the process's first computation. Returns whether the fast
+    compilation's flags are all in effect (False: ``JAXFRIC_XLA_DEFAULTS=1``, refused by this XLA, or a flag
+    already given its own value, which is kept while the others are added)."""
     env = os.environ if environ is None else environ
     current = env.get("XLA_FLAGS", "")
     if env.get("JAXFRIC_XLA_DEFAULTS") == "1":
         return False
     given = {flag.split("=")[0] for flag in current.split()}
-    wanted = [flag for flag in FAST_COMPILE_FLAGS if flag.split("=")[0] not in given]
+    threads = (ONE_THREAD_PER_DEVICE,) if _device_count(current) > 1 else ()
+    wanted = [flag for flag in (*FAST_COMPILE_FLAGS, *threads) if flag.split("=")[0] not in given]
     if not wanted:
         return all(flag in current.split() for flag in FAST_COMPILE_FLAGS)
     flags = " ".join([current, *wanted]).strip()
@@ -108,6 +111,21 @@ def use_fast_compilation(environ: MutableMapping[str, str] | None = None,
 # run time of the Nine test: two cores).
 HOST_DEVICES = 2
 _DEVICE_COUNT = "--xla_force_host_platform_device_count"
+# With one host device per core every device keeps its core busy, and XLA's Eigen operations (its dots, LU
+# factorisations and triangular solves) would each still spread over a thread pool of all the cores: the
+# devices' pools then contend for the same cores. One thread per device: the Nine mu017 drawn 10 mm (1379
+# Newton iterations, two host devices) solved in 11.7 and 11.1 s against 14.2 and 15.5 s with the pools;
+# on one device 14.6 to 15.1 s either way (docs/results.md, run time of the Nine test: two cores).
+ONE_THREAD_PER_DEVICE = "--xla_cpu_multi_thread_eigen=false"
+
+
+def _device_count(flags: str) -> int:
+    """The host devices that ``XLA_FLAGS`` = ``flags`` asks for (1 where it names none)."""
+    for flag in flags.split():
+        name, _, value = flag.partition("=")
+        if name == _DEVICE_COUNT:
+            return int(value) if value.isdigit() else 1
+    return 1
 
 
 def use_host_cores(environ: MutableMapping[str, str] | None = None, cores: int | None = None) -> int:
@@ -118,10 +136,8 @@ def use_host_cores(environ: MutableMapping[str, str] | None = None, cores: int |
     added)."""
     env = os.environ if environ is None else environ
     current = env.get("XLA_FLAGS", "")
-    for flag in current.split():
-        name, _, value = flag.partition("=")
-        if name == _DEVICE_COUNT:
-            return int(value) if value.isdigit() else 1
+    if _DEVICE_COUNT in {flag.split("=")[0] for flag in current.split()}:
+        return _device_count(current)
     if env.get("JAXFRIC_XLA_DEFAULTS") == "1":
         return 1
     if cores is None:
