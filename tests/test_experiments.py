@@ -432,3 +432,15 @@ def test_plastic_integration_takes_each_rules_limit_and_the_errors_against_the_m
     assert out["mu017_midpoint_0.1"]["step_error_pct"] == pytest.approx(-0.5 / 100.5 * 100.0)
     assert out["mu017_radial_0.05"]["step_error_pct"] == pytest.approx((101.0 / 100.5 - 1.0) * 100.0)
     assert pi.with_errors([r for r in rows if r["integration"] == "radial"]) == []   # no midpoint ladder
+
+
+def test_ssn_passes_sorts_each_status_change_by_kind():
+    import ssn_passes
+    from jaxfric.contact.alart_curnier import OPEN, SLIP_NEG, SLIP_POS, STICK
+
+    before = np.array([OPEN, OPEN, STICK, STICK, SLIP_POS, SLIP_POS, SLIP_NEG, STICK])
+    after = np.array([STICK, OPEN, OPEN, SLIP_NEG, STICK, SLIP_NEG, OPEN, STICK])
+    kinds = {k: np.flatnonzero(m).tolist() for k, m in ssn_passes.changes(before, after).items()}
+    assert kinds == {"open_to_closed": [0], "closed_to_open": [2, 6], "stick_to_slip": [3],
+                     "slip_to_stick": [4], "slip_reversed": [5]}
+    assert set(kinds) == set(ssn_passes.KINDS)
