@@ -543,6 +543,10 @@ def test_fast_compilation_flags_are_added_once_asked_once_and_never_override_the
     assert threads["XLA_FLAGS"].split()[:2] == ["--xla_force_host_platform_device_count=2",
                                                 "--xla_cpu_multi_thread_eigen=true"]
     assert ONE_THREAD_PER_DEVICE not in threads["XLA_FLAGS"]
+    # An XLA without the threads' switch still gets the fast compilation's flags.
+    unknown = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAXFRIC_CACHE_DIR": "off"}
+    assert use_fast_compilation(unknown, lambda flags: ONE_THREAD_PER_DEVICE not in flags)
+    assert unknown["XLA_FLAGS"].split() == ["--xla_force_host_platform_device_count=2", *FAST_COMPILE_FLAGS]
     # Already in effect: nothing added twice; one given another value by the user: kept, the others added,
     # reported not all in effect.
     assert use_fast_compilation(env, accepts(True)) and env["XLA_FLAGS"].count("fusion_emitters") == 1

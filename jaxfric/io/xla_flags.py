@@ -95,15 +95,17 @@ def use_fast_compilation(environ: MutableMapping[str, str] | None = None,
     if env.get("JAXFRIC_XLA_DEFAULTS") == "1":
         return False
     given = {flag.split("=")[0] for flag in current.split()}
-    threads = (ONE_THREAD_PER_DEVICE,) if _device_count(current) > 1 else ()
-    wanted = [flag for flag in (*FAST_COMPILE_FLAGS, *threads) if flag.split("=")[0] not in given]
-    if not wanted:
-        return all(flag in current.split() for flag in FAST_COMPILE_FLAGS)
-    flags = " ".join([current, *wanted]).strip()
-    if not _remembered(flags, cache_dir(env), probe):
-        return False
-    env["XLA_FLAGS"] = flags
-    return all(flag in flags.split() for flag in FAST_COMPILE_FLAGS)
+    # With the threads' flag first, then (refused) without it: an XLA without that switch still compiles fast.
+    threads = ((ONE_THREAD_PER_DEVICE,), ()) if _device_count(current) > 1 else ((),)
+    for extra in threads:
+        wanted = [flag for flag in (*FAST_COMPILE_FLAGS, *extra) if flag.split("=")[0] not in given]
+        if not wanted:
+            return all(flag in current.split() for flag in FAST_COMPILE_FLAGS)
+        flags = " ".join([current, *wanted]).strip()
+        if _remembered(flags, cache_dir(env), probe):
+            env["XLA_FLAGS"] = flags
+            return all(flag in flags.split() for flag in FAST_COMPILE_FLAGS)
+    return False
 
 
 # `jaxfric run` shows XLA this many of the process's cores as host devices (at most) and splits the run's
