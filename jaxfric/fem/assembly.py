@@ -149,7 +149,8 @@ def _element_map(fn, material, formulation, geo, u_el, states, *extra):
     elements (the chunks counted per share) and the shares are gathered onto every device in one
     exchange, so that everything after the loop (the scatter into the global force and tangent, in the
     one-device order) runs replicated: the results equal the one-device loop's to round-off (the Nine's
-    ``make run`` case to the last bit; ``tests/test_host_devices.py``). Gathering the elements' results
+    ``make run`` case to the last bit at the same XLA settings; ``jaxfric run`` gives each of its devices
+    one thread, which moves the forces by round-off; ``tests/test_host_devices.py``). Gathering the elements' results
     costs one exchange per loop; scattering each share on its own device and summing the two global
     arrays costs two (the force and tangent, and the smallest determinant), and was no faster
     (docs/results.md, run time of the Nine test).
