@@ -77,8 +77,8 @@ def _same_steps(one, split):
     converge at the round-off floor, where each one's stopping test is decided at round-off: at the suite's XLA
     backend level 0, whose code for a device's share of the elements rounds differently from the code for all
     of them, a third of its 386 steps take one or two iterations more or fewer on two devices, 1.1 % of the
-    run's iterations in all, with the forces within 3e-12 of their largest (at XLA's default level the
-    `make run` case is the same bit for bit)."""
+    run's iterations in all, with the forces within 3e-12 of their largest (at XLA's default level, with the
+    same XLA settings on one device and on two, the `make run` case is the same bit for bit)."""
     assert len(split["time"]) == len(one["time"])
     assert max(abs(a - b) for a, b in zip(one["time"], split["time"])) < 1e-12
     assert abs(sum(split["iters"]) - sum(one["iters"])) <= 0.03 * sum(one["iters"]), \

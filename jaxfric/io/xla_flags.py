@@ -96,7 +96,7 @@ def use_fast_compilation(environ: MutableMapping[str, str] | None = None,
         return False
     given = {flag.split("=")[0] for flag in current.split()}
     # With the threads' flag first, then (refused) without it: an XLA without that switch still compiles fast.
-    threads = ((ONE_THREAD_PER_DEVICE,), ()) if _device_count(current) > 1 else ((),)
+    threads = ((ONE_THREAD_PER_DEVICE,), ()) if (_device_count(current) or 1) > 1 else ((),)
     for extra in threads:
         wanted = [flag for flag in (*FAST_COMPILE_FLAGS, *extra) if flag.split("=")[0] not in given]
         if not wanted:
@@ -121,13 +121,13 @@ _DEVICE_COUNT = "--xla_force_host_platform_device_count"
 ONE_THREAD_PER_DEVICE = "--xla_cpu_multi_thread_eigen=false"
 
 
-def _device_count(flags: str) -> int:
-    """The host devices that ``XLA_FLAGS`` = ``flags`` asks for (1 where it names none)."""
+def _device_count(flags: str) -> int | None:
+    """The host devices that ``XLA_FLAGS`` = ``flags`` asks for (None where it names no count)."""
     for flag in flags.split():
         name, _, value = flag.partition("=")
         if name == _DEVICE_COUNT:
             return int(value) if value.isdigit() else 1
-    return 1
+    return None
 
 
 def use_host_cores(environ: MutableMapping[str, str] | None = None, cores: int | None = None) -> int:
@@ -138,8 +138,9 @@ def use_host_cores(environ: MutableMapping[str, str] | None = None, cores: int |
     added)."""
     env = os.environ if environ is None else environ
     current = env.get("XLA_FLAGS", "")
-    if _DEVICE_COUNT in {flag.split("=")[0] for flag in current.split()}:
-        return _device_count(current)
+    given = _device_count(current)
+    if given is not None:
+        return given
     if env.get("JAXFRIC_XLA_DEFAULTS") == "1":
         return 1
     if cores is None:
