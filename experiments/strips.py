@@ -42,22 +42,23 @@ def end_rotation(mesh, angle, side):
                           motion=RigidMotion(pivot=(x_c, y_c), angle_start=0.0, angle_end=angle))
 
 
-def pure_bending(length, thickness, nx, ny, angle, material, n_steps=1, formulation="fbar"):
+def pure_bending(length, thickness, nx, ny, angle, material, n_steps=1, formulation="fbar", order=1):
     """Pure bending: end faces rotated by -angle (left) and +angle (right) about their centres,
     y fixed at the bottom node of each face only, so the faces contract freely and the exact
     plane-strain solution of linear elasticity is admissible (both bottom corners have the same
-    exact v, so fixing them removes only rigid motions). Positive angle: the top fibre is compressed."""
-    mesh = strip_mesh(-length / 2, length / 2, -thickness / 2, thickness, nx, ny)
+    exact v, so fixing them removes only rigid motions). Positive angle: the top fibre is compressed.
+    ``order``: the elements' order along the strip (:func:`jaxfric.strip_mesh`)."""
+    mesh = strip_mesh(-length / 2, length / 2, -thickness / 2, thickness, nx, ny, order=order)
     bcs = [end_rotation(mesh, -angle, "left"), end_rotation(mesh, angle, "right"),
            DirichletBC([mesh.left[0], mesh.right[0]], components=(1,))]
     return StripModel(mesh, material, (Phase("bend", bcs, n_steps=n_steps),), formulation=formulation)
 
 
-def bending_path(length, thickness, nx, ny, path, material, n_steps, formulation):
+def bending_path(length, thickness, nx, ny, path, material, n_steps, formulation, order=1):
     """As :func:`pure_bending`, along a path of phases: phase k turns the end faces from the previous
     (angle, shift) to ``path[k]`` = (angle, shift) (rad, mm; from (0, 0)), the right face by +angle and
     +shift along x, the left by the opposite; ``n_steps`` steps per phase."""
-    mesh = strip_mesh(-length / 2, length / 2, -thickness / 2, thickness, nx, ny)
+    mesh = strip_mesh(-length / 2, length / 2, -thickness / 2, thickness, nx, ny, order=order)
     pin = DirichletBC([mesh.left[0], mesh.right[0]], components=(1,))
 
     def face(side, sign, start, end):
@@ -86,11 +87,11 @@ def end_axial_force(result, mesh):
     return float(jnp.sum(result.final.f_int[mesh.right, 0]))
 
 
-def bending_ratio(ny, formulation, nx=40, length=2.0):
+def bending_ratio(ny, formulation, nx=40, length=2.0, order=1):
     """M_FE / M_beam for pure bending of an elastic strip (plane strain, nu = 0.3), with
     M_beam = E/(1-nu^2) t^3/12 kappa, kappa = 2 angle / length."""
     E, nu, t, angle = 200000.0, 0.3, 1.0, 1e-4
     model = pure_bending(length, t, nx=nx, ny=ny, angle=angle, material=J2Material.elastic(E, nu),
-                         formulation=formulation)
+                         formulation=formulation, order=order)
     res = run(model, progress=False)
     return abs(end_moment(res, model.mesh)) / (E / (1 - nu**2) * t**3 / 12 * 2 * angle / length)

@@ -63,11 +63,12 @@ def test_no_volumetric_locking():
     assert abs(ratio - 1.0) < 0.02, f"limit pressure ratio {ratio:.4f}"
 
 
-def compressed_block(formulation, n):
+def compressed_block(formulation, n, order=1):
     """A 2 x 2 mm steel block held without slip between two flat platens (u = 0 on the bottom and the top
     faces), compressed by 40 % in 20 steps: the faces barrel, the corners fold; the strong compression
-    under which enhanced-strain elements develop hourglass modes. Returns (result, mesh)."""
-    mesh = jf.strip_mesh(0.0, 2.0, 0.0, 2.0, n, n)
+    under which enhanced-strain elements develop hourglass modes. ``order``: the elements' order along x.
+    Returns (result, mesh)."""
+    mesh = jf.strip_mesh(0.0, 2.0, 0.0, 2.0, n, n, order=order)
     bcs = [jf.DirichletBC(mesh.bottom), jf.DirichletBC(mesh.top, motion=jf.Ramp((0.0, 0.0), (0.0, -0.8)))]
     model = jf.StripModel(mesh, jf.J2Material(**STEEL), (jf.Phase("press", bcs, n_steps=20),),
                           formulation=formulation)

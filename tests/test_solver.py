@@ -74,17 +74,21 @@ class _Radial(jf.Motion):
         return tau * 0.02 * X / jnp.linalg.norm(X, axis=1, keepdims=True)
 
 
-def thick_cylinder_ratio(formulation):
+def thick_cylinder_ratio(formulation, order=1):
     """Limit-pressure ratio of the plane-strain thick cylinder (a = 1, b = 2, 4 x 8 elements,
     perfectly plastic) with ``formulation``: the inner pressure after pushing the inner radius out by
-    0.02 mm (5x full yield), over p_L = (2/sqrt(3)) sigma_y ln(b/a) at the current radii."""
+    0.02 mm (5x full yield), over p_L = (2/sqrt(3)) sigma_y ln(b/a) at the current radii. ``order``: the
+    elements' order along the radius (:func:`jaxfric.strip_mesh`)."""
     a, b, ua, sigma_y = 1.0, 2.0, 0.02, 200.0
     nr, nt = 4, 8
-    # i runs along the radius and j around the quarter circle, so elements stay counter-clockwise.
-    r, th = np.linspace(a, b, nr + 1), np.linspace(0.0, np.pi / 2, nt + 1)
+    # i runs along the radius and j around the quarter circle, so elements stay counter-clockwise; with
+    # order 2 the radial node columns include the mid-side ones and the padding column (its radius unused).
+    r = np.linspace(a, b, order * nr + 1)
+    r = np.append(r, r[-1] + 0.5 * (r[-1] - r[-2])) if order == 2 else r
+    th = np.linspace(0.0, np.pi / 2, nt + 1)
     R, T = np.meshgrid(r, th, indexing="ij")
     nodes = jnp.asarray(np.stack([(R * np.cos(T)).ravel(), (R * np.sin(T)).ravel()], axis=1))
-    mesh = jf.StripMesh(nodes, nr, nt)
+    mesh = jf.StripMesh(nodes, nr, nt, order)
     bcs = [jf.DirichletBC(mesh.bottom, components=(1,)),  # theta = 0: symmetry
            jf.DirichletBC(mesh.top, components=(0,)),     # theta = 90 deg: symmetry
            jf.DirichletBC(mesh.left, motion=_Radial())]   # inner surface pushed out

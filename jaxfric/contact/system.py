@@ -158,10 +158,8 @@ def residual(x, args: StepArgs):
 
 def _contact_jacobian(args: StepArgs, K: BlockTridiag, pairs, keep):
     """Add the pair Jacobians to the diagonal blocks and build the border of the force-driven tools."""
-    ny1 = args.mesh.ny + 1
     nodes = pair_nodes(_contact_of(args).tools)
-    cols = nodes // ny1
-    rows = 2 * (nodes % ny1)[:, None] + np.arange(2)[None, :]
+    cols, rows = args.mesh.block_rows(nodes)
     dfdx = jnp.concatenate([p.df_dx for p in pairs])
     # R_u = f_int - f_c: the pair blocks enter with a minus sign (free rows only: `keep`).
     diag = K.diag.at[cols[:, None, None], rows[:, :, None], rows[:, None, :]].add(-dfdx)

@@ -59,16 +59,18 @@ def mesh_geometry(mesh: StripMesh, thickness_points: int = 2) -> ElementGeometry
 
 
 @functools.cache
-def tangent_scatter_index(nx: int, ny: int) -> np.ndarray:
-    """(n_el*64,) positions of the entries of every (8, 8) element tangent in the flat storage
-    ``concat(diag.ravel(), lower.ravel(), upper.ravel())`` of a BlockTridiag with nx+1 blocks."""
-    m = 2 * (ny + 1)
-    nb = nx + 1
-    i_grid, j_grid = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
-    i, j = i_grid.ravel(), j_grid.ravel()
-    # Block column and in-block dof of each of the 8 element dofs (node-major, x then y).
-    col = i[:, None] + np.repeat([0, 1, 1, 0], 2)[None, :]
-    row = 2 * (j[:, None] + np.repeat([0, 0, 1, 1], 2)[None, :]) + np.tile([0, 1], 4)[None, :]
+def tangent_scatter_index(nx: int, ny: int, order: int = 1) -> np.ndarray:
+    """(n_el*(2n)^2,) positions of the entries of every (2n, 2n) element tangent (n nodes per element) in the
+    flat storage ``concat(diag.ravel(), lower.ravel(), upper.ravel())`` of a BlockTridiag with nx+1 blocks
+    (:attr:`~jaxfric.fem.mesh.StripMesh.block_size`, ``order`` node columns per block)."""
+    with jax.ensure_compile_time_eval():   # the numbering only: a concrete placeholder for the nodes
+        mesh = StripMesh(nodes=jnp.zeros((order * (nx + 1) * (ny + 1), 2)), nx=nx, ny=ny, order=order)
+    m, nb = mesh.block_size, mesh.num_blocks
+    # Block and in-block row of each element dof (node-major, x then y).
+    blocks, rows = mesh.block_rows(mesh.elements.ravel())
+    n_el = mesh.n_elements
+    col = np.repeat(blocks.reshape(n_el, -1), 2, axis=1)
+    row = rows.reshape(n_el, -1)
     bi, bj = col[:, :, None], col[:, None, :]
     ri, rj = row[:, :, None], row[:, None, :]
     in_block = ri * m + rj
@@ -80,14 +82,26 @@ def tangent_scatter_index(nx: int, ny: int) -> np.ndarray:
     return index.reshape(-1).astype(np.int64)
 
 
-def _scatter_tangent(K_el: jax.Array, nx: int, ny: int) -> BlockTridiag:
-    m, nb = 2 * (ny + 1), nx + 1
+def _scatter_tangent(K_el: jax.Array, mesh: StripMesh) -> BlockTridiag:
+    m, nb = mesh.block_size, mesh.num_blocks
     size = (3 * nb - 2) * m * m
-    flat = jnp.zeros(size, K_el.dtype).at[tangent_scatter_index(nx, ny)].add(K_el.reshape(-1))
+    flat = jnp.zeros(size, K_el.dtype).at[tangent_scatter_index(mesh.nx, mesh.ny, mesh.order)].add(K_el.reshape(-1))
     diag = flat[: nb * m * m].reshape(nb, m, m)
     lower = flat[nb * m * m: (2 * nb - 1) * m * m].reshape(nb - 1, m, m)
     upper = flat[(2 * nb - 1) * m * m:].reshape(nb - 1, m, m)
+    if mesh.padding.size:   # the padding column's unit springs (:func:`_padding_force`)
+        _, pad_rows = mesh.block_rows(mesh.padding)
+        diag = diag.at[-1, pad_rows.ravel(), pad_rows.ravel()].add(1.0)
     return BlockTridiag(lower=lower, diag=diag, upper=upper)
+
+
+def _padding_force(mesh: StripMesh, u: jax.Array) -> jax.Array:
+    """The force of unit springs (N/mm per mm) that hold the padding column of an ``order=2`` mesh at rest
+    (:mod:`jaxfric.fem.mesh`): (n_nodes, 2), zero elsewhere. Its nodes are in no element, so its rows of
+    the tangent are otherwise empty; with the springs they are identity rows and the Newton steps leave
+    them at zero."""
+    pad = mesh.padding
+    return jnp.zeros_like(u).at[pad].set(u[pad]) if pad.size else jnp.zeros_like(u)
 
 
 # Elements are processed in chunks of this many (up to twice as many: `_element_map`), vmapped inside a
@@ -194,7 +208,7 @@ def internal_force(mesh: StripMesh, material, formulation: str, geo: ElementGeom
     elements = mesh.elements
     f_el, (new_states, tau, det_min) = _element_map(
         element_force, material, formulation, geo, u[elements], states)
-    f_int = jnp.zeros_like(u).at[elements].add(f_el)
+    f_int = _padding_force(mesh, u).at[elements].add(f_el)
     return Assembled(f_int, None, new_states, tau, jnp.min(det_min))
 
 
@@ -210,8 +224,8 @@ def internal_force_and_tangent(mesh: StripMesh, material, formulation: str, geo:
     extra = () if predictor is None else (predictor,)
     f_el, K_el, aux = _element_map(element_force_and_tangent, material, formulation, geo, u[elements], states,
                                    *extra)
-    f_int = jnp.zeros_like(u).at[elements].add(f_el.reshape(-1, 4, 2))
-    K = _scatter_tangent(K_el, mesh.nx, mesh.ny)
+    f_int = _padding_force(mesh, u).at[elements].add(f_el.reshape(elements.shape + (2,)))
+    K = _scatter_tangent(K_el, mesh)
     new_states, tau, det_min = aux[:3]
     if predictor is None:
         return Assembled(f_int, K, new_states, tau, jnp.min(det_min))

@@ -93,6 +93,20 @@ more points do not change (on 3 layers it stretches the strip 4.4 % over the too
 
 ``formulation="q4"`` (plain displacement Q4, F_bar = F) is kept for the elastic verification checks.
 
+**Elements quadratic along the strip** (six nodes; :func:`jaxfric.fem.mesh.strip_mesh` with ``order=2``).
+The shape functions are the quadratic Lagrange polynomials on xi = -1, 0, 1 times the linear ones on
+eta = -1, 1, integrated by the same rule (2 points along xi, ``thickness_points`` along eta: along xi
+the rule is reduced, which a quadratic element takes without a zero-energy mode, checked on its
+stiffness in ``tests/test_element_quadratic.py``). Each layer's displacement along the strip is
+quadratic, so the bending strain varies linearly along the element where a bilinear element's is
+constant, and the deflection's quadratic part is in the field, so bending turns no fibre into a
+parasitic shear (``ans``' sampling has nothing to remove: its gradients are the compatible ones here).
+``anst``'s thickness mode (the same construction, its centre and fibre from the six-node field) makes
+elastic pure bending exact at 2 and 3 layers and aspect ratios 1 to 4. F-bar is not offered on this
+element: one dilatation per six-node element leaves a softness that grows with the aspect ratio
+(elastic pure bending at 3 layers: 0.85 of the beam moment at aspect ratio 1, 0.40 at 4), so
+:data:`QUADRATIC_FORMULATIONS` are ``anst`` and the compatible ``q4``.
+
 ``formulation="eas"``: the enhanced-assumed-strain element Q1/E4 at finite strain (Simo & Armero,
 Int. J. Numer. Meth. Engng 33, 1992). The compatible gradient gets four enhanced parameters alpha per
 element, those of the incompatible modes (1 - xi^2), (1 - eta^2) of each displacement component,
@@ -124,11 +138,12 @@ import numpy as np
 
 from ..numerics.tensor import det2, inv2
 
-__all__ = ["FORMULATIONS", "ElementGeometry", "gauss_rule", "element_geometry", "deformation_gradients",
-           "initial_point_state", "element_force", "element_force_and_tangent", "enhanced_predictor",
-           "N_ENHANCED", "ENHANCED_UPDATES"]
+__all__ = ["FORMULATIONS", "QUADRATIC_FORMULATIONS", "ElementGeometry", "gauss_rule", "element_geometry",
+           "deformation_gradients", "initial_point_state", "element_force", "element_force_and_tangent",
+           "enhanced_predictor", "N_ENHANCED", "ENHANCED_UPDATES"]
 
 FORMULATIONS = ("fbar", "ans", "anst", "q4", "eas")
+QUADRATIC_FORMULATIONS = ("anst", "q4")   # those of the elements quadratic along the strip (module docstring)
 ENHANCED_UPDATES = ("iterate", "local")   # alpha with the Newton iterate, or by a local solve per evaluation
 EAS_MAX_ITER = 25      # local Newton iterations for the enhanced parameters (while_loop bound)
 EAS_RTOL = 1e-12       # relative to sum_g w_g |P_g| |dF_g/dalpha|
@@ -142,12 +157,27 @@ GAUSS_POINTS = np.array([[-_G, -_G], [_G, -_G], [_G, _G], [-_G, _G]])
 GAUSS_WEIGHTS = np.ones(4)
 
 
-def _parent_gradients(xi: float, eta: float) -> np.ndarray:
-    """dN_a/d(xi, eta) of the 4 bilinear shape functions at one parent point: (4, 2)."""
-    return 0.25 * np.stack([_XI * (1.0 + _ETA * eta), _ETA * (1.0 + _XI * xi)], axis=1)
+def _parent_gradients(xi: float, eta: float, n_nodes: int = 4) -> np.ndarray:
+    """dN_a/d(xi, eta) at one parent point, (n_nodes, 2): the 4 bilinear shape functions, or the 6 of the
+    element quadratic along xi and linear along eta (nodes at xi = -1, 0, 1 on eta = -1, then back at
+    xi = 1, 0, -1 on eta = 1: :attr:`jaxfric.fem.mesh.StripMesh.elements`)."""
+    if n_nodes == 4:
+        return 0.25 * np.stack([_XI * (1.0 + _ETA * eta), _ETA * (1.0 + _XI * xi)], axis=1)
+    # Lagrange polynomials on xi = -1, 0, 1 and their derivatives; linear ones along eta.
+    lag = np.array([0.5 * xi * (xi - 1.0), 1.0 - xi * xi, 0.5 * xi * (xi + 1.0)])
+    dlag = np.array([xi - 0.5, -2.0 * xi, xi + 0.5])
+    along, side = np.array([0, 1, 2, 2, 1, 0]), np.array([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0])
+    lin = 0.5 * (1.0 + side * eta)
+    return np.stack([dlag[along] * lin, lag[along] * 0.5 * side], axis=1)
 
 
 _DN_CENTER = _parent_gradients(0.0, 0.0)  # (4, 2)
+
+
+@functools.cache
+def _dn_center(n_nodes: int) -> np.ndarray:
+    """dN/dxi at the element's centre, (n_nodes, 2)."""
+    return _parent_gradients(0.0, 0.0, n_nodes)
 
 
 @functools.cache
@@ -165,14 +195,16 @@ def gauss_rule(thickness_points: int = 2) -> tuple[np.ndarray, np.ndarray]:
 
 
 @functools.cache
-def _parent_tables(n_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _parent_tables(n_points: int, n_nodes: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """For the rule of ``n_points`` points: its weights (n,), the parent gradients at its points
-    (n, 4 nodes, 2), the assumed ones (d/dxi at the point, d/deta at the centre line xi = 0), and the
+    (n, n_nodes, 2), the assumed ones (d/dxi at the point, d/deta at the centre line xi = 0), and the
     Q1/E4 modes A_ik = alpha_(2i+k) (xi, eta)_k at its points, (n, 2, 2, 4)."""
     points, weights = gauss_rule(n_points // 2)
-    dn = np.stack([_parent_gradients(*p) for p in points])
-    assumed = np.stack([np.stack([dn[g, :, 0], _parent_gradients(0.0, p[1])[:, 1]], axis=1)
+    dn = np.stack([_parent_gradients(p[0], p[1], n_nodes) for p in points])
+    assumed = np.stack([np.stack([dn[g, :, 0], _parent_gradients(0.0, p[1], n_nodes)[:, 1]], axis=1)
                         for g, p in enumerate(points)])
+    if n_nodes == 6:   # quadratic along xi: no parasitic shear in bending, nothing to sample (module docstring)
+        assumed = dn
     modes = np.zeros((len(points), 2, 2, 4))
     for i in range(2):
         for k in range(2):
@@ -204,9 +236,10 @@ class ElementGeometry(eqx.Module):
 
 
 def element_geometry(X_el: jax.Array, thickness_points: int = 2) -> ElementGeometry:
-    """Element geometry from the reference corner coordinates ``X_el`` (n_el, 4, 2), in mm, for the rule
+    """Element geometry from the reference node coordinates ``X_el`` (n_el, 4 or 6, 2), in mm, for the rule
     of :func:`gauss_rule` with ``thickness_points`` points through the thickness."""
-    weights, dn_gauss, dn_assumed, _ = _parent_tables(2 * int(thickness_points))
+    n_nodes = X_el.shape[1]
+    weights, dn_gauss, dn_assumed, _ = _parent_tables(2 * int(thickness_points), n_nodes)
 
     def gradients(dN_dxi, X):
         jac = X.T @ dN_dxi  # dX/dxi, (2, 2)
@@ -214,7 +247,7 @@ def element_geometry(X_el: jax.Array, thickness_points: int = 2) -> ElementGeome
 
     def one(X):
         dN, det = jax.vmap(gradients, (0, None))(jnp.asarray(dn_gauss), X)
-        dN0, _ = gradients(jnp.asarray(_DN_CENTER), X)
+        dN0, _ = gradients(jnp.asarray(_dn_center(n_nodes)), X)
         dN_ans, _ = jax.vmap(gradients, (0, None))(jnp.asarray(dn_assumed), X)
         return dN, dN0, dN_ans, det * weights
 
@@ -255,9 +288,11 @@ def _fbar_ratio(J, J0):
 
 
 def _centroid_jacobian_inverse(dN_dX_center) -> jax.Array:
-    """J_0^-1 = dxi/dX at the centroid, (2, 2), recovered from dN/dX there (dN/dxi at the centroid has
-    orthogonal columns of squared norm 1/4)."""
-    return 4.0 * jnp.asarray(_DN_CENTER).T @ dN_dX_center
+    """J_0^-1 = dxi/dX at the centroid, (2, 2), recovered from dN/dX = (dN/dxi) J_0^-1 there (dN/dxi at the
+    centroid has orthogonal columns: their squared norms 1/4, and 1/4 and 1/2 for the quadratic element,
+    so the left inverse below is exact in floating point)."""
+    dn = _dn_center(dN_dX_center.shape[0])
+    return jnp.asarray(np.linalg.inv(dn.T @ dn) @ dn.T) @ dN_dX_center
 
 
 def _enhanced_basis(dN_dX_center, weight) -> jax.Array:
@@ -290,26 +325,27 @@ def _thickness_mode(dN_dX_center, weight, u_e) -> jax.Array:
 N_ENHANCED = {"eas": 4, "anst": 1}  # enhanced parameters per element; 0 for the other formulations
 
 
-def initial_point_state(material, formulation: str, enhanced_update: str = "local"):
+def initial_point_state(material, formulation: str, enhanced_update: str = "local", n_nodes: int = 4):
     """A virgin state of one point of ``material`` with room for the formulation's enhanced parameters
-    (zero: the undeformed element): alpha (n,) for the local solve, the predictor (n, 9) of
-    :func:`element_force_and_tangent` for ``enhanced_update="iterate"``."""
+    (zero: the undeformed element of ``n_nodes`` nodes): alpha (n,) for the local solve, the predictor
+    (n, 1 + 2 n_nodes) of :func:`element_force_and_tangent` for ``enhanced_update="iterate"``."""
     n = N_ENHANCED.get(formulation, 0)
     state = material.init_state()
     if not n:
         return state
-    kept = jnp.zeros((n, 9) if enhanced_update == "iterate" else (n,), jnp.float64)
+    kept = jnp.zeros((n, 1 + 2 * n_nodes) if enhanced_update == "iterate" else (n,), jnp.float64)
     return eqx.tree_at(lambda s: s.enhanced, state, kept, is_leaf=lambda x: x is None)
 
 
 def _kept(states, n: int):
-    """The enhanced data the point states keep: ("alpha", (n,)), ("predictor", (n, 9)) or (None, None)."""
+    """The enhanced data the point states keep: ("alpha", (n,)), ("predictor", (n, 1 + element dofs)) or
+    (None, None)."""
     kept = getattr(states, "enhanced", None)
     if kept is None or n == 0:
         return None, None
     if kept.shape[-1:] == (n,):
         return "alpha", kept[0]
-    if kept.shape[-2:] == (n, 9):
+    if kept.ndim >= 3 and kept.shape[-2] == n:
         return "predictor", kept[0]
     return None, None
 
@@ -329,9 +365,9 @@ def _with_enhanced(states, alpha, predictor=None):
     a predictor (``predictor``, or alpha held: :func:`enhanced_predictor`)."""
     if alpha.size == 0:
         return states
-    form, _ = _kept(states, alpha.size)
+    form, kept = _kept(states, alpha.size)
     if form == "predictor":
-        value = enhanced_predictor(alpha) if predictor is None else predictor
+        value = enhanced_predictor(alpha, n_dofs=kept.shape[-1] - 1) if predictor is None else predictor
     else:
         value = alpha
     n_points = jax.tree_util.tree_leaves(states)[0].shape[0]
@@ -365,12 +401,13 @@ _EPS2 = np.array([[0.0, 1.0], [-1.0, 0.0]])  # the 2D permutation symbol: det F 
 
 
 def _det_derivatives(F, dN):
-    """Gradient (..., 8) of J = det F over the element dofs (node-major) for F = I + sum_a u_a (x) dN_a,
-    linear in the dofs: dJ/du_bk = sum_j cof(F)_kj dN_bj; and the (..., 4, 4) matrix M = dN eps dN^T of
-    its constant Hessian d2J/du_bk du_cl = M_bc eps_kl (eps: the 2D permutation symbol)."""
+    """Gradient (..., 2 n) of J = det F over the element dofs (node-major, n nodes) for
+    F = I + sum_a u_a (x) dN_a, linear in the dofs: dJ/du_bk = sum_j cof(F)_kj dN_bj; and the (..., n, n)
+    matrix M = dN eps dN^T of its constant Hessian d2J/du_bk du_cl = M_bc eps_kl (eps: the 2D permutation
+    symbol)."""
     cof = jnp.einsum("ki,...ij,jl->...kl", _EPS2, F, _EPS2.T)  # J F^-T
     grad = jnp.einsum("...bj,...kj->...bk", dN, cof)
-    return grad.reshape(*grad.shape[:-2], 8), jnp.einsum("...bj,jn,...cn->...bc", dN, _EPS2, dN)
+    return grad.reshape(*grad.shape[:-2], -1), jnp.einsum("...bj,jn,...cn->...bc", dN, _EPS2, dN)
 
 
 class _FbarParts(NamedTuple):
@@ -379,14 +416,14 @@ class _FbarParts(NamedTuple):
     F: jax.Array        # (g, 2, 2) compatible gradients, linear in the dofs
     Fbar: jax.Array     # (g, 2, 2) r F
     r: jax.Array        # (g,) (J_0 / J)^(1/2), 1 where guarded
-    dl: jax.Array       # (g, 8) d ln r, 0 where guarded
+    dl: jax.Array       # (g, 2n) d ln r over the element's 2n dofs (n nodes), 0 where guarded
     ok: jax.Array       # (g,) not guarded (J > 0 and J_0 > 0)
     J: jax.Array        # (g,) det F (1 where guarded)
-    dJ: jax.Array       # (g, 8)
-    M: jax.Array        # (g, 4, 4) of d2J (:func:`_det_derivatives`)
+    dJ: jax.Array       # (g, 2n)
+    M: jax.Array        # (g, n, n) of d2J (:func:`_det_derivatives`)
     J0: jax.Array       # () det F at the centroid (1 where not positive)
-    dJ0: jax.Array      # (8,)
-    M0: jax.Array       # (4, 4)
+    dJ0: jax.Array      # (2n,)
+    M0: jax.Array       # (n, n)
     det_min: jax.Array  # () smallest det F at the points and the centroid
 
 
@@ -395,21 +432,21 @@ def _fbar_parts(dN_dX, dN_dX_center, u_e) -> _FbarParts:
     the dofs, F_bar = r F with r = (J_0 / J)^(1/2) and ln r = (ln J_0 - ln J) / 2."""
     F, F0, J, J0 = _compatible(dN_dX, dN_dX_center, u_e)
     ok, J_safe, J0_safe, r = _fbar_ratio(J, J0)
-    dJ, M = _det_derivatives(F, dN_dX)                    # (g, 8), (g, 4, 4)
-    dJ0, M0 = _det_derivatives(F0, dN_dX_center)          # (8,), (4, 4)
+    dJ, M = _det_derivatives(F, dN_dX)                    # (g, 2n), (g, n, n)
+    dJ0, M0 = _det_derivatives(F0, dN_dX_center)          # (2n,), (n, n)
     dl = jnp.where(ok[:, None], 0.5 * (dJ0[None, :] / J0_safe - dJ / J_safe[:, None]), 0.0)
     return _FbarParts(F, r[:, None, None] * F, r, dl, ok, J_safe, dJ, M, J0_safe, dJ0, M0,
                       jnp.minimum(jnp.min(J), J0))
 
 
 def _fbar_gradient(parts: _FbarParts, dN_dX) -> jax.Array:
-    """dF_bar / du, (g, 2, 2, 8): r dF/du + F (x) r dl, with dF_ij/du_bk = delta_ik dN_bj."""
-    dF = jnp.einsum("ik,gbj->gijbk", jnp.eye(2), dN_dX).reshape(*parts.F.shape, 8)
+    """dF_bar / du, (g, 2, 2, 2n): r dF/du + F (x) r dl, with dF_ij/du_bk = delta_ik dN_bj."""
+    dF = jnp.einsum("ik,gbj->gijbk", jnp.eye(2), dN_dX).reshape(*parts.F.shape, -1)
     return parts.r[:, None, None, None] * dF + parts.Fbar[..., None] * parts.dl[:, None, None, :]
 
 
 def _fbar_geometric_term(S, parts: _FbarParts, dN_dX) -> jax.Array:
-    """The (8, 8) Hessian over the element dofs of sum_g S_g : F_bar_g(u) with the S_g held fixed: the
+    """The (2n, 2n) Hessian over the element dofs of sum_g S_g : F_bar_g(u) with the S_g held fixed: the
     geometric part of the F-bar tangent (``fbar``, ``ans``).
 
     With s_g = S_g : F_g (linear, gradient a_g), dr = r dl and d2r = r (dl (x) dl + d2l) for
@@ -425,7 +462,7 @@ def _fbar_geometric_term(S, parts: _FbarParts, dN_dX) -> jax.Array:
     r = jnp.where(parts.ok, parts.r, 0.0)
     dl, dJ, J, J0 = parts.dl, parts.dJ, parts.J, parts.J0
     c = jnp.einsum("gij,gij->g", S, parts.F) * r
-    ra = r[:, None] * jnp.einsum("gkj,gbj->gbk", S, dN_dX).reshape(-1, 8)
+    ra = r[:, None] * jnp.einsum("gkj,gbj->gbk", S, dN_dX).reshape(S.shape[0], -1)
     c0 = jnp.sum(c) / J0
     M_sum = jnp.kron(c0 * parts.M0 - jnp.einsum("g,gbc->bc", c / J, parts.M), _EPS2)
     return (dl.T @ (c[:, None] * dl) + dl.T @ ra + ra.T @ dl
@@ -572,15 +609,17 @@ def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight
     alpha = (_condensed(material, formulation, dN_dX, dN_dX_center, weight, u_e, states) if predictor is None
              else predictor[:, 0] + predictor[:, 1:] @ u_e.ravel())
 
-    def kinematics(v):  # v: the element dofs (node-major), then alpha
-        return _kinematics(formulation, dN_dX, dN_dX_center, weight, v[:8].reshape(4, 2), v[8:])
+    nd = u_e.size   # the element's dofs, node-major
+
+    def kinematics(v):  # v: the element dofs, then alpha
+        return _kinematics(formulation, dN_dX, dN_dX_center, weight, v[:nd].reshape(u_e.shape), v[nd:])
 
     if formulation in ("fbar", "ans"):
         parts = _fbar_parts(dN_dX, dN_dX_center, u_e)
         Fb, det_min, dF_dv = parts.Fbar, parts.det_min, _fbar_gradient(parts, dN_dX)
     else:
         v = jnp.concatenate([u_e.ravel(), alpha])
-        Fb, det_min, dF_dv = _value_and_jacfwd(kinematics, v)  # dF_dv: (gp, 2, 2, 8 + n_alpha)
+        Fb, det_min, dF_dv = _value_and_jacfwd(kinematics, v)  # dF_dv: (gp, 2, 2, nd + n_alpha)
     dP_dF, (P, tau, new_states) = jax.vmap(jax.jacfwd(_piola(material), has_aux=True))(Fb, states)
     wP = weight[:, None, None] * P
     K_e = jnp.einsum("g,gija,gijkl,gklb->ab", weight, dF_dv, dP_dF, dF_dv)
@@ -591,22 +630,24 @@ def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight
         K_e = K_e + jax.jacfwd(jax.grad(lambda w: jnp.sum(jax.lax.stop_gradient(wP) * kinematics(w)[0])))(v)
     if predictor is None:
         new_states = _with_enhanced(new_states, alpha)
-        f_e = jnp.einsum("gij,gija->a", wP, dF_dv[..., :8])
+        f_e = jnp.einsum("gij,gija->a", wP, dF_dv[..., :nd])
         if alpha.size:
-            K_e = K_e[:8, :8] - K_e[:8, 8:] @ jnp.linalg.solve(K_e[8:, 8:], K_e[8:, :8])
-        return f_e.reshape(4, 2), K_e, (new_states, tau, det_min)
+            K_e = K_e[:nd, :nd] - K_e[:nd, nd:] @ jnp.linalg.solve(K_e[nd:, nd:], K_e[nd:, :nd])
+        return f_e.reshape(u_e.shape), K_e, (new_states, tau, det_min)
     r = jnp.einsum("gij,gija->a", wP, dF_dv)      # (R_u, R_a)
-    h = jnp.linalg.solve(K_e[8:, 8:], jnp.concatenate([r[8:, None], K_e[8:, :8]], axis=1))  # K_aa^-1 [R_a K_au]
-    gap = K_e[:8, 8:] @ h[:, 0]
-    f_e = r[:8] - gap
-    K_c = K_e[:8, :8] - K_e[:8, 8:] @ h[:, 1:]
+    h = jnp.linalg.solve(K_e[nd:, nd:], jnp.concatenate([r[nd:, None], K_e[nd:, :nd]], axis=1))  # K_aa^-1 [R_a K_au]
+    gap = K_e[:nd, nd:] @ h[:, 0]
+    f_e = r[:nd] - gap
+    K_c = K_e[:nd, :nd] - K_e[:nd, nd:] @ h[:, 1:]
     next_predictor = enhanced_predictor(alpha - h[:, 0] + h[:, 1:] @ u_e.ravel(), -h[:, 1:])
     new_states = _with_enhanced(new_states, alpha, next_predictor)
-    return f_e.reshape(4, 2), K_c, (new_states, tau, det_min, next_predictor, gap.reshape(4, 2))
+    return f_e.reshape(u_e.shape), K_c, (new_states, tau, det_min, next_predictor, gap.reshape(u_e.shape))
 
 
-def enhanced_predictor(alpha0, slope=None) -> jax.Array:
-    """(n_alpha, 9) the predictor of :func:`element_force_and_tangent`: alpha(u_e) = alpha0 + slope u_e
-    (``slope`` (n_alpha, 8), zero by default: alpha held at ``alpha0``, as at the start of a step)."""
-    slope = jnp.zeros((alpha0.shape[-1], 8), alpha0.dtype) if slope is None else slope
-    return jnp.concatenate([alpha0[..., None], jnp.broadcast_to(slope, alpha0.shape + (8,))], axis=-1)
+def enhanced_predictor(alpha0, slope=None, n_dofs: int = 8) -> jax.Array:
+    """(n_alpha, 1 + n_dofs) the predictor of :func:`element_force_and_tangent`: alpha(u_e) = alpha0 + slope u_e
+    (``slope`` (n_alpha, n_dofs), the element's dofs; zero by default: alpha held at ``alpha0``, as at the
+    start of a step)."""
+    n_dofs = n_dofs if slope is None else slope.shape[-1]
+    slope = jnp.zeros((alpha0.shape[-1], n_dofs), alpha0.dtype) if slope is None else slope
+    return jnp.concatenate([alpha0[..., None], jnp.broadcast_to(slope, alpha0.shape + (n_dofs,))], axis=-1)

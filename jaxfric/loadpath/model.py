@@ -20,7 +20,7 @@ from ..contact.rigid import ContactState, initial_contact_state, max_penetration
 from ..contact.status import SLIP
 from ..contact.tools import project
 from ..fem.assembly import internal_force, mesh_geometry
-from ..fem.element import ENHANCED_UPDATES, FORMULATIONS, initial_point_state
+from ..fem.element import ENHANCED_UPDATES, FORMULATIONS, QUADRATIC_FORMULATIONS, initial_point_state
 from ..fem.loading import Phase, constraint_masks
 from ..fem.material import J2Material
 from ..fem.mesh import StripMesh
@@ -90,6 +90,9 @@ class StripModel(eqx.Module):
             raise ValueError(f"field 'material' must be a material law such as J2Material, got {self.material!r}")
         if self.formulation not in FORMULATIONS:
             raise ValueError(f"field 'formulation' must be one of {FORMULATIONS}, got {self.formulation!r}")
+        if self.mesh.order == 2 and self.formulation not in QUADRATIC_FORMULATIONS:
+            raise ValueError(f"field 'formulation' = {self.formulation!r} is not available on elements quadratic "
+                             f"along the strip (mesh order 2); choose one of {QUADRATIC_FORMULATIONS}")
         if not (isinstance(self.thickness_points, int | np.integer) and not isinstance(self.thickness_points, bool)
                 and 2 <= self.thickness_points <= 16):
             raise ValueError(f"field 'thickness_points' must be an integer from 2 to 16, got {self.thickness_points!r}")
@@ -193,7 +196,8 @@ def initial_state(model: StripModel) -> SimState:
     """The state before the first step: zero displacements, virgin material at every Gauss point, the
     tools at their initial positions (with no force), pseudo-time 0 in phase 0."""
     n_el = model.mesh.n_elements
-    one = initial_point_state(model.material, model.formulation, model.enhanced_update)
+    one = initial_point_state(model.material, model.formulation, model.enhanced_update,
+                              model.mesh.nodes_per_element)
     n_points = 2 * model.thickness_points
     states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (n_el, n_points) + a.shape), one)
     zeros = jnp.zeros((model.mesh.n_nodes, 2))

@@ -20,10 +20,11 @@ from ..contact.preselection import PAYS_FROM, tool_capacity
 from ..contact.rigid import has_friction_law, max_penetration, pair_friction, split_pairs
 from ..contact.status import SLIP
 from ..contact.tools import GAP_OPEN, Arc, Segment, Tool
-from ..fem.element import ENHANCED_UPDATES
+from ..fem.element import ENHANCED_UPDATES, QUADRATIC_FORMULATIONS
 from ..fem.kinematic import KinematicJ2Material
 from ..fem.loading import Phase, constraint_masks, schedule
 from ..fem.material import INTEGRATIONS, J2Material
+from ..fem.mesh import ORDERS
 from ..loadpath.controller import STABILIZE, StepControl
 from ..loadpath.model import reactions
 
@@ -61,6 +62,9 @@ ELEMENT_DOC = ("element formulation (jaxfric.fem.element): 'fbar' F-bar Q4, 'ans
                "natural strain through the thickness (no parasitic shear), 'anst' assumed natural strain with "
                "a condensed through-thickness mode (no parasitic shear, exact elastic bending at 2 layers), "
                "'eas' enhanced strain Q1/E4")
+ELEMENT_ORDER_DOC = ("the elements' order along the strip (jaxfric.fem.mesh): 1 bilinear, 2 quadratic along the strip "
+                     "and linear through each layer (six nodes; with element='anst': the bending strain varies "
+                     "linearly along each element) [chosen]")
 THICKNESS_POINTS_DOC = ("Gauss points through each element's thickness (2: the 2 x 2 rule; more integrate the "
                         "stress through the thickness more finely at the cost of more material evaluations; "
                         "jaxfric.fem.element.gauss_rule) [chosen]")
@@ -241,6 +245,11 @@ def check_config(config, *, positive=(), nonnegative=(), integers=(), choices=No
         raise _bad("speed_period", config.speed_period, "it must be finite and >= 0")
     if config.element not in ELEMENTS:
         raise _bad("element", config.element, f"choose one of {', '.join(map(repr, ELEMENTS))}")
+    if config.element_order not in ORDERS:
+        raise _bad("element_order", config.element_order, f"choose one of {', '.join(map(repr, ORDERS))}")
+    if config.element_order == 2 and config.element not in QUADRATIC_FORMULATIONS:
+        raise _bad("element", config.element, "elements quadratic along the strip (element_order=2) take "
+                   + " or ".join(repr(f) for f in QUADRATIC_FORMULATIONS if f in ELEMENTS))
     if config.enhanced_update not in ENHANCED_UPDATES:
         raise _bad("enhanced_update", config.enhanced_update,
                    f"choose one of {', '.join(map(repr, ENHANCED_UPDATES))}")

@@ -106,6 +106,7 @@ class BeadConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationF
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(512, "-", cm.BAND_DOC)
     element: str = cm.spec_field("ans", "-", cm.ELEMENT_DOC)
+    element_order: int = cm.spec_field(1, "-", cm.ELEMENT_ORDER_DOC)
     thickness_points: int = cm.spec_field(2, "-", cm.THICKNESS_POINTS_DOC)
     enhanced_update: str = cm.spec_field("iterate", "-", cm.ENHANCED_UPDATE_DOC)
     n_clamp: int = cm.spec_field(10, "-", "steps of the clamp force ramp [chosen]")
@@ -184,7 +185,7 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
     cm.check_variant(NAME, VARIANTS, variant)
     cm.check_algorithm(algorithm)
     _check(config)
-    mesh = strip_mesh(config.x_left, config.x_right, 0.0, config.t, config.nx, config.ny)
+    mesh = strip_mesh(config.x_left, config.x_right, 0.0, config.t, config.nx, config.ny, order=config.element_order)
     jaw = jaw_nodes(mesh, config.x_jaw)
     if jaw.size == 0:
         raise ValueError(f"config field 'x_jaw' = {config.x_jaw!r} selects no node")

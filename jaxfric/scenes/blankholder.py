@@ -163,6 +163,7 @@ class BlankholderConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticInteg
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(256, "-", cm.BAND_DOC)
     element: str = cm.spec_field("fbar", "-", cm.ELEMENT_DOC)
+    element_order: int = cm.spec_field(1, "-", cm.ELEMENT_ORDER_DOC)
     thickness_points: int = cm.spec_field(2, "-", cm.THICKNESS_POINTS_DOC)
     enhanced_update: str = cm.spec_field("iterate", "-", cm.ENHANCED_UPDATE_DOC)
     F_clamp: float = cm.spec_field(300.0, "N/mm", "clamping force on the lower tool [chosen]")
@@ -306,7 +307,7 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
     x_g = groove["x_g"]
     x_left, x_right, nx = sheet_extent(config)
     x_far = max(abs(x_left), abs(x_right)) + config.land_margin
-    mesh = strip_mesh(x_left, x_right, 0.0, config.t, nx, config.ny)
+    mesh = strip_mesh(x_left, x_right, 0.0, config.t, nx, config.ny, order=config.element_order)
 
     hold = DirichletBC(mesh.right, (0, 1))
     pull = DirichletBC(mesh.right, (0, 1), Ramp((0.0, 0.0), (config.U_pull, 0.0)))

@@ -81,6 +81,7 @@ class FlatDieConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrati
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(None, "-", cm.BAND_DOC)
     element: str = cm.spec_field("fbar", "-", cm.ELEMENT_DOC)
+    element_order: int = cm.spec_field(1, "-", cm.ELEMENT_ORDER_DOC)
     thickness_points: int = cm.spec_field(2, "-", cm.THICKNESS_POINTS_DOC)
     enhanced_update: str = cm.spec_field("iterate", "-", cm.ENHANCED_UPDATE_DOC)
     F_clamp: float = cm.spec_field(50.0, "N/mm", "clamping force on the half model [paper]")
@@ -144,7 +145,7 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
     cm.check_algorithm(algorithm)
     _check(config)
     L, h = config.L, config.h
-    mesh = strip_mesh(0.0, L, 0.0, h, config.nx, config.ny)
+    mesh = strip_mesh(0.0, L, 0.0, h, config.nx, config.ny, order=config.element_order)
     symmetry = DirichletBC(mesh.bottom, (1,))                     # BC: v = 0 (C included)
     hold = DirichletBC(mesh.right, (0,))                          # DC: u = 0 during clamp
     pull = DirichletBC(mesh.right, (0,), Ramp((0.0, 0.0), (config.U_draw, 0.0)))

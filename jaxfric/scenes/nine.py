@@ -139,6 +139,7 @@ class NineConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationF
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(128, "-", cm.BAND_DOC)
     element: str = cm.spec_field("ans", "-", cm.ELEMENT_DOC)
+    element_order: int = cm.spec_field(1, "-", cm.ELEMENT_ORDER_DOC)
     thickness_points: int = cm.spec_field(2, "-", cm.THICKNESS_POINTS_DOC)
     enhanced_update: str = cm.spec_field("iterate", "-", cm.ENHANCED_UPDATE_DOC)
     stroke: float = cm.spec_field(11.0, "mm", "downward travel of B during clamp (2 R1) [paper]")
@@ -245,7 +246,7 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
     above = {"A": False, "B": True, "C": False, "D": True, "E": False}
     mu = {"A": config.mu, "B": config.mu, "C": config.mu, "D": config.mu_guides, "E": config.mu_guides}
 
-    mesh = strip_mesh(config.x_left, config.x_right, 0.0, t, config.nx, config.ny)
+    mesh = strip_mesh(config.x_left, config.x_right, 0.0, t, config.nx, config.ny, order=config.element_order)
     n_clamp = cm.n_steps("dq_clamp", config.stroke, config.dq_clamp)
     n_draw = cm.n_steps("dU", config.U_draw, config.dU)
     hold = DirichletBC(mesh.right, (0, 1))

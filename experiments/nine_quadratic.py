@@ -1,0 +1,102 @@
+"""The Nine test on elements quadratic along the strip: ``python experiments/nine_quadratic.py``.
+
+    python experiments/nine_quadratic.py [--root DIR] [--only CASE ...] [--table]
+
+The steady drawing force of the Nine test (the scene's defaults: the entry channel, exact contact
+``lcp_ssn``; U_draw 36 mm and half the nominal increments, as the reference ladder of docs/results.md)
+with ``anst`` and 4 Gauss points through each element, on elements quadratic along the strip
+(``--set element_order=2``) against the bilinear ones, on 150, 300 and 600 elements along and 3 layers:
+
+- ``o2_MESH``: six-node elements, every surface node (corner and mid-side) a contact candidate;
+- ``o2_MESH_corners``: the same with the corner nodes only, so that the contact points are spaced as on the
+  bilinear mesh of the same element count while the elements are quadratic;
+- ``o2_300x3_steps_x0.5``: a quarter of the nominal increments (the step error at this mesh);
+- ``o1_MESH``: the bilinear elements (``element_order=1``), for the cost and the ladder's bilinear side;
+- ``o2_100x2``: the coarse mesh of the fits.
+
+Each case is a run directory under ``--root`` (default ``runs/nine_quadratic``, kept: a second call reads it
+back); the table goes to ``experiments/results/nine_quadratic.csv`` and to stdout. ``--only`` runs some cases
+(to spread them over processes), ``--table`` only reads back what is on disk.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+
+import jaxfric as jf
+from benchutil import write_rows
+from jaxfric import scenes
+from jaxfric.io import output
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+BASE = {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05, "element": "anst", "thickness_points": 4}
+# (mesh, element order, increment factor on BASE's, contact on the corner nodes only)
+VARIATIONS = {
+    "o2_150x3": ("150x3", 2, 1.0, False),
+    "o2_300x3": ("300x3", 2, 1.0, False),
+    "o2_600x3": ("600x3", 2, 1.0, False),
+    "o2_300x3_corners": ("300x3", 2, 1.0, True),
+    "o2_600x3_corners": ("600x3", 2, 1.0, True),
+    "o2_300x3_steps_x0.5": ("300x3", 2, 0.5, False),
+    "o1_300x3": ("300x3", 1, 1.0, False),
+    "o2_100x2": ("100x2", 2, 1.0, False),
+}
+CASES = {f"{variant}_{name}": (variant, *v) for variant in ("mu000", "mu017") for name, v in VARIATIONS.items()}
+
+
+def corners_only(model):
+    """``model`` with the contact candidates of every tool on the corner node columns only (even columns of
+    an ``order=2`` mesh)."""
+    ny1 = model.mesh.ny + 1
+    tools = tuple(dataclasses.replace(t, candidates=tuple(int(n) for n in t.candidates if (n // ny1) % 2 == 0))
+                  for t in model.tools)
+    return dataclasses.replace(model, tools=tools)
+
+
+def run_one(name: str, root: str) -> dict:
+    variant, mesh, order, factor, corners = CASES[name]
+    out = os.path.join(root, name)
+    path = os.path.join(out, "summary.json")
+    if not os.path.exists(path):
+        overrides = {**BASE, "mesh": mesh, "element_order": order,
+                     "dq_clamp": BASE["dq_clamp"] * factor, "dU": BASE["dU"] * factor}
+        scene = scenes.make("nine", variant, "lcp_ssn", overrides)
+        if corners:
+            scene = dataclasses.replace(scene, model=corners_only(scene.model))
+        print(f"{name}: running {overrides}, corner contact {corners}", file=sys.stderr, flush=True)
+        result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                        snapshot=scene.snapshot, progress=False, raise_on_failure=False)
+        output.write_run(scene, result, out, tag="nine_quadratic", figures=False)
+    with open(path) as fh:
+        s = json.load(fh)
+    iters = s.get("newton_iters_total")
+    return {"case": name, "variant": variant, "mesh": mesh, "element_order": order, "increments": BASE["dU"] * factor,
+            "contact_corners_only": corners, "steady_drawing_force": s.get("steady_drawing_force"),
+            "converged": s.get("converged"), "n_steps": s.get("n_steps"), "newton_iters_total": iters,
+            "wall_s": s.get("wall_s"), "compile_s": s.get("compile_s")}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--root", default=os.path.join("runs", "nine_quadratic"))
+    p.add_argument("--only", nargs="*", choices=sorted(CASES), help="run these cases only")
+    p.add_argument("--table", action="store_true", help="read back the cases on disk, run none")
+    a = p.parse_args(argv)
+    names = a.only or list(CASES)
+    if a.table:
+        names = [n for n in CASES if os.path.exists(os.path.join(a.root, n, "summary.json"))]
+    rows = [run_one(n, a.root) for n in names]
+    for r in rows:
+        print(f"{r['case']:<28} {r['steady_drawing_force']:.3f} N/mm  {r['n_steps']} steps  "
+              f"{r['newton_iters_total']} it.  {r['wall_s']:.0f} s  converged {r['converged']}")
+    if not a.only:
+        write_rows(os.path.join(HERE, "results", "nine_quadratic.csv"), rows)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
