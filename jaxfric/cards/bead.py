@@ -138,21 +138,22 @@ def _after_bead_columns(scene, final) -> np.ndarray:
     (x_g + r < x < x_g + L) at the end."""
     config, mesh = scene.config, scene.model.mesh
     groove = groove_geometry(config)
-    nx, ny = mesh.nx, mesh.ny
-    nodes = np.asarray(mesh.nodes).reshape(nx + 1, ny + 1, 2)
-    x = nodes + np.asarray(final.u).reshape(nx + 1, ny + 1, 2)
+    columns, ny = mesh.n_stored_columns, mesh.ny
+    nodes = np.asarray(mesh.nodes).reshape(columns, ny + 1, 2)
+    x = nodes + np.asarray(final.u).reshape(columns, ny + 1, 2)
     X_mid, x_mid = nodes[:, ny // 2, 0], x[:, ny // 2, 0]
-    return np.flatnonzero((X_mid < -groove["x_g"] - config.r) & (x_mid > groove["x_g"] + config.r)
-                          & (x_mid < groove["x_g"] + config.L))
+    # The corner columns only (every column of a bilinear mesh), so that a column names an element column too.
+    return mesh.order * np.flatnonzero(((X_mid < -groove["x_g"] - config.r) & (x_mid > groove["x_g"] + config.r)
+                                        & (x_mid < groove["x_g"] + config.L))[:mesh.n_columns:mesh.order])
 
 
-def _after_bead_values(cols, nodes, u, eqps, t, nx: int, ny: int):
-    """Thinning 1 - h / t and the mean and largest eqps of the columns ``cols``, from the reference nodes
-    (n, 2), the displacements (n, 2) and the points' eqps (n_el, gp): NumPy or JAX arrays (the latter
-    differentiated for the card's derivatives)."""
-    x = (nodes + u).reshape(nx + 1, ny + 1, 2)
+def _after_bead_values(cols, nodes, u, eqps, t, nx: int, ny: int, order: int = 1):
+    """Thinning 1 - h / t and the mean and largest eqps of the node columns ``cols`` (corner columns of a mesh
+    of elements of ``order`` along the strip), from the reference nodes (n, 2), the displacements (n, 2) and
+    the points' eqps (n_el, gp): NumPy or JAX arrays (the latter differentiated for the card's derivatives)."""
+    x = (nodes + u).reshape(order * (nx + 1), ny + 1, 2)
     h = jnp.linalg.norm(x[cols, ny] - x[cols, 0], axis=-1)
-    e = eqps.reshape(nx, ny, -1)[np.minimum(cols, nx - 1)]
+    e = eqps.reshape(nx, ny, -1)[np.minimum(cols // order, nx - 1)]
     return 1.0 - jnp.mean(h) / t, jnp.mean(e), jnp.max(e)
 
 
@@ -163,7 +164,8 @@ def _after_bead(scene, final) -> tuple[float, float, float]:
     if cols.size == 0:
         return math.nan, math.nan, math.nan
     mesh = scene.model.mesh
-    values = _after_bead_values(cols, mesh.nodes, final.u, final.material.eqps, scene.config.t, mesh.nx, mesh.ny)
+    values = _after_bead_values(cols, mesh.nodes, final.u, final.material.eqps, scene.config.t, mesh.nx, mesh.ny,
+                                mesh.order)
     return tuple(float(v) for v in values)  # type: ignore[return-value]
 
 
@@ -190,7 +192,7 @@ def _derivatives(variant, algorithm, overrides, names, history, window, cols=Non
     u = np.asarray(history["drawing_displacement"])
     rows = steady_rows(history["phase_name"], u, window)
     du = np.diff(u[rows])
-    nx, ny = par.scene.model.mesh.nx, par.scene.model.mesh.ny
+    mesh = par.scene.model.mesh
 
     def outputs(p):
         h, _, *end = f(p)
@@ -201,7 +203,7 @@ def _derivatives(variant, algorithm, overrides, names, history, window, cols=Non
         if end:
             final, nodes = end
             t = p[list(names).index("t")] if "t" in names else par.scene.config.t
-            out += list(_after_bead_values(cols, nodes, final.u, final.material.eqps, t, nx, ny))
+            out += list(_after_bead_values(cols, nodes, final.u, final.material.eqps, t, mesh.nx, mesh.ny, mesh.order))
         return jnp.stack(out)
 
     jac = np.asarray(jax.jacfwd(outputs)(jnp.asarray(par.p0)))

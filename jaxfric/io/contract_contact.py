@@ -53,19 +53,25 @@ def check_contact(path: str, s: dict | None, cols: dict | None, out: list) -> No
         if data[key].shape != shape:
             out.append(f"contact.npz: {key!r} has shape {data[key].shape}, expected {shape}")
             ok = False
-    if x0.ndim != 2 or x0.shape[1] != 2 or elements.ndim != 2 or elements.shape[1] != 4:
-        out.append(f"contact.npz: x0 {x0.shape} / elements {elements.shape} must be (n_nodes, 2) / (n_el, 4)")
+    if x0.ndim != 2 or x0.shape[1] != 2 or elements.ndim != 2 or elements.shape[1] not in (4, 6):
+        out.append(f"contact.npz: x0 {x0.shape} / elements {elements.shape} must be (n_nodes, 2) / (n_el, 4), "
+                   f"or (n_el, 6) on elements quadratic along the strip")
         return
     n_nodes, n_el = x0.shape[0], elements.shape[0]
+    # Six-node elements (element_order=2): node columns 0 .. 2 nx and a padding column, numbered as the spec's
+    # section 0 numbers the bilinear ones; each element's nodes counter-clockwise through its mid-side nodes.
+    order = elements.shape[1] // 2 - 1
     if not np.all(np.isfinite(x0)):
         out.append("contact.npz: x0 has non-finite values")
     if s is not None and isinstance(s.get("mesh"), list) and len(s["mesh"]) == 2:
         nx, ny = s["mesh"]
-        if is_int(nx) and is_int(ny) and ((nx + 1) * (ny + 1), nx * ny) == (n_nodes, n_el):
+        if is_int(nx) and is_int(ny) and (order * (nx + 1) * (ny + 1), nx * ny) == (n_nodes, n_el):
             i_grid, j_grid = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
-            i, j = i_grid.ravel(), j_grid.ravel()
+            i, j = order * i_grid.ravel(), j_grid.ravel()
             node = lambda a, b: a * (ny + 1) + b  # noqa: E731
-            expected = np.stack([node(i, j), node(i + 1, j), node(i + 1, j + 1), node(i, j + 1)], axis=1)
+            along = range(order + 1)
+            expected = np.stack([node(i + k, j) for k in along] + [node(i + order - k, j + 1) for k in along],
+                                axis=1)
             if not np.array_equal(elements, expected):
                 out.append("contact.npz: elements do not follow the numbering of benchmarks spec section 0")
         else:

@@ -85,8 +85,8 @@ def check_memory(compiled, model: StripModel, available: int | None = None) -> i
         mesh = model.mesh
         raise MemoryBudgetError(
             f"field 'mesh': the run at {mesh.nx}x{mesh.ny} needs about {need / 2**30:.3g} GiB of memory "
-            f"(XLA's account of the compiled program: the Jacobian's {mesh.nx + 1} blocks of "
-            f"{2 * (mesh.ny + 1)}x{2 * (mesh.ny + 1)}, the work arrays and the history buffers), more than the "
+            f"(XLA's account of the compiled program: the Jacobian's {mesh.num_blocks} blocks of "
+            f"{mesh.block_size}x{mesh.block_size}, the work arrays and the history buffers), more than the "
             f"{available / 2**30:.3g} GiB available; use a coarser mesh (fewer elements through the thickness "
             f"first: the memory grows with their square)")
     return need
