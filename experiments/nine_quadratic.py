@@ -12,6 +12,7 @@ with ``anst`` and 4 Gauss points through each element, on elements quadratic alo
   bilinear mesh of the same element count while the elements are quadratic;
 - ``o2_300x3_steps_x0.5``: a quarter of the nominal increments (the step error at this mesh);
 - ``o1_MESH``: the bilinear elements (``element_order=1``), for the cost and the ladder's bilinear side;
+- ``o1_1200x3``, ``o2_1200x3``: the finest of both (measured with friction only);
 - ``o2_100x2``: the coarse mesh of the fits.
 
 Each case is a run directory under ``--root`` (default ``runs/nine_quadratic``, kept: a second call reads it
@@ -43,6 +44,8 @@ VARIATIONS = {
     "o2_600x3_corners": ("600x3", 2, 1.0, True),
     "o2_300x3_steps_x0.5": ("300x3", 2, 0.5, False),
     "o1_300x3": ("300x3", 1, 1.0, False),
+    "o1_1200x3": ("1200x3", 1, 1.0, False),
+    "o2_1200x3": ("1200x3", 2, 1.0, False),
     "o2_100x2": ("100x2", 2, 1.0, False),
 }
 CASES = {f"{variant}_{name}": (variant, *v) for variant in ("mu000", "mu017") for name, v in VARIATIONS.items()}

@@ -10,12 +10,13 @@ STEEL = dict(E=200000.0, nu=0.3, sigma_y=200.0, A=100.0, n=0.25)
 
 
 def clamped_pull(length=10.0, thickness=1.0, nx=10, ny=2, pull=0.15, unload=True, n_steps=4,
-                 sigma_y=200.0, material=None, formulation="fbar"):
+                 sigma_y=200.0, material=None, formulation="fbar", order=1):
     """Strip clamped on the left, right end pulled by ``pull`` (mm) in x with v = 0, then returned.
 
     The load-unload cycle leaves a path-dependent (compressive) residual reaction at the right end.
+    ``order``: the elements' order along the strip.
     """
-    mesh = jf.strip_mesh(0.0, length, 0.0, thickness, nx, ny)
+    mesh = jf.strip_mesh(0.0, length, 0.0, thickness, nx, ny, order=order)
     if material is None:
         material = jf.J2Material(**{**STEEL, "sigma_y": sigma_y})
     clamp = jf.DirichletBC(mesh.left)

@@ -19,6 +19,7 @@ from jaxfric import scenes
 from jaxfric.fem.assembly import internal_force, internal_force_and_tangent, mesh_geometry
 from jaxfric.fem.element import initial_point_state
 from jaxfric.numerics.results import Result
+from models import clamped_pull
 from strips import bending_ratio
 from test_element_ans import NINE_STEEL, compressed_block
 from test_solver import thick_cylinder_ratio
@@ -134,3 +135,26 @@ def test_run_directory_of_quadratic_elements(tmp_path):
     assert [p for p in check_run_dir(str(out)) if not p.endswith(".png: missing")] == []
     assert (last[1]["n_active"], last[2]["n_active"]) == (21, 41)
     assert abs(last[2]["tool_position"] / last[1]["tool_position"] - 1.0) < 1e-3, last
+
+
+@pytest.mark.slow  # compiles simulate and its forward-mode derivative (minutes on the 2-core machine)
+def test_path_derivative_matches_central_differences():
+    """The load-unload cycle of tests/test_derivatives.py (the right end pulled to 2.5 times the yield
+    strain and back; its final reaction is path dependent) on six-node ``anst`` elements: the forward-mode
+    derivative of the final reaction along (sigma_y, length) against central differences (the length a
+    traced coordinate of the mid-side and padding columns too)."""
+    tight = jf.NewtonOptions(rtol=1e-12, atol=1e-10)
+
+    @jax.jit
+    def reaction(p):
+        model = clamped_pull(length=p[1], sigma_y=p[0], nx=3, ny=2, pull=0.05, n_steps=3, formulation="anst",
+                             order=2)
+        sim = jf.simulate(model, newton=tight)
+        return sim.history.observed["reaction_right"][sim.history.n_rows - 1, 0]
+
+    p0, direction = jnp.array([200.0, 10.0]), jnp.array([1.0, 0.05])
+    value, tangent = jax.jvp(reaction, (p0,), (direction,))
+    h = 0.02
+    fd = (reaction(p0 + h * direction) - reaction(p0 - h * direction)) / (2 * h)
+    assert float(value) < -1.0
+    np.testing.assert_allclose(float(tangent), float(fd), rtol=1e-5)

@@ -14,7 +14,7 @@ padding column of nodes that no element uses (:attr:`StripMesh.padding`, beyond 
 which the assembly holds at rest by a unit spring (:mod:`jaxfric.fem.assembly`). The node sets
 (``left``, ``right``, ``bottom``, ``top``) never contain it.
 
-Only ``nx`` and ``ny`` are static; node coordinates are array leaves, so a length or a thickness
+Only ``nx``, ``ny`` and ``order`` are static; node coordinates are array leaves, so a length or a thickness
 can be a traced (differentiated) parameter.
 """
 

@@ -1,7 +1,8 @@
 """Structured linear solves for the sheet stiffness.
 
-A sheet is a long strip of Q4 elements numbered column by column, so the global tangent
-stiffness is block-tridiagonal: ``nb = nx + 1`` node columns, blocks of size ``m = 2 (ny + 1)``.
+A sheet is a long strip of quadrilaterals numbered column by column, so the global tangent
+stiffness is block-tridiagonal: ``nb = nx + 1`` node columns, blocks of size ``m = 2 (ny + 1)``
+(elements quadratic along the strip: two node columns per block, :mod:`jaxfric.fem.mesh`).
 Friction makes it non-symmetric, so nothing here assumes symmetry. A force-driven tool adds
 ``k`` global unknowns that border the strip matrix,
 
