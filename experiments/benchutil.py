@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import os
+import sys
 import time
 
 import jax
@@ -38,3 +39,49 @@ def write_rows(path: str, rows: list[dict]) -> None:
         writer.writeheader()
         writer.writerows(rows)
     print(f"written {path}; device {jax.devices()[0].device_kind}, jax {jax.__version__}")
+
+
+def run_cases_main(argv, doc: str, cases, run_one, default_root: str, csv_path: str) -> int:
+    """The command line of a study of named run cases, each a run directory under ``--root`` (read back when
+    it is there): ``--only CASE ...`` runs some (to spread them over processes; no CSV then), ``--table``
+    only reads back what is on disk; prints one line per case and writes the rows to ``csv_path``.
+    ``run_one(name, root)`` returns a case's row with 'case', 'steady_drawing_force', 'n_steps',
+    'newton_iters_total', 'wall_s' and 'converged'."""
+    import argparse
+
+    p = argparse.ArgumentParser(description=doc.splitlines()[0])
+    p.add_argument("--root", default=default_root)
+    p.add_argument("--only", nargs="*", choices=sorted(cases), help="run these cases only")
+    p.add_argument("--table", action="store_true", help="read back the cases on disk, run none")
+    a = p.parse_args(argv)
+    names = a.only or list(cases)
+    if a.table:
+        names = [n for n in cases if os.path.exists(os.path.join(a.root, n, "summary.json"))]
+    rows = [run_one(n, a.root) for n in names]
+    width = max(len(n) for n in names) + 1 if names else 1
+    for r in rows:
+        print(f"{r['case']:<{width}} {r['steady_drawing_force']:.3f} N/mm  {r['n_steps']} steps  "
+              f"{r['newton_iters_total']} it.  {r['wall_s']:.0f} s  converged {r['converged']}")
+    if not a.only and rows:   # nothing on disk: the CSV stays as it is
+        write_rows(csv_path, rows)
+    return 0
+
+
+def run_or_read(out: str, build, tag: str, label: str) -> dict:
+    """The summary of the run directory ``out``, running it first where it is not there: ``build()`` gives
+    the scene (``jaxfric.scenes.Scene``), run to its end (or its failure) and written without figures;
+    ``label`` is printed to stderr when it runs."""
+    import json
+
+    import jaxfric as jf
+    from jaxfric.io import output
+
+    path = os.path.join(out, "summary.json")
+    if not os.path.exists(path):
+        scene = build()
+        print(label, file=sys.stderr, flush=True)
+        result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
+                        snapshot=scene.snapshot, progress=False, raise_on_failure=False)
+        output.write_run(scene, result, out, tag=tag, figures=False)
+    with open(path) as fh:
+        return json.load(fh)

@@ -25,17 +25,13 @@ over processes), ``--table`` only reads back what is on disk.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import os
 import sys
 
-import jaxfric as jf
-from benchutil import write_rows
+from benchutil import run_cases_main, run_or_read
 from jaxfric import scenes
 from jaxfric.contact.rigid import RigidTool
-from jaxfric.io import output
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 BASE = {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05, "entry_guide_kind": "end_nodes"}
@@ -82,19 +78,15 @@ def thinned(model, every: int):
 def run_one(name: str, root: str) -> dict:
     variant, mesh, element, factor, every, *points = CASES[name]
     points = points[0] if points else 2
-    out = os.path.join(root, name)
-    path = os.path.join(out, "summary.json")
-    if not os.path.exists(path):
-        overrides = {**BASE, "mesh": mesh, "element": element, "thickness_points": points,
-                     "dq_clamp": BASE["dq_clamp"] * factor, "dU": BASE["dU"] * factor}
+    overrides = {**BASE, "mesh": mesh, "element": element, "thickness_points": points,
+                 "dq_clamp": BASE["dq_clamp"] * factor, "dU": BASE["dU"] * factor}
+
+    def build():
         scene = scenes.make("nine", variant, "lcp_ssn", overrides)
-        scene = dataclasses.replace(scene, model=thinned(scene.model, every))
-        print(f"{name}: running {overrides}, contact on every {every} surface node", file=sys.stderr, flush=True)
-        result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                        snapshot=scene.snapshot, progress=False, raise_on_failure=False)
-        output.write_run(scene, result, out, tag="nine_error_sources", figures=False)
-    with open(path) as fh:
-        s = json.load(fh)
+        return dataclasses.replace(scene, model=thinned(scene.model, every))
+
+    s = run_or_read(os.path.join(root, name), build, "nine_error_sources",
+                    f"{name}: running {overrides}, contact on every {every} surface node")
     return {"case": name, "variant": variant, "mesh": mesh, "element": element, "thickness_points": points,
             "increments": BASE["dU"] * factor,
             "contact_every": every, "steady_drawing_force": s.get("steady_drawing_force"),
@@ -103,21 +95,8 @@ def run_one(name: str, root: str) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--root", default=os.path.join("runs", "nine_error_sources"))
-    p.add_argument("--only", nargs="*", choices=sorted(CASES), help="run these cases only")
-    p.add_argument("--table", action="store_true", help="read back the cases on disk, run none")
-    a = p.parse_args(argv)
-    names = a.only or list(CASES)
-    if a.table:
-        names = [n for n in CASES if os.path.exists(os.path.join(a.root, n, "summary.json"))]
-    rows = [run_one(n, a.root) for n in names]
-    for r in rows:
-        print(f"{r['case']:<36} {r['steady_drawing_force']:.3f} N/mm  {r['n_steps']} steps  "
-              f"{r['newton_iters_total']} it.  {r['wall_s']:.0f} s  converged {r['converged']}")
-    if not a.only:
-        write_rows(os.path.join(HERE, "results", "nine_error_sources.csv"), rows)
-    return 0
+    return run_cases_main(argv, __doc__, CASES, run_one, os.path.join("runs", "nine_error_sources"),
+                          os.path.join(HERE, "results", "nine_error_sources.csv"))
 
 
 if __name__ == "__main__":

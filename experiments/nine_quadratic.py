@@ -12,7 +12,8 @@ with ``anst`` and 4 Gauss points through each element, on elements quadratic alo
   bilinear mesh of the same element count while the elements are quadratic;
 - ``o2_300x3_steps_x0.5``: a quarter of the nominal increments (the step error at this mesh);
 - ``o1_MESH``: the bilinear elements (``element_order=1``), for the cost and the ladder's bilinear side;
-- ``o1_1200x3``, ``o2_1200x3``: the finest of both (measured with friction only);
+- ``o1_1200x3``, ``o2_1200x3``: the finest of both, and ``o1_1200x3_steps_x0.5`` its step error (measured
+  with friction only);
 - ``o2_100x2``: the coarse mesh of the fits.
 
 Each case is a run directory under ``--root`` (default ``runs/nine_quadratic``, kept: a second call reads it
@@ -22,16 +23,12 @@ back); the table goes to ``experiments/results/nine_quadratic.csv`` and to stdou
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import os
 import sys
 
-import jaxfric as jf
-from benchutil import write_rows
+from benchutil import run_cases_main, run_or_read
 from jaxfric import scenes
-from jaxfric.io import output
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 BASE = {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05, "element": "anst", "thickness_points": 4}
@@ -46,6 +43,7 @@ VARIATIONS = {
     "o1_300x3": ("300x3", 1, 1.0, False),
     "o1_1200x3": ("1200x3", 1, 1.0, False),
     "o2_1200x3": ("1200x3", 2, 1.0, False),
+    "o1_1200x3_steps_x0.5": ("1200x3", 1, 0.5, False),
     "o2_100x2": ("100x2", 2, 1.0, False),
 }
 CASES = {f"{variant}_{name}": (variant, *v) for variant in ("mu000", "mu017") for name, v in VARIATIONS.items()}
@@ -62,20 +60,15 @@ def corners_only(model):
 
 def run_one(name: str, root: str) -> dict:
     variant, mesh, order, factor, corners = CASES[name]
-    out = os.path.join(root, name)
-    path = os.path.join(out, "summary.json")
-    if not os.path.exists(path):
-        overrides = {**BASE, "mesh": mesh, "element_order": order,
-                     "dq_clamp": BASE["dq_clamp"] * factor, "dU": BASE["dU"] * factor}
+    overrides = {**BASE, "mesh": mesh, "element_order": order,
+                 "dq_clamp": BASE["dq_clamp"] * factor, "dU": BASE["dU"] * factor}
+
+    def build():
         scene = scenes.make("nine", variant, "lcp_ssn", overrides)
-        if corners:
-            scene = dataclasses.replace(scene, model=corners_only(scene.model))
-        print(f"{name}: running {overrides}, corner contact {corners}", file=sys.stderr, flush=True)
-        result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                        snapshot=scene.snapshot, progress=False, raise_on_failure=False)
-        output.write_run(scene, result, out, tag="nine_quadratic", figures=False)
-    with open(path) as fh:
-        s = json.load(fh)
+        return dataclasses.replace(scene, model=corners_only(scene.model)) if corners else scene
+
+    s = run_or_read(os.path.join(root, name), build, "nine_quadratic",
+                    f"{name}: running {overrides}, corner contact {corners}")
     iters = s.get("newton_iters_total")
     return {"case": name, "variant": variant, "mesh": mesh, "element_order": order, "increments": BASE["dU"] * factor,
             "contact_corners_only": corners, "steady_drawing_force": s.get("steady_drawing_force"),
@@ -84,21 +77,8 @@ def run_one(name: str, root: str) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--root", default=os.path.join("runs", "nine_quadratic"))
-    p.add_argument("--only", nargs="*", choices=sorted(CASES), help="run these cases only")
-    p.add_argument("--table", action="store_true", help="read back the cases on disk, run none")
-    a = p.parse_args(argv)
-    names = a.only or list(CASES)
-    if a.table:
-        names = [n for n in CASES if os.path.exists(os.path.join(a.root, n, "summary.json"))]
-    rows = [run_one(n, a.root) for n in names]
-    for r in rows:
-        print(f"{r['case']:<28} {r['steady_drawing_force']:.3f} N/mm  {r['n_steps']} steps  "
-              f"{r['newton_iters_total']} it.  {r['wall_s']:.0f} s  converged {r['converged']}")
-    if not a.only:
-        write_rows(os.path.join(HERE, "results", "nine_quadratic.csv"), rows)
-    return 0
+    return run_cases_main(argv, __doc__, CASES, run_one, os.path.join("runs", "nine_quadratic"),
+                          os.path.join(HERE, "results", "nine_quadratic.csv"))
 
 
 if __name__ == "__main__":
