@@ -444,3 +444,23 @@ def test_ssn_passes_sorts_each_status_change_by_kind():
     assert kinds == {"open_to_closed": [0], "closed_to_open": [2, 6], "stick_to_slip": [3],
                      "slip_to_stick": [4], "slip_reversed": [5]}
     assert set(kinds) == set(ssn_passes.KINDS)
+
+
+# ---- experiments/nine_quadratic.py: the corner-node contact and the case table (no simulation) ----------
+
+def test_nine_quadratic_corner_contact_and_empty_table(tmp_path, capsys):
+    """``corners_only`` keeps the tools' candidates on the corner columns of a six-node mesh (every tool
+    keeps some), and a table read from an empty folder writes no CSV (it once truncated the one there)."""
+    import nine_quadratic
+    from jaxfric import scenes
+
+    scene = scenes.make("nine", "mu017", "lcp_ssn", {"mesh": "40x2", "element": "anst", "element_order": 2})
+    model = nine_quadratic.corners_only(scene.model)
+    for before, after in zip(scene.model.tools, model.tools, strict=True):
+        columns = [n // 3 for n in after.candidates]
+        assert after.candidates and all(c % 2 == 0 for c in columns)
+        assert set(after.candidates) == {n for n in before.candidates if (n // 3) % 2 == 0}
+    csv_path = tmp_path / "table.csv"
+    assert nine_quadratic.run_cases_main(["--root", str(tmp_path / "none"), "--table"], nine_quadratic.__doc__,
+                                         nine_quadratic.CASES, nine_quadratic.run_one, "", str(csv_path)) == 0
+    assert not csv_path.exists()

@@ -1,4 +1,5 @@
-"""Q4 plane-strain elements: F-bar against volumetric locking, assumed natural strain against parasitic shear.
+"""Plane-strain quadrilaterals: F-bar against volumetric locking, assumed natural strain against parasitic shear,
+and elements quadratic along the strip (below).
 
 Formulation (de Souza Neto, Peric, Dutko, Owen, Int. J. Solids Struct. 33, 1996; de Souza Neto et al.,
 *Computational Methods for Plasticity*, 2008, sec. 15.2). At each of the 2x2 Gauss points the in-plane
