@@ -172,9 +172,6 @@ def _parent_gradients(xi: float, eta: float, n_nodes: int = 4) -> np.ndarray:
     return np.stack([dlag[along] * lin, lag[along] * 0.5 * side], axis=1)
 
 
-_DN_CENTER = _parent_gradients(0.0, 0.0)  # (4, 2)
-
-
 @functools.cache
 def _dn_center(n_nodes: int) -> np.ndarray:
     """dN/dxi at the element's centre, (n_nodes, 2)."""
