@@ -46,8 +46,8 @@ def test_numbering_node_sets_and_blocks():
     np.testing.assert_allclose(area, 2.0)
 
 
-# anst: 14 s of compilation (the derivative through its local solve); the fast suite checks its six-node mode by
-# the elastic bending test (exact only with its consistent tangent converging), the scatter with q4.
+# anst: 14 s of compilation (the derivative through its local solve); the fast suite checks the scatter with
+# q4 and the six-node anst force in the elastic bending test.
 @pytest.mark.parametrize("formulation", [pytest.param("anst", marks=pytest.mark.slow), "q4"])
 def test_tangent_is_the_derivative_of_the_force(formulation):
     """The block-tridiagonal tangent of a 3 x 2 strip, dense, against forward-mode derivatives of the
