@@ -46,6 +46,25 @@ def test_numbering_node_sets_and_blocks():
     np.testing.assert_allclose(area, 2.0)
 
 
+def test_reduced_rule_leaves_no_zero_energy_mode():
+    """2 points along the element (a reduced rule for a quadratic one) and 2 through it: the elastic
+    stiffness of three six-node elements in a row has exactly the 3 rigid-body modes as zero eigenvalues,
+    with the compatible field and with ``anst``'s condensed mode (measured the same for one element and
+    for 4 points through it)."""
+    material = jf.J2Material.elastic(200000.0, 0.3)
+    mesh = jf.strip_mesh(0.0, 3.0, 0.0, 1.0, 3, 1, order=2)
+    geo = mesh_geometry(mesh)
+    free = np.setdiff1d(np.arange(mesh.n_dofs), (2 * mesh.padding[:, None] + np.arange(2)).ravel())
+    for formulation in ("q4", "anst"):
+        one = initial_point_state(material, formulation, "local", mesh.nodes_per_element)
+        states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (mesh.n_elements, 4) + a.shape), one)  # noqa: B023
+        K = internal_force_and_tangent(mesh, material, formulation, geo, jnp.zeros((mesh.n_nodes, 2)),
+                                       states).tangent.to_dense()
+        K = np.asarray(K)[np.ix_(free, free)]
+        eig = np.linalg.eigvalsh(0.5 * (K + K.T))
+        assert int(np.sum(eig < 1e-8 * eig[-1])) == 3, (formulation, eig[:5])
+
+
 # anst: 14 s of compilation (the derivative through its local solve); the fast suite checks the scatter with
 # q4 and the six-node anst force in the elastic bending test.
 @pytest.mark.parametrize("formulation", [pytest.param("anst", marks=pytest.mark.slow), "q4"])
