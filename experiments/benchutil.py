@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import argparse
 import csv
+import json
 import os
 import sys
 import time
@@ -47,8 +49,6 @@ def run_cases_main(argv, doc: str, cases, run_one, default_root: str, csv_path: 
     only reads back what is on disk; prints one line per case and writes the rows to ``csv_path``.
     ``run_one(name, root)`` returns a case's row with 'case', 'steady_drawing_force', 'n_steps',
     'newton_iters_total', 'wall_s' and 'converged'."""
-    import argparse
-
     p = argparse.ArgumentParser(description=doc.splitlines()[0])
     p.add_argument("--root", default=default_root)
     p.add_argument("--only", nargs="*", choices=sorted(cases), help="run these cases only")
@@ -71,9 +71,7 @@ def run_or_read(out: str, build, tag: str, label: str) -> dict:
     """The summary of the run directory ``out``, running it first where it is not there: ``build()`` gives
     the scene (``jaxfric.scenes.Scene``), run to its end (or its failure) and written without figures;
     ``label`` is printed to stderr when it runs."""
-    import json
-
-    import jaxfric as jf
+    import jaxfric as jf  # here: the scripts that use only the timing and CSV helpers do without the package
     from jaxfric.io import output
 
     path = os.path.join(out, "summary.json")

@@ -17,12 +17,18 @@ import pytest
 import jaxfric as jf
 from jaxfric import scenes
 from jaxfric.fem.assembly import internal_force, internal_force_and_tangent, mesh_geometry
-from jaxfric.fem.element import initial_point_state
 from jaxfric.numerics.results import Result
 from models import clamped_pull
 from strips import bending_ratio
 from test_element_ans import NINE_STEEL, compressed_block
 from test_solver import thick_cylinder_ratio
+
+
+def _virgin_states(mesh, material, formulation):
+    """The point states before the first step of a model on ``mesh`` (2 x 2 points, alpha by the local solve)."""
+    phases = (jf.Phase("hold", [jf.DirichletBC(mesh.left)], n_steps=1),)
+    model = jf.StripModel(mesh, material, phases, formulation=formulation, enhanced_update="local")
+    return jf.initial_state(model).material
 
 
 def test_numbering_node_sets_and_blocks():
@@ -56,8 +62,7 @@ def test_reduced_rule_leaves_no_zero_energy_mode():
     geo = mesh_geometry(mesh)
     free = np.setdiff1d(np.arange(mesh.n_dofs), (2 * mesh.padding[:, None] + np.arange(2)).ravel())
     for formulation in ("q4", "anst"):
-        one = initial_point_state(material, formulation, "local", mesh.nodes_per_element)
-        states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (mesh.n_elements, 4) + a.shape), one)  # noqa: B023
+        states = _virgin_states(mesh, material, formulation)
         K = internal_force_and_tangent(mesh, material, formulation, geo, jnp.zeros((mesh.n_nodes, 2)),
                                        states).tangent.to_dense()
         K = np.asarray(K)[np.ix_(free, free)]
@@ -74,8 +79,7 @@ def test_tangent_is_the_derivative_of_the_force(formulation):
     rows with no force."""
     mesh = jf.strip_mesh(0.0, 3.0, 0.0, 1.0, 3, 2, order=2)
     geo = mesh_geometry(mesh)
-    one = initial_point_state(NINE_STEEL, formulation, "local", mesh.nodes_per_element)
-    states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (mesh.n_elements, 4) + a.shape), one)
+    states = _virgin_states(mesh, NINE_STEEL, formulation)
     X = np.asarray(mesh.nodes)
     u = jnp.asarray(np.stack([0.004 * X[:, 0] * (X[:, 1] - 0.5), -0.002 * X[:, 0] ** 2], axis=1))
     u = u.at[mesh.padding].set(0.0)

@@ -21,7 +21,7 @@ import numpy as np
 from ..numerics.devices import run_devices, traced_run_devices
 from ..numerics.linalg import BlockTridiag
 from .element import ElementGeometry, element_force, element_force_and_tangent, element_geometry
-from .mesh import StripMesh
+from .mesh import StripMesh, block_rows, connectivity
 
 __all__ = ["Assembled", "mesh_geometry", "internal_force", "internal_force_and_tangent",
            "tangent_scatter_index", "element_chunk", "ELEMENT_CHUNK", "shared_trace"]
@@ -63,12 +63,10 @@ def tangent_scatter_index(nx: int, ny: int, order: int = 1) -> np.ndarray:
     """(n_el*(2n)^2,) positions of the entries of every (2n, 2n) element tangent (n nodes per element) in the
     flat storage ``concat(diag.ravel(), lower.ravel(), upper.ravel())`` of a BlockTridiag with nx+1 blocks
     (:attr:`~jaxfric.fem.mesh.StripMesh.block_size`, ``order`` node columns per block)."""
-    with jax.ensure_compile_time_eval():   # the numbering only: a concrete placeholder for the nodes
-        mesh = StripMesh(nodes=jnp.zeros((order * (nx + 1) * (ny + 1), 2)), nx=nx, ny=ny, order=order)
-    m, nb = mesh.block_size, mesh.num_blocks
+    m, nb = 2 * order * (ny + 1), nx + 1
     # Block and in-block row of each element dof (node-major, x then y).
-    blocks, rows = mesh.block_rows(mesh.elements.ravel())
-    n_el = mesh.n_elements
+    blocks, rows = block_rows(connectivity(nx, ny, order).ravel(), ny, order)
+    n_el = nx * ny
     col = np.repeat(blocks.reshape(n_el, -1), 2, axis=1)
     row = rows.reshape(n_el, -1)
     bi, bj = col[:, :, None], col[:, None, :]

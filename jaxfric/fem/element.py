@@ -199,10 +199,9 @@ def _parent_tables(n_points: int, n_nodes: int = 4) -> tuple[np.ndarray, np.ndar
     Q1/E4 modes A_ik = alpha_(2i+k) (xi, eta)_k at its points, (n, 2, 2, 4)."""
     points, weights = gauss_rule(n_points // 2)
     dn = np.stack([_parent_gradients(p[0], p[1], n_nodes) for p in points])
-    assumed = np.stack([np.stack([dn[g, :, 0], _parent_gradients(0.0, p[1], n_nodes)[:, 1]], axis=1)
-                        for g, p in enumerate(points)])
-    if n_nodes == 6:   # quadratic along xi: no parasitic shear in bending, nothing to sample (module docstring)
-        assumed = dn
+    # Quadratic along xi (6 nodes): no parasitic shear in bending, nothing to sample (module docstring).
+    assumed = dn if n_nodes == 6 else np.stack(
+        [np.stack([dn[g, :, 0], _parent_gradients(0.0, p[1], n_nodes)[:, 1]], axis=1) for g, p in enumerate(points)])
     modes = np.zeros((len(points), 2, 2, 4))
     for i in range(2):
         for k in range(2):

@@ -27,7 +27,7 @@ import numpy as np
 
 from ..numerics._checks import check_finite, check_finite_array, check_int, check_positive, is_concrete
 
-__all__ = ["StripMesh", "strip_mesh", "graded_coordinates", "MAX_ELEMENTS", "ORDERS"]
+__all__ = ["StripMesh", "strip_mesh", "graded_coordinates", "connectivity", "block_rows", "MAX_ELEMENTS", "ORDERS"]
 
 MAX_ELEMENTS = 1_000_000  # nx * ny: beyond any mesh a 2D strip needs, and far from int32 limits
 ORDERS = (1, 2)           # the elements' polynomial order along the strip
@@ -97,11 +97,8 @@ class StripMesh(eqx.Module):
 
     def block_rows(self, nodes) -> tuple[np.ndarray, np.ndarray]:
         """For node indices ``nodes`` (n,): their block of the stiffness (n,) and their x and y dofs' rows
-        within it (n, 2)."""
-        nodes = np.asarray(nodes)
-        column, j = nodes // (self.ny + 1), nodes % (self.ny + 1)
-        within = (column % self.order) * (self.ny + 1) + j
-        return column // self.order, 2 * within[:, None] + np.arange(2)[None, :]
+        within it (n, 2) (:func:`block_rows`)."""
+        return block_rows(nodes, self.ny, self.order)
 
     # ---- topology (static numpy, computed from nx, ny) ------------------------------------------
     def node_index(self, i, j):
@@ -109,12 +106,8 @@ class StripMesh(eqx.Module):
 
     @property
     def elements(self) -> np.ndarray:
-        """(n_el, 4 or 6) int64 connectivity, counter-clockwise from the lower-left node."""
-        i_grid, j_grid = np.meshgrid(np.arange(self.nx), np.arange(self.ny), indexing="ij")
-        c, j = self.order * i_grid.ravel(), j_grid.ravel()
-        along = range(self.order + 1)
-        return np.stack([self.node_index(c + k, j) for k in along]
-                        + [self.node_index(c + self.order - k, j + 1) for k in along], axis=1).astype(np.int64)
+        """(n_el, 4 or 6) int64 connectivity, counter-clockwise from the lower-left node (:func:`connectivity`)."""
+        return connectivity(self.nx, self.ny, self.order)
 
     @property
     def left(self) -> np.ndarray:
@@ -171,6 +164,27 @@ class StripMesh(eqx.Module):
         X, Y = xp.meshgrid(xs, ys, indexing="ij")
         nodes = jnp.asarray(xp.stack([X.ravel(), Y.ravel()], axis=1))
         return cls(nodes=nodes, nx=nx, ny=ys.shape[0] - 1, order=order)
+
+
+def connectivity(nx: int, ny: int, order: int = 1) -> np.ndarray:
+    """(nx ny, 2 (order + 1)) int64 nodes of every element of an ``nx`` x ``ny`` strip of elements of
+    ``order`` along it, counter-clockwise from the lower-left node (module docstring): the numbering alone,
+    with no coordinates."""
+    i_grid, j_grid = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    c, j = order * i_grid.ravel(), j_grid.ravel()
+    along = range(order + 1)
+    return np.stack([(c + k) * (ny + 1) + j for k in along]
+                    + [(c + order - k) * (ny + 1) + j + 1 for k in along], axis=1).astype(np.int64)
+
+
+def block_rows(nodes, ny: int, order: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """For node indices ``nodes`` (n,) of a strip with ``ny`` layers and elements of ``order`` along it: their
+    block of the block-tridiagonal stiffness (n,), ``order`` node columns per block, and their x and y dofs'
+    rows within it (n, 2)."""
+    nodes = np.asarray(nodes)
+    column, j = nodes // (ny + 1), nodes % (ny + 1)
+    within = (column % order) * (ny + 1) + j
+    return column // order, 2 * within[:, None] + np.arange(2)[None, :]
 
 
 def graded_coordinates(start, stop, n: int, ratio=1.0):
