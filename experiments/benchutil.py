@@ -73,13 +73,15 @@ def run_or_read(out: str, build, tag: str, label: str) -> dict:
     ``label`` is printed to stderr when it runs."""
     import jaxfric as jf  # here: the scripts that use only the timing and CSV helpers do without the package
     from jaxfric.io import output
+    from jaxfric.io.instants import InstantRows
 
     path = os.path.join(out, "summary.json")
     if not os.path.exists(path):
         scene = build()
         print(label, file=sys.stderr, flush=True)
         result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                        snapshot=scene.snapshot, progress=False, raise_on_failure=False)
+                        snapshot=scene.snapshot, keep_snapshots=InstantRows(scene.name), progress=False,
+                        raise_on_failure=False)
         output.write_run(scene, result, out, tag=tag, figures=False)
     with open(path) as fh:
         return json.load(fh)

@@ -34,6 +34,7 @@ import jaxfric as jf
 from benchutil import write_rows
 from jaxfric import scenes
 from jaxfric.io import output
+from jaxfric.io.instants import InstantRows
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ALGORITHMS = ("penalty", "auglag", "lcp_lemke", "lcp_ssn")
@@ -64,7 +65,8 @@ def run_one(name: str, mesh: str, root: str) -> tuple[dict, dict]:
         scene = scenes.make("nine", variant, algorithm, {"mesh": mesh, "entry_guide_kind": kind})
         print(f"{name}: running on {mesh}", file=sys.stderr, flush=True)
         result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                        snapshot=scene.snapshot, progress=False, raise_on_failure=False)
+                        snapshot=scene.snapshot, keep_snapshots=InstantRows(scene.name), progress=False,
+                        raise_on_failure=False)
         output.write_run(scene, result, out, tag="nine_tail_exit", figures=True)
     with open(os.path.join(out, "summary.json")) as fh:
         s = json.load(fh)

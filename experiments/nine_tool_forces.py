@@ -41,6 +41,7 @@ from jaxfric import scenes
 from jaxfric.contact.exact_iterate import tangents
 from jaxfric.io import output
 from jaxfric.io.batch import read_history
+from jaxfric.io.instants import InstantRows
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 BASE = {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05}
@@ -69,7 +70,7 @@ def run_one(name: str, root: str) -> dict:
         scene = scenes.make("nine", variant, "lcp_ssn", {**BASE, "mesh": mesh})
         print(f"{name}: running", file=sys.stderr, flush=True)
         result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                        snapshot=scene.snapshot, progress=False)
+                        snapshot=scene.snapshot, keep_snapshots=InstantRows(scene.name), progress=False)
         output.write_run(scene, result, out, tag="nine_tool_forces", figures=False)
     with open(os.path.join(out, "summary.json")) as fh:
         window = json.load(fh)["steady_window"]

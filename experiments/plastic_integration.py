@@ -28,6 +28,7 @@ from error_estimates import richardson
 from jaxfric import scenes
 from jaxfric.fem.material import INTEGRATIONS
 from jaxfric.io import output
+from jaxfric.io.instants import InstantRows
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 VARIANTS = ("mu000", "mu017")
@@ -50,7 +51,7 @@ def run_one(name: str, root: str) -> dict:
                                                          "plastic_integration": integration})
         print(f"{name}: running", file=sys.stderr, flush=True)
         result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                        snapshot=scene.snapshot, progress=False)
+                        snapshot=scene.snapshot, keep_snapshots=InstantRows(scene.name), progress=False)
         output.write_run(scene, result, out, tag="plastic_integration", figures=False)
     s = _summary(summary)
     if not s["converged"] or s["steady_drawing_force"] is None:

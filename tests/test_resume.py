@@ -97,6 +97,18 @@ def test_chunked_run_is_the_single_loop(whole):
         np.testing.assert_allclose(np.asarray(value[:n]), result.history[key], rtol=0, atol=1e-9 * scale, err_msg=key)
 
 
+def test_the_rows_kept_hold_their_own_memory_not_their_chunks_buffers(whole):
+    """The record copies each row out of its chunk's buffers (``CHUNK_ROWS`` rows each). A row kept as a
+    view would hold its chunk's whole buffer: a run of short chunks, one or two steps each as on fine
+    meshes, then held up to ``CHUNK_ROWS`` times its snapshots' memory (every row's snapshot kept, as
+    ``jaxfric.run`` keeps them without ``keep_snapshots``)."""
+    _, result = whole
+    leaves = [a for snap in result.snapshots.values() for a in jax.tree_util.tree_leaves(snap)]
+    assert len(result.snapshots) == len(result.history["time"]) > 100
+    buffers = {id(a if a.base is None else a.base): (a if a.base is None else a.base).nbytes for a in leaves}
+    assert sum(buffers.values()) == sum(a.nbytes for a in leaves)
+
+
 def test_the_chunk_traced_from_the_start_programs_own_output_runs_the_same(whole, monkeypatch):
     """The chunk's program is traced from host arrays of the types of the start's output, while XLA compiles
     the start's program (``jaxfric.loadpath.run._compile``); where a type has no such array (a weakly typed

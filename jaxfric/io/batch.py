@@ -63,6 +63,7 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
     from .. import scenes
     from ..loadpath.run import run
     from . import output
+    from .instants import InstantRows
 
     path = os.path.join(out, "summary.json")
     changed = None if rerun or not os.path.exists(path) else stale(path, overrides, variant, algorithm)
@@ -76,7 +77,7 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
             if steps is not None:
                 scene = replay_steps(scene, steps)
             result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                         snapshot=scene.snapshot,
+                         snapshot=scene.snapshot, keep_snapshots=InstantRows(scene.name),
                          progress=progress, raise_on_failure=False, label=f"{os.path.basename(out)} ")
             output.write_run(scene, result, out, tag=tag, figures=figures)
         except output.OutputError as err:  # partial run directory; the reason is in summary.json
