@@ -14,7 +14,8 @@ with ``anst`` and 4 Gauss points through each element, on elements quadratic alo
 - ``o1_MESH``: the bilinear elements (``element_order=1``), for the cost and the ladder's bilinear side;
 - ``o1_1200x3``, ``o2_1200x3``: the finest of both, and ``o1_1200x3_steps_x0.5`` its step error (measured
   with friction only);
-- ``o2_100x2``: the coarse mesh of the fits.
+- ``o2_100x2``: the coarse mesh of the fits;
+- ``o2_300x6``: twice the layers (the error through the thickness at the spec mesh's length).
 
 Each case is a run directory under ``--root`` (default ``runs/nine_quadratic``, kept: a second call reads it
 back); the table goes to ``experiments/results/nine_quadratic.csv`` and to stdout. ``--only`` runs some cases
@@ -45,6 +46,7 @@ VARIATIONS = {
     "o2_1200x3": ("1200x3", 2, 1.0, False),
     "o1_1200x3_steps_x0.5": ("1200x3", 1, 0.5, False),
     "o2_100x2": ("100x2", 2, 1.0, False),
+    "o2_300x6": ("300x6", 2, 1.0, False),
 }
 CASES = {f"{variant}_{name}": (variant, *v) for variant in ("mu000", "mu017") for name, v in VARIATIONS.items()}
 

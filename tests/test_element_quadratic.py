@@ -9,6 +9,7 @@ the force's derivative, elastic bending exact at any aspect ratio with ``anst``,
 on this element, and no volumetric locking and no hourglassing.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,6 +18,7 @@ import pytest
 import jaxfric as jf
 from jaxfric import scenes
 from jaxfric.fem.assembly import internal_force, internal_force_and_tangent, mesh_geometry
+from jaxfric.fem.element import enhanced_count, initial_point_state
 from jaxfric.numerics.results import Result
 from models import clamped_pull
 from strips import bending_ratio
@@ -68,6 +70,35 @@ def test_reduced_rule_leaves_no_zero_energy_mode():
         K = np.asarray(K)[np.ix_(free, free)]
         eig = np.linalg.eigvalsh(0.5 * (K + K.T))
         assert int(np.sum(eig < 1e-8 * eig[-1])) == 3, (formulation, eig[:5])
+
+
+def test_patch_test_on_distorted_elements_with_the_mode_linear_along():
+    """``anst`` on six-node elements carries two thickness parameters per element, constant and linear along
+    it (:func:`jaxfric.fem.element._thickness_mode`; the bilinear element one). Taylor's correction makes each
+    mode's gradient sum to zero over the rule on any element shape, so a homogeneous deformation of distorted
+    elements is reproduced exactly: both parameters zero, no force on the inner nodes, the uniform stress at
+    every point."""
+    assert enhanced_count("anst", 6) == 2 and enhanced_count("anst", 4) == 1
+    material = jf.J2Material.elastic(200000.0, 0.3)
+    mesh = jf.strip_mesh(0.0, 3.0, 0.0, 1.0, 3, 2, order=2)
+    X = np.asarray(mesh.nodes)
+    moved = X + np.stack([0.07 * np.sin(2.1 * X[:, 0]) * X[:, 1] * (1 - X[:, 1]),
+                          0.09 * np.cos(1.7 * X[:, 0]) * X[:, 1] * (1 - X[:, 1])], axis=1)
+    mesh = eqx.tree_at(lambda m: m.nodes, mesh, jnp.asarray(moved))
+    geo = mesh_geometry(mesh, thickness_points=4)
+    states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (mesh.n_elements, 8) + a.shape),
+                                    initial_point_state(material, "anst", "local", 6))
+    H = np.array([[1e-4, 3e-4], [-2e-4, 5e-4]])
+    u = jnp.asarray(moved @ H.T).at[mesh.padding].set(0.0)
+    a = internal_force(mesh, material, "anst", geo, u, states)
+    assert a.states.enhanced.shape == (mesh.n_elements, 8, 2)
+    alpha_scale = np.abs(H).max()
+    assert float(jnp.max(jnp.abs(a.states.enhanced))) < 1e-10 * alpha_scale
+    boundary = np.unique(np.concatenate([mesh.left, mesh.right, mesh.bottom, mesh.top, mesh.padding]))
+    inner = np.setdiff1d(np.arange(mesh.n_nodes), boundary)
+    assert inner.size > 0
+    f = np.asarray(a.f_int)
+    assert np.abs(f[inner]).max() < 1e-10 * np.abs(f).max()
 
 
 # anst: 14 s of compilation (the derivative through its local solve); the fast suite checks the scatter with

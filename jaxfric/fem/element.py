@@ -102,8 +102,13 @@ stiffness in ``tests/test_element_quadratic.py``). Each layer's displacement alo
 quadratic, so the bending strain varies linearly along the element where a bilinear element's is
 constant, and the deflection's quadratic part is in the field, so bending turns no fibre into a
 parasitic shear (``ans``' sampling has nothing to remove: its gradients are the compatible ones here).
-``anst``'s thickness mode (the same construction, its centre and fibre from the six-node field) makes
-elastic pure bending exact at 2 and 3 layers and aspect ratios 1 to 4. F-bar is not offered on this
+``anst``'s thickness mode (the same construction, its centre and fibre from the six-node field) varies
+linearly along the element (two parameters, :func:`_thickness_mode`), as the bending strain it goes with
+does, and makes elastic pure bending exact at 2 and 3 layers and aspect ratios 1 to 4. With one parameter,
+constant along the element as on the bilinear one, the element converged at second order along the strip
+without friction but not with it: on the Nine with friction the constant mode held the thickness strain of
+the reversed bends, where the curvature changes sign within a few elements (docs/results.md, elements
+quadratic along the strip). F-bar is not offered on this
 element: one dilatation per six-node element leaves a softness that grows with the aspect ratio
 (elastic pure bending at 3 layers: 0.85 of the beam moment at aspect ratio 1, 0.40 at 4), so
 :data:`QUADRATIC_FORMULATIONS` are ``anst`` and the compatible ``q4``.
@@ -141,7 +146,7 @@ from ..numerics.tensor import det2, inv2
 
 __all__ = ["FORMULATIONS", "QUADRATIC_FORMULATIONS", "ElementGeometry", "gauss_rule", "element_geometry",
            "deformation_gradients", "initial_point_state", "element_force", "element_force_and_tangent",
-           "enhanced_predictor", "N_ENHANCED", "ENHANCED_UPDATES"]
+           "enhanced_predictor", "enhanced_count", "ENHANCED_UPDATES"]
 
 FORMULATIONS = ("fbar", "ans", "anst", "q4", "eas")
 QUADRATIC_FORMULATIONS = ("anst", "q4")   # those of the elements quadratic along the strip (module docstring)
@@ -302,7 +307,7 @@ def _enhanced_basis(dN_dX_center, weight) -> jax.Array:
 
 
 def _thickness_mode(dN_dX_center, weight, u_e) -> jax.Array:
-    """dF_g/dalpha of the ``anst`` enhancement, (gp, 2, 2, 1): the incompatible displacement
+    """dF_g/dalpha of the ``anst`` enhancement, (gp, 2, 2, m): the incompatible displacement
     (1 - eta^2) alpha dx/deta(0) (a stretch of the element's current thickness fibre, quadratic through
     its thickness), whose gradient with Taylor's correction is
 
@@ -310,23 +315,32 @@ def _thickness_mode(dN_dX_center, weight, u_e) -> jax.Array:
 
     F_0 = I + Grad u at the centroid. It follows the fibre through rigid rotations (objective), and it
     stretches that fibre only, so it cannot pair with the hourglass vector into a zero-energy mode as the
-    in-plane incompatible modes of a fibre would."""
+    in-plane incompatible modes of a fibre would. On the element quadratic along the strip (six nodes)
+    alpha varies linearly along it, alpha_0 + xi alpha_1 (m = 2; the second mode's gradient is the first's
+    times xi_g, whose weighted sum over the rule vanishes too, so the patch test holds): its bending strain
+    varies linearly along the element, and so must the thickness strain that goes with it (module
+    docstring). The bilinear element's bending strain is constant along it, and so is its mode (m = 1)."""
     J0_inv = _centroid_jacobian_inverse(dN_dX_center)
     projector = jnp.outer(inv2(J0_inv)[:, 1], J0_inv[1, :])
     F0 = jnp.eye(2) + u_e.T @ dN_dX_center
     points, rule_weights = gauss_rule(weight.shape[0] // 2)
     ratio = jnp.asarray(points[:, 1] * rule_weights) / (det2(J0_inv) * weight)
-    return ratio[:, None, None, None] * (F0 @ projector)[None, :, :, None]
+    mode = ratio[:, None, None] * (F0 @ projector)[None, :, :]
+    along = (jnp.ones_like(ratio),) if u_e.shape[0] == 4 else (jnp.ones_like(ratio), jnp.asarray(points[:, 0]))
+    return jnp.stack([mode * a[:, None, None] for a in along], axis=-1)
 
 
-N_ENHANCED = {"eas": 4, "anst": 1}  # enhanced parameters per element; 0 for the other formulations
+def enhanced_count(formulation: str, n_nodes: int = 4) -> int:
+    """Enhanced parameters per element of ``formulation`` on elements of ``n_nodes`` nodes: ``eas`` 4,
+    ``anst`` 1 (bilinear) or 2 (quadratic along the strip: :func:`_thickness_mode`), 0 for the others."""
+    return {"eas": 4, "anst": 1 if n_nodes == 4 else 2}.get(formulation, 0)
 
 
 def initial_point_state(material, formulation: str, enhanced_update: str = "local", n_nodes: int = 4):
     """A virgin state of one point of ``material`` with room for the formulation's enhanced parameters
     (zero: the undeformed element of ``n_nodes`` nodes): alpha (n,) for the local solve, the predictor
     (n, 1 + 2 n_nodes) of :func:`element_force_and_tangent` for ``enhanced_update="iterate"``."""
-    n = N_ENHANCED.get(formulation, 0)
+    n = enhanced_count(formulation, n_nodes)
     state = material.init_state()
     if not n:
         return state
@@ -374,7 +388,7 @@ def _with_enhanced(states, alpha, predictor=None):
 
 def _kinematics(formulation, dN_dX, dN_dX_center, weight, u_e, alpha):
     """Gradients (gp, 2, 2) at the Gauss points for displacements ``u_e`` (4, 2) and enhanced parameters
-    ``alpha`` (N_ENHANCED entries), and the smallest det F of the compatible part (see
+    ``alpha`` (:func:`enhanced_count` entries), and the smallest det F of the compatible part (see
     :func:`deformation_gradients`) and of the enhanced gradients."""
     F, det_min = deformation_gradients(dN_dX, dN_dX_center, u_e, formulation)
     if formulation == "eas":
@@ -483,7 +497,7 @@ def _condensed(material, formulation, dN_dX, dN_dX_center, weight, u_e, states):
     G = dF/dalpha (F is affine in alpha); a local Newton from the last converged step's alpha (kept in
     the point states; zero when they hold none), differentiable by the implicit function
     theorem (``jax.lax.custom_root``)."""
-    n = N_ENHANCED.get(formulation, 0)
+    n = enhanced_count(formulation, u_e.shape[0])
     if n == 0:
         return jnp.zeros(0, u_e.dtype)
     F_c, _, G = _value_and_jacfwd(lambda a: _kinematics(formulation, dN_dX, dN_dX_center, weight, u_e, a),

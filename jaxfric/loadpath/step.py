@@ -30,7 +30,7 @@ from ..contact.rigid import (
 from ..contact.status import contact_status
 from ..contact.system import StepArgs, linearize
 from ..fem.assembly import mesh_geometry
-from ..fem.element import N_ENHANCED, ElementGeometry
+from ..fem.element import ElementGeometry, enhanced_count
 from ..fem.loading import constraint_masks, prescribed_values
 from ..numerics.newton import Linearization, NewtonOptions
 from .controller import StepControl
@@ -124,7 +124,7 @@ def enhanced_carry(model: StripModel, state: SimState):
     It is the last linearisation's predictor of the converged step, which the point states keep, so
     Newton's first point (the secant guess) gets the enhanced parameters linearised about the converged
     ones."""
-    if N_ENHANCED.get(model.formulation, 0) and model.enhanced_update == "iterate":
+    if enhanced_count(model.formulation, model.mesh.nodes_per_element) and model.enhanced_update == "iterate":
         return state.material.enhanced[:, 0]
     return None
 
