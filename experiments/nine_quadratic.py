@@ -10,12 +10,14 @@ with ``anst`` and 4 Gauss points through each element, on elements quadratic alo
 - ``o2_MESH``: six-node elements, every surface node (corner and mid-side) a contact candidate;
 - ``o2_MESH_corners``: the same with the corner nodes only, so that the contact points are spaced as on the
   bilinear mesh of the same element count while the elements are quadratic;
-- ``o2_300x3_steps_x0.5``: a quarter of the nominal increments (the step error at this mesh);
+- ``o2_300x3_steps_x0.5``: a quarter of the nominal increments (the step error at this mesh), and
+  ``o2_300x3_steps_x2`` the nominal ones (0.1 mm, the scene's default);
 - ``o1_MESH``: the bilinear elements (``element_order=1``), for the cost and the ladder's bilinear side;
 - ``o1_1200x3``, ``o2_1200x3``: the finest of both, and ``o1_1200x3_steps_x0.5`` its step error (measured
   with friction only);
 - ``o2_100x2``: the coarse mesh of the fits;
-- ``o2_300x6``: twice the layers (the error through the thickness at the spec mesh's length).
+- ``o2_300x6``, ``o2_300x12``: twice and four times the layers (the error through the thickness at the
+  spec mesh's length).
 
 Each case is a run directory under ``--root`` (default ``runs/nine_quadratic``, kept: a second call reads it
 back); the table goes to ``experiments/results/nine_quadratic.csv`` and to stdout. ``--only`` runs some cases
@@ -41,12 +43,14 @@ VARIATIONS = {
     "o2_300x3_corners": ("300x3", 2, 1.0, True),
     "o2_600x3_corners": ("600x3", 2, 1.0, True),
     "o2_300x3_steps_x0.5": ("300x3", 2, 0.5, False),
+    "o2_300x3_steps_x2": ("300x3", 2, 2.0, False),
     "o1_300x3": ("300x3", 1, 1.0, False),
     "o1_1200x3": ("1200x3", 1, 1.0, False),
     "o2_1200x3": ("1200x3", 2, 1.0, False),
     "o1_1200x3_steps_x0.5": ("1200x3", 1, 0.5, False),
     "o2_100x2": ("100x2", 2, 1.0, False),
     "o2_300x6": ("300x6", 2, 1.0, False),
+    "o2_300x12": ("300x12", 2, 1.0, False),
 }
 CASES = {f"{variant}_{name}": (variant, *v) for variant in ("mu000", "mu017") for name, v in VARIATIONS.items()}
 

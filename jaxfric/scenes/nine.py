@@ -56,7 +56,11 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
 - ``element`` = ``ans`` (F-bar on assumed natural strains, :mod:`jaxfric.fem.element`): F-bar's parasitic
   shear put the steady force on 300 x 3 6.9 % (``mu000``) and 9.3 % (``mu017``) above its limit along
   the strip; ``ans`` 1.4 % and 3.5 % (docs/results.md, discretisation error of the Nine test, with
-  ``end_nodes``);
+  ``end_nodes``). Elements quadratic along the strip with ``anst`` and 4 points through each element
+  (``element_order`` = 2, ``element`` = ``anst``, ``thickness_points`` = 4) are converged along the strip
+  from 150 elements on, with and without friction (docs/results.md, elements quadratic along the strip),
+  at 1.7 times ``ans``' cost per Newton iteration on 150 x 3 (the spec mesh's nodes) and 3.7 times on
+  300 x 3; ``ans`` stays the default for its cost;
 - ``steady_window`` = (20, 35) mm;
 - eps_t = mu eps_n [paper] (``eps_t`` None), with mu the largest coefficient of the scene.
 - exact contact by lcp_lemke: ``band`` = 128 of the 602 candidate nodes (at 300 x 3) enter the complementarity
