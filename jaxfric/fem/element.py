@@ -326,7 +326,7 @@ def _thickness_mode(dN_dX_center, weight, u_e) -> jax.Array:
     points, rule_weights = gauss_rule(weight.shape[0] // 2)
     ratio = jnp.asarray(points[:, 1] * rule_weights) / (det2(J0_inv) * weight)
     mode = ratio[:, None, None] * (F0 @ projector)[None, :, :]
-    along = (jnp.ones_like(ratio),) if u_e.shape[0] == 4 else (jnp.ones_like(ratio), jnp.asarray(points[:, 0]))
+    along = (jnp.ones_like(ratio), jnp.asarray(points[:, 0]))[:enhanced_count("anst", u_e.shape[0])]
     return jnp.stack([mode * a[:, None, None] for a in along], axis=-1)
 
 

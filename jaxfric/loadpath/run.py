@@ -133,9 +133,12 @@ class Record:
         first = int(chunk.first)
         if first != self.n_rows:
             raise ValueError(f"chunk starts at history row {first}, the record has {self.n_rows} rows")
-        # Copies, not views: a view of a row would keep the chunk's whole buffer of CHUNK_ROWS rows alive
-        # (a run of short chunks, one or two steps each, then holds 16 to 32 times its snapshots' memory).
-        rows = lambda a: np.array(a[:n])  # noqa: E731
+
+        def rows(a):
+            # A copy, not a view: a view would keep the chunk's whole buffer of CHUNK_ROWS rows alive (a run
+            # of short chunks, one or two steps each, then holds 16 to 32 times its rows' memory).
+            return np.array(a[:n])
+
         iters = rows(h.newton_iters)
         weight = iters + 1.0
         part = {"time": rows(h.time), "phase": rows(h.phase), "newton_iters": iters,
@@ -148,7 +151,7 @@ class Record:
         if chunk.snapshots is not None:
             snaps = jax.device_get(chunk.snapshots)
             for i in range(n):
-                self.snapshots[first + i] = jax.tree_util.tree_map(lambda a: np.array(a[i]), snaps)
+                self.snapshots[first + i] = jax.tree_util.tree_map(lambda a: np.array(a[i]), snaps)  # copies
         self.wall_s += wall_s
         self.cpu_s += cpu_s
         return n
