@@ -18,7 +18,7 @@ import pytest
 import jaxfric as jf
 from jaxfric import scenes
 from jaxfric.fem.assembly import internal_force, internal_force_and_tangent, mesh_geometry
-from jaxfric.fem.element import enhanced_count, initial_point_state
+from jaxfric.fem.element import enhanced_count
 from jaxfric.numerics.results import Result
 from models import clamped_pull
 from strips import bending_ratio
@@ -26,10 +26,12 @@ from test_element_ans import NINE_STEEL, compressed_block
 from test_solver import thick_cylinder_ratio
 
 
-def _virgin_states(mesh, material, formulation):
-    """The point states before the first step of a model on ``mesh`` (2 x 2 points, alpha by the local solve)."""
+def _virgin_states(mesh, material, formulation, thickness_points=2):
+    """The point states before the first step of a model on ``mesh`` (2 x ``thickness_points`` points, alpha by
+    the local solve)."""
     phases = (jf.Phase("hold", [jf.DirichletBC(mesh.left)], n_steps=1),)
-    model = jf.StripModel(mesh, material, phases, formulation=formulation, enhanced_update="local")
+    model = jf.StripModel(mesh, material, phases, formulation=formulation, enhanced_update="local",
+                          thickness_points=thickness_points)
     return jf.initial_state(model).material
 
 
@@ -86,8 +88,7 @@ def test_patch_test_on_distorted_elements_with_the_mode_linear_along():
                           0.09 * np.cos(1.7 * X[:, 0]) * X[:, 1] * (1 - X[:, 1])], axis=1)
     mesh = eqx.tree_at(lambda m: m.nodes, mesh, jnp.asarray(moved))
     geo = mesh_geometry(mesh, thickness_points=4)
-    states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (mesh.n_elements, 8) + a.shape),
-                                    initial_point_state(material, "anst", "local", 6))
+    states = _virgin_states(mesh, material, "anst", thickness_points=4)
     H = np.array([[1e-4, 3e-4], [-2e-4, 5e-4]])
     u = jnp.asarray(moved @ H.T).at[mesh.padding].set(0.0)
     a = internal_force(mesh, material, "anst", geo, u, states)

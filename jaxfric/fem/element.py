@@ -326,8 +326,9 @@ def _thickness_mode(dN_dX_center, weight, u_e) -> jax.Array:
     points, rule_weights = gauss_rule(weight.shape[0] // 2)
     ratio = jnp.asarray(points[:, 1] * rule_weights) / (det2(J0_inv) * weight)
     mode = ratio[:, None, None] * (F0 @ projector)[None, :, :]
-    along = (jnp.ones_like(ratio), jnp.asarray(points[:, 0]))[:enhanced_count("anst", u_e.shape[0])]
-    return jnp.stack([mode * a[:, None, None] for a in along], axis=-1)
+    if enhanced_count("anst", u_e.shape[0]) == 1:
+        return mode[..., None]
+    return jnp.stack([mode, mode * jnp.asarray(points[:, 0])[:, None, None]], axis=-1)
 
 
 def enhanced_count(formulation: str, n_nodes: int = 4) -> int:
