@@ -67,10 +67,11 @@ def run_cases_main(argv, doc: str, cases, run_one, default_root: str, csv_path: 
     return 0
 
 
-def run_or_read(out: str, build, tag: str, label: str) -> dict:
+def run_or_read(out: str, build, tag: str, label: str, figures: bool = False) -> dict:
     """The summary of the run directory ``out``, running it first where it is not there: ``build()`` gives
-    the scene (``jaxfric.scenes.Scene``), run to its end (or its failure) and written without figures;
-    ``label`` is printed to stderr when it runs."""
+    the scene (``jaxfric.scenes.Scene``), run to its end (or its failure, which is written too: remove the
+    directory to run it again) and written with the run's figures where ``figures``; ``label`` is printed
+    to stderr when it runs."""
     import jaxfric as jf  # here: the scripts that use only the timing and CSV helpers do without the package
     from jaxfric.io import output
     from jaxfric.io.instants import InstantRows
@@ -82,6 +83,6 @@ def run_or_read(out: str, build, tag: str, label: str) -> dict:
         result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
                         snapshot=scene.snapshot, keep_snapshots=InstantRows(scene.name), progress=False,
                         raise_on_failure=False)
-        output.write_run(scene, result, out, tag=tag, figures=False)
+        output.write_run(scene, result, out, tag=tag, figures=figures)
     with open(path) as fh:
         return json.load(fh)

@@ -24,17 +24,13 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import os
 import sys
 
 import numpy as np
 
-import jaxfric as jf
-from benchutil import write_rows
+from benchutil import run_or_read, write_rows
 from jaxfric import scenes
-from jaxfric.io import output
-from jaxfric.io.instants import InstantRows
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ALGORITHMS = ("penalty", "auglag", "lcp_lemke", "lcp_ssn")
@@ -61,15 +57,8 @@ def run_one(name: str, mesh: str, root: str) -> tuple[dict, dict]:
     variant, algorithm = name.removesuffix(END_NODES).split("_", 1)
     kind = "end_nodes" if name.endswith(END_NODES) else "channel"
     out = os.path.join(root, name)
-    if not os.path.exists(os.path.join(out, "summary.json")):
-        scene = scenes.make("nine", variant, algorithm, {"mesh": mesh, "entry_guide_kind": kind})
-        print(f"{name}: running on {mesh}", file=sys.stderr, flush=True)
-        result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                        snapshot=scene.snapshot, keep_snapshots=InstantRows(scene.name), progress=False,
-                        raise_on_failure=False)
-        output.write_run(scene, result, out, tag="nine_tail_exit", figures=True)
-    with open(os.path.join(out, "summary.json")) as fh:
-        s = json.load(fh)
+    s = run_or_read(out, lambda: scenes.make("nine", variant, algorithm, {"mesh": mesh, "entry_guide_kind": kind}),
+                    "nine_tail_exit", f"{name}: running on {mesh}", figures=True)
     col = _history(out)
     u, force, clamp, tail = (col[k] for k in ("drawing_displacement", "drawing_force", "clamping_force",
                                               "tail_x"))

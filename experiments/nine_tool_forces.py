@@ -35,13 +35,10 @@ import sys
 
 import numpy as np
 
-import jaxfric as jf
-from benchutil import write_rows
+from benchutil import run_or_read, write_rows
 from jaxfric import scenes
 from jaxfric.contact.exact_iterate import tangents
-from jaxfric.io import output
 from jaxfric.io.batch import read_history
-from jaxfric.io.instants import InstantRows
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 BASE = {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05}
@@ -66,14 +63,11 @@ def steady_means(history: dict, window) -> dict:
 def run_one(name: str, root: str) -> dict:
     variant, mesh = CASES[name]
     out = os.path.join(root, name)
-    if not os.path.exists(os.path.join(out, "summary.json")):
-        scene = scenes.make("nine", variant, "lcp_ssn", {**BASE, "mesh": mesh})
-        print(f"{name}: running", file=sys.stderr, flush=True)
-        result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                        snapshot=scene.snapshot, keep_snapshots=InstantRows(scene.name), progress=False)
-        output.write_run(scene, result, out, tag="nine_tool_forces", figures=False)
-    with open(os.path.join(out, "summary.json")) as fh:
-        window = json.load(fh)["steady_window"]
+    s = run_or_read(out, lambda: scenes.make("nine", variant, "lcp_ssn", {**BASE, "mesh": mesh}), "nine_tool_forces",
+                    f"{name}: running")
+    window = s["steady_window"]
+    if not s["converged"] or window is None:
+        raise SystemExit(f"{name}: the run in {out} did not finish ({s['message']})")
     return {"case": name, "variant": variant, "mesh": mesh,
             **steady_means(read_history(os.path.join(out, "history.csv")), window)}
 

@@ -18,17 +18,13 @@ the two limits' difference is in the table too (both rules tend to the same forc
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
-import jaxfric as jf
-from benchutil import write_rows
+from benchutil import run_or_read, write_rows
 from error_estimates import richardson
 from jaxfric import scenes
 from jaxfric.fem.material import INTEGRATIONS
-from jaxfric.io import output
-from jaxfric.io.instants import InstantRows
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 VARIANTS = ("mu000", "mu017")
@@ -36,24 +32,14 @@ INCREMENTS = (0.1, 0.05, 0.025, 0.0125)   # mm
 CASES = {f"{v}_{i}_{d:g}": (v, i, d) for v in VARIANTS for i in INTEGRATIONS for d in INCREMENTS}
 
 
-def _summary(path: str) -> dict:
-    with open(path) as fh:
-        return json.load(fh)
-
-
 def run_one(name: str, root: str) -> dict:
-    """The figures of case ``name``, from its run directory under ``root`` (run first if absent)."""
+    """The figures of case ``name``, from its run directory under ``root`` (run first if absent; a failed run
+    stops the study, naming its directory)."""
     variant, integration, increment = CASES[name]
     out = os.path.join(root, name)
-    summary = os.path.join(out, "summary.json")
-    if not (os.path.exists(summary) and _summary(summary)["converged"]):
-        scene = scenes.make("nine", variant, "lcp_ssn", {"U_draw": 36.0, "dU": increment, "dq_clamp": increment,
-                                                         "plastic_integration": integration})
-        print(f"{name}: running", file=sys.stderr, flush=True)
-        result = jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                        snapshot=scene.snapshot, keep_snapshots=InstantRows(scene.name), progress=False)
-        output.write_run(scene, result, out, tag="plastic_integration", figures=False)
-    s = _summary(summary)
+    overrides = {"U_draw": 36.0, "dU": increment, "dq_clamp": increment, "plastic_integration": integration}
+    s = run_or_read(out, lambda: scenes.make("nine", variant, "lcp_ssn", overrides), "plastic_integration",
+                    f"{name}: running")
     if not s["converged"] or s["steady_drawing_force"] is None:
         raise SystemExit(f"{name}: the run in {out} did not finish ({s['message']})")
     return {"case": name, "variant": variant, "integration": integration, "increment": increment,
