@@ -17,10 +17,14 @@ with ``anst`` and 4 Gauss points through each element, on elements quadratic alo
   with friction only);
 - ``o2_100x2``: the coarse mesh of the fits;
 - ``o2_300x6``, ``o2_300x12``: twice and four times the layers (the error through the thickness at the
-  spec mesh's length).
+  spec mesh's length); ``o2_150x6``, ``o2_150x12``, ``o2_150x24`` and ``o2_600x6``: the grid of element
+  lengths and layers from which the force converged in both directions is extrapolated;
+- ``o2_150xN_end_nodes``: the left-end nodes held instead of the entry channel (``entry_guide_kind=end_nodes``),
+  to separate the channel's share of the layers' error.
 
 Each case is a run directory under ``--root`` (default ``runs/nine_quadratic``, kept: a second call reads it
-back); the table goes to ``experiments/results/nine_quadratic.csv`` and to stdout. ``--only`` runs some cases
+back); the table goes to ``experiments/results/nine_quadratic.csv`` and to stdout, and the force against the
+layers to ``nine_quadratic_layers.png``. ``--only`` runs some cases
 (to spread them over processes), ``--table`` only reads back what is on disk.
 """
 
@@ -30,27 +34,35 @@ import dataclasses
 import os
 import sys
 
-from benchutil import run_cases_main, run_or_read
+from benchutil import read_rows, run_cases_main, run_or_read
 from jaxfric import scenes
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 BASE = {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05, "element": "anst", "thickness_points": 4}
-# (mesh, element order, increment factor on BASE's, contact on the corner nodes only)
+END_NODES = {"entry_guide_kind": "end_nodes"}
+# (mesh, element order, increment factor on BASE's, contact on the corner nodes only, other overrides)
 VARIATIONS = {
-    "o2_150x3": ("150x3", 2, 1.0, False),
-    "o2_300x3": ("300x3", 2, 1.0, False),
-    "o2_600x3": ("600x3", 2, 1.0, False),
-    "o2_300x3_corners": ("300x3", 2, 1.0, True),
-    "o2_600x3_corners": ("600x3", 2, 1.0, True),
-    "o2_300x3_steps_x0.5": ("300x3", 2, 0.5, False),
-    "o2_300x3_steps_x2": ("300x3", 2, 2.0, False),
-    "o1_300x3": ("300x3", 1, 1.0, False),
-    "o1_1200x3": ("1200x3", 1, 1.0, False),
-    "o2_1200x3": ("1200x3", 2, 1.0, False),
-    "o1_1200x3_steps_x0.5": ("1200x3", 1, 0.5, False),
-    "o2_100x2": ("100x2", 2, 1.0, False),
-    "o2_300x6": ("300x6", 2, 1.0, False),
-    "o2_300x12": ("300x12", 2, 1.0, False),
+    "o2_150x3": ("150x3", 2, 1.0, False, {}),
+    "o2_300x3": ("300x3", 2, 1.0, False, {}),
+    "o2_600x3": ("600x3", 2, 1.0, False, {}),
+    "o2_300x3_corners": ("300x3", 2, 1.0, True, {}),
+    "o2_600x3_corners": ("600x3", 2, 1.0, True, {}),
+    "o2_300x3_steps_x0.5": ("300x3", 2, 0.5, False, {}),
+    "o2_300x3_steps_x2": ("300x3", 2, 2.0, False, {}),
+    "o1_300x3": ("300x3", 1, 1.0, False, {}),
+    "o1_1200x3": ("1200x3", 1, 1.0, False, {}),
+    "o2_1200x3": ("1200x3", 2, 1.0, False, {}),
+    "o1_1200x3_steps_x0.5": ("1200x3", 1, 0.5, False, {}),
+    "o2_100x2": ("100x2", 2, 1.0, False, {}),
+    "o2_300x6": ("300x6", 2, 1.0, False, {}),
+    "o2_300x12": ("300x12", 2, 1.0, False, {}),
+    "o2_150x6": ("150x6", 2, 1.0, False, {}),
+    "o2_150x12": ("150x12", 2, 1.0, False, {}),
+    "o2_150x24": ("150x24", 2, 1.0, False, {}),
+    "o2_600x6": ("600x6", 2, 1.0, False, {}),
+    "o2_150x3_end_nodes": ("150x3", 2, 1.0, False, END_NODES),
+    "o2_150x6_end_nodes": ("150x6", 2, 1.0, False, END_NODES),
+    "o2_150x12_end_nodes": ("150x12", 2, 1.0, False, END_NODES),
 }
 CASES = {f"{variant}_{name}": (variant, *v) for variant in ("mu000", "mu017") for name, v in VARIATIONS.items()}
 
@@ -65,9 +77,9 @@ def corners_only(model):
 
 
 def run_one(name: str, root: str) -> dict:
-    variant, mesh, order, factor, corners = CASES[name]
+    variant, mesh, order, factor, corners, other = CASES[name]
     overrides = {**BASE, "mesh": mesh, "element_order": order,
-                 "dq_clamp": BASE["dq_clamp"] * factor, "dU": BASE["dU"] * factor}
+                 "dq_clamp": BASE["dq_clamp"] * factor, "dU": BASE["dU"] * factor, **other}
 
     def build():
         scene = scenes.make("nine", variant, "lcp_ssn", overrides)
@@ -77,14 +89,55 @@ def run_one(name: str, root: str) -> dict:
                     f"{name}: running {overrides}, corner contact {corners}")
     iters = s.get("newton_iters_total")
     return {"case": name, "variant": variant, "mesh": mesh, "element_order": order, "increments": BASE["dU"] * factor,
-            "contact_corners_only": corners, "steady_drawing_force": s.get("steady_drawing_force"),
+            "contact_corners_only": corners, "entry_guide_kind": other.get("entry_guide_kind", "channel"),
+            "steady_drawing_force": s.get("steady_drawing_force"),
             "converged": s.get("converged"), "n_steps": s.get("n_steps"), "newton_iters_total": iters,
             "wall_s": s.get("wall_s"), "compile_s": s.get("compile_s")}
 
 
+def plot_layers(rows: list[dict], path: str) -> None:
+    """The steady force of the six-node element at the base increments against the layers through the
+    thickness, one line per variant, entry guide and element count along the strip."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11.0, 4.5), constrained_layout=True)
+    for ax, variant in zip(axes, ("mu000", "mu017"), strict=True):
+        own = [r for r in rows if r["variant"] == variant and r["element_order"] == 2 and r["increments"] == BASE["dU"]
+               and not r["contact_corners_only"] and r["mesh"] != "100x2"]
+        for kind, nx in sorted({(r["entry_guide_kind"], r["mesh"].split("x")[0]) for r in own}):
+            pts = sorted((int(r["mesh"].split("x")[1]), r["steady_drawing_force"]) for r in own
+                         if r["entry_guide_kind"] == kind and r["mesh"].split("x")[0] == nx)
+            if len(pts) > 1:
+                ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-" if kind == "channel" else "s--",
+                        label=f"{nx} along, {kind.replace('_', ' ')}")
+        ax.set_xscale("log", base=2)
+        ax.set_xticks([3, 6, 12, 24], ["3", "6", "12", "24"])
+        ax.set_xlabel("layers through the thickness")
+        ax.set_ylabel("steady drawing force (N/mm)")
+        ax.set_title(f"Nine {variant}, six-node anst p4, 0.05 mm")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
-    return run_cases_main(argv, __doc__, CASES, run_one, os.path.join("runs", "nine_quadratic"),
-                          os.path.join(HERE, "results", "nine_quadratic.csv"))
+    csv_path = os.path.join(HERE, "results", "nine_quadratic.csv")
+    done = run_cases_main(argv, __doc__, CASES, run_one, os.path.join("runs", "nine_quadratic"), csv_path)
+    if os.path.exists(csv_path):
+        plot_layers(_typed(read_rows(csv_path)), os.path.join(HERE, "results", "nine_quadratic_layers.png"))
+    return done
+
+
+def _typed(rows: list[dict]) -> list[dict]:
+    """CSV rows with the fields the figure reads as numbers and booleans."""
+    return [{**r, "element_order": int(r["element_order"]), "increments": float(r["increments"]),
+             "contact_corners_only": r["contact_corners_only"] == "True",
+             "entry_guide_kind": r.get("entry_guide_kind") or "channel",
+             "steady_drawing_force": float(r["steady_drawing_force"])} for r in rows]
 
 
 if __name__ == "__main__":
