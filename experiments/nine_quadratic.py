@@ -15,12 +15,14 @@ with ``anst`` and 4 Gauss points through each element, on elements quadratic alo
 - ``o1_MESH``: the bilinear elements (``element_order=1``), for the cost and the ladder's bilinear side;
 - ``o1_1200x3``, ``o2_1200x3``: the finest of both, and ``o1_1200x3_steps_x0.5`` its step error (measured
   with friction only);
-- ``o2_100x2``: the coarse mesh of the fits;
+- ``o2_100x2``: the coarse mesh of the fits; ``o2_150x3_steps_x2`` and ``o2_100x2_steps_x2`` at the scene's
+  increments;
 - ``o2_300x6``, ``o2_300x12``: twice and four times the layers (the error through the thickness at the
   spec mesh's length); ``o2_150x6``, ``o2_150x12``, ``o2_150x24`` and ``o2_600x6``: the grid of element
   lengths and layers from which the force converged in both directions is extrapolated;
 - ``o2_150xN_end_nodes``: the left-end nodes held instead of the entry channel (``entry_guide_kind=end_nodes``),
-  to separate the channel's share of the layers' error.
+  and ``o2_150xN_guide6`` the channel's exit 6 mm before A instead of 3, to separate the channel's share of
+  the layers' error.
 
 Each case is a run directory under ``--root`` (default ``runs/nine_quadratic``, kept: a second call reads it
 back); the table goes to ``experiments/results/nine_quadratic.csv`` and to stdout, and the force against the
@@ -40,6 +42,8 @@ from jaxfric import scenes
 HERE = os.path.dirname(os.path.abspath(__file__))
 BASE = {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05, "element": "anst", "thickness_points": 4}
 END_NODES = {"entry_guide_kind": "end_nodes"}
+# the channel's exit 6 mm before A instead of 3 (the tail reaches it at U = 35.5 mm: the window ends at 30)
+GUIDE_6 = {"guide_end": -6.0, "steady_window": (20.0, 30.0)}
 # (mesh, element order, increment factor on BASE's, contact on the corner nodes only, other overrides)
 VARIATIONS = {
     "o2_150x3": ("150x3", 2, 1.0, False, {}),
@@ -54,6 +58,8 @@ VARIATIONS = {
     "o2_1200x3": ("1200x3", 2, 1.0, False, {}),
     "o1_1200x3_steps_x0.5": ("1200x3", 1, 0.5, False, {}),
     "o2_100x2": ("100x2", 2, 1.0, False, {}),
+    "o2_150x3_steps_x2": ("150x3", 2, 2.0, False, {}),
+    "o2_100x2_steps_x2": ("100x2", 2, 2.0, False, {}),
     "o2_300x6": ("300x6", 2, 1.0, False, {}),
     "o2_300x12": ("300x12", 2, 1.0, False, {}),
     "o2_150x6": ("150x6", 2, 1.0, False, {}),
@@ -63,6 +69,8 @@ VARIATIONS = {
     "o2_150x3_end_nodes": ("150x3", 2, 1.0, False, END_NODES),
     "o2_150x6_end_nodes": ("150x6", 2, 1.0, False, END_NODES),
     "o2_150x12_end_nodes": ("150x12", 2, 1.0, False, END_NODES),
+    "o2_150x3_guide6": ("150x3", 2, 1.0, False, GUIDE_6),
+    "o2_150x12_guide6": ("150x12", 2, 1.0, False, GUIDE_6),
 }
 CASES = {f"{variant}_{name}": (variant, *v) for variant in ("mu000", "mu017") for name, v in VARIATIONS.items()}
 
@@ -90,6 +98,7 @@ def run_one(name: str, root: str) -> dict:
     iters = s.get("newton_iters_total")
     return {"case": name, "variant": variant, "mesh": mesh, "element_order": order, "increments": BASE["dU"] * factor,
             "contact_corners_only": corners, "entry_guide_kind": other.get("entry_guide_kind", "channel"),
+            "guide_end": other.get("guide_end", scenes.nine.NineConfig().guide_end),
             "steady_drawing_force": s.get("steady_drawing_force"),
             "converged": s.get("converged"), "n_steps": s.get("n_steps"), "newton_iters_total": iters,
             "wall_s": s.get("wall_s"), "compile_s": s.get("compile_s")}
@@ -107,12 +116,12 @@ def plot_layers(rows: list[dict], path: str) -> None:
     for ax, variant in zip(axes, ("mu000", "mu017"), strict=True):
         own = [r for r in rows if r["variant"] == variant and r["element_order"] == 2 and r["increments"] == BASE["dU"]
                and not r["contact_corners_only"] and r["mesh"] != "100x2"]
-        for kind, nx in sorted({(r["entry_guide_kind"], r["mesh"].split("x")[0]) for r in own}):
+        for guide, nx in sorted({(_guide(r), r["mesh"].split("x")[0]) for r in own}):
             pts = sorted((int(r["mesh"].split("x")[1]), r["steady_drawing_force"]) for r in own
-                         if r["entry_guide_kind"] == kind and r["mesh"].split("x")[0] == nx)
+                         if _guide(r) == guide and r["mesh"].split("x")[0] == nx)
             if len(pts) > 1:
-                ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-" if kind == "channel" else "s--",
-                        label=f"{nx} along, {kind.replace('_', ' ')}")
+                ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-" if guide == _guide({}) else "s--",
+                        label=f"{nx} along, {guide}")
         ax.set_xscale("log", base=2)
         ax.set_xticks([3, 6, 12, 24], ["3", "6", "12", "24"])
         ax.set_xlabel("layers through the thickness")
@@ -130,6 +139,13 @@ def main(argv=None) -> int:
     if os.path.exists(csv_path):
         plot_layers(_typed(read_rows(csv_path)), os.path.join(HERE, "results", "nine_quadratic_layers.png"))
     return done
+
+
+def _guide(row: dict) -> str:
+    """How a case leads the strip onto A, in words."""
+    if row.get("entry_guide_kind", "channel") != "channel":
+        return row["entry_guide_kind"].replace("_", " ")
+    return f"channel to {float(row.get('guide_end', scenes.nine.NineConfig().guide_end)):g} mm"
 
 
 def _typed(rows: list[dict]) -> list[dict]:
