@@ -42,6 +42,7 @@ from jaxfric import scenes
 HERE = os.path.dirname(os.path.abspath(__file__))
 BASE = {"U_draw": 36.0, "dq_clamp": 0.05, "dU": 0.05, "element": "anst", "thickness_points": 4}
 END_NODES = {"entry_guide_kind": "end_nodes"}
+GUIDE_END = scenes.nine.NineConfig().guide_end   # the scene's channel exit, mm before A's top
 # the channel's exit 6 mm before A instead of 3 (the tail reaches it at U = 35.5 mm: the window ends at 30)
 GUIDE_6 = {"guide_end": -6.0, "steady_window": (20.0, 30.0)}
 # (mesh, element order, increment factor on BASE's, contact on the corner nodes only, other overrides)
@@ -98,7 +99,7 @@ def run_one(name: str, root: str) -> dict:
     iters = s.get("newton_iters_total")
     return {"case": name, "variant": variant, "mesh": mesh, "element_order": order, "increments": BASE["dU"] * factor,
             "contact_corners_only": corners, "entry_guide_kind": other.get("entry_guide_kind", "channel"),
-            "guide_end": other.get("guide_end", scenes.nine.NineConfig().guide_end),
+            "guide_end": other.get("guide_end", GUIDE_END),
             "steady_drawing_force": s.get("steady_drawing_force"),
             "converged": s.get("converged"), "n_steps": s.get("n_steps"), "newton_iters_total": iters,
             "wall_s": s.get("wall_s"), "compile_s": s.get("compile_s")}
@@ -120,7 +121,7 @@ def plot_layers(rows: list[dict], path: str) -> None:
             pts = sorted((int(r["mesh"].split("x")[1]), r["steady_drawing_force"]) for r in own
                          if _guide(r) == guide and r["mesh"].split("x")[0] == nx)
             if len(pts) > 1:
-                ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-" if guide == _guide({}) else "s--",
+                ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-" if guide == DEFAULT_GUIDE else "s--",
                         label=f"{nx} along, {guide}")
         ax.set_xscale("log", base=2)
         ax.set_xticks([3, 6, 12, 24], ["3", "6", "12", "24"])
@@ -145,7 +146,10 @@ def _guide(row: dict) -> str:
     """How a case leads the strip onto A, in words."""
     if row.get("entry_guide_kind", "channel") != "channel":
         return row["entry_guide_kind"].replace("_", " ")
-    return f"channel to {float(row.get('guide_end', scenes.nine.NineConfig().guide_end)):g} mm"
+    return f"channel to {float(row.get('guide_end', GUIDE_END)):g} mm"
+
+
+DEFAULT_GUIDE = _guide({})
 
 
 def _typed(rows: list[dict]) -> list[dict]:
