@@ -69,13 +69,14 @@ MAX_AUGMENTATIONS = {(1e4, 1e-6): 60}
 MAX_STEPS = {1e6: 30_000}
 MESHES = [(nx, ny) for ny in (3, 6) for nx in (150, 300, 600, 1200)]
 # The settings the studies' tables in docs/results.md were run with, where they differ from the scenes'
-# defaults: F-bar elements (the Nine's and the bead's default is ``ans``; the Nine's discretisation error
-# with each element: experiments/nine_error_sources.py) and, on the Nine, v = 0 on the strip's left-end
-# nodes instead of the entry guide's channel (the tail stays far from A in every study's draw). The
-# studies in AT_DEFAULTS were run again with the scenes' defaults.
+# defaults: F-bar elements with 2 x 2 points (the Nine's and the bead's default is ``ans``, the
+# blankholder's ``anst`` with 4 points per layer; the Nine's discretisation error with each element:
+# experiments/nine_error_sources.py) and, on the Nine, v = 0 on the strip's left-end nodes instead of the
+# entry guide's channel (the tail stays far from A in every study's draw). The studies in AT_DEFAULTS were
+# run again with the scenes' defaults.
 STUDY_SETTINGS = {"element": "fbar"}
-NINE_STUDY_SETTINGS = {"entry_guide_kind": "end_nodes"}
-AT_DEFAULTS = ("mesh_convergence", "common_steps", "penalty_sensitivity")
+SCENE_STUDY_SETTINGS = {"nine": {"entry_guide_kind": "end_nodes"}, "blankholder": {"thickness_points": 2}}
+AT_DEFAULTS = ("mesh_convergence", "common_steps", "penalty_sensitivity", "blankholder_shapes")
 # The AL sensitivity keeps F-bar and the left-end constraint until it runs again at the defaults: its
 # wall_rel column is relative to the penalty study's (mu000, 1e2) run at those settings (34.57 s).
 
@@ -84,7 +85,7 @@ def study_settings(scene_name: str, study: str = "") -> dict:
     """The overrides every case of ``study`` on ``scene_name`` starts from (see STUDY_SETTINGS)."""
     if study in AT_DEFAULTS:
         return {}
-    return {**STUDY_SETTINGS, **(NINE_STUDY_SETTINGS if scene_name == "nine" else {})}
+    return {**STUDY_SETTINGS, **SCENE_STUDY_SETTINGS.get(scene_name, {})}
 GRID = 200
 
 
@@ -557,9 +558,11 @@ def _status_mismatch(contact, ref):
 
 def _shared_run(name: str, variant: str, algorithm: str):
     """A case another study already ran with the same inputs, read back from its directory: the
-    blankholder's penalty runs are the ``blankholder_shapes`` cases (default parameters, penalty).
-    ``--rerun`` does not reach them here: rerun them with ``studies.py blankholder_shapes --rerun``."""
-    if name != "blankholder" or algorithm != "penalty":
+    blankholder's penalty runs are the ``blankholder_shapes`` cases (penalty), where both studies run at
+    the same settings. ``--rerun`` does not reach them here: rerun them with ``studies.py
+    blankholder_shapes --rerun``."""
+    same = study_settings(name, "blankholder_shapes") == study_settings(name, "algorithm_agreement")
+    if name != "blankholder" or algorithm != "penalty" or not same:
         return None
     directory = os.path.join(ROOT, "blankholder_shapes", "runs", variant)
     if not os.path.exists(os.path.join(directory, "summary.json")):

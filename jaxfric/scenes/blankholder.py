@@ -62,17 +62,15 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
   nodes, 153 steps, 48,303 pivots, 388 s of CPU; 256 nodes, 152 steps, 26,334 pivots, 99 s; the whole
   55 mm pull at 256 nodes: 680 steps, 0 cutbacks, 41,195 pivots, 406 s. A band too small stops the
   step with CONTACT_BAND (a node outside it penetrates), never silently.
-- ``element`` = ``fbar`` (:mod:`jaxfric.fem.element`), not the Nine's ``ans``: on the spec's 2 layers
-  ``ans`` bends too softly (shape1, ``lcp_ssn``: 149.03 N/mm, 166.14 with 4 layers), while F-bar's
-  parasitic shear (its force falls 6.9 % from 0.5 to 0.25 mm elements, 164.61 to 153.23; ``ans`` 0.9 %)
-  cancels part of its own softness (177.56 with 4 layers, where its elements are twice as long as
-  thick). Neither is converged on the spec mesh. ``anst`` (a condensed through-thickness mode) removes
-  the layer error (170.85 N/mm with 2 layers, 170.00 with 4) at about ``ans``' cost per Newton
-  iteration (its enhanced parameter carried with the Newton iterate), and converges along x at about
-  second order (170.85, 167.28, 166.55 at 0.5, 0.25 and 0.125 mm), to about 166.6: on the spec mesh
-  +2.6 % with ``anst``, -1.2 % with F-bar as the balance of a -8 % (0.25 mm) and a +7 % (4 layers)
-  error. F-bar stays the default, the nearer on the spec mesh; ``anst``'s error is the one that its
-  companions estimate (docs/results.md, estimates against the true error).
+- ``element`` = ``anst`` with ``thickness_points`` = 4 per layer (:mod:`jaxfric.fem.element`), not F-bar
+  nor the Nine's ``ans``. Why (spec mesh, default layout, ``lcp_ssn``; docs/results.md, the
+  through-thickness mode): the converged steady force lies between bilinear ``anst`` with 8 points and
+  six-node ``anst`` on 4 layers (shape1 186.0 to 186.5 N/mm, shape5 162.1 to 163.2, shape9 145.05 to
+  145.55); ``anst`` with 4 points gives 185.42, 162.48 and 145.13, within 0.6 % of it, at 1.33 to 1.45
+  times F-bar's solve time. F-bar gives 182.60, 159.79 and 142.60, 1.4 to 2.1 % low; ``anst`` with 2
+  points 189.74 on shape1 (+2 %: the plastic stress through each of the 2 layers integrated too
+  coarsely); ``ans`` bends too softly on 2 layers (-9 % against F-bar with the spec's layout). F-bar
+  stays available: ``element=fbar``, ``thickness_points=2``.
 The spec's stop rule (a reaction above F_clamp at the end of ``close`` ends the run unconverged) needs
 the run driver: the lock ramp alone would simply lower the force.
 """
@@ -162,9 +160,9 @@ class BlankholderConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticInteg
     clearance: float = cm.spec_field(0.05, "mm", "the upper die is set this far above the sheet [chosen]")
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
     band: int | None = cm.spec_field(256, "-", cm.BAND_DOC)
-    element: str = cm.spec_field("fbar", "-", cm.ELEMENT_DOC)
+    element: str = cm.spec_field("anst", "-", cm.ELEMENT_DOC)
     element_order: int = cm.spec_field(1, "-", cm.ELEMENT_ORDER_DOC)
-    thickness_points: int = cm.spec_field(2, "-", cm.THICKNESS_POINTS_DOC)
+    thickness_points: int = cm.spec_field(4, "-", cm.THICKNESS_POINTS_DOC)
     enhanced_update: str = cm.spec_field("iterate", "-", cm.ENHANCED_UPDATE_DOC)
     F_clamp: float = cm.spec_field(300.0, "N/mm", "clamping force on the lower tool [chosen]")
     U_pull: float = cm.spec_field(55.0, "mm", "pull of the right end during draw [chosen]")
