@@ -80,6 +80,21 @@ def test_study_table_between_cases_keeps_the_rows_still_to_come(tmp_path, monkey
     assert [(r["case"], r["value"]) for r in rows] == [("a", "10"), ("d", "4"), ("b", "2"), ("c", "3")]
 
 
+def test_the_agreement_shares_the_blankholder_shapes_runs_only_at_equal_settings(tmp_path, monkeypatch):
+    """The agreement's blankholder penalty rows are read from study ``blankholder_shapes``'s run directories
+    only where both studies run at the same settings: a run read back at other settings would be stale
+    to ``run_case`` and run again into the shapes study's own directory."""
+    monkeypatch.setattr(studies, "ROOT", str(tmp_path))
+    summary = tmp_path / "blankholder_shapes" / "runs" / "shape1" / "summary.json"
+    summary.parent.mkdir(parents=True)
+    summary.write_text("{}")
+    shapes = studies.study_settings("blankholder", "blankholder_shapes")
+    agreement = studies.study_settings("blankholder", "algorithm_agreement")
+    assert agreement == {"element": "fbar", "thickness_points": 2} and shapes == {}
+    assert studies._shared_run("blankholder", "shape1", "penalty") is None
+    assert summary.read_text() == "{}"
+
+
 def test_common_steps_row_compares_a_replay_with_its_plan_at_the_plan_s_step_ends():
     """A replay that cut one step has one row more than its plan; the comparison takes the rows that end
     where the plan's steps end, so the extra row does not enter the force or status differences."""
