@@ -9,10 +9,11 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
-from jaxfric.io.xla_flags import HOST_DEVICES, use_host_cores
+from jaxfric.io.xla_flags import HOST_DEVICES, cpu_load, use_host_cores
 
 _TWO_DEVICES = r"""
 import json
@@ -107,7 +108,7 @@ def test_the_command_line_asks_for_one_host_device_per_core_up_to_two():
     assert use_host_cores(env, cores=16) == HOST_DEVICES == 2
     assert env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=2"
     env = {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=false"}
-    assert use_host_cores(env, cores=2) == 2
+    assert use_host_cores(env, cores=2, load={0: 0.1, 1: 0.2}) == 2
     assert env["XLA_FLAGS"].split() == ["--xla_cpu_use_fusion_emitters=false",
                                         "--xla_force_host_platform_device_count=2"]
     # One core: nothing to split over, nothing added.
@@ -120,14 +121,43 @@ def test_the_command_line_asks_for_one_host_device_per_core_up_to_two():
     assert use_host_cores(env, cores=8) == 1 and "XLA_FLAGS" not in env
 
 
+def test_the_command_line_keeps_to_one_cpu_where_other_processes_use_its_cores():
+    """Half a core or more kept busy by other processes: one device, on the least busy CPU."""
+    pinned: list = []
+    env: dict = {}
+    assert use_host_cores(env, cores=2, load={0: 0.3, 1: 0.9}, pin=pinned.append) == 1
+    assert pinned == [0] and "XLA_FLAGS" not in env
+    assert use_host_cores(env, cores=2, load={0: 0.2, 1: 0.2}, pin=pinned.append) == 2 and pinned == [0]
+    # A count given is the user's: kept, nothing pinned.
+    env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    assert use_host_cores(env, cores=2, load={0: 1.0, 1: 1.0}, pin=pinned.append) == 2 and pinned == [0]
+    load = cpu_load({0})
+    assert load is None or 0.0 <= load[0] <= 1.0
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/stat"), reason="no /proc/stat: the load is not measured")
+def test_cpu_load_sees_a_busy_cpu(tmp_path):
+    """A child process spinning on this process's first CPU: that CPU's load is near one."""
+    cpu = min(os.sched_getaffinity(0))
+    spin = subprocess.Popen([sys.executable, "-c", f"import os, time\nos.sched_setaffinity(0, {{{cpu}}})\n"
+                             "end = time.time() + 3\nwhile time.time() < end: pass"])
+    try:
+        time.sleep(0.5)
+        load = cpu_load({cpu}, interval=0.5)
+    finally:
+        spin.wait()
+    assert load is not None and load[cpu] > 0.8, load
+
+
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2 if hasattr(os, "sched_getaffinity") else True,
                     reason="one core: jaxfric run does not split")
 def test_jaxfric_run_splits_its_work_over_two_cores(tmp_path):
-    """The command line in a process that XLA_FLAGS leaves free to choose: two host devices, the run's work
-    split over them, and the run directory says so."""
+    """The command line with two host devices (given in XLA_FLAGS: left free, it measures the load of
+    its CPUs, which the suite's other worker keeps busy): the run's work split over them, and the run
+    directory says so."""
     flags = [f for f in os.environ.get("XLA_FLAGS", "").split()
              if not f.startswith("--xla_force_host_platform_device_count")]
-    env = dict(os.environ, XLA_FLAGS=" ".join(flags))
+    env = dict(os.environ, XLA_FLAGS=" ".join([*flags, "--xla_force_host_platform_device_count=2"]))
     out = tmp_path / "run"
     done = subprocess.run([sys.executable, "-m", "jaxfric", "run", "flat_die", "--mesh", "24x1", "--quiet",
                            "--out", str(out)], env=env, capture_output=True, text=True, timeout=600)

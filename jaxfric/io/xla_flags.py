@@ -20,7 +20,9 @@ n = 1e5), stays far below the Newton tolerance (1e-8 of the force scale).
 ``jaxfric run`` also shows XLA the process's cores as host devices, up to two (:func:`use_host_cores`), and
 splits the run's element loops over them (:func:`host_devices`, :mod:`jaxfric.numerics.devices`): one run
 then uses two cores, each device computing on one thread (:data:`ONE_THREAD_PER_DEVICE`, which
-:func:`use_fast_compilation` adds where two host devices are asked for).
+:func:`use_fast_compilation` adds where two host devices are asked for). Where other processes already keep
+its cores busy (:func:`cpu_load`), it keeps to its least busy CPU with one device instead
+(:data:`PIN_WHEN_BUSY`).
 
 The command lines (:mod:`jaxfric.cli`) call :func:`use_fast_compilation` before their first computation;
 the package's functions set nothing, and a script or notebook may call it first thing. XLA reads
@@ -37,13 +39,14 @@ import hashlib
 import os
 import subprocess
 import sys
+import time
 from collections.abc import Callable, MutableMapping
 from importlib import metadata
 
 from .cache import cache_dir
 
-__all__ = ["FAST_COMPILE_FLAGS", "HOST_DEVICES", "ONE_THREAD_PER_DEVICE", "host_devices", "use_fast_compilation",
-           "use_host_cores", "xla_accepts"]
+__all__ = ["FAST_COMPILE_FLAGS", "HOST_DEVICES", "ONE_THREAD_PER_DEVICE", "PIN_WHEN_BUSY", "cpu_load",
+           "host_devices", "use_fast_compilation", "use_host_cores", "xla_accepts"]
 
 FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_disable_hlo_passes=tree_reduction_rewriter")
 
@@ -119,6 +122,13 @@ _DEVICE_COUNT = "--xla_force_host_platform_device_count"
 # Newton iterations, two host devices) solved in 11.7 and 11.1 s against 14.2 and 15.5 s with the pools;
 # on one device 14.6 to 15.1 s either way (docs/results.md, run time of the Nine test: two cores).
 ONE_THREAD_PER_DEVICE = "--xla_cpu_multi_thread_eigen=false"
+# Busy cores (summed shares) of the process's CPUs from which `jaxfric run` keeps to one device on one
+# CPU. Two runs at once on the 2-core machine, each free to use both CPUs, spin against each other: the
+# six-node Nine on 150 x 12 (``--set element=anst --set thickness_points=4 --set element_order=2``) took
+# 1280 ms per Newton iteration in each run with one device each, 73 and 75 ms with each run pinned to a
+# CPU (``taskset``); a run pinned beside one that keeps two devices, 141 ms, and that one 210 ms
+# (docs/results.md, two cores).
+PIN_WHEN_BUSY = 0.5
 
 
 def _device_count(flags: str) -> int | None:
@@ -130,10 +140,45 @@ def _device_count(flags: str) -> int | None:
     return None
 
 
-def use_host_cores(environ: MutableMapping[str, str] | None = None, cores: int | None = None) -> int:
+def cpu_load(cpus: set[int], interval: float = 0.2) -> dict[int, float] | None:
+    """The share of each CPU of ``cpus`` that other processes keep busy now: its non-idle share of the
+    time over ``interval`` seconds (``/proc/stat``, while this process sleeps). None where ``/proc/stat``
+    cannot be read (not Linux)."""
+    def sample() -> dict[int, tuple[int, int]]:
+        times = {}
+        with open("/proc/stat") as f:
+            for line in f:
+                name, *values = line.split()
+                if name.startswith("cpu") and name[3:].isdigit() and int(name[3:]) in cpus:
+                    ticks = [int(v) for v in values[:8]]   # user nice system idle iowait irq softirq steal
+                    times[int(name[3:])] = (sum(ticks), ticks[3] + ticks[4])
+        return times
+    try:
+        before = sample()
+        time.sleep(interval)
+        after = sample()
+    except (OSError, ValueError):
+        return None
+    load = {}
+    for cpu, (total, idle) in after.items():
+        spent = total - before.get(cpu, (total, idle))[0]
+        load[cpu] = 1.0 - (idle - before[cpu][1]) / spent if spent > 0 else 0.0
+    return load
+
+
+def _pin(cpu: int) -> None:
+    os.sched_setaffinity(0, {cpu})
+
+
+def use_host_cores(environ: MutableMapping[str, str] | None = None, cores: int | None = None,
+                   load: dict[int, float] | None = None, pin: Callable[[int], None] = _pin) -> int:
     """Ask XLA for one host device per core, up to :data:`HOST_DEVICES`, in ``XLA_FLAGS`` of ``environ``
-    (default ``os.environ``); call it before the process's first computation. ``cores``: the cores this
-    process may use (default: its CPU affinity). A count already in ``XLA_FLAGS`` is kept, and
+    (default ``os.environ``), where the process has those cores to itself; call it before the process's
+    first computation. ``cores``: the cores this process may use (default: its CPU affinity). ``load``: the
+    busy share of each of those CPUs (default: measured, :func:`cpu_load`, where ``cores`` is not given).
+    Where other processes keep half a core or more of them busy, one device, and the process is pinned
+    to its least busy CPU (``pin``): XLA's threads would otherwise spin against the other processes' on
+    every CPU (:data:`PIN_WHEN_BUSY`). A count already in ``XLA_FLAGS`` is kept, and
     ``JAXFRIC_XLA_DEFAULTS=1`` adds nothing. Returns the host devices XLA will show (1 where nothing is
     added)."""
     env = os.environ if environ is None else environ
@@ -144,8 +189,14 @@ def use_host_cores(environ: MutableMapping[str, str] | None = None, cores: int |
     if env.get("JAXFRIC_XLA_DEFAULTS") == "1":
         return 1
     if cores is None:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+        cores = len(cpus) if cpus is not None else (os.cpu_count() or 1)
+        if load is None and cpus is not None and cores > 1:
+            load = cpu_load(cpus)
     count = max(1, min(HOST_DEVICES, cores))
+    if count > 1 and load and sum(load.values()) >= PIN_WHEN_BUSY:
+        pin(min(load, key=load.__getitem__))
+        return 1
     if count > 1:
         env["XLA_FLAGS"] = " ".join([current, f"{_DEVICE_COUNT}={count}"]).strip()
     return count

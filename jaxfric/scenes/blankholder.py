@@ -53,15 +53,15 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
   From then on single pairs there flip open/closed on alternate Newton iterations (residual
   2.7e-3, 6e-5, 2.7e-3, ... N/mm) until the line search breaks the cycle, which took 14 iterations
   in one measured attempt and more than 25 in others, at any increment down to nominal / 1024: the
-  long-land shapes 2, 4 and 7 and shape 9 stopped in ``close`` at 25 (measured, spec mesh);
+  long-land shapes 2, 4 and 7 and shape 9 stopped in ``close`` at 25 (measured with F-bar, spec mesh);
   shape2 completes at 60 (1947 steps, 22599 iterations). Set ``newton_iterations=25`` for the
   spec's rule.
 - exact contact by lcp_lemke: ``band`` = 256 of the 620 candidate nodes (shape1, spec mesh) enter the
   condensed complementarity problem [chosen]. Why: a pivot costs the square of the band's size and a
-  solve takes more pivots on a larger band. Shape1, close + lock + a 2 mm pull (measured): all 620
-  nodes, 153 steps, 48,303 pivots, 388 s of CPU; 256 nodes, 152 steps, 26,334 pivots, 99 s; the whole
-  55 mm pull at 256 nodes: 680 steps, 0 cutbacks, 41,195 pivots, 406 s. A band too small stops the
-  step with CONTACT_BAND (a node outside it penetrates), never silently.
+  solve takes more pivots on a larger band. Shape1, close + lock + a 2 mm pull (measured with F-bar):
+  all 620 nodes, 153 steps, 48,303 pivots, 388 s of CPU; 256 nodes, 152 steps, 26,334 pivots, 99 s; the
+  whole 55 mm pull at 256 nodes: 680 steps, 0 cutbacks, 41,195 pivots, 406 s. A band too small stops
+  the step with CONTACT_BAND (a node outside it penetrates), never silently.
 - ``element`` = ``anst`` with ``thickness_points`` = 4 per layer (:mod:`jaxfric.fem.element`), not F-bar
   nor the Nine's ``ans``. Why (spec mesh, default layout, ``lcp_ssn``; docs/results.md, the
   through-thickness mode): the converged steady force lies between bilinear ``anst`` with 8 points and
