@@ -64,13 +64,14 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
   the step with CONTACT_BAND (a node outside it penetrates), never silently.
 - ``element`` = ``anst`` with ``thickness_points`` = 4 per layer (:mod:`jaxfric.fem.element`), not F-bar
   nor the Nine's ``ans``. Why (spec mesh, default layout, ``lcp_ssn``; docs/results.md, the
-  through-thickness mode): the converged steady force lies between bilinear ``anst`` with 8 points and
-  six-node ``anst`` on 4 layers (shape1 186.0 to 186.5 N/mm, shape5 162.1 to 163.2, shape9 145.05 to
-  145.55); ``anst`` with 4 points gives 185.42, 162.48 and 145.13, within 0.6 % of it, at 1.33 to 1.45
-  times F-bar's solve time. F-bar gives 182.60, 159.79 and 142.60, 1.4 to 2.1 % low; ``anst`` with 2
-  points 189.74 on shape1 (+2 %: the plastic stress through each of the 2 layers integrated too
-  coarsely); ``ans`` bends too softly on 2 layers (-9 % against F-bar with the spec's layout). F-bar
-  stays available: ``element=fbar``, ``thickness_points=2``.
+  through-thickness mode): at the nominal increments the mesh- and layer-converged steady force lies
+  between bilinear ``anst`` with 8 points and six-node ``anst`` on 4 layers, and half the increments
+  raise it by 0.1 to 0.2 % (to twice that by Richardson): converged, shape1 about 186.4 to 187.3 N/mm,
+  shape5 162.4 to 163.7, shape9 145.2 to 145.8. ``anst`` with 4 points gives 185.42, 162.48 and 145.13,
+  within 1.0 % of it, at 1.33 to 1.45 times F-bar's solve time. F-bar gives 182.60, 159.79 and 142.60,
+  1.6 to 2.5 % low; ``anst`` with 2 points 189.74 on shape1 (the plastic stress through each of the 2
+  layers integrated too coarsely); ``ans`` bends too softly on 2 layers (-9 % against F-bar with the
+  spec's layout). F-bar stays available: ``element=fbar``, ``thickness_points=2``.
 The spec's stop rule (a reaction above F_clamp at the end of ``close`` ends the run unconverged) needs
 the run driver: the lock ramp alone would simply lower the force.
 """
