@@ -160,9 +160,9 @@ def cpu_load(cpus: set[int], interval: float = 0.2) -> dict[int, float] | None:
     except (OSError, ValueError):
         return None
     load = {}
-    for cpu, (total, idle) in after.items():
-        spent = total - before.get(cpu, (total, idle))[0]
-        load[cpu] = 1.0 - (idle - before[cpu][1]) / spent if spent > 0 else 0.0
+    for cpu in before.keys() & after.keys():
+        spent, idle = (a - b for a, b in zip(after[cpu], before[cpu], strict=True))
+        load[cpu] = 1.0 - idle / spent if spent > 0 else 0.0
     return load
 
 
