@@ -123,7 +123,7 @@ _DEVICE_COUNT = "--xla_force_host_platform_device_count"
 # on one device 14.6 to 15.1 s either way (docs/results.md, run time of the Nine test: two cores).
 ONE_THREAD_PER_DEVICE = "--xla_cpu_multi_thread_eigen=false"
 # Busy cores (summed shares) of the process's CPUs from which `jaxfric run` keeps to one device on one
-# CPU. Two runs at once on the 2-core machine, each free to use both CPUs, spin against each other: the
+# CPU. Two runs at once on the 2-core machine, each free to use both CPUs, contend for them: the
 # six-node Nine on 150 x 12 (``--set element=anst --set thickness_points=4 --set element_order=2``) took
 # 1280 ms per Newton iteration in each run with one device each, 73 and 75 ms with each run pinned to a
 # CPU (``taskset``); a run pinned beside one that keeps two devices, 141 ms, and that one 210 ms
@@ -177,7 +177,7 @@ def use_host_cores(environ: MutableMapping[str, str] | None = None, cores: int |
     first computation. ``cores``: the cores this process may use (default: its CPU affinity). ``load``: the
     busy share of each of those CPUs (default: measured, :func:`cpu_load`, where ``cores`` is not given).
     Where other processes keep half a core or more of them busy, one device, and the process is pinned
-    to its least busy CPU (``pin``): XLA's threads would otherwise spin against the other processes' on
+    to its least busy CPU (``pin``): XLA's threads would otherwise contend with the other processes' on
     every CPU (:data:`PIN_WHEN_BUSY`). A count already in ``XLA_FLAGS`` is kept, and
     ``JAXFRIC_XLA_DEFAULTS=1`` adds nothing. Returns the host devices XLA will show (1 where nothing is
     added)."""
