@@ -315,6 +315,35 @@ def test_a_run_on_disk_made_with_other_parameters_is_not_read_back(tmp_path, mon
                        log=lambda m: None)
 
 
+def test_a_run_made_before_a_default_changed_is_not_read_back_as_the_new_default(tmp_path):
+    """A summary that names its scene and variant is compared on every recorded field: one left out of
+    the request must hold the variant's value or today's default (an F-bar run is not the default's)."""
+    import json
+
+    from jaxfric import scenes
+    from jaxfric.io import batch
+
+    defaults = {f[0]: f[1] for f in scenes.config_fields("blankholder")}
+    variant = scenes.variant_values("blankholder", "shape3")
+    assert any(defaults[k] != v for k, v in variant.items())  # the variant's values are not differences
+    config = json.loads(json.dumps({k: list(v) if isinstance(v, tuple) else v
+                                    for k, v in {**defaults, **variant}.items()}))
+    path = tmp_path / "summary.json"
+
+    def record(**fields):
+        path.write_text(json.dumps({"scene": "blankholder", "variant": "shape3", "converged": True,
+                                    "message": "", "parameters": {"config": {**config, **fields}}}))
+
+    record()
+    assert batch.stale(str(path), {}) is None
+    record(element="fbar", lock_control="depth")
+    assert batch.stale(str(path), {"lock_control": "depth"}) == "element = 'fbar', not 'anst'"
+    assert batch.stale(str(path), {"lock_control": "depth", "element": "fbar"}) is None
+    assert batch.stale(str(path), {"element": "fbar"}) == "lock_control = 'depth', not 'force'"
+    record(removed_field=1)  # a field the config no longer has is not compared
+    assert batch.stale(str(path), {}) is None
+
+
 def test_collect_runs_nothing_and_skips_runs_made_with_other_parameters(tmp_path, monkeypatch):
     """Collecting a report never runs: a run on disk made with other parameters than the plan's counts as
     missing (for the reference, the test's rows then come from the CSV)."""

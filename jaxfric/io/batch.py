@@ -148,9 +148,11 @@ def stale(path: str, overrides: dict, variant: str | None = None, algorithm: str
     ``algorithm`` (None: not compared) and ``overrides`` (``"mesh"`` as ``NXxNY`` or a pair, other keys
     config fields; a key that is no field of the scene's config is not compared, and a field the
     recorded config lacks, added since the run, is compared with its default, with which the run was
-    made), or None when it does not. A failed case's summary records its overrides, which must then be
-    the same keys and values."""
-    from ..scenes import config_fields, parse_mesh, scene_names
+    made), or None when it does not. Where the summary names its scene and variant, the recorded fields
+    that are not requested are compared too, with the variant's value or today's default: a run made
+    before a default changed is not read back as a run at the new default. A failed case's summary
+    records its overrides, which must then be the same keys and values."""
+    from ..scenes import config_fields, parse_mesh, scene_names, variant_values, variants
 
     with open(path) as fh:
         summary = json.load(fh)
@@ -172,6 +174,9 @@ def stale(path: str, overrides: dict, variant: str | None = None, algorithm: str
         wanted.update(nx=nx, ny=ny)
     scene = summary.get("scene")
     defaults = {f[0]: f[1] for f in config_fields(scene)} if scene in scene_names() else {}
+    if defaults and config is not None and "overrides" not in summary and summary.get("variant") in variants(scene):
+        expected = {**defaults, **variant_values(scene, summary["variant"])}
+        wanted = {**{k: expected[k] for k in config if k in expected}, **wanted}
     for key, value in wanted.items():
         if config is None or (key not in config and key not in defaults):
             continue

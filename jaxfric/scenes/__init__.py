@@ -24,7 +24,7 @@ from . import bead, blankholder, flat_die, nine
 from ._common import FrictionLawFields, check_steady_window
 from .base import Scene
 
-__all__ = ["SCENES", "ALGORITHMS", "Scene", "scene_names", "variants", "default_variant",
+__all__ = ["SCENES", "ALGORITHMS", "Scene", "scene_names", "variants", "variant_values", "default_variant",
            "config_class", "config_fields", "make", "parse_override", "parse_mesh", "scaled_steps",
            "coarser_along", "finer_along", "finer_through"]
 
@@ -48,6 +48,12 @@ def scene_names() -> tuple:
 def variants(name: str) -> tuple:
     """Variant names of a scene, in spec order."""
     return tuple(_module(name).VARIANTS)
+
+
+def variant_values(name: str, variant: str) -> dict:
+    """The config field values that variant ``variant`` of scene ``name`` sets (the others keep their
+    defaults)."""
+    return dict(_module(name).VARIANTS[variant])
 
 
 def default_variant(name: str) -> str:
