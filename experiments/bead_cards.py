@@ -2,7 +2,8 @@
 
     python experiments/bead_cards.py [--only shapeN ...] [--table] [--rewrite] [--kinematic] [--s355]
 
-Per shape (spec Table 7, the paper's aluminium sheet, mu = 0.15, the spec mesh, ``lcp_ssn``): the card of
+Per shape (spec Table 7, the paper's aluminium sheet, mu = 0.15, the spec mesh and the blankholder's element
+(``anst``, 4 points per layer), ``lcp_ssn``): the card of
 :func:`jaxfric.cards.bead_card` at 0.25, 0.5, 0.75 and 1 times the bead height (with the derivatives for
 R, t and mu on shape3), written as ``experiments/results/bead_cards/<shape>/bead_card.{k,rad,csv,png,json}``,
 and its consistency check: the full-depth bead (``lock_control=depth``) drawn the spec's whole 55 mm with
@@ -34,6 +35,7 @@ import os
 import shutil
 import sys
 
+import jax
 import numpy as np
 
 from benchutil import write_rows
@@ -50,10 +52,6 @@ DERIVATIVES = {"shape3": ("R", "t", "mu")}
 KINEMATIC = LAWS["kinematic"]
 S355 = {"shape1_s355_isotropic": LAWS["s355_isotropic"], "shape1_s355_kinematic": LAWS["s355_kinematic"]}
 LABELS = (*SHAPES, "shape1_kinematic", *S355)
-# The element the committed cards were computed with, where it differs from the blankholder's default
-# (``anst`` with 4 points per layer): F-bar with 2 x 2 points, until the cards are computed again at the
-# default (about 1.4 times the solve time; docs/results.md, bead cards).
-CARD_SETTINGS = {"element": "fbar", "thickness_points": 2}
 
 
 def consistency(name: str, overrides: dict | None, out: str) -> dict:
@@ -63,6 +61,7 @@ def consistency(name: str, overrides: dict | None, out: str) -> dict:
     tolerance, the force's own scatter over the window)."""
     log = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     run_dir = os.path.join(out, "full_depth_run")
+    shutil.rmtree(run_dir, ignore_errors=True)  # a kept run is its summary only, which cannot be read back
     done = run_case(run_dir, "blankholder", name, "lcp_ssn", {**(overrides or {}), "lock_control": "depth"},
                     tag="bead_cards", log=log)
     s, h = done["summary"], done["history"]
@@ -89,10 +88,14 @@ def compute(name: str, overrides: dict | None = None, label: str | None = None) 
     """The card of shape ``name`` and its consistency run, into ``OUT/<label>``."""
     label = label or name
     out = os.path.join(OUT, label)
-    overrides = {**CARD_SETTINGS, **(overrides or {})}
     log = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     card = bead_card(name, overrides=overrides, derivatives=DERIVATIVES.get(label, ()), progress=log)
+    write_card(card, out)  # kept if the consistency run fails (``--recheck`` runs it again)
     write_card(card, out, extra={"consistency": consistency(name, overrides, out)})
+    # Each compiled program holds memory mappings of its code until it is freed; a process that computes
+    # several cards otherwise ends where the kernel's limit on mappings (vm.max_map_count, 65530 by
+    # default) stops XLA's compiler ("LLVM compilation error: Cannot allocate memory").
+    jax.clear_caches()
 
 
 def recheck(label: str) -> None:
@@ -100,15 +103,14 @@ def recheck(label: str) -> None:
     path = os.path.join(OUT, label, "bead_card.json")
     card = load_card(path)
     name = label.split("_")[0]
-    overrides = {**CARD_SETTINGS, **card.overrides}
-    shutil.rmtree(os.path.join(OUT, label, "full_depth_run"), ignore_errors=True)
-    write_card(card, os.path.dirname(path), extra={"consistency": consistency(name, overrides, os.path.dirname(path))})
+    write_card(card, os.path.dirname(path),
+               extra={"consistency": consistency(name, card.overrides, os.path.dirname(path))})
 
 
 def row(label: str) -> dict:
     with open(os.path.join(OUT, label, "bead_card.json")) as fh:
         s = json.load(fh)
-    check = s["consistency"]
+    check = s.get("consistency") or {"steady_drawing_force": None, "error_estimate": None}
     full = s["restraining_force"][-1]
     out = {"shape": label, "H": s["depth"], "restraining_force": full, "bending_force": s["bending_force"][-1],
            "friction_force": s["friction_force"][-1], "normal_force": s["normal_force"][-1],
@@ -119,7 +121,7 @@ def row(label: str) -> dict:
            "full_run_normal_force": check.get("steady_normal_force"),
            "full_run_normal_error": check.get("normal_error_estimate"),
            "difference": None if check["steady_drawing_force"] is None else full - check["steady_drawing_force"],
-           "full_run_converged": check.get("converged", True), "penalty_runs": len(s.get("notes", []))}
+           "full_run_converged": check.get("converged"), "penalty_runs": len(s.get("notes", []))}
     return out
 
 
@@ -127,8 +129,8 @@ def rewrite(label: str) -> None:
     """The files of the card ``label`` written again from its JSON, its consistency entry kept."""
     path = os.path.join(OUT, label, "bead_card.json")
     with open(path) as fh:
-        extra = {"consistency": json.load(fh)["consistency"]}
-    write_card(load_card(path), os.path.dirname(path), extra=extra)
+        check = json.load(fh).get("consistency")
+    write_card(load_card(path), os.path.dirname(path), extra=None if check is None else {"consistency": check})
 
 
 def derivative_rows(label: str) -> list[dict]:

@@ -69,7 +69,6 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import optimize, stats  # noqa: E402
 
-from bead_cards import CARD_SETTINGS  # noqa: E402
 from benchutil import write_rows  # noqa: E402
 from jaxfric.cards.friction import friction_csv, lsdyna_friction, radioss_friction  # noqa: E402
 from jaxfric.contact.friction import Polynomial, VelocityDecay  # noqa: E402
@@ -491,10 +490,9 @@ def cards(root: str) -> None:
 
     with open(os.path.join(RESULTS, "friction_laws.csv")) as fh:
         fitted = {row["fit"]: row for row in csv.DictReader(fh)}
-    # The element the committed bead cards were computed with (bead_cards.CARD_SETTINGS).
-    laws = {"mu(p) fit": {**CARD_SETTINGS, **LAW, "mu": float(fitted["law"]["mu"]),
+    laws = {"mu(p) fit": {**LAW, "mu": float(fitted["law"]["mu"]),
                           "mu_p": float(fitted["law"]["mu_p"])},
-            "constant mu fit": {**CARD_SETTINGS, "mu": float(fitted["coulomb"]["mu"])}}
+            "constant mu fit": {"mu": float(fitted["coulomb"]["mu"])}}
     log = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     out = {name: bead_card("shape1", overrides=o, progress=log) for name, o in laws.items()}
     # The pressures the mu(p) law meets in the bead: its full-depth card run drawn 35 mm again.

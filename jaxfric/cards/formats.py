@@ -7,7 +7,7 @@
   force, so FS = FD = the bead line's effective coefficient (:func:`line_friction`: the card's friction
   component over its normal force at full depth), with which the deck's restraining force at full depth
   is the card's. It is not the sheet's mu: the friction acts on the sheet's wraps around the bead's
-  radii, whose normal forces add up to more than the bead's opening force (0.30 to 0.33 against mu = 0.15
+  radii, whose normal forces add up to more than the bead's opening force (0.285 to 0.323 against mu = 0.15
   on the nine shapes; docs/results.md, bead cards). With ``total`` the first curve is the whole
   restraining force and FS = FD = 0 (the friction then is in the curve, exact at every penetration).
   Fields of 10 characters on the cards, abscissa and ordinate in two fields of 20 on the curves' lines,
