@@ -222,3 +222,23 @@ def test_a_converged_stabilised_attempt_is_the_step_and_the_next_step_is_undampe
     assert not off.stabilized
     cs, targets, _ = _failing_step(off, off.init(jnp.zeros((3, 2)), jnp.zeros(1)))
     assert targets == [0.25, 0.125, 0.0625, 0.0625] and int(cs.code) == Result.MAX_ITERATIONS
+
+
+def test_a_log_file_gets_a_progress_line_per_tenth_and_one_after_a_minute_without_one(monkeypatch):
+    """In a log file the bar is one line per tenth of the load path; a run whose steps have shrunk (a
+    tenth that takes hours) still prints its step count once a minute."""
+    import io
+
+    from jaxfric.loadpath import progress
+
+    clock = [100.0]
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: clock[0])
+    out = io.StringIO()
+    with progress.ProgressMonitor(total_time=3.0, stream=out) as monitor:
+        for step, (seconds, t) in enumerate([(1.0, 0.1), (2.0, 0.31), (30.0, 0.32), (59.0, 0.33), (62.0, 0.34),
+                                             (63.0, 0.35), (64.0, 0.65)]):
+            clock[0] = 100.0 + seconds
+            monitor.update(step, t, iterations=5, cuts=0)
+    lines = out.getvalue().splitlines()
+    assert [line.split(" step ")[1].split()[0] for line in lines] == ["1", "4", "6"]
+    assert all(line.endswith("s") and "t=" in line for line in lines)

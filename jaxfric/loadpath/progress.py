@@ -14,23 +14,26 @@ __all__ = ["ProgressMonitor"]
 
 class ProgressMonitor:
     """Draws a bar on ``stream`` when ``show``: redrawn in place on a terminal (at most every
-    ``min_interval`` s), one line per tenth of the load path in a log file. Use as a context manager."""
+    ``min_interval`` s); in a log file one line per tenth of the load path, and one after ``log_interval``
+    s without a line (a run whose steps have shrunk still shows its step count moving). Use as a context
+    manager."""
 
     def __init__(self, total_time: float, show: bool = True, stream=None, label: str = "",
-                 min_interval: float = 0.1):
+                 min_interval: float = 0.1, log_interval: float = 60.0):
         self.total_time = float(total_time)
         self.show = show
         self.stream = sys.stderr if stream is None else stream
         self.label = label
         self.min_interval = min_interval
+        self.log_interval = log_interval
         self.start = time.perf_counter()
         self._drawn = False
-        self._last_draw = 0.0
+        self._last_draw = self.start
         self._last_tenth = 0
         self._tty = bool(getattr(self.stream, "isatty", lambda: False)())
 
     def __enter__(self):
-        self.start = time.perf_counter()
+        self.start = self._last_draw = time.perf_counter()
         return self
 
     def __exit__(self, *exc):
@@ -50,10 +53,10 @@ class ProgressMonitor:
             if now - self._last_draw < self.min_interval and frac < 1.0:
                 return
             start, end = "\r", ""
-        else:  # a log file: one line per tenth of the load path
-            if int(10 * frac) <= self._last_tenth:
+        else:  # a log file: one line per tenth of the load path, or after log_interval without one
+            if int(10 * frac) <= self._last_tenth and now - self._last_draw < self.log_interval:
                 return
-            self._last_tenth = int(10 * frac)
+            self._last_tenth = max(self._last_tenth, int(10 * frac))
             start, end = "", "\n"
         self._last_draw = now
         self._drawn = True
