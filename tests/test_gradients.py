@@ -52,7 +52,7 @@ CURVED = NewtonOptions(rtol=1e-11, atol=1e-9)
 # measured with. At the blankholder's default (anst, 4 points) two of them fail: blankholder_exact's
 # reverse mode gives -3.8e-11 where forward mode gives -4.6e-8 for d(clamping force)/dH, an entry of
 # round-off size in a row whose largest entry is 1 (tolerance 1e-8 of it), and blankholder_smoothed's fixed
-# replay fails at R + 1e-5 |R|; their derivatives at the default element are not checked here yet.
+# replay fails at R +/- 1e-5 |R|; their derivatives at the default element are not checked here yet.
 BLANKHOLDER_ELEMENT = {"element": "fbar", "thickness_points": 2}
 
 CASES = {
