@@ -64,6 +64,11 @@ def consistency(name: str, overrides: dict | None, out: str) -> dict:
     shutil.rmtree(run_dir, ignore_errors=True)  # a kept run is its summary only, which cannot be read back
     done = run_case(run_dir, "blankholder", name, "lcp_ssn", {**(overrides or {}), "lock_control": "depth"},
                     tag="bead_cards", log=log)
+    # The last run of a card (computed or rechecked): its programs and the card's are freed here. Each
+    # compiled program holds memory mappings of its code until it is freed; a process that computes
+    # several cards otherwise ends where the kernel's limit on mappings (vm.max_map_count, 65530 by
+    # default) stops XLA's compiler ("LLVM compilation error: Cannot allocate memory").
+    jax.clear_caches()
     s, h = done["summary"], done["history"]
     for f in os.listdir(run_dir):  # keep its summary only: the history is long and the card is the result
         if f != "summary.json":
@@ -92,10 +97,6 @@ def compute(name: str, overrides: dict | None = None, label: str | None = None) 
     card = bead_card(name, overrides=overrides, derivatives=DERIVATIVES.get(label, ()), progress=log)
     write_card(card, out)  # kept if the consistency run fails (``--recheck`` runs it again)
     write_card(card, out, extra={"consistency": consistency(name, overrides, out)})
-    # Each compiled program holds memory mappings of its code until it is freed; a process that computes
-    # several cards otherwise ends where the kernel's limit on mappings (vm.max_map_count, 65530 by
-    # default) stops XLA's compiler ("LLVM compilation error: Cannot allocate memory").
-    jax.clear_caches()
 
 
 def recheck(label: str) -> None:
