@@ -13,6 +13,7 @@ from jaxfric.loadpath.controller import (
     Outcome,
     StepControl,
     continuation_rule,
+    crawl_count,
     increment_after_acceptance,
     retry_from_converged,
     stop_code,
@@ -86,6 +87,8 @@ def test_stop_code_reports_the_last_searched_attempt():
     assert int(stop_code(F, T, F, F, it, mx)) == Result.SUCCESS
     assert int(stop_code(F, F, T, F, it, mx)) == Result.MAX_STEPS
     assert int(stop_code(F, F, F, F, it, mx)) == Result.CONTINUE
+    assert int(stop_code(F, F, F, F, it, mx, T)) == Result.STALLED
+    assert int(stop_code(F, T, F, F, it, mx, T)) == Result.SUCCESS   # the load path's last step ends it
 
 
 def _outcome(code, iterations=4, predicted=False):
@@ -222,6 +225,48 @@ def test_a_converged_stabilised_attempt_is_the_step_and_the_next_step_is_undampe
     assert not off.stabilized
     cs, targets, _ = _failing_step(off, off.init(jnp.zeros((3, 2)), jnp.zeros(1)))
     assert targets == [0.25, 0.125, 0.0625, 0.0625] and int(cs.code) == Result.MAX_ITERATIONS
+
+
+def test_crawl_count_counts_accepted_steps_at_the_floor_after_failed_attempts():
+    control, nominal = StepControl(max_cuts=2), 0.25    # floor 0.0625
+    count = lambda ok, cuts, n, dt: int(crawl_count(control, ok, jnp.array(cuts), jnp.array(n), dt, nominal))  # noqa: E731
+    assert count(T, 2, 4, 0.0625) == 5      # at the floor after two failures: one more
+    assert count(T, 0, 4, 0.0625) == 0      # at the floor at once: the crawl is over
+    assert count(T, 2, 4, 0.125) == 0       # above the floor
+    assert count(F, 2, 4, 0.0625) == 4      # a failed attempt leaves the count
+
+
+def _crawling_step(ctrl, cs, t):
+    """One step whose attempts fail until the stabilised one, which converges, each in many iterations (a
+    crawl's steps are never easy): the new state and the step's end (pseudo-time)."""
+    for _ in range(20):
+        t_try, _ = ctrl.target(cs, t)
+        code = Result.SUCCESS if int(cs.damped) > 0 else Result.MAX_ITERATIONS
+        cs = ctrl.adapt(cs, t, t_try, _outcome(code, iterations=60), 1)
+        if code == Result.SUCCESS:
+            return cs, float(t_try)
+    raise AssertionError("no stabilised attempt")
+
+
+def test_steps_that_crawl_at_the_floor_stop_the_run_as_stalled():
+    """Each step fails at every increment and converges only with the damper at the smallest one: the
+    increment never grows back, and ``stall_steps`` such steps in a row stop the run (STALLED); one step
+    accepted at its first attempt starts the count again."""
+    ctrl = Controller.build((Phase("load", n_steps=4),), StepControl(max_cuts=2, stall_steps=3), False, True,
+                            jnp.array(0, jnp.int32), modulus=2e5)
+    cs, t = ctrl.init(jnp.zeros((3, 2)), jnp.zeros(1)), 0.0
+    for n in (1, 2):
+        cs, t = _crawling_step(ctrl, cs, t)
+        assert int(cs.n_crawl) == n and int(cs.code) == Result.CONTINUE and float(cs.dt) == 0.0625
+    t_try, _ = ctrl.target(cs, t)
+    cs = ctrl.adapt(cs, t, t_try, _outcome(Result.SUCCESS), 1)
+    assert int(cs.n_crawl) == 0 and int(cs.code) == Result.CONTINUE
+    t = float(t_try)
+    for n in (1, 2):
+        cs, t = _crawling_step(ctrl, cs, t)
+        assert int(cs.code) == Result.CONTINUE
+    cs, t = _crawling_step(ctrl, cs, t)
+    assert int(cs.n_crawl) == 3 and int(cs.code) == Result.STALLED and t < 1.0
 
 
 def test_a_log_file_gets_a_progress_line_per_tenth_and_one_after_a_minute_without_one(monkeypatch):

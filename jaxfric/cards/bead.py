@@ -50,7 +50,7 @@ from .. import scenes
 from ..identification.params import parameterize, path_function
 from ..io.instants import steady_drawing_force, steady_rows
 from ..loadpath.run import run
-from ..numerics.results import SimulationError
+from ..numerics.results import Result, SimulationError
 from ..scenes.blankholder import BlankholderConfig, groove_geometry
 
 __all__ = ["BeadCard", "bead_card", "card_overrides", "card_pull", "DEFAULT_PENETRATIONS"]
@@ -213,15 +213,16 @@ def _derivatives(variant, algorithm, overrides, names, history, window, cols=Non
 
 def _run(scene, variant: str, overrides: dict, algorithm: str, notes: list, what: str):
     """One run of the card, and the algorithm that completed it: where ``algorithm`` stops (after the
-    stabilised attempts of StepControl.stabilize, which every algorithm has), the penalty law (the spec's
-    eps_n) takes its place and ``notes`` says so."""
+    stabilised attempts of StepControl.stabilize, which every algorithm has) or crawls (StepControl.stall_steps),
+    the penalty law (the spec's eps_n) takes its place and ``notes`` says so, with the stop's result code."""
     try:
         return run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
                    progress=False), algorithm
     except SimulationError as stop:
         if algorithm == "penalty":
             raise
-        notes.append(f"{what}: {algorithm} stopped ({' '.join(str(stop).split()[:8])} ...); penalty instead")
+        notes.append(f"{what}: {algorithm} stopped ({Result(int(stop.code)).name}, "
+                     f"{' '.join(str(stop).split()[:8])} ...); penalty instead")
         fallback = scenes.make("blankholder", variant, "penalty", overrides)
         return run(fallback.model, newton=fallback.newton, control=fallback.control, observe=fallback.observe,
                    progress=False), "penalty"

@@ -46,6 +46,10 @@ STABILIZE = 1e-5
 #: The second stabilised attempt's damper, in multiples of the first's (:class:`StepControl`, ``stabilize``).
 STABILIZE_RISE = 100.0
 
+#: Consecutive steps accepted at the smallest increment after failed attempts, after which a run stops as
+#: stalled (:class:`StepControl`, ``stall_steps``).
+STALL_STEPS = 200
+
 #: Increments chosen by the error estimate (:func:`increment_from_error`): the largest, in multiples of the
 #: segment's nominal increment (beyond it a step of the benchmarks' drawing passes several element lengths
 #: of strip over a tool and Newton's iterations grow: docs/results.md, iterations against increments), the
@@ -114,6 +118,18 @@ class StepControl(eqx.Module):
             its 58 mm with 13 steps stabilised,
             the damper taking 5e-5 N mm/mm. A fixed-step replay
             (:func:`jaxfric.loadpath.simulate.simulate_fixed`) has no damper.
+        stall_steps: a run whose last ``stall_steps`` accepted steps each took the smallest increment
+            (nominal / 2**max_cuts) after failed attempts stops with ``Result.STALLED``, its results kept.
+            Reason: where no increment converges but the stabilised attempt does, every step takes the
+            smallest increment, and it never grows back (a step is easy only in few iterations): the
+            blankholder's shape1 bead held at 4.5 mm with a pressure-dependent friction law whose
+            bound mu(p) p falls with the pressure (exact contact, F-bar 2 x 2) drew at 1/1024 of the
+            nominal increment, 2.8e-6 of pseudo-time per step at 129 to 133 Newton iterations and 0.4 s
+            each, and would have filled its history buffer (5,000 rows) after about half an hour. A run
+            that recovers from a hard step leaves the floor within a few steps (the increment grows 1.5
+            times after two easy steps), and the runs that needed the stabilised attempt above took 13
+            to 15 of them in a whole run. A stalled run says so at once, so that a caller can take another
+            algorithm (the bead card falls back to the penalty law).
         step_error: 0 (default): the nominal increments, cut and grown as above. > 0: the increments
             follow the estimate of each step's time-discretisation error (:mod:`jaxfric.loadpath.step_error`:
             eta, the relative error of the step's plastic work) with this target: the next increment is
@@ -136,9 +152,11 @@ class StepControl(eqx.Module):
     continuation: bool = eqx.field(static=True, default=True)
     stabilize: float = eqx.field(static=True, default=STABILIZE)
     step_error: float = eqx.field(static=True, default=0.0)
+    stall_steps: int = eqx.field(static=True, default=STALL_STEPS)
 
     def __check_init__(self):
         check_int("max_cuts", self.max_cuts, 0, 60)
+        check_int("stall_steps", self.stall_steps, 1)
         check_nonnegative("stabilize", self.stabilize)
         check_nonnegative("step_error", self.step_error)
         if not isinstance(self.continuation, bool):
@@ -177,6 +195,7 @@ class ControllerState(eqx.Module):
     last_code: jax.Array   # () result code of the last attempt
     stages: ContinuationState
     damped: jax.Array      # () int32: the next attempt's damper, 0 (none), 1 (eta), 2 (STABILIZE_RISE eta)
+    n_crawl: jax.Array     # () int32: consecutive accepted steps at the smallest increment after failed attempts
 
 
 class Outcome(NamedTuple):
@@ -284,13 +303,23 @@ def stabilised_attempt(stopping, damped, has_damper: bool):
     return jnp.where(more, damped + 1, 0).astype(jnp.int32)
 
 
-def stop_code(too_small, finished, full, plain, last_code, code):
+def crawl_count(control: StepControl, ok, cuts, n_crawl, dt, dt_nominal):
+    """Rule: the consecutive accepted steps taken at the smallest increment (nominal / 2**max_cuts) after
+    failed attempts (``cuts``), counted up to this attempt (``dt``: its increment), which a failed attempt
+    leaves as it is. ``stall_steps`` of them stop the run (:class:`StepControl`)."""
+    crawl = (cuts > 0) & (dt <= dt_nominal / 2.0**control.max_cuts * (1.0 + 1e-9))
+    return jnp.where(ok, jnp.where(crawl, n_crawl + 1, 0), n_crawl).astype(jnp.int32)
+
+
+def stop_code(too_small, finished, full, plain, last_code, code, stalled=False):
     """The run's code after an attempt: the failure when no rule gives another attempt (that of the
     last attempt made with the line search, when the unsearched one failed too: a plain Newton that
     strays ends in whatever it met first), SUCCESS at the end of the load path, MAX_STEPS when the
-    history buffer is full, CONTINUE otherwise."""
-    return jnp.select([too_small, finished, full], [jnp.where(plain, last_code, code), Result.SUCCESS,
-                                                    Result.MAX_STEPS], Result.CONTINUE).astype(jnp.int32)
+    history buffer is full, STALLED after ``stall_steps`` crawling steps (:func:`crawl_count`), CONTINUE
+    otherwise."""
+    return jnp.select([too_small, finished, full, stalled],
+                      [jnp.where(plain, last_code, code), Result.SUCCESS, Result.MAX_STEPS, Result.STALLED],
+                      Result.CONTINUE).astype(jnp.int32)
 
 
 def max_steps(control: StepControl, phases) -> int:
@@ -370,7 +399,7 @@ class Controller(eqx.Module):
         return ControllerState(dt=self.seg_dt[0], seg=int0, n_easy=int0, cuts=int0, iters=int0,
                                stats=jnp.zeros(3, jnp.int32), code=jnp.array(Result.CONTINUE, jnp.int32),
                                failed_t=jnp.array(jnp.nan), r_norm=jnp.array(0.0), plain=jnp.array(False),
-                               last_code=int0, stages=stages, damped=int0)
+                               last_code=int0, stages=stages, damped=int0, n_crawl=int0)
 
     def target(self, cs: ControllerState, t_start):
         """The next attempt's pseudo-time (snapped to the segment's end when within round-off of it:
@@ -430,13 +459,15 @@ class Controller(eqx.Module):
         too_small, repeat = too_small & ~damp, repeat | damp
         finished = seg_done & last_seg
         full = ok & ~finished & (row + 1 >= self.max_rows + 1)
+        n_crawl = crawl_count(self.control, ok, cs.cuts, cs.n_crawl, t_try - t_start, dt_nom)
+        stalled = ok & ~finished & (n_crawl >= self.control.stall_steps)
         keep_r = (too_small & cs.plain) | held
         return ControllerState(
             dt=jnp.where(ok, dt_ok, jnp.where(repeat, t_try - t_start, dt_cut)), seg=next_seg,
             n_easy=jnp.where(grow, 0, n_easy), cuts=jnp.where(ok, 0, cs.cuts + 1),
             iters=jnp.where(ok, 0, iters), stats=jnp.where(ok, 0, stats),
-            code=stop_code(too_small, finished, full, cs.plain, cs.last_code, out.code),
+            code=stop_code(too_small, finished, full, cs.plain, cs.last_code, out.code, stalled),
             failed_t=jnp.where(ok, cs.failed_t, t_try), r_norm=jnp.where(keep_r, cs.r_norm, out.residual_norm),
             plain=~ok & (cs.plain | plain) & ~damp,
             last_code=jnp.where(held, cs.last_code, out.code).astype(jnp.int32), stages=stages,
-            damped=jnp.where(ok, 0, level).astype(jnp.int32))
+            damped=jnp.where(ok, 0, level).astype(jnp.int32), n_crawl=n_crawl)

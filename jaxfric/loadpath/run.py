@@ -442,7 +442,8 @@ def _result(model, path: LoadPathState, record: Record, code: Result, compile_s:
             r = float(ctrl.r_norm)
             residual = f"{r:.3g} N/mm" if np.isfinite(r) else "non-finite"
             cuts = int(ctrl.cuts)
-            attempt = ("" if code == Result.MAX_STEPS else
+            crawl = f", its last {int(ctrl.n_crawl)} steps each at the smallest increment"
+            attempt = ("" if code == Result.MAX_STEPS else crawl if code == Result.STALLED else
                        f", while attempting t = {float(ctrl.failed_t):.10g} after {cuts} failed attempt"
                        f"{'s' if cuts != 1 else ''} of that step, last residual {residual}")
             message = (f"stopped after {where}{attempt}: {describe(code)}. Results up to t = {t:.10g} "

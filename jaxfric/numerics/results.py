@@ -19,6 +19,7 @@ class Result(enum.IntEnum):
     CONTACT_BAND = 8       # a candidate outside the proximity band of exact contact penetrates a tool
     STOPPED = 9            # a stop request ended the run between two chunks of steps (resumable)
     PRESELECTION = 10      # a candidate the step's pair pre-selection left out could have reached its tool
+    STALLED = 11           # consecutive steps crawled at the smallest increment (StepControl.stall_steps)
 
 
 _ADVICE = {
@@ -41,6 +42,10 @@ _ADVICE = {
                          "(it moved further than its clearance allows even at the smallest increment); raise "
                          "the tool's capacity (RigidTool.capacity), or switch the pre-selection off "
                          "(--set preselect=false)",
+    Result.STALLED: "the run crawls: step after step took the smallest increment after failed attempts and "
+                    "the increment did not grow back (StepControl.stall_steps, a scene's config field "
+                    "stall_steps); change the algorithm, the contact law or the nominal step, or raise "
+                    "stall_steps to let it crawl on",
 }
 
 

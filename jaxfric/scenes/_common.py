@@ -25,7 +25,7 @@ from ..fem.kinematic import KinematicJ2Material
 from ..fem.loading import Phase, constraint_masks, schedule
 from ..fem.material import INTEGRATIONS, J2Material
 from ..fem.mesh import ORDERS
-from ..loadpath.controller import STABILIZE, StepControl
+from ..loadpath.controller import STABILIZE, STALL_STEPS, StepControl
 from ..loadpath.model import reactions
 
 __all__ = ["spec_field", "PreselectField", "preselected",
@@ -54,6 +54,8 @@ MAX_STEPS_DOC = ("size of the history buffer in accepted steps; a run that fills
 STABILIZE_DOC = ("the step controller's damper where a step fails at the smallest increment: eta = stabilize E "
                  "(N/mm per mm) on every free node's increment, then 100 eta; the energy it takes is reported "
                  "(jaxfric.loadpath.controller.StepControl). 0: a run stops there instead [chosen]")
+STALL_STEPS_DOC = ("consecutive steps taken at the smallest increment after failed attempts, after which a run "
+                   "stops as stalled (STALLED, its results kept: jaxfric.loadpath.controller.StepControl) [chosen]")
 STEP_ERROR_DOC = ("increments by the estimate of each step's time-discretisation error: the target of the relative "
                   "error of a step's plastic work (jaxfric.loadpath.step_error); 0: the nominal increments "
                   "(spec 1.9) [chosen]")
@@ -422,11 +424,11 @@ class ContactSnapshot(eqx.Module):
 # ---- JSON description ----------------------------------------------------------------------------
 
 def step_control(phases, max_steps: int | None = None, stabilize: float = STABILIZE,
-                 step_error: float = 0.0) -> StepControl:
+                 step_error: float = 0.0, stall_steps: int = STALL_STEPS) -> StepControl:
     """The spec's step controller (section 1.9: StepControl defaults) with a history buffer of
     ``max_steps`` rows, by default 10x the nominal step count + 200, the damper ``stabilize``
     (:class:`StepControl`) where a step fails at the smallest increment, and with ``step_error`` > 0 the
-    increments chosen by the step error estimate.
+    increments chosen by the step error estimate, and a stop after ``stall_steps`` crawling steps.
 
     Why 10x: the controller halves the increment on a failure and grows it back (x1.5) only after two
     consecutive steps of at most 6 Newton iterations, so a phase whose steps regularly need 7 or more
@@ -437,7 +439,7 @@ def step_control(phases, max_steps: int | None = None, stabilize: float = STABIL
     penalty of 1e6, about 20x its nominal steps) sets ``max_steps``.
     """
     return StepControl(max_steps=max_steps or 10 * schedule(phases).n_nominal_steps + 200, stabilize=stabilize,
-                       step_error=step_error)
+                       step_error=step_error, stall_steps=stall_steps)
 
 
 def schedule_entry(phase: Phase, control: str, variable: str, unit: str, start: float | None,

@@ -101,6 +101,7 @@ class BeadConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationF
     max_augmentations: int = cm.spec_field(20, "-", cm.MAX_AUGMENTATIONS_DOC)
     max_steps: int | None = cm.spec_field(None, "-", cm.MAX_STEPS_DOC)
     stabilize: float = cm.spec_field(cm.STABILIZE, "-", cm.STABILIZE_DOC)
+    stall_steps: int = cm.spec_field(cm.STALL_STEPS, "-", cm.STALL_STEPS_DOC)
     step_error: float = cm.spec_field(0.0, "-", cm.STEP_ERROR_DOC)
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
@@ -166,7 +167,7 @@ class BeadObserve(eqx.Module):
 def _check(config: BeadConfig) -> None:
     cm.check_config(config, positive=("t", "R_r", "r_e", "F_clamp", "s_draw", "dtheta", "ds"),
                     nonnegative=("stabilize", "step_error", "mu_clamp", "mu_roller", "theta"),
-                    integers=("nx", "ny", "band", "n_clamp"),
+                    integers=("nx", "ny", "band", "n_clamp", "stall_steps"),
                     lengths=("x_left", "x_right", "t", "R_r", "x_clamp_left", "x_clamp_right", "r_e", "x_jaw"))
     if not config.x_right > config.x_left:
         raise ValueError(f"config field 'x_right' = {config.x_right!r} must exceed x_left = {config.x_left!r}")
@@ -254,7 +255,8 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
     return Scene(
         name=NAME, variant=variant, algorithm=algorithm, config=config, model=model, observe=observe,
         snapshot=cm.ContactSnapshot(),
-        control=cm.step_control(phases, config.max_steps, config.stabilize, config.step_error),
+        control=cm.step_control(phases, config.max_steps, config.stabilize, config.step_error,
+                                     config.stall_steps),
         phase_names=PHASES, tool_names=TOOLS, clamping_tool=0, instants=INSTANTS,
         steady_window=tuple(float(v) for v in config.steady_window),
         roi=(-95.0, 30.0, -45.0, 15.0), y_scale=1.0, parameters=parameters)

@@ -156,6 +156,7 @@ class BlankholderConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticInteg
     max_augmentations: int = cm.spec_field(20, "-", cm.MAX_AUGMENTATIONS_DOC)
     max_steps: int | None = cm.spec_field(None, "-", cm.MAX_STEPS_DOC)
     stabilize: float = cm.spec_field(cm.STABILIZE, "-", cm.STABILIZE_DOC)
+    stall_steps: int = cm.spec_field(cm.STALL_STEPS, "-", cm.STALL_STEPS_DOC)
     step_error: float = cm.spec_field(0.0, "-", cm.STEP_ERROR_DOC)
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     clearance: float = cm.spec_field(0.05, "mm", "the upper die is set this far above the sheet [chosen]")
@@ -240,7 +241,7 @@ def _check(config: BlankholderConfig) -> None:
                                       "dU", "closure"),
                     nonnegative=("stabilize", "step_error", "mu", "F_clamp", "upstream_margin", "grip_length",
                                  "land_margin", "clearance"),
-                    integers=("nx", "ny", "band", "n_lock", "newton_iterations"),
+                    integers=("nx", "ny", "band", "n_lock", "newton_iterations", "stall_steps"),
                     choices={"lock_control": ("force", "position", "depth"), "downstream_land": ("clamp", "far")},
                     lengths=("H", "R", "r", "Rp", "L", "t", "r_e", "x_left", "x_right", "upstream_margin",
                              "grip_length", "land_margin", "clearance"))
@@ -368,7 +369,8 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
     return Scene(
         name=NAME, variant=variant, algorithm=algorithm, config=config, model=model, observe=observe,
         snapshot=cm.ContactSnapshot(),
-        control=cm.step_control(phases, config.max_steps, config.stabilize, config.step_error),
+        control=cm.step_control(phases, config.max_steps, config.stabilize, config.step_error,
+                                     config.stall_steps),
         phase_names=PHASES, tool_names=TOOLS, clamping_tool=1, instants=INSTANTS,
         steady_window=tuple(float(v) for v in config.steady_window),
         roi=(-(x_g + 10.0), x_g + 10.0, -3.0, config.H + 5.0), y_scale=1.0, parameters=parameters,

@@ -76,6 +76,7 @@ class FlatDieConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrati
     max_augmentations: int = cm.spec_field(20, "-", cm.MAX_AUGMENTATIONS_DOC)
     max_steps: int | None = cm.spec_field(None, "-", cm.MAX_STEPS_DOC)
     stabilize: float = cm.spec_field(cm.STABILIZE, "-", cm.STABILIZE_DOC)
+    stall_steps: int = cm.spec_field(cm.STALL_STEPS, "-", cm.STALL_STEPS_DOC)
     step_error: float = cm.spec_field(0.0, "-", cm.STEP_ERROR_DOC)
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
@@ -126,7 +127,8 @@ class FlatDieObserve(eqx.Module):
 
 def _check(config: FlatDieConfig) -> None:
     cm.check_config(config, positive=("L", "h", "die_overhang", "U_draw", "U_fine", "dU_fine", "dU"),
-                    nonnegative=("stabilize", "step_error", "mu", "F_clamp"), integers=("nx", "ny", "band", "n_clamp"),
+                    nonnegative=("stabilize", "step_error", "mu", "F_clamp"),
+                    integers=("nx", "ny", "band", "n_clamp", "stall_steps"),
                     choices={"draw_control": ("force", "position")}, lengths=("L", "h", "die_overhang"))
 
 
@@ -193,7 +195,8 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
     return Scene(
         name=NAME, variant=variant, algorithm=algorithm, config=config, model=model, observe=observe,
         snapshot=cm.ContactSnapshot(),
-        control=cm.step_control(phases, config.max_steps, config.stabilize, config.step_error),
+        control=cm.step_control(phases, config.max_steps, config.stabilize, config.step_error,
+                                     config.stall_steps),
         phase_names=PHASES, tool_names=TOOLS, clamping_tool=0, instants=INSTANTS,
         steady_window=tuple(float(v) for v in config.steady_window),
         roi=(-1.0, L + 1.0, -0.1, h + 0.1), y_scale=20.0, parameters=parameters)

@@ -143,6 +143,7 @@ class NineConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationF
     max_augmentations: int = cm.spec_field(20, "-", cm.MAX_AUGMENTATIONS_DOC)
     max_steps: int | None = cm.spec_field(None, "-", cm.MAX_STEPS_DOC)
     stabilize: float = cm.spec_field(cm.STABILIZE, "-", cm.STABILIZE_DOC)
+    stall_steps: int = cm.spec_field(cm.STALL_STEPS, "-", cm.STALL_STEPS_DOC)
     step_error: float = cm.spec_field(0.0, "-", cm.STEP_ERROR_DOC)
     smoothing: float = cm.spec_field(0.0, "N/mm", cm.SMOOTHING_DOC)
     d_capture: float = cm.spec_field(2.0, "mm", "capture depth [chosen]")
@@ -208,7 +209,7 @@ def _check(config: NineConfig) -> None:
     cm.check_config(config, positive=("t", "R1", "R2", "L1", "U_draw", "dq_clamp", "dU", "guide_length",
                                       "guide_clearance", "guide_lip"),
                     nonnegative=("stabilize", "step_error", "mu", "mu_guides", "stroke", "L2", "L3"),
-                    integers=("nx", "ny", "band"),
+                    integers=("nx", "ny", "band", "stall_steps"),
                     choices={"entry_guide_kind": GUIDE_KINDS},
                     lengths=("x_left", "x_right", "t", "R1", "R2", "L1", "L2", "L3", "guide_end", "guide_length",
                              "guide_clearance", "guide_lip"))
@@ -315,7 +316,8 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
     return Scene(
         name=NAME, variant=variant, algorithm=algorithm, config=config, model=model, observe=observe,
         snapshot=cm.ContactSnapshot(),
-        control=cm.step_control(phases, config.max_steps, config.stabilize, config.step_error),
+        control=cm.step_control(phases, config.max_steps, config.stabilize, config.step_error,
+                                     config.stall_steps),
         phase_names=PHASES, tool_names=tool_names, clamping_tool=1, instants=INSTANTS,
         steady_window=tuple(float(v) for v in config.steady_window),
         roi=(-15.0, 45.0, -15.0, 12.0), y_scale=1.0, parameters=parameters)
