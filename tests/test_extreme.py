@@ -659,7 +659,9 @@ BEAD_CASES = {
     "mu_clamp=mu_roller=0.5": {"mu_clamp": 0.5, "mu_roller": 0.5},
     "mu_clamp=mu_roller=1.0": {"mu_clamp": 1.0, "mu_roller": 1.0},
     "t/R_r=0.02": {"t": 0.7, "R_r": 35.0, "mesh": "100x4"}, "t/R_r=0.5": {"t": 2.5},
-    "foil t=0.1": {"t": 0.1, "max_steps": 2000},
+    # The foil's wind hangs on round-off: 1101 steps in all (136 in the wind, 15 stabilised) with XLA's
+    # single-threaded Eigen, 2713 (1748, 453) with its threads on two cores, as make test-all runs it.
+    "foil t=0.1": {"t": 0.1, "max_steps": 5000},
     "eps_n=1e2": {"eps_n": 1e2}, "eps_n=1e9": {"eps_n": 1e9}, "eps_n=1e12": {"eps_n": 1e12},
     "ny=1": {"mesh": "100x1"}, "ny=12": {"mesh": "100x12"},
 }
