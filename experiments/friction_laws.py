@@ -50,7 +50,9 @@ Then what the two fitted laws predict elsewhere (``--card``: only this part, fro
 shape1's bead card (restraining force against
 penetration, :func:`jaxfric.cards.bead_card`) with the fitted mu(p) and with the constant mu, and the
 contact pressures of its full-depth run (the bead presses far harder than the flat die, so the law is
-used beyond the pressures it was fitted on): ``friction_laws_card.csv`` and ``friction_laws_card.png``.
+used beyond the pressures it was fitted on): ``friction_laws_card.csv`` and ``friction_laws_card.png``, at
+the blankholder's default element; ``friction_laws/card_notes.txt`` names the card runs that exact contact
+did not complete and the penalty law made instead.
 """
 
 from __future__ import annotations
@@ -84,11 +86,6 @@ LAW = {"friction_law": "polynomial"}
 # Drawn 50 um, beyond the spec's 30: at 200 N/mm the sheet slides as a whole only from about 38 um on.
 STROKE = {"U_draw": 0.05}
 REFERENCE_MESH = "480x4"
-# The element of the fitted laws' bead cards (``--card``): F-bar with 2 x 2 points, not the blankholder's
-# default (anst, 4 points per layer). At either element the mu(p) card's run at 4.5 mm penetration
-# stalls at the draw's start (steps of 2.8e-6 pseudo-time, 131 Newton iterations each; docs/results.md,
-# friction laws), so the committed table is F-bar's until that run passes.
-CARD_ELEMENT = {"element": "fbar", "thickness_points": 2}
 START = {"mu": 0.15, "mu_p": 0.0, "mu_v": 0.0}
 BOUNDS = {"mu": (0.0, 1.0), "mu_p": (-0.05, 0.05), "mu_v": (-0.05, 0.05)}
 
@@ -114,15 +111,20 @@ def reference_curves(root: str, cases: dict, truth: dict) -> dict:
     discretisation (exact contact at ``REFERENCE_MESH`` and the scene's increments) made with ``truth``."""
     out = {}
     for label, values in cases.items():
-        done = run_case(os.path.join(root, f"reference_{label}"), "flat_die", "const_force", "lcp_ssn",
-                        {**truth, **values, "mesh": REFERENCE_MESH}, tag="friction_laws",
-                        log=lambda line: print(line, file=sys.stderr, flush=True))
-        if not done["summary"]["converged"]:
-            raise SystemExit(f"reference run {label} did not converge: {done['summary']['message']}")
-        h = done["history"]
+        h = _reference(root, label, values, truth)["history"]
         keep = np.asarray(h["drawing_displacement"]) > 0
         out[label] = (np.asarray(h["drawing_displacement"])[keep], np.asarray(h["drawing_force"])[keep])
     return out
+
+
+def _reference(root: str, label: str, values: dict, truth: dict) -> dict:
+    """One reference run (:func:`reference_curves`), read back from ``root`` where it was made before."""
+    done = run_case(os.path.join(root, f"reference_{label}"), "flat_die", "const_force", "lcp_ssn",
+                    {**truth, **values, "mesh": REFERENCE_MESH}, tag="friction_laws",
+                    log=lambda line: print(line, file=sys.stderr, flush=True))
+    if not done["summary"]["converged"]:
+        raise SystemExit(f"reference run {label} did not converge: {done['summary']['message']}")
+    return done
 
 
 class JointModel:
@@ -495,18 +497,24 @@ def cards(root: str) -> None:
 
     with open(os.path.join(RESULTS, "friction_laws.csv")) as fh:
         fitted = {row["fit"]: row for row in csv.DictReader(fh)}
-    laws = {"mu(p) fit": {**CARD_ELEMENT, **LAW, "mu": float(fitted["law"]["mu"]),
-                          "mu_p": float(fitted["law"]["mu_p"])},
-            "constant mu fit": {**CARD_ELEMENT, "mu": float(fitted["coulomb"]["mu"])}}
+    laws = {"mu(p) fit": {**LAW, "mu": float(fitted["law"]["mu"]), "mu_p": float(fitted["law"]["mu_p"])},
+            "constant mu fit": {"mu": float(fitted["coulomb"]["mu"])}}
     log = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     out = {name: bead_card("shape1", overrides=o, progress=log) for name, o in laws.items()}
+    # The runs that exact contact did not complete, which the penalty law made instead (BeadCard.notes).
+    notes = [f"{name}: {note}" for name, card in out.items() for note in card.notes] or ["none"]
+    os.makedirs(os.path.join(RESULTS, "friction_laws"), exist_ok=True)
+    with open(os.path.join(RESULTS, "friction_laws", "card_notes.txt"), "w") as fh:
+        fh.write("\n".join(notes) + "\n")
+    print("card runs by the penalty law:", *notes, sep="\n  ")
     # The pressures the mu(p) law meets in the bead: its full-depth card run drawn 35 mm again.
     done = run_case(os.path.join(root, "shape1_full_depth"), "blankholder", "shape1", "lcp_ssn",
                     {**laws["mu(p) fit"], "lock_control": "depth", "U_pull": 35.0, "steady_window": (25.0, 35.0)},
                     tag="friction_laws", log=log)
     p = _pressures(done["contact"])
     closed = p > 1e-9
-    fit_range = max(_pressures(np.load(os.path.join(root, f"reference_F{F:g}", "contact.npz"))).max() for F in CLAMPS)
+    references = [_reference(root, f"F{F:g}", {**LAW, **STROKE, "F_clamp": F}, {**LAW, **TRUTH}) for F in CLAMPS]
+    fit_range = max(_pressures(ref["contact"]).max() for ref in references)
     rows = []
     for k, depth in enumerate(out["mu(p) fit"].penetration):
         rows.append({"penetration_mm": depth, **{f"{name} restraining (N/mm)": card.restraining_force[k]
