@@ -20,8 +20,10 @@ Every fit is the command a user runs, ``jaxfric fit nine --data CSV --param mu -
 :func:`jaxfric.identification.fit.fit`. The ``reference`` curve is fitted at every mesh of ``--meshes``
 (the bias against the fit mesh), the other data at ``--at`` (the recommended fit mesh); ``--set
 NAME=VALUE`` changes the fitting model (e.g. ``element=anst``, ``thickness_points=4``), recorded in the
-``fit_settings`` column; ``--model-error step,mesh,layers`` adds the fitting model's own estimate of
-its discretisation error in mu (``jaxfric fit --model-error``) and the interval widened by it.
+``fit_settings`` column; ``--stroke S`` draws the data and the fits S mm (data files of their own) and
+``--steady U0`` fits only the data from U0 on (a steady window); ``--model-error step,mesh,layers`` adds
+the fitting model's own estimate of its discretisation error in mu (``jaxfric fit --model-error``) and the
+interval widened by it.
 
 Writes ``experiments/results/fit_bias_mesh.csv`` (a row per fit, after every fit) and ``.png``; the
 data curves are kept in ``experiments/results/fit_bias_mesh/DATA.csv`` (drawing displacement and
@@ -64,13 +66,18 @@ def main(argv=None) -> None:
     ap.add_argument("--cases", default="", help="only these DATA@MESH cases (comma-separated)")
     ap.add_argument("--set", dest="settings", action="append", default=[], metavar="NAME=VALUE",
                     help="a config value of the fitting model (e.g. element=anst), as jaxfric fit's --set")
+    ap.add_argument("--stroke", type=float, default=STROKE,
+                    help="drawing stroke of the data and of the fits (mm); other than 10: its own data files")
+    ap.add_argument("--steady", type=float, default=None, metavar="U0",
+                    help="fit only the data from U0 mm to the stroke (a steady window; default: all of it)")
     ap.add_argument("--model-error", default="", metavar="C[,C...]",
                     help="also carry the fitting model's discretisation error into the interval (step, mesh, "
                          "layers; jaxfric fit --model-error)")
     a = ap.parse_args(argv)
     components = tuple(filter(None, a.model_error.split(",")))
     settings = dict(s.split("=", 1) for s in a.settings)
-    label = " ".join(a.settings) or "defaults"
+    label = " ".join(a.settings + ([f"U_draw={a.stroke:g}"] if a.stroke != STROKE else [])
+                     + ([f"from={a.steady:g}"] if a.steady is not None else [])) or "defaults"
     cases = [("reference", m) for m in a.meshes.split(",")]
     cases += [(f"noise1pct-s{s}", a.at) for s in a.seeds.split(",") if s]
     cases += [(d, a.at) for d in DATA if d != "reference"]
@@ -80,8 +87,11 @@ def main(argv=None) -> None:
     path = os.path.join(RESULTS, "fit_bias_mesh.csv")
     mine: list[dict] = []
     for data, mesh in cases:
-        measured = _data(data)
-        overrides = {"mesh": mesh, "U_draw": STROKE, "mu": 0.12, **settings}
+        measured = _data(data, a.stroke)
+        if a.steady is not None:
+            keep = measured["drawing_displacement"] >= a.steady - 1e-9
+            measured = {k: v[keep] for k, v in measured.items()}
+        overrides = {"mesh": mesh, "U_draw": a.stroke, "mu": 0.12, **settings}
         res = fit("nine", measured, ["mu"], variant="mu017", overrides=overrides, window=1.0, progress=True,
                   model_error=components)
         lo, hi = res.ci95["mu"]
@@ -118,13 +128,14 @@ def _model_error_columns(res) -> dict:
             "model_error_s": round(res.model_error["wall_s"], 1)}
 
 
-def _data(name: str) -> dict:
-    """The data curve ``name`` (simulated once, then read from DATA_DIR)."""
+def _data(name: str, stroke: float = STROKE) -> dict:
+    """The data curve ``name`` drawn ``stroke`` mm (simulated once, then read from DATA_DIR: ``NAME.csv``
+    for the 10 mm stroke, ``NAME-U<stroke>.csv`` for another)."""
     base = "reference" if name.startswith("noise") else name
-    path = os.path.join(DATA_DIR, f"{base}.csv")
+    path = os.path.join(DATA_DIR, f"{base}.csv" if stroke == STROKE else f"{base}-U{stroke:g}.csv")
     if not os.path.exists(path):
         algorithm, overrides = DATA[base]
-        sc = scenes.make("nine", "mu017", algorithm, {**overrides, "U_draw": STROKE})
+        sc = scenes.make("nine", "mu017", algorithm, {**overrides, "U_draw": stroke})
         t0 = time.perf_counter()
         res = jaxfric.run(sc.model, control=sc.control, observe=sc.observe, progress=False)
         if not res.converged:
@@ -151,7 +162,7 @@ def _plot(rows: list[dict], path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(9, 4.8))
+    fig, ax = plt.subplots(figsize=(13, 5.2))
     groups = dict.fromkeys((r["data"], r["fit_settings"], str(r["fit_mesh"]).split("x")[1]) for r in rows)
     for k, (data, label, layers) in enumerate(groups):
         sel = sorted((r for r in rows if (r["data"], r["fit_settings"], str(r["fit_mesh"]).split("x")[1])
@@ -160,7 +171,8 @@ def _plot(rows: list[dict], path: str) -> None:
         mu = np.array([float(r["mu"]) for r in sel])
         half = np.array([float(r["ci_high"]) - float(r["mu"]) for r in sel])
         name = f"{data}, {layers} layers" + ("" if label == "defaults" else f", {label}")
-        line = ax.errorbar(x, mu, yerr=half, fmt="o-" if len(sel) > 1 else "s", capsize=3, label=name)
+        line = ax.errorbar(x, mu, yerr=half, fmt="o-" if len(sel) > 1 else "s", capsize=3, label=name,
+                           color=plt.cm.tab20(k % 20))  # more groups than the default cycle has colours
         model = [(xi, m, float(r["ci_model_low"]), float(r["ci_model_high"])) for xi, m, r in zip(x, mu, sel)
                  if r.get("ci_model_low")]
         for xi, m, lo, hi in model:
@@ -179,8 +191,7 @@ def _plot(rows: list[dict], path: str) -> None:
                  "error at 100 x 2 runs from 0.02 to 0.32)", fontsize=9)
     ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
 
 
