@@ -163,6 +163,7 @@ def _check(case):
         # (the largest 98), forward mode 3.2e-8 (1.4e-10 of the terms), reverse mode 6e-11. So both modes
         # are checked against the exact row to 1e-7 of its largest entry (1), and against each other on
         # the other row.
+        assert par.scene.config.lock_control == "force"
         exact = np.eye(len(names))[names.index("F_clamp")]
         for mode, jac in (("forward", jac_fwd), ("reverse", jac_rev)):
             np.testing.assert_allclose(jac[1], exact, atol=1e-7, err_msg=f"{mode} mode: the prescribed clamping force")
