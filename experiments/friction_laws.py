@@ -86,6 +86,8 @@ LAW = {"friction_law": "polynomial"}
 # Drawn 50 um, beyond the spec's 30: at 200 N/mm the sheet slides as a whole only from about 38 um on.
 STROKE = {"U_draw": 0.05}
 REFERENCE_MESH = "480x4"
+# The law fit's curves: one per clamping force, made with the true law (reference_curves).
+CLAMP_CASES = {f"F{F:g}": {**LAW, **STROKE, "F_clamp": F} for F in CLAMPS}
 START = {"mu": 0.15, "mu_p": 0.0, "mu_v": 0.0}
 BOUNDS = {"mu": (0.0, 1.0), "mu_p": (-0.05, 0.05), "mu_v": (-0.05, 0.05)}
 
@@ -231,7 +233,7 @@ def main(argv=None) -> None:
         return speed(a.root, a.noise, a.seed)
 
     rows = []
-    clamps = {f"F{F:g}": {**LAW, **STROKE, "F_clamp": F} for F in CLAMPS}
+    clamps = CLAMP_CASES
     data = reference_curves(a.root, clamps, {**LAW, **TRUTH})
     clean = {label: f for label, (_, f) in data.items()}
     noisy = _noisy(clean, a.noise, a.seed)
@@ -513,7 +515,7 @@ def cards(root: str) -> None:
                     tag="friction_laws", log=log)
     p = _pressures(done["contact"])
     closed = p > 1e-9
-    references = [_reference(root, f"F{F:g}", {**LAW, **STROKE, "F_clamp": F}, {**LAW, **TRUTH}) for F in CLAMPS]
+    references = [_reference(root, label, values, {**LAW, **TRUTH}) for label, values in CLAMP_CASES.items()]
     fit_range = max(_pressures(ref["contact"]).max() for ref in references)
     rows = []
     for k, depth in enumerate(out["mu(p) fit"].penetration):
