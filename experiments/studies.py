@@ -76,9 +76,8 @@ MESHES = [(nx, ny) for ny in (3, 6) for nx in (150, 300, 600, 1200)]
 # run again with the scenes' defaults.
 STUDY_SETTINGS = {"element": "fbar"}
 SCENE_STUDY_SETTINGS = {"nine": {"entry_guide_kind": "end_nodes"}, "blankholder": {"thickness_points": 2}}
-AT_DEFAULTS = ("mesh_convergence", "common_steps", "penalty_sensitivity", "blankholder_shapes")
-# The AL sensitivity keeps F-bar and the left-end constraint until it runs again at the defaults: its
-# wall_rel column is relative to the penalty study's (mu000, 1e2) run at those settings (34.57 s).
+AT_DEFAULTS = ("mesh_convergence", "common_steps", "penalty_sensitivity", "auglag_sensitivity",
+               "blankholder_shapes")
 
 
 def study_settings(scene_name: str, study: str = "") -> dict:
