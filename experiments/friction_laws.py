@@ -36,7 +36,8 @@ two) and the fitted law's cards: LS-DYNA's card 2 (``friction_laws/friction_spee
 ``/FRICTION`` with its exponential decay, ``Ifric`` = 4 (``friction_laws/friction_speed.rad``).
 ``--speed-increments``: the model at the true law against those curves, by mesh and increments
 (``friction_laws_speed_increments.csv``). ``--period``: steady sliding against the speed filter's period
-(``friction_laws_period.csv``).
+(``friction_laws_period.csv``). ``--falling``: which pressure laws the solvers take where the friction bound
+mu(p) p falls as the pressure grows (:func:`falling`, ``friction_laws_falling.csv``).
 
 The pressure-and-speed law (``--pressure-speed``): mu(p, v) = 0.18 - 0.004 p + 0.01 v (OpenRadioss's
 ``Ifric`` = 1 with C1 and C2), the flat die at 25 and 100 N/mm each drawn 50 um at 0.5 and 2 mm/s, the
@@ -218,7 +219,11 @@ def main(argv=None) -> None:
     ap.add_argument("--speed-increments", action="store_true",
                     help="only the model at the true speed law against the reference curves, by increments")
     ap.add_argument("--pressure-speed", action="store_true", help="only the pressure-and-speed law's identification")
+    ap.add_argument("--falling", action="store_true",
+                    help="only the flat die's runs with friction bounds mu(p) p that fall with the pressure")
     a = ap.parse_args(argv)
+    if a.falling:
+        return falling(a.root)
     if a.pressure_speed:
         return pressure_speed(a.root, a.noise, a.seed)
     if a.speed_increments:
@@ -425,6 +430,57 @@ def periods() -> None:
                          "steps": len(res.history["time"])})
             print(rows[-1], flush=True)
     write_rows(os.path.join(RESULTS, "friction_laws_period.csv"), rows)
+
+
+# Friction bounds that fall with the pressure (--falling): the flat die at 24 x 2 pressed with 200 N/mm,
+# 4.2 MPa under the die at the clamp's end, mu_0 = 0.18. The linear laws' bound mu(p) p peaks at
+# p = mu_0 / (2 |mu_p|) and reaches 0 where mu is clipped, at mu_0 / |mu_p|; the quadratic law's bound falls
+# between 3.2 and 7.4 MPa while mu stays above 0.02 (its least value, at 8 MPa).
+FALLING_CASE = {**LAW, "mesh": "24x2", "F_clamp": 200.0, "mu": 0.18}
+FALLING_LAWS = {"linear_0.004": {"mu_p": -0.004}, "linear_0.02": {"mu_p": -0.02},
+                "linear_0.025": {"mu_p": -0.025}, "linear_0.03": {"mu_p": -0.03}, "linear_0.04": {"mu_p": -0.04},
+                "quadratic": {"mu_p": -0.04, "mu_pp": 0.0025}}
+FALLING_ALGORITHMS = ("lcp_ssn", "penalty")
+# A pair whose coefficient is within this of 0 counts as at the clip (mu = max(polynomial, 0)).
+NEAR_CLIP = 0.005
+
+
+def falling(root: str) -> None:
+    """The flat die with each of :data:`FALLING_LAWS` by each of :data:`FALLING_ALGORITHMS`: whether the run
+    completes, its cost, and at its last converged step the pairs' pressures, where the bound mu(p) p falls
+    (its slope mu_0 + 2 mu_p p + 3 mu_pp p^2 below 0 where mu is not clipped) and how many pairs sit within
+    :data:`NEAR_CLIP` of mu = 0. ``friction_laws_falling.csv``."""
+    log = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    rows = []
+    for label, coefficients in FALLING_LAWS.items():
+        for algorithm in FALLING_ALGORITHMS:
+            done = run_case(os.path.join(root, f"falling_{label}_{algorithm}"), "flat_die", "const_force",
+                            algorithm, {**FALLING_CASE, **coefficients}, tag="friction_laws", log=log)
+            s, c = done["summary"], done["contact"]
+            closed = c["final__rn"] > 0
+            p, mu = _pressures(c)[closed], np.asarray(c["final__mu"])[closed]
+            c_p, c_pp = coefficients["mu_p"], coefficients.get("mu_pp", 0.0)
+            slope = np.where(mu > 0, FALLING_CASE["mu"] + 2 * c_p * p + 3 * c_pp * p**2, 0.0)
+            rows.append({"law": label, "mu_p": c_p, "mu_pp": c_pp, "algorithm": algorithm,
+                         "completed": bool(s["converged"]), "steps": s.get("n_steps"),
+                         "newton_iters": s.get("newton_iters_total"), "cutbacks": s.get("n_cutbacks"),
+                         "steady_drawing_force": s.get("steady_drawing_force"), "closed_pairs": int(closed.sum()),
+                         "largest_pressure_MPa": float(p.max()), "smallest_mu": float(mu.min()),
+                         "pairs_bound_falling": int(np.sum(slope < 0)), "steepest_bound_slope": float(slope.min()),
+                         "pairs_near_mu_0": int(np.sum(mu < NEAR_CLIP)),
+                         "stopped": "" if s["converged"] else _stop_reason(s["message"])})
+            print(rows[-1], flush=True)
+    write_rows(os.path.join(RESULTS, "friction_laws_falling.csv"), rows)
+
+
+def _stop_reason(message: str) -> str:
+    """Where a run stopped and the reason's short name, from its summary's message."""
+    where = message.split(",")[0]
+    if "crawls" in message:
+        return f"{where}: stalled (the smallest increment, step after step)"
+    if "Newton did not converge" in message:
+        return f"{where}: Newton's iteration limit at the smallest increment"
+    return message[:120]
 
 
 def _speed_figure(data, fitted, results, path) -> None:
