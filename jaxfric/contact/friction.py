@@ -12,9 +12,9 @@ C1 = c_p, C2 = c_v, C3 = c_pv, C4 = c_pp, C5 = c_vv), ``VelocityDecay`` LS-DYNA'
 coefficients with an exponential decay (FS = mu_0, FD = mu_d, DC = decay);
 :mod:`jaxfric.cards.friction` writes both. A phase whose mu_0 is 0 (the flat die's clamp) stays
 frictionless, and the polynomial is clipped at zero, so that a falling law never turns friction into a
-driving force. Where a run's pressures reach that clip, they gather there and Newton fails once several
-pairs sit at it (``python experiments/friction_laws.py --falling``): a law is to keep mu positive over
-the pressures it is used at.
+driving force. On the flat die the pressures of a draw gather where mu reaches that clip, and Newton
+fails once several pairs sit at it (``python experiments/friction_laws.py --falling``): a law is to keep
+mu positive over the pressures it is used at.
 
 Pressure. A pair is a node of the sheet's surface against a rigid tool, and its force R_N is per unit
 out-of-plane width (N/mm). Its pressure is R_N over the node's share of the surface,
