@@ -215,6 +215,13 @@ def _one_line(text) -> str:
     return " ".join(str(text).split())
 
 
+def _causes(counts: dict) -> str:
+    """The printed line's cutback causes: the steps cut per result code (summary.json ``cutback_causes``)."""
+    if not counts:
+        return ""
+    return " (steps cut by " + ", ".join(f"{name} {n}" for name, n in counts.items()) + ")"
+
+
 def _not_estimated(names) -> str:
     """The printed line's tail naming the discretisation components a run did not estimate, with the
     option that would."""
@@ -559,8 +566,8 @@ def _run(args) -> int:
     print(f"steady drawing force: {'n/a' if steady is None else f'{steady:.6g} N/mm'} "
           f"(window U in [{a:g}, {b:g}] mm)")
     print(f"steps {summary['n_steps']}, Newton iterations {summary['newton_iters_total']}, "
-          f"cutbacks {summary['n_cutbacks']}; solve {summary['wall_s']:.2f} s, compile "
-          f"{summary['compile_s']:.2f} s")
+          f"cutbacks {summary['n_cutbacks']}{_causes(summary['cutback_causes'])}; solve {summary['wall_s']:.2f} s, "
+          f"compile {summary['compile_s']:.2f} s")
     est = summary["error_estimate"]
     print(f"wall time {summary['wall_s'] + summary['compile_s']:.2f} s; error estimate of the "
           f"{est['quantity'].replace('_', ' ')}: +/- {est['absolute']:.3g} N/mm ({100 * est['relative']:.2g} %; "

@@ -233,7 +233,7 @@ def test_algorithm_extra_columns(flat, tmp_path):
                                figures=False)
     with open(tmp_path / "history.csv") as f:
         header = f.readline().strip().split(",")
-    assert header[-3:] == ["cutbacks", "n_aug", "lcp_pivots"]
+    assert header[-4:] == ["cutbacks", "cut_codes", "n_aug", "lcp_pivots"]
     assert summary["mean_augmentations"] == pytest.approx(np.sum(np.arange(n) % 3) / (n - 1))
     problems = [p for p in check_run_dir(str(tmp_path)) if not p.startswith(PNGS)]
     assert problems == []

@@ -1,12 +1,14 @@
 """Physics checks of the core solver: patch test, Newton rate, locking, bending, objectivity, failures."""
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jaxfric as jf
-from jaxfric.numerics.results import Result
+from jaxfric.numerics.results import Result, causes
 from models import STEEL, clamped_pull
 from strips import bending_ratio
 
@@ -232,6 +234,8 @@ def test_failure_is_a_result_code_with_partial_results():
     partial = info.value.result
     assert not partial.converged and partial.code != Result.SUCCESS
     assert "reduce the nominal step" in partial.message or "raise" in partial.message
+    named = re.search(r"of that step \(([a-z_, ]+)\)", partial.message)  # the failed attempts' causes
+    assert named and Result(partial.code).name.lower() in named.group(1).split(", "), partial.message
     assert all(np.all(np.isfinite(v)) for v in (partial.final.u, partial.final.f_int))
     assert partial.history["time"][-1] == pytest.approx(float(partial.final.time))
     res = jf.run(model, progress=False, control=jf.StepControl(max_cuts=3), raise_on_failure=False)
@@ -244,6 +248,9 @@ def test_adaptive_steps_cut_and_grow_back():
     res = jf.run(model, progress=False, newton=jf.NewtonOptions(max_iterations=6))
     h = res.history
     assert res.converged and h["cutbacks"].sum() >= 1
+    # Each cut step names why its attempts failed: here Newton's iteration limit, and nothing else.
+    assert np.all((h["cut_codes"] == 0) == (h["cutbacks"] == 0))
+    assert {causes(m) == ["max_iterations"] for m in h["cut_codes"][h["cutbacks"] > 0]} == {True}
     assert h["time"][-1] == 1.0 and np.all(np.diff(h["time"]) > 0)
     assert np.all(h["newton_iters"][1:] >= 1)
     dt = np.diff(h["time"])

@@ -21,6 +21,7 @@ import re
 
 import numpy as np
 
+from ..numerics.results import causes
 from .instants import (
     TIME_TOL,
     column,
@@ -43,16 +44,16 @@ REQUIRED_COLUMNS = ("step", "phase", "time", "drawing_displacement", "drawing_fo
                     "tool_position", "max_penetration", "n_active", "n_slip", "newton_iters", "wall_s")
 
 #: Columns written as integers (required and algorithm extras).
-INT_COLUMNS = ("step", "n_active", "n_slip", "newton_iters", "cutbacks", "n_aug", "lcp_pivots",
+INT_COLUMNS = ("step", "n_active", "n_slip", "newton_iters", "cutbacks", "cut_codes", "n_aug", "lcp_pivots",
                "ssn_iters", "ssn_fallbacks")
 
 #: Algorithm extras, in the order written (after the scene extras).
-ALGORITHM_EXTRAS = ("cutbacks", "n_aug", "lcp_pivots", "ssn_iters", "ssn_fallbacks")
+ALGORITHM_EXTRAS = ("cutbacks", "cut_codes", "n_aug", "lcp_pivots", "ssn_iters", "ssn_fallbacks")
 
 GAP_NO_PROJECTION = 1e30  # mm; gap written for a pair with no projection (outputs spec section 4)
 _NAME = re.compile(r"[a-z][a-z0-9_]*\Z")
 # History keys of RunResult that are not observations (written under their contract names where it has them).
-_RUN_KEYS = ("time", "phase", "phase_name", "newton_iters", "cutbacks", "augmentations", "wall_s",
+_RUN_KEYS = ("time", "phase", "phase_name", "newton_iters", "cutbacks", "cut_codes", "augmentations", "wall_s",
              "lcp_pivots", "ssn_iters", "ssn_fallbacks", "step", "predicted", "damping_energy")
 
 class OutputError(RuntimeError):
@@ -65,6 +66,17 @@ def _format(value, integer: bool) -> str:
     if integer:
         return str(int(value))
     return f"{float(value):.12g}"
+
+
+def cutback_causes(cut_codes) -> dict:
+    """summary.json's ``cutback_causes``: per cause (:func:`jaxfric.numerics.results.causes`), the number of
+    steps with a failed attempt that ended so, read from history.csv's ``cut_codes`` (a step's bit mask:
+    bit k set where one of its failed attempts ended with result code k)."""
+    counts: dict[str, int] = {}
+    for mask in cut_codes:
+        for name in causes(mask):
+            counts[name] = counts.get(name, 0) + 1
+    return counts
 
 
 def _extra_columns(history: dict) -> list:
@@ -101,6 +113,8 @@ def history_table(scene, result) -> tuple[list, list, dict]:
         cols[name] = column(h, name)
     extras = _extra_columns(h)
     algo = [("cutbacks", h.get("cutbacks"))]
+    if h.get("cut_codes") is not None:
+        algo.append(("cut_codes", np.asarray(h["cut_codes"])))
     if scene.algorithm == "auglag":
         algo.append(("n_aug", h.get("augmentations")))
     algo += [(k, h.get(k)) for k in ("lcp_pivots", "ssn_iters", "ssn_fallbacks")]
@@ -304,6 +318,7 @@ def _summary(scene, result, tag, values, instants, fallback, window, steady, not
         "n_steps": n_steps,
         "newton_iters_total": int(sum(values["newton_iters"])),
         "n_cutbacks": int(sum(values.get("cutbacks", [0]))),
+        "cutback_causes": cutback_causes(values.get("cut_codes", [])),
         "wall_s": float(math.fsum(values["wall_s"])),
         "compile_s": max(float(result.compile_s), 0.0),
         "cpu_s": float(result.cpu_s),

@@ -187,6 +187,7 @@ class ControllerState(eqx.Module):
     seg: jax.Array         # () current schedule segment
     n_easy: jax.Array      # () consecutive easy steps
     cuts: jax.Array        # () failed attempts since the last accepted step
+    cut_codes: jax.Array   # () int32, their result codes: bit k set where one ended with Result k (cause_mask)
     iters: jax.Array       # () Newton iterations since the last accepted step
     stats: jax.Array       # (3,) exact-contact solver counts since the last accepted step
     code: jax.Array        # () Result: CONTINUE while the run goes on
@@ -197,6 +198,13 @@ class ControllerState(eqx.Module):
     stages: ContinuationState
     damped: jax.Array      # () int32: the next attempt's damper, 0 (none), 1 (eta), 2 (STABILIZE_RISE eta)
     n_crawl: jax.Array     # () int32: consecutive accepted steps at the smallest increment after failed attempts
+
+
+def cause_mask(code):
+    """The bit of result ``code`` in ``ControllerState.cut_codes`` and the history's ``cut_codes``: 1 << code
+    (0 for the internal codes below 0); :func:`jaxfric.numerics.results.causes` reads a mask back."""
+    code = jnp.asarray(code, jnp.int32)
+    return jnp.where(code >= 0, jnp.left_shift(jnp.int32(1), jnp.maximum(code, 0)), 0)
 
 
 class Outcome(NamedTuple):
@@ -397,7 +405,7 @@ class Controller(eqx.Module):
                                    u=jnp.zeros_like(u) if self.continuation else jnp.zeros((0, 2)),
                                    q=jnp.zeros_like(q) if self.continuation else jnp.zeros(0),
                                    staged=jnp.array(False))
-        return ControllerState(dt=self.seg_dt[0], seg=int0, n_easy=int0, cuts=int0, iters=int0,
+        return ControllerState(dt=self.seg_dt[0], seg=int0, n_easy=int0, cuts=int0, cut_codes=int0, iters=int0,
                                stats=jnp.zeros(3, jnp.int32), code=jnp.array(Result.CONTINUE, jnp.int32),
                                failed_t=jnp.array(jnp.nan), r_norm=jnp.array(0.0), plain=jnp.array(False),
                                last_code=int0, stages=stages, damped=int0, n_crawl=int0)
@@ -466,6 +474,7 @@ class Controller(eqx.Module):
         return ControllerState(
             dt=jnp.where(ok, dt_ok, jnp.where(repeat, t_try - t_start, dt_cut)), seg=next_seg,
             n_easy=jnp.where(grow, 0, n_easy), cuts=jnp.where(ok, 0, cs.cuts + 1),
+            cut_codes=jnp.where(ok, 0, cs.cut_codes | cause_mask(out.code)).astype(jnp.int32),
             iters=jnp.where(ok, 0, iters), stats=jnp.where(ok, 0, stats),
             code=stop_code(too_small, finished, full, cs.plain, cs.last_code, out.code, stalled),
             failed_t=jnp.where(ok, cs.failed_t, t_try), r_norm=jnp.where(keep_r, cs.r_norm, out.residual_norm),

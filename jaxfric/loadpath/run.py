@@ -23,7 +23,7 @@ import numpy as np
 from ..numerics.devices import run_devices, traced_run_devices
 from ..numerics.lru import LRU
 from ..numerics.newton import NewtonOptions
-from ..numerics.results import Result, SimulationError, describe
+from ..numerics.results import Result, SimulationError, causes, describe
 from .controller import StepControl, max_steps
 from .model import SimState, StripModel, default_observe
 from .progress import ProgressMonitor
@@ -97,7 +97,7 @@ class Record:
     """The host's copy of a run's history rows, as the chunks bring them.
 
     Attributes:
-        parts: per chunk, its rows: ``time``, ``phase``, ``newton_iters``, ``cutbacks``,
+        parts: per chunk, its rows: ``time``, ``phase``, ``newton_iters``, ``cutbacks``, ``cut_codes``,
             ``augmentations``, ``solver_stats`` (n, 3), ``predicted``, ``damping_energy``, ``wall_s``, and
             ``observed`` (a dict of the observations' rows), NumPy arrays.
         snapshots: history row -> ``snapshot(model, state)`` (NumPy), the rows kept.
@@ -142,7 +142,7 @@ class Record:
         iters = rows(h.newton_iters)
         weight = iters + 1.0
         part = {"time": rows(h.time), "phase": rows(h.phase), "newton_iters": iters,
-                "cutbacks": rows(h.cutbacks), "augmentations": rows(h.augmentations),
+                "cutbacks": rows(h.cutbacks), "cut_codes": rows(h.cut_codes), "augmentations": rows(h.augmentations),
                 "solver_stats": rows(h.solver_stats), "predicted": rows(h.predicted),
                 "damping_energy": rows(h.damping_energy),
                 "wall_s": wall_s * weight / weight.sum() if n else np.zeros(0),
@@ -179,6 +179,7 @@ class RunResult:
         model: the model that was run.
         history: dict of per-row arrays (row 0 = initial state): ``time``, ``phase`` (index),
             ``phase_name``, ``newton_iters``, ``cutbacks`` (attempts before the accepted one),
+            ``cut_codes`` (their result codes, a bit mask: :func:`jaxfric.numerics.results.causes`),
             ``augmentations`` (AL), ``predicted`` (1 where the accepted attempt started from the secant
             prediction), ``damping_energy`` (N mm per mm: what the stabilised attempt's damper took, 0
             in every other step), ``wall_s`` (a chunk's wall time shared among its steps in proportion
@@ -411,7 +412,7 @@ def _history(model, record: Record) -> dict:
     cols = record.columns()
     history = {k: cols[k] for k in ("time", "phase")}
     history["phase_name"] = np.array([p.name for p in model.phases])[cols["phase"]]
-    history.update({k: cols[k] for k in ("newton_iters", "cutbacks", "augmentations", "predicted",
+    history.update({k: cols[k] for k in ("newton_iters", "cutbacks", "cut_codes", "augmentations", "predicted",
                                          "damping_energy")})
     if model.tools and model.contact is not None and model.contact.solver_stats:
         history.update({name: cols["solver_stats"][:, k] for k, name in enumerate(model.contact.solver_stats)})
@@ -445,11 +446,12 @@ def _result(model, path: LoadPathState, record: Record, code: Result, compile_s:
             crawl = f", its last {int(ctrl.n_crawl)} steps each at the smallest increment"
             attempt = ("" if code == Result.MAX_STEPS else crawl if code == Result.STALLED else
                        f", while attempting t = {float(ctrl.failed_t):.10g} after {cuts} failed attempt"
-                       f"{'s' if cuts != 1 else ''} of that step, last residual {residual}")
+                       f"{'s' if cuts != 1 else ''} of that step ({', '.join(causes(int(ctrl.cut_codes)))}), "
+                       f"last residual {residual}")
             message = (f"stopped after {where}{attempt}: {describe(code)}. Results up to t = {t:.10g} "
                        f"are kept.")
     buffers = History(time=cols["time"], phase=cols["phase"], newton_iters=cols["newton_iters"],
-                      cutbacks=cols["cutbacks"], augmentations=cols["augmentations"],
+                      cutbacks=cols["cutbacks"], cut_codes=cols["cut_codes"], augmentations=cols["augmentations"],
                       solver_stats=cols["solver_stats"], predicted=cols["predicted"],
                       damping_energy=cols["damping_energy"], observed=cols["observed"],
                       n_rows=jnp.asarray(n, jnp.int32))

@@ -65,6 +65,8 @@ class History(eqx.Module):
 
     Attributes:
         time, phase, newton_iters, cutbacks, augmentations: (S,) per row.
+        cut_codes: (S,) the result codes of the step's failed attempts as a bit mask: bit k set where
+            one ended with Result k (:func:`jaxfric.numerics.results.causes` names them); 0 without cutbacks.
         predicted: (S,) 1 where the step's accepted attempt started from the secant prediction, else 0
             (a retry, a phase's first step, or the prediction withheld: :class:`_Predictor`); a replay of
             the steps (:func:`simulate_fixed`'s ``fresh``) starts the others from the converged state.
@@ -81,6 +83,7 @@ class History(eqx.Module):
     phase: jax.Array
     newton_iters: jax.Array
     cutbacks: jax.Array
+    cut_codes: jax.Array
     augmentations: jax.Array
     solver_stats: jax.Array
     predicted: jax.Array
@@ -122,6 +125,7 @@ def _empty_history(n: int, row0: dict, filled: bool = True) -> History:
         observed = jax.tree_util.tree_map(lambda b, a: b.at[0].set(a), observed, row0)
     return History(time=jnp.zeros(n), phase=jnp.zeros(n, jnp.int32),
                    newton_iters=jnp.zeros(n, jnp.int32), cutbacks=jnp.zeros(n, jnp.int32),
+                   cut_codes=jnp.zeros(n, jnp.int32),
                    augmentations=jnp.zeros(n, jnp.int32), solver_stats=jnp.zeros((n, 3), jnp.int32),
                    predicted=jnp.zeros(n, jnp.int32), damping_energy=jnp.zeros(n), observed=observed,
                    n_rows=jnp.array(1 if filled else 0, jnp.int32))
@@ -132,7 +136,7 @@ def _put(buf, row, pred, value):
     return buf.at[row].set(jnp.where(pred, value, buf[row]))
 
 
-def _record(h: History, row, pred, state: SimState, iters, cuts, augmentations, stats, predicted,
+def _record(h: History, row, pred, state: SimState, iters, cuts, cut_codes, augmentations, stats, predicted,
             observed, damping_energy=0.0) -> History:
     """Write row ``row`` when ``pred``; leave the buffers unchanged otherwise."""
     def put(buf, value):
@@ -140,6 +144,7 @@ def _record(h: History, row, pred, state: SimState, iters, cuts, augmentations, 
 
     return History(time=put(h.time, state.time), phase=put(h.phase, state.phase),
                    newton_iters=put(h.newton_iters, iters), cutbacks=put(h.cutbacks, cuts),
+                   cut_codes=put(h.cut_codes, cut_codes),
                    augmentations=put(h.augmentations, augmentations), solver_stats=put(h.solver_stats, stats),
                    predicted=put(h.predicted, jnp.asarray(predicted, jnp.int32)),
                    damping_energy=put(h.damping_energy, jnp.asarray(damping_energy, h.damping_energy.dtype)),
@@ -329,8 +334,8 @@ def _after_attempt(model: StripModel, ctrl: Controller, c: _Loop, sol: StepSolut
     if p.flow.on:
         flow = p.flow.after(ok, p.state, new_state, increment)
     slot = c.history.n_rows
-    history = _record(c.history, slot, ok, new_state, iters, p.ctrl.cuts, sol.augmentations, stats, predicted,
-                      observe(model, new_state), energy)
+    history = _record(c.history, slot, ok, new_state, iters, p.ctrl.cuts, p.ctrl.cut_codes, sol.augmentations, stats,
+                      predicted, observe(model, new_state), energy)
     snapshots = c.snapshots
     if snapshot is not None:
         snapshots = jax.tree_util.tree_map(lambda b, v: _put(b, slot, ok, v), snapshots, snapshot(model, new_state))
@@ -568,6 +573,7 @@ def simulate_fixed(model: StripModel, *, newton: NewtonOptions = NewtonOptions()
     hist = History(time=column(0.0, t), phase=column(0, ph.astype(jnp.int32)),
                    newton_iters=column(0, iters.astype(jnp.int32)),
                    cutbacks=column(0, jnp.zeros_like(iters, jnp.int32)),
+                   cut_codes=column(0, jnp.zeros_like(iters, jnp.int32)),
                    augmentations=column(0, augs.astype(jnp.int32)),
                    solver_stats=column(jnp.zeros(3, jnp.int32), stats.astype(jnp.int32)),
                    predicted=column(0, predicted.astype(jnp.int32)),

@@ -104,12 +104,14 @@ class SweepResult:
         return int(self.simulation.code[i]) == 0
 
     def history(self, i: int) -> dict:
-        """Member ``i``'s filled history rows: ``time``, ``phase``, ``newton_iters``, ``cutbacks`` and
-        every observation, as NumPy arrays (the columns of :attr:`jaxfric.loadpath.run.RunResult.history`)."""
+        """Member ``i``'s filled history rows: ``time``, ``phase``, ``newton_iters``, ``cutbacks``,
+        ``cut_codes`` and every observation, as NumPy arrays (the columns of
+        :attr:`jaxfric.loadpath.run.RunResult.history`)."""
         h = self.simulation.history
         n = int(h.n_rows[i])
         out = {"time": np.asarray(h.time[i, :n]), "phase": np.asarray(h.phase[i, :n]),
-               "newton_iters": np.asarray(h.newton_iters[i, :n]), "cutbacks": np.asarray(h.cutbacks[i, :n])}
+               "newton_iters": np.asarray(h.newton_iters[i, :n]), "cutbacks": np.asarray(h.cutbacks[i, :n]),
+               "cut_codes": np.asarray(h.cut_codes[i, :n])}
         for name, value in h.observed.items():
             out[name] = np.asarray(value[i, :n])
         return out

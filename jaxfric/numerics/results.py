@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["Result", "SimulationError", "describe"]
+__all__ = ["Result", "SimulationError", "describe", "causes"]
 
 
 class Result(enum.IntEnum):
@@ -51,6 +51,15 @@ _ADVICE = {
 
 def describe(code: int) -> str:
     return _ADVICE.get(Result(int(code)), f"unknown result code {int(code)}")
+
+
+def causes(mask: int) -> list[str]:
+    """The result codes set in a step's ``cut_codes`` bit mask (bit k: an attempt ended with Result k),
+    by name, in code order: ``max_iterations``, ``contact_band``, ... ; ``stage`` for bit 0, a converged
+    continuation stage before the last (an attempt that is not the accepted step without failing)."""
+    mask = int(mask)
+    return ["stage" if code == Result.SUCCESS else code.name.lower()
+            for code in Result if code >= 0 and mask >> int(code) & 1]
 
 
 class SimulationError(RuntimeError):
