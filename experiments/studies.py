@@ -601,6 +601,7 @@ def _case_from_curves(study: str, name: str, row: dict, columns=CURVE_COLUMNS) -
                                         "cpu_s", "compile_s", "max_penetration", "steady_drawing_force",
                                         "device")}
     summary["n_cutbacks"] = row.get("cutbacks")
+    summary["cutback_causes"] = row.get("cut_causes")
     history = {k: arrays[k] for k in columns if k in arrays}
     contact = {k: v for k, v in arrays.items() if k not in columns}
     return {"summary": summary, "history": history, "contact": contact, "dir": None}
@@ -762,9 +763,18 @@ def _common_row(name: str, variant: str, algorithm: str, c: dict, plan: dict, st
         row["common_rows"] = int(ip.size)
     if algorithm == "lcp_lemke" and "ssn_iters" in h:
         row["refined_steps"] = int(np.sum(h["ssn_iters"] > 0))
+    row["cut_causes"] = cause_cell(s.get("cutback_causes"))
     row["device"] = s.get("device")
     row["message"] = s.get("message", "")
     return row
+
+
+def cause_cell(counts) -> str | None:
+    """A table's ``cut_causes``: summary.json's ``cutback_causes`` as "name:steps ..." ("" for none); a
+    committed row's text as it is; None where the run did not record them."""
+    if counts is None or isinstance(counts, str):
+        return counts
+    return " ".join(f"{name}:{n}" for name, n in counts.items())
 
 
 def common_steps(opts) -> None:
@@ -816,7 +826,7 @@ def common_steps(opts) -> None:
     _agreement_figure(panels, study)
     cols = ["scene", "variant", "algorithm", "steps", "converged", "n_steps", "extra_steps", "newton_iters_total",
             "wall_s", "max_penetration", "steady_drawing_force", "rel_diff_steady", "force_diff",
-            "status_differ", "refined_steps"]
+            "status_differ", "refined_steps", "cut_causes"]
     write_section(study, _header(study, cases,
                                  "Every algorithm on one step sequence, each scene variant with its "
                                  "defaults: `lcp_ssn` plans the steps (its own controller), then "
@@ -827,9 +837,11 @@ def common_steps(opts) -> None:
                                  "difference of the drawing and clamping forces over the plan's drawing "
                                  "plus clamping force scale), `status_differ` (fraction of the step ends "
                                  "where the numbers of closed or slipping pairs differ); `refined_steps`: "
-                                 "Lemke steps whose answer needed the semismooth polish. Lemke never cut "
+                                 "Lemke steps whose answer needed the semismooth polish; `cut_causes`: "
+                                 "the steps cut per result code of their failed attempts (history.csv's "
+                                 "`cut_codes`; blank for runs made before it was recorded). Lemke never cut "
                                  "a step where `extra_steps` is 0, so its proximity band never saturated "
-                                 "(a closing pair outside it fails the attempt). Rows with `steps` = "
+                                 "(a closing pair outside it fails the attempt: `contact_band`). Rows with `steps` = "
                                  "`union` (`--union`, where the first pass cut the plan's steps): every "
                                  "algorithm, `lcp_ssn` included, on the union of the steps the first pass "
                                  "accepted, against `lcp_ssn` on those steps.")
