@@ -707,7 +707,8 @@ def _agreement_figure(panels, study: str = "algorithm_agreement") -> None:
     ncol = min(4, n)
     nrow = math.ceil(n / ncol)
     fig, axes = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 3.3 * nrow), squeeze=False)
-    styles = {"penalty": "-", "auglag": "--", "lcp_lemke": ":", "lcp_ssn": "-.", "auglag_gap1e-06": "--"}
+    styles = {"penalty": "-", "auglag": "--", "lcp_lemke": ":", "lcp_ssn": "-.", "auglag_gap1e-06": "--",
+              SEARCHED: ":"}
     for ax, (name, variant, runs) in zip(axes.flat, panels):
         for algorithm, c in runs.items():
             h = c["history"]
@@ -731,6 +732,8 @@ def _agreement_figure(panels, study: str = "algorithm_agreement") -> None:
 
 # ------------------------------------------------------------------- (5b) every algorithm, one step sequence
 COMMON_REPLAYS = ("lcp_lemke", "penalty", "auglag")
+# Lemke with lcp_ssn's line search (the scenes' lemke_search), run where plain Lemke left the plan's steps.
+SEARCHED = "lcp_lemke_search"
 COMMON_COLUMNS = (*CURVE_COLUMNS, "time", "n_active", "n_slip", "cutbacks", "ssn_iters")
 
 
@@ -761,7 +764,7 @@ def _common_row(name: str, variant: str, algorithm: str, c: dict, plan: dict, st
         differ = (h["n_active"][k] != p["n_active"][ip]) | (h["n_slip"][k] != p["n_slip"][ip])
         row["status_differ"] = _r(float(np.mean(differ)))
         row["common_rows"] = int(ip.size)
-    if algorithm == "lcp_lemke" and "ssn_iters" in h:
+    if algorithm in ("lcp_lemke", SEARCHED) and "ssn_iters" in h:
         row["refined_steps"] = int(np.sum(h["ssn_iters"] > 0))
     row["cut_causes"] = cause_cell(s.get("cutback_causes"))
     row["device"] = s.get("device")
@@ -791,11 +794,11 @@ def common_steps(opts) -> None:
     for name, variant in _variants():
         got: dict = {}
 
-        def take(key, algorithm, label, steps=None):
+        def take(key, algorithm, label, steps=None, overrides=None):
             if label in kept and os.path.exists(_curves_path(study, label)):
                 got[key] = _case_from_curves(study, label, kept[label], COMMON_COLUMNS)
             elif _want(opts, study, label):
-                got[key] = case(study, label, name, variant, algorithm, {}, opts, steps=steps)
+                got[key] = case(study, label, name, variant, algorithm, overrides or {}, opts, steps=steps)
                 cases.append(got[key])
                 if got[key]["dir"]:
                     _save_curves(study, label, got[key], COMMON_COLUMNS)
@@ -809,7 +812,12 @@ def common_steps(opts) -> None:
         if plan["summary"].get("converged") and plan["history"]:
             for algorithm in COMMON_REPLAYS:
                 take(algorithm, algorithm, f"{group}_{algorithm}", np.asarray(plan["history"]["time"][1:]))
-        rows += [_common_row(name, variant, a, got[a], plan) for a in first if a in got]
+            lemke = got.get("lcp_lemke")
+            if lemke is not None and lemke["summary"].get("n_steps") != plan["summary"].get("n_steps"):
+                # Lemke's full Newton steps left the plan: again with lcp_ssn's line search.
+                take(SEARCHED, "lcp_lemke", f"{group}_{SEARCHED}", np.asarray(plan["history"]["time"][1:]),
+                     {"lemke_search": True})
+        rows += [_common_row(name, variant, a, got[a], plan) for a in (*first, SEARCHED) if a in got]
         done = [got[a] for a in first if a in got and got[a]["summary"].get("converged") and got[a]["history"]]
         if opts.union and len(done) == len(first) and any(c["summary"].get("n_steps") != plan["summary"].get("n_steps")
                                                           for c in done):
@@ -841,7 +849,10 @@ def common_steps(opts) -> None:
                                  "the steps cut per result code of their failed attempts (history.csv's "
                                  "`cut_codes`; blank for runs made before it was recorded). Lemke never cut "
                                  "a step where `extra_steps` is 0, so its proximity band never saturated "
-                                 "(a closing pair outside it fails the attempt: `contact_band`). Rows with `steps` = "
+                                 "(a closing pair outside it fails the attempt: `contact_band`). Where "
+                                 "Lemke left the plan's steps, `lcp_lemke_search` replays them again with "
+                                 "Lemke's Newton steps line-searched as `lcp_ssn`'s (`--set "
+                                 "lemke_search=true`). Rows with `steps` = "
                                  "`union` (`--union`, where the first pass cut the plan's steps): every "
                                  "algorithm, `lcp_ssn` included, on the union of the steps the first pass "
                                  "accepted, against `lcp_ssn` on those steps.")

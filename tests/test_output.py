@@ -13,6 +13,7 @@ from jaxfric import cli
 from jaxfric.contact.status import contact_status
 from jaxfric.io import instants, output
 from jaxfric.io.contract import check_run_dir
+from jaxfric.numerics.results import Result
 
 # A few-second flat die: 24 x 2 mesh, 2 clamp steps, 3 draw steps to U = 3 um (cf. spec section 2).
 SHORT = ["--mesh", "24x2", "--set", "n_clamp=2", "--set", "U_draw=0.003", "--set", "U_fine=0.001",
@@ -225,7 +226,11 @@ def test_failed_run_writes_a_conforming_directory(flat, tmp_path):
 def test_algorithm_extra_columns(flat, tmp_path):
     scene, result = flat
     n = len(result.history["time"])
-    history = dict(result.history, augmentations=np.arange(n) % 3, lcp_pivots=np.full(n, 7))
+    cuts, codes = np.zeros(n, int), np.zeros(n, int)
+    band = 1 << Result.CONTACT_BAND
+    cuts[2:4], codes[2], codes[3] = 2, (1 << Result.MAX_ITERATIONS) | band, band
+    history = dict(result.history, augmentations=np.arange(n) % 3, lcp_pivots=np.full(n, 7), cutbacks=cuts,
+                   cut_codes=codes)
     params = json.loads(json.dumps(scene.parameters))
     params["contact"]["target_gap"] = 1e-5
     auglag = dataclasses.replace(scene, algorithm="auglag", parameters=params)
@@ -235,6 +240,7 @@ def test_algorithm_extra_columns(flat, tmp_path):
         header = f.readline().strip().split(",")
     assert header[-4:] == ["cutbacks", "cut_codes", "n_aug", "lcp_pivots"]
     assert summary["mean_augmentations"] == pytest.approx(np.sum(np.arange(n) % 3) / (n - 1))
+    assert summary["n_cutbacks"] == 4 and summary["cutback_causes"] == {"max_iterations": 1, "contact_band": 2}
     problems = [p for p in check_run_dir(str(tmp_path)) if not p.startswith(PNGS)]
     assert problems == []
 

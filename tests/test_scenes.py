@@ -387,6 +387,14 @@ def test_max_augmentations_field_reaches_the_law(scene):
     assert law.max_augmentations == 60
 
 
+@pytest.mark.parametrize("scene", ["flat_die", "bead", "nine", "blankholder"])
+def test_lemke_search_field_reaches_the_law(scene):
+    """Every scene's ``lemke_search`` (default False) is lcp_lemke's line search; lcp_ssn has its own."""
+    assert make(scene, None, "lcp_lemke").model.contact.search is False
+    assert make(scene, None, "lcp_lemke", overrides={"lemke_search": True}).model.contact.search is True
+    assert make(scene, None, "lcp_ssn", overrides={"lemke_search": True}).model.contact.solver == "ssn"
+
+
 @pytest.mark.parametrize("scene", ["flat_die", "nine"])
 def test_max_steps_field_sizes_the_history_buffer(scene):
     """``max_steps`` None: 10x the nominal steps + 200 rows; a number: that many."""

@@ -378,11 +378,12 @@ DIFFERENTIABLE_ALGORITHMS = tuple(name for name, cls in _CLASSES.items() if cls.
 
 
 def formulation(algorithm: str, eps_n, eps_t, target_gap, band: int | None = None, smoothing=0.0,
-                max_augmentations: int = 20, stiff_above=None) -> AbstractContactFormulation:
+                max_augmentations: int = 20, stiff_above=None, search: bool = False) -> AbstractContactFormulation:
     """The contact formulation of an algorithm identifier (outputs spec section 1); ``smoothing`` > 0
     (N/mm) smooths the penalty and AL laws (:mod:`jaxfric.contact.laws`); exact contact has none.
     ``max_augmentations`` is the AL's limit per step attempt (spec 1.6: 20). A concrete penalty eps_n
-    above ``stiff_above`` (N/mm per mm; None: never) gets :class:`StiffPenalty`."""
+    above ``stiff_above`` (N/mm per mm; None: never) gets :class:`StiffPenalty`. ``search``: ``lcp_lemke``'s
+    line search (:class:`Complementarity`); the other algorithms ignore it."""
     if algorithm in ("lcp_lemke", "lcp_ssn") and smoothing != 0:
         raise ValueError(f"field 'smoothing' = {smoothing!r} applies to algorithms penalty and auglag only; "
                          f"exact contact ({algorithm}) has no smoothed law")
@@ -392,7 +393,7 @@ def formulation(algorithm: str, eps_n, eps_t, target_gap, band: int | None = Non
     if algorithm == "auglag":
         return AugmentedLagrangian(eps_n, eps_t, target_gap, max_augmentations, smoothing=smoothing)
     if algorithm == "lcp_lemke":
-        return Complementarity("lemke", band)
+        return Complementarity("lemke", band, search=bool(search))
     if algorithm == "lcp_ssn":
         return Complementarity("ssn", band)
     raise ValueError(f"unknown algorithm {algorithm!r}; choose one of {', '.join(ALGORITHMS)}")

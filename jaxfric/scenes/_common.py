@@ -28,7 +28,7 @@ from ..fem.mesh import ORDERS
 from ..loadpath.controller import STABILIZE, STALL_STEPS, StepControl
 from ..loadpath.model import reactions
 
-__all__ = ["spec_field", "PreselectField", "preselected",
+__all__ = ["spec_field", "PreselectField", "LemkeSearchField", "preselected",
            "check_config", "check_steady_window", "check_variant", "check_algorithm", "pair_forces",
            "tool_resultants", "contact_columns", "phase_progress", "ContactSnapshot", "n_steps",
            "schedule_entry", "friction_table", "material", "material_dict", "config_dict", "end_reaction",
@@ -128,6 +128,18 @@ class PlasticIntegrationField:
     """The plastic integration switch every scene's config has (:func:`material`)."""
 
     plastic_integration: str = spec_field("radial", "-", PLASTIC_INTEGRATION_DOC)
+
+
+LEMKE_SEARCH_DOC = ("lcp_lemke: line-search its Newton steps on the semismooth merit as lcp_ssn's are "
+                    "(jaxfric.contact.exact, step 6), so that it takes lcp_ssn's steps; False: full Newton steps, "
+                    "which invert an element on some steps lcp_ssn takes (the blankholder's lock) [chosen]")
+
+
+@dataclasses.dataclass(frozen=True)
+class LemkeSearchField:
+    """The line search switch of Lemke's Newton steps every scene's config has (``Complementarity.search``)."""
+
+    lemke_search: bool = spec_field(False, "-", LEMKE_SEARCH_DOC)
 
 
 @dataclasses.dataclass(frozen=True)
