@@ -159,6 +159,41 @@ def test_common_steps_study_replays_the_plan_then_the_union_where_a_replay_cut(t
     assert rows["nine_mu017_lcp_lemke_union"]["steps"] == "union"
 
 
+@pytest.mark.parametrize("lemke_cuts", [True, False])
+def test_common_steps_study_replays_lemke_again_searched_where_it_left_the_plan(tmp_path, monkeypatch, lemke_cuts):
+    """The study's flow, runs stubbed: where Lemke's replay took steps other than the plan's, Lemke replays
+    the plan again with its Newton steps line-searched (``lemke_search``), in a row of its own; where it
+    took the plan's steps, it does not."""
+    import argparse
+
+    monkeypatch.setattr(studies, "ROOT", str(tmp_path))
+    monkeypatch.setattr(studies, "RESULTS_MD", str(tmp_path / "results.md"))
+    monkeypatch.setattr(studies, "_variants", lambda: iter([("nine", "mu017")]))
+    monkeypatch.setattr(studies, "_agreement_figure", lambda panels, study: None)
+    calls = []
+
+    def fake_case(study, label, name, variant, algorithm, overrides, opts, steps=None):
+        calls.append((label, algorithm, overrides))
+        t = np.array([0.0, 0.5, 1.0, 2.0]) if steps is None else np.concatenate([[0.0], steps])
+        if label == "nine_mu017_lcp_lemke" and lemke_cuts:
+            t = np.array([0.0, 0.5, 0.75, 1.0, 2.0])
+        n = len(t)
+        h = {"time": t, "phase": np.array(["clamp"] * n), "drawing_force": t * 10.0, "clamping_force": t,
+             "n_active": np.ones(n, int), "n_slip": np.zeros(n, int), "ssn_iters": np.zeros(n, int)}
+        return {"summary": {"converged": True, "n_steps": n - 1, "steady_drawing_force": 20.0,
+                            "cutback_causes": {"inverted_element": 1}}, "history": h, "contact": {}, "dir": None}
+
+    monkeypatch.setattr(studies, "case", fake_case)
+    opts = argparse.Namespace(only=[], rerun=False, collect=False, union=False, missing=[], progress=False,
+                              run_figures=False)
+    studies.common_steps(opts)
+    searched = [c for c in calls if c[0] == f"nine_mu017_{studies.SEARCHED}"]
+    assert searched == ([(f"nine_mu017_{studies.SEARCHED}", "lcp_lemke", {"lemke_search": True})] if lemke_cuts else [])
+    rows = {r["case"]: r for r in studies._read_table("common_steps")}
+    assert (f"nine_mu017_{studies.SEARCHED}" in rows) == lemke_cuts
+    assert rows["nine_mu017_lcp_lemke"]["cut_causes"] == "inverted_element:1"
+
+
 def test_replayed_steps_become_the_nominal_increments_phase_by_phase():
     """:func:`jaxfric.io.batch.replay_steps`: a step ending at k + 1 belongs to phase k, the next to
     phase k + 1; the scene's schedule then has exactly the given steps."""

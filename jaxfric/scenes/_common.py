@@ -132,7 +132,8 @@ class PlasticIntegrationField:
 
 LEMKE_SEARCH_DOC = ("lcp_lemke: line-search its Newton steps on the semismooth merit as lcp_ssn's are "
                     "(jaxfric.contact.exact, step 6), so that it takes lcp_ssn's steps; False: full Newton steps, "
-                    "which invert an element on some steps lcp_ssn takes (the blankholder's lock) [chosen]")
+                    "which invert an element on some steps lcp_ssn takes (the blankholder's first millimetres of "
+                    "pull) [chosen]")
 
 
 @dataclasses.dataclass(frozen=True)
