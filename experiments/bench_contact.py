@@ -80,7 +80,7 @@ def main():
     args = parser.parse_args()
     laws = {"penalty": Penalty(1e5, 0.17e5), "auglag": AugmentedLagrangian(1e5, 0.17e5, target_gap=1e-5),
             "lcp_ssn": Complementarity("ssn", args.band or None),
-            "lcp_lemke": Complementarity("lemke", args.band or None)}
+            "lcp_lemke": Complementarity("lemke", args.band or None, search=False)}  # the CSV's: full Newton steps
     if args.only:
         laws = {k: v for k, v in laws.items() if k in args.only.split(",")}
     rows = []

@@ -638,7 +638,9 @@ def algorithm_agreement(opts) -> None:
                 _save_curves(study, label, runs[algorithm])
 
         for algorithm in ALGORITHMS:
-            take(algorithm, f"{name}_{variant}_{algorithm}", algorithm, {})
+            # The table's Lemke rows take full Newton steps (the scenes line-search them: lemke_search).
+            take(algorithm, f"{name}_{variant}_{algorithm}", algorithm,
+                 {"lemke_search": False} if algorithm == "lcp_lemke" else {})
         ref_alg = "lcp_lemke" if runs.get("lcp_lemke", {}).get("summary", {}).get("converged") else None
         # The AL reference runs only where Lemke has not converged (in this invocation or an earlier one,
         # whose row without curves still shows the group has its exact reference); one that ran before
@@ -732,7 +734,8 @@ def _agreement_figure(panels, study: str = "algorithm_agreement") -> None:
 
 # ------------------------------------------------------------------- (5b) every algorithm, one step sequence
 COMMON_REPLAYS = ("lcp_lemke", "penalty", "auglag")
-# Lemke with lcp_ssn's line search (the scenes' lemke_search), run where plain Lemke left the plan's steps.
+# The common steps' ``lcp_lemke`` rows take full Newton steps (``lemke_search`` False); ``lcp_lemke_search``, with
+# the line search (the scenes' default), runs where they left the plan's steps.
 SEARCHED = "lcp_lemke_search"
 COMMON_COLUMNS = (*CURVE_COLUMNS, "time", "n_active", "n_slip", "cutbacks", "ssn_iters")
 
@@ -811,10 +814,11 @@ def common_steps(opts) -> None:
         first = ("lcp_ssn", *COMMON_REPLAYS)
         if plan["summary"].get("converged") and plan["history"]:
             for algorithm in COMMON_REPLAYS:
-                take(algorithm, algorithm, f"{group}_{algorithm}", np.asarray(plan["history"]["time"][1:]))
+                take(algorithm, algorithm, f"{group}_{algorithm}", np.asarray(plan["history"]["time"][1:]),
+                     {"lemke_search": False} if algorithm == "lcp_lemke" else None)
             lemke = got.get("lcp_lemke")
             if lemke is not None and lemke["summary"].get("n_steps") != plan["summary"].get("n_steps"):
-                # Lemke's full Newton steps left the plan: again with lcp_ssn's line search.
+                # Lemke's full Newton steps left the plan: again line-searched as lcp_ssn's (the scenes' default).
                 take(SEARCHED, "lcp_lemke", f"{group}_{SEARCHED}", np.asarray(plan["history"]["time"][1:]),
                      {"lemke_search": True})
         rows += [_common_row(name, variant, a, got[a], plan) for a in (*first, SEARCHED) if a in got]
@@ -838,7 +842,8 @@ def common_steps(opts) -> None:
     write_section(study, _header(study, cases,
                                  "Every algorithm on one step sequence, each scene variant with its "
                                  "defaults: `lcp_ssn` plans the steps (its own controller), then "
-                                 "`lcp_lemke`, `penalty` (eps_N = 1e5) and `auglag` (target gap 1e-5 mm) "
+                                 "`lcp_lemke` (full Newton steps: `lemke_search=false`), `penalty` "
+                                 "(eps_N = 1e5) and `auglag` (target gap 1e-5 mm) "
                                  "take the plan's accepted steps as their nominal increments; a step that "
                                  "fails is still cut (`extra_steps`: steps beyond the plan's). Against the "
                                  "plan at its step ends: `rel_diff_steady` (signed), `force_diff` (largest "
@@ -851,8 +856,8 @@ def common_steps(opts) -> None:
                                  "a step where `extra_steps` is 0, so its proximity band never saturated "
                                  "(a closing pair outside it fails the attempt: `contact_band`). Where "
                                  "Lemke left the plan's steps, `lcp_lemke_search` replays them again with "
-                                 "Lemke's Newton steps line-searched as `lcp_ssn`'s (`--set "
-                                 "lemke_search=true`). Rows with `steps` = "
+                                 "Lemke's Newton steps line-searched as `lcp_ssn`'s (the scenes' default "
+                                 "`lemke_search`). Rows with `steps` = "
                                  "`union` (`--union`, where the first pass cut the plan's steps): every "
                                  "algorithm, `lcp_ssn` included, on the union of the steps the first pass "
                                  "accepted, against `lcp_ssn` on those steps.")

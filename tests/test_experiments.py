@@ -187,6 +187,8 @@ def test_common_steps_study_replays_lemke_again_searched_where_it_left_the_plan(
     opts = argparse.Namespace(only=[], rerun=False, collect=False, union=False, missing=[], progress=False,
                               run_figures=False)
     studies.common_steps(opts)
+    assert [c for c in calls if c[0] == "nine_mu017_lcp_lemke"] == [("nine_mu017_lcp_lemke", "lcp_lemke",
+                                                                     {"lemke_search": False})]
     searched = [c for c in calls if c[0] == f"nine_mu017_{studies.SEARCHED}"]
     assert searched == ([(f"nine_mu017_{studies.SEARCHED}", "lcp_lemke", {"lemke_search": True})] if lemke_cuts else [])
     rows = {r["case"]: r for r in studies._read_table("common_steps")}

@@ -389,10 +389,10 @@ def test_max_augmentations_field_reaches_the_law(scene):
 
 @pytest.mark.parametrize("scene", ["flat_die", "bead", "nine", "blankholder"])
 def test_lemke_search_field_reaches_the_law(scene):
-    """Every scene's ``lemke_search`` (default False) is lcp_lemke's line search; lcp_ssn has its own."""
-    assert make(scene, None, "lcp_lemke").model.contact.search is False
-    assert make(scene, None, "lcp_lemke", overrides={"lemke_search": True}).model.contact.search is True
-    assert make(scene, None, "lcp_ssn", overrides={"lemke_search": True}).model.contact.solver == "ssn"
+    """Every scene's ``lemke_search`` (default True) is lcp_lemke's line search; lcp_ssn has its own."""
+    assert make(scene, None, "lcp_lemke").model.contact.search is True
+    assert make(scene, None, "lcp_lemke", overrides={"lemke_search": False}).model.contact.search is False
+    assert make(scene, None, "lcp_ssn", overrides={"lemke_search": False}).model.contact.solver == "ssn"
 
 
 @pytest.mark.parametrize("scene", ["flat_die", "nine"])

@@ -55,16 +55,17 @@ exactly; the contact status comes out of that solve. Two ways:
    piece boundary within its round-off, settled by a few semismooth Newton iterations on the same
    problem (:func:`jaxfric.contact.alart_curnier.polish`).
 5. Back-substitution ``du_f = K_ff^-1 (b_f - K_fc du_c)``; x <- x + (du, dq).
-6. With ``Complementarity(search=True)`` the steps are line-searched on the semismooth residual as
-   ``lcp_ssn``'s (the merit is the problem's, not the direction's, so it measures Lemke's trials as
-   well), except the first of each load step. Without the search, on the bead's wind (120 x 2, 2 degree
-   steps) a full Lemke step inverts an element on a step that ``lcp_ssn`` takes; with it, Lemke takes
-   ``lcp_ssn``'s steps (``tests/test_exact.py``, the solvers on common steps). Searching the first step
-   too doubles the flat die's Newton iterations (12,232 against 6,170 at 24 x 2 drawn 0.3 mm: that step
-   starts from the last converged forces, which the condensed solve replaces at once). It is not the
-   default: on the short runs of ``experiments/refactor_equivalence.py`` it leaves the flat die
-   unchanged, costs the blankholder 6 % more iterations, and moves the Nine's and the bead's step
-   sequences (their forces where the steps meet by up to 0.8 % and 3e-5 of the force scale).
+6. The steps are line-searched on the semismooth residual as ``lcp_ssn``'s (the merit is the problem's,
+   not the direction's, so it measures Lemke's trials as well), except the first of each load step
+   (``Complementarity(search=True)``, the default; the scenes' ``lemke_search``). Full Lemke steps
+   (``search=False``) invert elements or end on rays on steps that ``lcp_ssn`` takes: replaying
+   ``lcp_ssn``'s steps at the scenes' defaults (``python experiments/studies.py common_steps``), full steps
+   take 1345 and 1446 steps for the Nine's 823 and 815 (1112 and 1252 s) and 1 to 10 extra steps on the
+   blankholder, searched steps exactly the plan's, at 252 and 221 s on the Nine and 1.07 to 1.36 times the
+   full steps' time on the blankholder, with forces within 1.7e-7 of the force scale of ``lcp_ssn``'s and
+   the same numbers of closed and slipping pairs at every step end. Searching the first step too doubles
+   the flat die's Newton iterations (12,232 against 6,170 at 24 x 2 drawn 0.3 mm: that step starts from
+   the last converged forces, which the condensed solve replaces at once).
 
 The iterations are those of the one Newton loop (:func:`jaxfric.numerics.newton.newton_pass`): this module
 provides the problem it solves, :class:`ExactContactProblem` (the point's evaluation, the semismooth

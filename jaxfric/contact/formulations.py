@@ -342,13 +342,14 @@ class Complementarity(AbstractContactFormulation):
         ssn_max_iter: semismooth Newton iterations on one linearised problem (static): "ssn" then
             takes its last active set. Not used by "lemke".
         search: static, "lemke" only: line-search its Newton steps on the semismooth merit as "ssn"'s
-            are (:mod:`jaxfric.contact.exact`, step 6). Default False: Lemke's Newton steps are full.
+            are (:mod:`jaxfric.contact.exact`, step 6), so that Lemke takes the steps "ssn" takes. False:
+            full Newton steps.
     """
 
     solver: str = eqx.field(static=True, default="ssn")
     band: int | None = eqx.field(static=True, default=None)
     ssn_max_iter: int = eqx.field(static=True, default=50)
-    search: bool = eqx.field(static=True, default=False)
+    search: bool = eqx.field(static=True, default=True)
     warm_start: ClassVar[bool] = True
     unsearched_retry: ClassVar[bool] = False
     solver_stats: ClassVar[tuple] = ("lcp_pivots", "ssn_iters", "ssn_fallbacks")
@@ -378,7 +379,7 @@ DIFFERENTIABLE_ALGORITHMS = tuple(name for name, cls in _CLASSES.items() if cls.
 
 
 def formulation(algorithm: str, eps_n, eps_t, target_gap, band: int | None = None, smoothing=0.0,
-                max_augmentations: int = 20, stiff_above=None, search: bool = False) -> AbstractContactFormulation:
+                max_augmentations: int = 20, stiff_above=None, search: bool = True) -> AbstractContactFormulation:
     """The contact formulation of an algorithm identifier (outputs spec section 1); ``smoothing`` > 0
     (N/mm) smooths the penalty and AL laws (:mod:`jaxfric.contact.laws`); exact contact has none.
     ``max_augmentations`` is the AL's limit per step attempt (spec 1.6: 20). A concrete penalty eps_n

@@ -131,16 +131,16 @@ class PlasticIntegrationField:
 
 
 LEMKE_SEARCH_DOC = ("lcp_lemke: line-search its Newton steps on the semismooth merit as lcp_ssn's are "
-                    "(jaxfric.contact.exact, step 6), so that it takes lcp_ssn's steps; False: full Newton steps, "
-                    "which invert an element on some steps lcp_ssn takes (the blankholder's first millimetres of "
-                    "pull) [chosen]")
+                    "(jaxfric.contact.exact, step 6), so that Lemke takes lcp_ssn's steps; False: full Newton "
+                    "steps, which invert elements or end on rays where lcp_ssn takes the step and leave the "
+                    "Nine's plan for 1.6 to 1.8 times its steps (docs/results.md, study common_steps) [chosen]")
 
 
 @dataclasses.dataclass(frozen=True)
 class LemkeSearchField:
     """The line search switch of Lemke's Newton steps every scene's config has (``Complementarity.search``)."""
 
-    lemke_search: bool = spec_field(False, "-", LEMKE_SEARCH_DOC)
+    lemke_search: bool = spec_field(True, "-", LEMKE_SEARCH_DOC)
 
 
 @dataclasses.dataclass(frozen=True)
