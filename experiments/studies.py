@@ -775,6 +775,11 @@ def _common_row(name: str, variant: str, algorithm: str, c: dict, plan: dict, st
     return row
 
 
+def _full_steps(algorithm: str) -> dict | None:
+    """The overrides of a ``common_steps`` case: its ``lcp_lemke`` rows take full Newton steps."""
+    return {"lemke_search": False} if algorithm == "lcp_lemke" else None
+
+
 def cause_cell(counts) -> str | None:
     """A table's ``cut_causes``: summary.json's ``cutback_causes`` as "name:steps ..." ("" for none); a
     committed row's text as it is; None where the run did not record them."""
@@ -815,7 +820,7 @@ def common_steps(opts) -> None:
         if plan["summary"].get("converged") and plan["history"]:
             for algorithm in COMMON_REPLAYS:
                 take(algorithm, algorithm, f"{group}_{algorithm}", np.asarray(plan["history"]["time"][1:]),
-                     {"lemke_search": False} if algorithm == "lcp_lemke" else None)
+                     _full_steps(algorithm))
             lemke = got.get("lcp_lemke")
             if lemke is not None and lemke["summary"].get("n_steps") != plan["summary"].get("n_steps"):
                 # Lemke's full Newton steps left the plan: again line-searched as lcp_ssn's (the scenes' default).
@@ -827,7 +832,7 @@ def common_steps(opts) -> None:
                                                           for c in done):
             steps = union_steps([c["history"] for c in done])
             for algorithm in first:
-                take(f"{algorithm}_union", algorithm, f"{group}_{algorithm}_union", steps)
+                take(f"{algorithm}_union", algorithm, f"{group}_{algorithm}_union", steps, _full_steps(algorithm))
             plan_u = got.get("lcp_ssn_union")
             if plan_u is not None:
                 rows += [_common_row(name, variant, a, got[f"{a}_union"], plan_u, "union") for a in first

@@ -124,10 +124,10 @@ def test_union_of_accepted_steps_merges_step_ends_equal_to_round_off():
     np.testing.assert_allclose(studies.union_steps([a, b]), [0.25, 0.5, 1.0, 1.5, 2.0], rtol=0, atol=1e-11)
 
 
-def test_common_steps_study_replays_the_plan_then_the_union_where_a_replay_cut(tmp_path, monkeypatch):
-    """The study's flow, runs stubbed: the three replays get the plan's steps; one of them cut a step, so
-    with ``--union`` all four algorithms run again on the union of the accepted steps, and the rows
-    compare each pass with its own ``lcp_ssn``."""
+def _stubbed_common_steps(tmp_path, monkeypatch, cut: str, union: bool) -> list:
+    """Study ``common_steps`` on the Nine's mu017 with its runs stubbed: each case converges on the steps it
+    is given (the plan: 0.5, 1 and 2), except case ``cut``, which cuts the step to 1.0 in two. Returns the
+    cases it ran as (label, algorithm, overrides, steps)."""
     import argparse
 
     monkeypatch.setattr(studies, "ROOT", str(tmp_path))
@@ -137,45 +137,9 @@ def test_common_steps_study_replays_the_plan_then_the_union_where_a_replay_cut(t
     calls = []
 
     def fake_case(study, label, name, variant, algorithm, overrides, opts, steps=None):
-        calls.append((label, None if steps is None else list(np.round(steps, 12))))
+        calls.append((label, algorithm, overrides, None if steps is None else list(np.round(steps, 12))))
         t = np.array([0.0, 0.5, 1.0, 2.0]) if steps is None else np.concatenate([[0.0], steps])
-        if label == "nine_mu017_penalty":
-            t = np.array([0.0, 0.5, 0.75, 1.0, 2.0])   # cut the step to 1.0
-        n = len(t)
-        h = {"time": t, "phase": np.array(["clamp"] * n), "drawing_force": t * 10.0, "clamping_force": t,
-             "n_active": np.ones(n, int), "n_slip": np.zeros(n, int), "ssn_iters": np.zeros(n, int)}
-        return {"summary": {"converged": True, "n_steps": n - 1, "steady_drawing_force": 20.0}, "history": h,
-                "contact": {}, "dir": None}
-
-    monkeypatch.setattr(studies, "case", fake_case)
-    opts = argparse.Namespace(only=[], rerun=False, collect=False, union=True, missing=[], progress=False,
-                              run_figures=False)
-    studies.common_steps(opts)
-    plan, union = [0.5, 1.0, 2.0], [0.5, 0.75, 1.0, 2.0]
-    assert calls == ([("nine_mu017_lcp_ssn", None)] + [(f"nine_mu017_{a}", plan) for a in studies.COMMON_REPLAYS]
-                     + [(f"nine_mu017_{a}_union", union) for a in ("lcp_ssn", *studies.COMMON_REPLAYS)])
-    rows = {r["case"]: r for r in studies._read_table("common_steps")}
-    assert rows["nine_mu017_penalty"]["extra_steps"] == "1" and rows["nine_mu017_penalty_union"]["extra_steps"] == "0"
-    assert rows["nine_mu017_lcp_lemke_union"]["steps"] == "union"
-
-
-@pytest.mark.parametrize("lemke_cuts", [True, False])
-def test_common_steps_study_replays_lemke_again_searched_where_it_left_the_plan(tmp_path, monkeypatch, lemke_cuts):
-    """The study's flow, runs stubbed: where Lemke's replay took steps other than the plan's, Lemke replays
-    the plan again with its Newton steps line-searched (``lemke_search``), in a row of its own; where it
-    took the plan's steps, it does not."""
-    import argparse
-
-    monkeypatch.setattr(studies, "ROOT", str(tmp_path))
-    monkeypatch.setattr(studies, "RESULTS_MD", str(tmp_path / "results.md"))
-    monkeypatch.setattr(studies, "_variants", lambda: iter([("nine", "mu017")]))
-    monkeypatch.setattr(studies, "_agreement_figure", lambda panels, study: None)
-    calls = []
-
-    def fake_case(study, label, name, variant, algorithm, overrides, opts, steps=None):
-        calls.append((label, algorithm, overrides))
-        t = np.array([0.0, 0.5, 1.0, 2.0]) if steps is None else np.concatenate([[0.0], steps])
-        if label == "nine_mu017_lcp_lemke" and lemke_cuts:
+        if label == cut:
             t = np.array([0.0, 0.5, 0.75, 1.0, 2.0])
         n = len(t)
         h = {"time": t, "phase": np.array(["clamp"] * n), "drawing_force": t * 10.0, "clamping_force": t,
@@ -184,13 +148,35 @@ def test_common_steps_study_replays_lemke_again_searched_where_it_left_the_plan(
                             "cutback_causes": {"inverted_element": 1}}, "history": h, "contact": {}, "dir": None}
 
     monkeypatch.setattr(studies, "case", fake_case)
-    opts = argparse.Namespace(only=[], rerun=False, collect=False, union=False, missing=[], progress=False,
-                              run_figures=False)
-    studies.common_steps(opts)
-    assert [c for c in calls if c[0] == "nine_mu017_lcp_lemke"] == [("nine_mu017_lcp_lemke", "lcp_lemke",
-                                                                     {"lemke_search": False})]
-    searched = [c for c in calls if c[0] == f"nine_mu017_{studies.SEARCHED}"]
-    assert searched == ([(f"nine_mu017_{studies.SEARCHED}", "lcp_lemke", {"lemke_search": True})] if lemke_cuts else [])
+    studies.common_steps(argparse.Namespace(only=[], rerun=False, collect=False, union=union, missing=[],
+                                            progress=False, run_figures=False))
+    return calls
+
+
+def test_common_steps_study_replays_the_plan_then_the_union_where_a_replay_cut(tmp_path, monkeypatch):
+    """The three replays get the plan's steps; one of them cut a step, so with ``--union`` all four
+    algorithms run again on the union of the accepted steps, and the rows compare each pass with its own
+    ``lcp_ssn``."""
+    calls = _stubbed_common_steps(tmp_path, monkeypatch, "nine_mu017_penalty", union=True)
+    plan, union = [0.5, 1.0, 2.0], [0.5, 0.75, 1.0, 2.0]
+    assert [(c[0], c[3]) for c in calls] == (
+        [("nine_mu017_lcp_ssn", None)] + [(f"nine_mu017_{a}", plan) for a in studies.COMMON_REPLAYS]
+        + [(f"nine_mu017_{a}_union", union) for a in ("lcp_ssn", *studies.COMMON_REPLAYS)])
+    rows = {r["case"]: r for r in studies._read_table("common_steps")}
+    assert rows["nine_mu017_penalty"]["extra_steps"] == "1" and rows["nine_mu017_penalty_union"]["extra_steps"] == "0"
+    assert rows["nine_mu017_lcp_lemke_union"]["steps"] == "union"
+
+
+@pytest.mark.parametrize("lemke_cuts", [True, False])
+def test_common_steps_study_replays_lemke_again_searched_where_it_left_the_plan(tmp_path, monkeypatch, lemke_cuts):
+    """The ``lcp_lemke`` replay takes full Newton steps; where it took steps other than the plan's, Lemke
+    replays the plan again with its Newton steps line-searched (``lemke_search``), in a row of its own;
+    where it took the plan's steps, it does not. Rows name the cut steps' causes."""
+    calls = _stubbed_common_steps(tmp_path, monkeypatch, "nine_mu017_lcp_lemke" if lemke_cuts else "", union=False)
+    plan = [0.5, 1.0, 2.0]
+    assert [c for c in calls if c[1] == "lcp_lemke"] == (
+        [("nine_mu017_lcp_lemke", "lcp_lemke", {"lemke_search": False}, plan)]
+        + ([(f"nine_mu017_{studies.SEARCHED}", "lcp_lemke", {"lemke_search": True}, plan)] if lemke_cuts else []))
     rows = {r["case"]: r for r in studies._read_table("common_steps")}
     assert (f"nine_mu017_{studies.SEARCHED}" in rows) == lemke_cuts
     assert rows["nine_mu017_lcp_lemke"]["cut_causes"] == "inverted_element:1"
