@@ -91,10 +91,11 @@ GRID = 200
 def case(study: str, name: str, scene_name: str, variant: str, algorithm: str, overrides: dict,
          opts, steps=None) -> dict:
     """Run one case into ``runs/<name>`` of the study (or read it back): :func:`jaxfric.io.batch.run_case`
-    (``steps``: end times of the steps to take instead of the nominal increments)."""
+    (``steps``: end times of the steps to take instead of the nominal increments). With ``--collect`` a run
+    on disk made at other settings is read back as it is, not run again."""
     return run_case(os.path.join(ROOT, study, "runs", name), scene_name, variant, algorithm,
                     {**study_settings(scene_name, study), **overrides}, rerun=opts.rerun and _selected(opts, name),
-                    progress=opts.progress, steps=steps,
+                    rerun_stale=not opts.collect, progress=opts.progress, steps=steps,
                     figures=opts.run_figures, tag=study, log=lambda m: print(f"[{study}] {m}", flush=True))
 
 

@@ -124,6 +124,18 @@ def test_union_of_accepted_steps_merges_step_ends_equal_to_round_off():
     np.testing.assert_allclose(studies.union_steps([a, b]), [0.25, 0.5, 1.0, 1.5, 2.0], rtol=0, atol=1e-11)
 
 
+@pytest.mark.parametrize("collect", [True, False])
+def test_a_collecting_study_reads_a_stale_run_back_instead_of_running_it(monkeypatch, collect):
+    """``--collect`` runs nothing: a case on disk made at other settings is read back as it is."""
+    import argparse
+
+    seen = {}
+    monkeypatch.setattr(studies, "run_case", lambda *args, **kwargs: seen.update(kwargs) or {})
+    opts = argparse.Namespace(only=[], rerun=False, collect=collect, progress=False, run_figures=False)
+    studies.case("common_steps", "nine_mu017_lcp_lemke", "nine", "mu017", "lcp_lemke", {}, opts)
+    assert seen["rerun_stale"] is not collect and seen["rerun"] is False
+
+
 def _stubbed_common_steps(tmp_path, monkeypatch, cut: str, union: bool) -> list:
     """Study ``common_steps`` on the Nine's mu017 with its runs stubbed: each case converges on the steps it
     is given (the plan: 0.5, 1 and 2), except case ``cut``, which cuts the step to 1.0 in two. Returns the
