@@ -99,6 +99,12 @@ def case(study: str, name: str, scene_name: str, variant: str, algorithm: str, o
                     figures=opts.run_figures, tag=study, log=lambda m: print(f"[{study}] {m}", flush=True))
 
 
+def _full_steps(algorithm: str) -> dict:
+    """A case's overrides in ``algorithm_agreement`` and ``common_steps``: their ``lcp_lemke`` rows take full
+    Newton steps (``lemke_search`` False; the scenes line-search them)."""
+    return {"lemke_search": False} if algorithm == "lcp_lemke" else {}
+
+
 def common(summary: dict) -> dict:
     """The run-cost and contact columns every study table shares."""
     get = summary.get
@@ -639,9 +645,7 @@ def algorithm_agreement(opts) -> None:
                 _save_curves(study, label, runs[algorithm])
 
         for algorithm in ALGORITHMS:
-            # The table's Lemke rows take full Newton steps (the scenes line-search them: lemke_search).
-            take(algorithm, f"{name}_{variant}_{algorithm}", algorithm,
-                 {"lemke_search": False} if algorithm == "lcp_lemke" else {})
+            take(algorithm, f"{name}_{variant}_{algorithm}", algorithm, _full_steps(algorithm))
         ref_alg = "lcp_lemke" if runs.get("lcp_lemke", {}).get("summary", {}).get("converged") else None
         # The AL reference runs only where Lemke has not converged (in this invocation or an earlier one,
         # whose row without curves still shows the group has its exact reference); one that ran before
@@ -776,11 +780,6 @@ def _common_row(name: str, variant: str, algorithm: str, c: dict, plan: dict, st
     return row
 
 
-def _full_steps(algorithm: str) -> dict | None:
-    """The overrides of a ``common_steps`` case: its ``lcp_lemke`` rows take full Newton steps."""
-    return {"lemke_search": False} if algorithm == "lcp_lemke" else None
-
-
 def cause_cell(counts) -> str | None:
     """A table's ``cut_causes``: summary.json's ``cutback_causes`` as "name:steps ..." ("" for none); a
     committed row's text as it is; None where the run did not record them."""
@@ -858,7 +857,7 @@ def common_steps(opts) -> None:
                                  "where the numbers of closed or slipping pairs differ); `refined_steps`: "
                                  "Lemke steps whose answer needed the semismooth polish; `cut_causes`: "
                                  "the steps cut per result code of their failed attempts (history.csv's "
-                                 "`cut_codes`; blank for runs made before it was recorded). Lemke never cut "
+                                 "`cut_codes`; blank where a run's summary has none). Lemke never cut "
                                  "a step where `extra_steps` is 0, so its proximity band never saturated "
                                  "(a closing pair outside it fails the attempt: `contact_band`). Where "
                                  "Lemke left the plan's steps, `lcp_lemke_search` replays them again with "
