@@ -477,6 +477,12 @@ def test_damping_note_counts_the_stabilised_steps_against_the_drawing_work():
     assert "%" not in output.damping_note(np.array([0.0, 0.1, 0.2]), flat)
 
 
+def test_band_note_says_where_the_proximity_band_grew_and_to_what():
+    assert output.band_note(()) == ""
+    note = output.band_note(((2.03125, 512), (2.5, None)))
+    assert "to 512 nodes at t = 2.03125, to every candidate node at t = 2.5" in note and "BAND_FULL" in note
+
+
 # ---- jaxfric.io.cache: the persistent compilation cache of the command lines ------------------------
 
 def test_compilation_cache_folder_follows_jax_then_jaxfric_then_xdg():

@@ -18,6 +18,7 @@ counters are recorded). Adding a formulation is a subclass that answers the same
 from __future__ import annotations
 
 import abc
+import dataclasses
 from typing import ClassVar, NamedTuple, cast
 
 import equinox as eqx
@@ -118,6 +119,10 @@ class AbstractContactFormulation(eqx.Module):
     def softened(self, m) -> AbstractContactFormulation:
         """The formulation of continuation stage ``m`` (penalties / 10^m)."""
         raise NotImplementedError(f"{type(self).__name__} has no continuation")
+
+    def widened(self, tools) -> AbstractContactFormulation | None:
+        """The formulation with a wider proximity band (:class:`Complementarity`); None: no band to widen."""
+        return None
 
 
 class _Regularised(AbstractContactFormulation):
@@ -364,6 +369,16 @@ class Complementarity(AbstractContactFormulation):
     def solve_step(self, args, x0, x_ref, newton, search=True, stage=False) -> StepSolution:
         sol, stats = exact_solve(args, x0, x_ref, options=newton, law=self)
         return from_newton(sol, stats)
+
+    def widened(self, tools) -> Complementarity | None:
+        """This formulation with twice the proximity band, or every candidate node of ``tools`` where
+        that reaches their number; None where the band cannot grow ("ssn", or every candidate already
+        in it). The chunked driver widens a band that ends a run with ``Result.BAND_FULL``
+        (:func:`jaxfric.loadpath.controller.band_full`)."""
+        n = np.unique(pair_nodes(tools)).size
+        if self.solver != "lemke" or self.band is None or self.band >= n:
+            return None
+        return dataclasses.replace(self, band=None if 2 * self.band >= n else 2 * self.band)
 
 
 #: A scene's penalty law is :class:`StiffPenalty` above this many times its spec penalty: the Nine's,

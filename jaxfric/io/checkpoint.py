@@ -46,7 +46,8 @@ def save(out_dir: str, checkpoint: Checkpoint, config: dict) -> str:
     arrays.update({f"observed/{k}": v for k, v in cols["observed"].items()})
     for row, snap in record.snapshots.items():
         arrays.update({f"snapshot/{row}/{k}": np.asarray(v) for k, v in snap.items()})
-    meta = {"config": config, "wall_s": record.wall_s, "cpu_s": record.cpu_s}
+    meta = {"config": config, "wall_s": record.wall_s, "cpu_s": record.cpu_s,
+            "band_widened": [list(w) for w in record.band_widened]}
     arrays["meta"] = np.array(json.dumps(meta, allow_nan=False))
     path = os.path.join(out_dir, FILE)
     tmp = os.path.join(out_dir, "checkpoint.tmp.npz")
@@ -88,7 +89,8 @@ def load(out_dir: str, scene) -> tuple[Checkpoint, dict]:
         if key.startswith("snapshot/"):
             _, row, name = key.split("/", 2)
             snapshots.setdefault(int(row), {})[name] = value
-    record = Record(parts=[part], snapshots=snapshots, wall_s=float(meta["wall_s"]), cpu_s=float(meta["cpu_s"]))
+    record = Record(parts=[part], snapshots=snapshots, wall_s=float(meta["wall_s"]), cpu_s=float(meta["cpu_s"]),
+                    band_widened=[(float(t), band) for t, band in meta.get("band_widened", [])])
     return Checkpoint(path=jax.tree_util.tree_unflatten(treedef, saved), record=record), meta["config"]
 
 

@@ -356,6 +356,16 @@ def damping_note(energy, values: dict) -> str:
             f"{total:.3g} N mm/mm{share}")
 
 
+def band_note(widened) -> str:
+    """The summary's note on exact contact's proximity band grown during the run (``RunResult.band_widened``:
+    (pseudo-time, band) pairs); "" where it kept its size."""
+    if not widened:
+        return ""
+    grown = ", ".join(f"to {'every candidate node' if band is None else f'{band} nodes'} at t = {t:.6g}"
+                      for t, band in widened)
+    return f"exact contact's proximity band widened (the contact zone outgrew it: Result.BAND_FULL) {grown}"
+
+
 def _write_summary(path: str, summary: dict) -> None:
     text = json.dumps(json_ready(summary), indent=2, allow_nan=False)
     _write_text(path, text + "\n")
@@ -464,6 +474,7 @@ def write_run(scene, result, out_dir, tag: str | None = None, figures: bool = Tr
     window, note = steady_window(scene.name, values, scene.steady_window)
     notes.append(note)
     notes.append(damping_note(result.history.get("damping_energy", ()), values))
+    notes.append(band_note(result.band_widened))
     steady = steady_drawing_force({**values, "phase_name": values["phase"]}, window)
     summary = _summary(scene, result, tag, values, names, fallback, window, steady, notes, penalty_tangent,
                        checks)

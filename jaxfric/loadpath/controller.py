@@ -18,7 +18,9 @@ after an attempt. The rules it applies, in order, each a function below:
 - then one last attempt with Newton's line search off, for a formulation whose Newton loop has one
   (:func:`unsearched_attempt`);
 - then, for a formulation that has one, the stabilised attempt (:func:`stabilised_attempt`);
-- then the run stops with the code of the last attempt made with the line search (:func:`stop_code`).
+- then the run stops with the code of the last attempt made with the line search (:func:`stop_code`);
+- apart from these, a step whose second attempt ends outside exact contact's proximity band ends the
+  program with ``Result.BAND_FULL``, for the chunked driver to widen the band (:func:`band_full`).
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from ..numerics.results import Result
 
 __all__ = ["StepControl", "Controller", "ControllerState", "ContinuationState", "Outcome", "Tally",
            "increment_after_acceptance", "increment_from_error", "retry_from_converged", "unsearched_attempt",
-           "continuation_rule", "max_steps",
+           "continuation_rule", "max_steps", "band_full",
            "stabilised_attempt", "stop_code", "STABILIZE", "STABILIZE_RISE"]
 
 
@@ -320,6 +322,21 @@ def crawl_count(control: StepControl, ok, cuts, n_crawl, dt, dt_nominal):
     return jnp.where(ok, jnp.where(crawl, n_crawl + 1, 0), n_crawl).astype(jnp.int32)
 
 
+def band_full(failed_code, cut_codes, widenable: bool):
+    """Rule: a step's attempt that ends with ``Result.CONTACT_BAND`` (a candidate node outside exact
+    contact's proximity band penetrates its tool) after an earlier attempt of the same step did
+    (``cut_codes``) ends the program with ``Result.BAND_FULL``, the step still pending at the increment of
+    that attempt, where the band can grow (``widenable``: static, a band smaller than the candidates).
+    The chunked driver (:func:`jaxfric.loadpath.run.run`) then widens the band and the step is tried again.
+    Reason: cutting the increment does not make the zone smaller. On the blankholder's long lands
+    (shape4) the band of 256 nodes held about 206 closed pairs at the start of the pull; ``lcp_lemke``
+    failed steps on the band and crawled, t = 2.0 to 2.056 in 414 steps where ``lcp_ssn`` took 31. A
+    single failure is retried as any (a Newton iterate that strays far beyond the zone: one attempt of
+    shape5 in its whole pull, taken by the retry)."""
+    band = cause_mask(Result.CONTACT_BAND)
+    return widenable & (failed_code == Result.CONTACT_BAND) & ((cut_codes & band) != 0)
+
+
 def stop_code(too_small, finished, full, plain, last_code, code, stalled=False):
     """The run's code after an attempt: the failure when no rule gives another attempt (that of the
     last attempt made with the line search, when the unsearched one failed too: a plain Newton that
@@ -367,6 +384,8 @@ class Controller(eqx.Module):
         stabilized: the stabilised attempt exists (static: a formulation that has one, and ``stabilize``
             > 0 with a sheet modulus).
         eta: () the first damper (N/mm per mm).
+        widenable: exact contact's proximity band is smaller than the candidates (static:
+            :func:`band_full`).
     """
 
     control: StepControl = eqx.field(static=True)
@@ -381,13 +400,15 @@ class Controller(eqx.Module):
     n_stages: jax.Array
     stabilized: bool = eqx.field(static=True)
     eta: jax.Array
+    widenable: bool = eqx.field(static=True, default=False)
 
     @classmethod
     def build(cls, phases, control: StepControl, continuation: bool, has_line_search: bool,
-              n_stages, modulus=None, max_rows=None) -> Controller:
+              n_stages, modulus=None, max_rows=None, widenable: bool = False) -> Controller:
         """``modulus``: the sheet's Young's modulus (the stabilisation's scale; None: no stabilisation).
         ``max_rows``: the run's most accepted steps as data, for a chunk's program (no buffer of its own
-        here); None: ``control``'s :func:`max_steps`, and a whole run's buffer of that many rows."""
+        here); None: ``control``'s :func:`max_steps`, and a whole run's buffer of that many rows.
+        ``widenable``: :attr:`widenable`."""
         sched = schedule(phases)
         stabilized = modulus is not None and control.stabilize > 0
         eta = jnp.asarray(control.stabilize * modulus if stabilized else 0.0, jnp.float64)
@@ -395,7 +416,7 @@ class Controller(eqx.Module):
         rows = jnp.asarray(n_buffer if max_rows is None else max_rows, jnp.int32)
         return cls(control, jnp.asarray(sched.seg_end), jnp.asarray(sched.seg_dt),
                    jnp.asarray(sched.seg_phase, jnp.int32), jnp.asarray(sched.seg_steps, jnp.int32), n_buffer, rows,
-                   continuation, has_line_search, n_stages, stabilized, eta)
+                   continuation, has_line_search, n_stages, stabilized, eta, widenable)
 
     def init(self, u, q) -> ControllerState:
         """The state before the first step (``u``, ``q``: shapes of the displacements and tool
@@ -470,14 +491,18 @@ class Controller(eqx.Module):
         full = ok & ~finished & (row + 1 >= self.max_rows + 1)
         n_crawl = crawl_count(self.control, ok, cs.cuts, cs.n_crawl, t_try - t_start, dt_nom)
         stalled = ok & ~finished & (n_crawl >= self.control.stall_steps)
+        # The band too small: the step stays pending as it was attempted, for the driver to widen the band.
+        widen = band_full(out.code, cs.cut_codes, self.widenable)
+        too_small, repeat, level = too_small & ~widen, repeat | widen, jnp.where(widen, cs.damped, level)
         keep_r = (too_small & cs.plain) | held
         return ControllerState(
             dt=jnp.where(ok, dt_ok, jnp.where(repeat, t_try - t_start, dt_cut)), seg=next_seg,
             n_easy=jnp.where(grow, 0, n_easy), cuts=jnp.where(ok, 0, cs.cuts + 1),
             cut_codes=jnp.where(ok, 0, cs.cut_codes | cause_mask(out.code)).astype(jnp.int32),
             iters=jnp.where(ok, 0, iters), stats=jnp.where(ok, 0, stats),
-            code=stop_code(too_small, finished, full, cs.plain, cs.last_code, out.code, stalled),
+            code=jnp.where(widen, Result.BAND_FULL,
+                           stop_code(too_small, finished, full, cs.plain, cs.last_code, out.code, stalled)),
             failed_t=jnp.where(ok, cs.failed_t, t_try), r_norm=jnp.where(keep_r, cs.r_norm, out.residual_norm),
-            plain=~ok & (cs.plain | plain) & ~damp,
+            plain=jnp.where(widen, cs.plain, ~ok & (cs.plain | plain) & ~damp),
             last_code=jnp.where(held, cs.last_code, out.code).astype(jnp.int32), stages=stages,
             damped=jnp.where(ok, 0, level).astype(jnp.int32), n_crawl=n_crawl)

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..contact.formulations import Complementarity
 from ..numerics.devices import run_devices, traced_run_devices
 from ..numerics.lru import LRU
 from ..numerics.newton import NewtonOptions
@@ -102,12 +103,15 @@ class Record:
             ``observed`` (a dict of the observations' rows), NumPy arrays.
         snapshots: history row -> ``snapshot(model, state)`` (NumPy), the rows kept.
         wall_s, cpu_s: solve time and process CPU time so far (s).
+        band_widened: per widening of exact contact's proximity band (``Result.BAND_FULL``), the
+            pseudo-time of the pending step and the new band (None: every candidate node).
     """
 
     parts: list = dataclasses.field(default_factory=list)
     snapshots: dict = dataclasses.field(default_factory=dict)
     wall_s: float = 0.0
     cpu_s: float = 0.0
+    band_widened: list = dataclasses.field(default_factory=list)
 
     @property
     def n_rows(self) -> int:
@@ -199,6 +203,8 @@ class RunResult:
             row kept (row 0: the initial state); empty otherwise.
         checkpoint: what :func:`run` needs to continue this run (``resume``).
         devices: how many devices the run's work was split over (:func:`split_over`; 1: not split).
+        band_widened: ``Record.band_widened``: where exact contact's proximity band grew, and to what
+            (``model`` has the last band).
     """
 
     model: StripModel
@@ -214,6 +220,7 @@ class RunResult:
     snapshots: dict = dataclasses.field(default_factory=dict)
     checkpoint: Checkpoint | None = None
     devices: int = 1
+    band_widened: tuple = ()
 
 
 # Compiled programs by structure (shapes, static fields, options), the most recently used few.
@@ -318,11 +325,17 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
             instants' rows (:class:`jaxfric.io.instants.InstantRows`), all that ``contact.npz`` needs.
         resume: a :class:`Checkpoint` of a run of a model with this structure and values (a stopped
             or partial run's ``RunResult.checkpoint``, or one read back from disk): the run continues
-            from it and returns the whole run's result, as the run that never stopped would.
+            from it and returns the whole run's result, as the run that never stopped would (at the
+            proximity band it had widened to).
         on_chunk: ``on_chunk(partial)`` after every chunk, ``partial()`` giving the
             :class:`RunResult` so far (code ``CONTINUE`` while the run goes on).
         stop: ``stop() -> bool``, asked before every chunk: True ends the run there, with code
             ``Result.STOPPED`` (a stop request: the result is resumable).
+
+    Exact contact's proximity band (``Complementarity.band``) grows where a step needs more: a run that
+    ends a chunk with ``Result.BAND_FULL`` (:func:`jaxfric.loadpath.controller.band_full`) goes on with the
+    band doubled (:meth:`~jaxfric.contact.formulations.Complementarity.widened`), compiled anew, from the
+    pending step; ``RunResult.band_widened`` says where.
     """
     for name, value, kind in (("model", model, StripModel), ("newton", newton, NewtonOptions),
                               ("control", control, StepControl)):
@@ -333,6 +346,8 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
         if not (callable(function) or (name != "observe" and function is None)):
             raise ValueError(f"field '{name}' must be a function{' or None' if name != 'observe' else ''}, "
                              f"got {function!r}")
+    if resume is not None and isinstance(resume, Checkpoint) and resume.record.band_widened:
+        model = _with_band(model, resume.record.band_widened[-1][1])
     t0 = time.perf_counter()
     start, step = _compiled(model, newton, control, observe, snapshot)
     compile_s = time.perf_counter() - t0
@@ -347,7 +362,8 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
             raise ValueError(f"field 'resume' must be a Checkpoint (RunResult.checkpoint), got {resume!r}")
         path = jax.tree_util.tree_map(jnp.asarray, resume.path)
         record = dataclasses.replace(resume.record, parts=list(resume.record.parts),
-                                     snapshots=dict(resume.record.snapshots))
+                                     snapshots=dict(resume.record.snapshots),
+                                     band_widened=list(resume.record.band_widened))
     code = Result(int(path.ctrl.code))
     limit = 4
     with ProgressMonitor(total_time=model.n_phases, show=progress, label=label) as monitor:
@@ -368,6 +384,16 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
                 monitor.update(record.n_rows - 1, float(last["time"][-1]), int(last["newton_iters"][-1]),
                                int(last["cutbacks"][-1]))
             limit = _next_limit(rows, wall, limit)
+            if code == Result.BAND_FULL:
+                t1 = time.perf_counter()
+                law = _exact_contact(model).widened(model.tools)
+                model = _with_band(model, None if law is None else law.band)
+                start, step = _compiled(model, newton, control, observe, snapshot)
+                compile_s += time.perf_counter() - t1
+                check_memory(step, model)
+                record.band_widened.append((float(path.ctrl.failed_t), _exact_contact(model).band))
+                path = eqx.tree_at(lambda p: p.ctrl.code, path, jnp.asarray(Result.CONTINUE, jnp.int32))
+                code = Result.CONTINUE
             if on_chunk is not None:
                 now = (path, record)
                 on_chunk(lambda: _result(model, *now, Result(int(now[0].ctrl.code)), compile_s))
@@ -405,6 +431,24 @@ def extend_stroke(checkpoint: Checkpoint, model: StripModel, scale: float, *,
     control = dataclasses.replace(control, max_steps=max_steps(control, model.phases))  # needs the increments' values
     path = eqx.filter_jit(lambda m, p, s: restart(m, p, s, control=control))(model, path, t_new)
     return Checkpoint(path=jax.device_get(path), record=record)
+
+
+def _exact_contact(model: StripModel) -> Complementarity:
+    """``model``'s exact contact formulation, the one with a proximity band.
+
+    Raises:
+        ValueError: ``model`` has another contact formulation (a checkpoint of a run with exact contact
+            resumed on another), naming the field.
+    """
+    if not isinstance(model.contact, Complementarity):
+        raise ValueError(f"field 'contact': the run widened exact contact's proximity band, but this model's "
+                         f"contact is {type(model.contact).__name__}")
+    return model.contact
+
+
+def _with_band(model: StripModel, band: int | None) -> StripModel:
+    """``model`` with its exact contact's proximity band ``band``."""
+    return eqx.tree_at(lambda m: m.contact, model, dataclasses.replace(_exact_contact(model), band=band))
 
 
 def _history(model, record: Record) -> dict:
@@ -459,7 +503,9 @@ def _result(model, path: LoadPathState, record: Record, code: Result, compile_s:
                             residual_norm=ctrl.r_norm, pending_cuts=ctrl.cuts)
     snapshots = {k: v for k, v in sorted(record.snapshots.items()) if k < n}
     checkpoint = Checkpoint(path=path, record=dataclasses.replace(record, parts=list(record.parts),
-                                                                  snapshots=dict(record.snapshots)))
+                                                                  snapshots=dict(record.snapshots),
+                                                                  band_widened=list(record.band_widened)))
     return RunResult(model=model, history=history, final=final, simulation=simulation, converged=converged,
                      code=code, message=message, compile_s=compile_s, wall_s=record.wall_s, cpu_s=record.cpu_s,
-                     snapshots=snapshots, checkpoint=checkpoint, devices=len(split_over(model) or (None,)))
+                     snapshots=snapshots, checkpoint=checkpoint, devices=len(split_over(model) or (None,)),
+                     band_widened=tuple(record.band_widened))

@@ -284,7 +284,8 @@ def _controller(model: StripModel, control: StepControl, max_rows=None) -> Contr
     n_stages = continuation_stages(model) if on else jnp.array(0, jnp.int32)
     # The stabilised attempt (every formulation's residual carries the damper): a sheet modulus scales it.
     modulus = getattr(model.material, "E", None)
-    return Controller.build(model.phases, control, on, has_line_search, n_stages, modulus, max_rows)
+    widenable = bool(model.tools) and model.contact is not None and model.contact.widened(model.tools) is not None
+    return Controller.build(model.phases, control, on, has_line_search, n_stages, modulus, max_rows, widenable)
 
 
 def _start(model: StripModel, ctrl: Controller) -> LoadPathState:

@@ -60,8 +60,9 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
   condensed complementarity problem [chosen]. Why: a pivot costs the square of the band's size and a
   solve takes more pivots on a larger band. Shape1, close + lock + a 2 mm pull (measured with F-bar):
   all 620 nodes, 153 steps, 48,303 pivots, 388 s of CPU; 256 nodes, 152 steps, 26,334 pivots, 99 s; the
-  whole 55 mm pull at 256 nodes: 680 steps, 0 cutbacks, 41,195 pivots, 406 s. A band too small stops
-  the step with CONTACT_BAND (a node outside it penetrates), never silently.
+  whole 55 mm pull at 256 nodes: 680 steps, 0 cutbacks, 41,195 pivots, 406 s. A band too small fails
+  the attempt with CONTACT_BAND (a node outside it penetrates), never silently, and where a step's
+  attempts fail so twice the run widens it (:func:`jaxfric.loadpath.controller.band_full`).
 - ``element`` = ``anst`` with ``thickness_points`` = 4 per layer (:mod:`jaxfric.fem.element`), not F-bar
   nor the Nine's ``ans``. Why (spec mesh, default layout, ``lcp_ssn``; docs/results.md, the
   through-thickness mode): at the nominal increments the mesh- and layer-converged steady force lies
