@@ -309,3 +309,26 @@ def test_a_log_file_gets_a_progress_line_per_tenth_and_one_after_a_minute_withou
     lines = out.getvalue().splitlines()
     assert [line.split(" step ")[1].split()[0] for line in lines] == ["1", "4", "6"]
     assert all(line.endswith("s") and "t=" in line for line in lines)
+
+
+def test_a_note_between_chunks_is_a_line_of_its_own_under_the_bar():
+    """An event of the run (exact contact's band widened) gets a line of its own: after the bar's line in a
+    log file, on a new line below the bar on a terminal; none when the bar is off."""
+    import io
+
+    from jaxfric.loadpath import progress
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    for stream, expected in ((io.StringIO(), "\nband widened\n"), (Terminal(), "s\nband widened\n\r")):
+        with progress.ProgressMonitor(total_time=3.0, stream=stream, min_interval=0.0) as monitor:
+            monitor.update(1, 0.5, iterations=5, cuts=0)
+            monitor.note("band widened")
+            monitor.update(2, 1.0, iterations=5, cuts=0)
+        assert expected in stream.getvalue() and stream.getvalue().count("band widened") == 1
+    quiet = io.StringIO()
+    with progress.ProgressMonitor(total_time=3.0, stream=quiet, show=False) as monitor:
+        monitor.note("band widened")
+    assert quiet.getvalue() == ""

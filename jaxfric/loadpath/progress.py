@@ -64,3 +64,11 @@ class ProgressMonitor:
         self.stream.write(f"{start}{self.label}[{bar}] t={t:.4f}/{self.total_time:g} step {step} "
                           f"newton {iterations} cuts {cuts} {now - self.start:7.1f}s{end}")
         self.stream.flush()
+
+    def note(self, text: str) -> None:
+        """A line of its own about the run (an event between chunks), under the bar when ``show``."""
+        if not self.show:
+            return
+        self.stream.write(f"{chr(10) if self._tty and self._drawn else ''}{self.label}{text}\n")
+        self.stream.flush()
+        self._drawn = False

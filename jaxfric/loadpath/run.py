@@ -392,6 +392,10 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
                 compile_s += time.perf_counter() - t1
                 check_memory(step, model)
                 record.band_widened.append((float(path.ctrl.failed_t), _exact_contact(model).band))
+                band = record.band_widened[-1][1]
+                monitor.note(f"exact contact's proximity band widened to "
+                             f"{'every candidate node' if band is None else f'{band} nodes'} at t = "
+                             f"{record.band_widened[-1][0]:.6g} (Result.BAND_FULL)")
                 path = eqx.tree_at(lambda p: p.ctrl.code, path, jnp.asarray(Result.CONTINUE, jnp.int32))
                 code = Result.CONTINUE
             if on_chunk is not None:
