@@ -40,8 +40,8 @@ exactly; the contact status comes out of that solve. Two ways:
 2. The proximity band: per candidate node the pair of smallest gap; of those, the ``band`` nodes
    nearest to a tool (all of them by default). Only the band enters the complementarity problem, so
    its size follows the contact zone. A node outside the band that penetrates a tool at the converged
-   state fails the attempt (:attr:`~jaxfric.numerics.results.Result.CONTACT_BAND`); a second such
-   attempt of the step has the band widened (:func:`jaxfric.loadpath.controller.band_full`).
+   state fails the attempt (:attr:`~jaxfric.numerics.results.Result.CONTACT_BAND`), and the run widens the
+   band and tries the step again (:func:`jaxfric.loadpath.controller.band_full`).
 3. Condensation on the band dofs c (spec 1.7 step 2), with the block-tridiagonal structure kept:
    ``K_ff^-1`` is the block-Thomas solve of K with the band dofs decoupled (their rows and columns
    replaced by a scaled identity), applied to the 2 n_c + 1 columns ``[K_fc | b_f]`` in one sweep:

@@ -20,7 +20,7 @@ class Result(enum.IntEnum):
     STOPPED = 9            # a stop request ended the run between two chunks of steps (resumable)
     PRESELECTION = 10      # a candidate the step's pair pre-selection left out could have reached its tool
     STALLED = 11           # consecutive steps crawled at the smallest increment (StepControl.stall_steps)
-    BAND_FULL = 12         # two attempts of one step ended on CONTACT_BAND: the band is too small for the zone
+    BAND_FULL = 12         # an attempt ended on CONTACT_BAND: the band is too small for the contact zone
 
 
 _ADVICE = {
@@ -43,7 +43,7 @@ _ADVICE = {
                          "(it moved further than its clearance allows even at the smallest increment); raise "
                          "the tool's capacity (RigidTool.capacity), or switch the pre-selection off "
                          "(--set preselect=false)",
-    Result.BAND_FULL: "two attempts of one step left a penetrating candidate node out of the exact contact "
+    Result.BAND_FULL: "a step's attempt left a penetrating candidate node out of the exact contact "
                       "solver's proximity band: the contact zone outgrew the band; the chunked driver "
                       "(jaxfric.loadpath.run.run, the command line) widens it and goes on, a whole-run program "
                       "stops here: raise Complementarity.band (a scene's config field band)",

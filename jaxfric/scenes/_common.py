@@ -45,9 +45,9 @@ def spec_field(default, unit: str, doc: str):
 SMOOTHING_DOC = ("force scale of the smoothed contact law (penalty and auglag; for gradients through "
                  "contact opening and stick/slip switches); 0: the exact law [chosen]")
 BAND_DOC = ("exact contact by lcp_lemke: candidate nodes nearest to a tool that enter the condensed "
-            "complementarity problem; None: all. Too small a band fails the attempt with CONTACT_BAND; "
-            "where a step's attempts fail so twice the run widens it (doubled, at most all: BAND_FULL, noted "
-            "in summary.json's message) (lcp_ssn works on every candidate and ignores it)")
+            "complementarity problem; None: all. Too small a band fails the attempt with CONTACT_BAND, and "
+            "the run widens it and tries the step again (doubled, at most all: BAND_FULL, noted in "
+            "summary.json's message) (lcp_ssn works on every candidate and ignores it)")
 MAX_AUGMENTATIONS_DOC = ("auglag: augmentations allowed per step attempt before it fails (spec 1.6: 20) "
                          "[chosen]")
 MAX_STEPS_DOC = ("size of the history buffer in accepted steps; a run that fills it stops (MAX_STEPS). "
