@@ -61,11 +61,11 @@ Values tagged [chosen] in the spec (section 9), all config fields here:
   solve takes more pivots on a larger band. Shape1, close + lock + a 2 mm pull (measured with F-bar):
   all 620 nodes, 153 steps, 48,303 pivots, 388 s of CPU; 256 nodes, 152 steps, 26,334 pivots, 99 s; the
   whole 55 mm pull at 256 nodes: 680 steps, 0 cutbacks, 41,195 pivots, 406 s. A band too small fails
-  the attempt with CONTACT_BAND (a node outside it penetrates), never silently, and where a step's
-  attempts fail so twice the run widens it (:func:`jaxfric.loadpath.controller.band_full`). The long lands
-  need it: shape4 has 208 pairs closed in the draw, and there a band of 512 takes ``lcp_ssn``'s steps at a
-  third of the time the 256 nodes take, while closing at 512 costs 9 times the time a step
-  (``python experiments/lemke_band.py``; docs/results.md, Lemke's proximity band on long lands).
+  the attempt with CONTACT_BAND (a node outside it penetrates), never silently, and the run widens it
+  and takes the step again (:func:`jaxfric.loadpath.controller.band_full`). The long lands need it: on
+  shapes 2 and 4, 200 to 208 pairs close in the draw, and the band grows to 512 early in the pull; a 512
+  band from the start would cost 9 times the time of a closing step (``python experiments/lemke_band.py``;
+  docs/results.md, Lemke's proximity band on long lands).
 - ``element`` = ``anst`` with ``thickness_points`` = 4 per layer (:mod:`jaxfric.fem.element`), not F-bar
   nor the Nine's ``ans``. Why (spec mesh, default layout, ``lcp_ssn``; docs/results.md, the
   through-thickness mode): at the nominal increments the mesh- and layer-converged steady force lies
