@@ -120,6 +120,20 @@ class AbstractContactFormulation(eqx.Module):
         """The formulation of continuation stage ``m`` (penalties / 10^m)."""
         raise NotImplementedError(f"{type(self).__name__} has no continuation")
 
+    @property
+    def proximity_band(self) -> int | None:
+        """Static: the candidate nodes in exact contact's condensed problem (:class:`Complementarity`'s
+        ``band``); None: every candidate, or no such problem."""
+        return None
+
+    def with_band(self, band: int | None) -> AbstractContactFormulation:
+        """The formulation with proximity band ``band`` (:class:`Complementarity`).
+
+        Raises:
+            ValueError: the formulation has no proximity band, naming the field.
+        """
+        raise ValueError(f"field 'band': {type(self).__name__} has no proximity band")
+
     def widened(self, tools) -> AbstractContactFormulation | None:
         """The formulation with a wider proximity band (:class:`Complementarity`); None: no band to widen."""
         return None
@@ -370,6 +384,13 @@ class Complementarity(AbstractContactFormulation):
         sol, stats = exact_solve(args, x0, x_ref, options=newton, law=self)
         return from_newton(sol, stats)
 
+    @property
+    def proximity_band(self) -> int | None:
+        return self.band
+
+    def with_band(self, band: int | None) -> Complementarity:
+        return dataclasses.replace(self, band=band)
+
     def widened(self, tools) -> Complementarity | None:
         """This formulation with twice the proximity band, or every candidate node of ``tools`` where
         that reaches their number; None where the band cannot grow ("ssn", or every candidate already
@@ -378,7 +399,7 @@ class Complementarity(AbstractContactFormulation):
         n = np.unique(pair_nodes(tools)).size
         if self.solver != "lemke" or self.band is None or self.band >= n:
             return None
-        return dataclasses.replace(self, band=None if 2 * self.band >= n else 2 * self.band)
+        return self.with_band(None if 2 * self.band >= n else 2 * self.band)
 
 
 #: A scene's penalty law is :class:`StiffPenalty` above this many times its spec penalty: the Nine's,

@@ -20,7 +20,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..contact.formulations import Complementarity
 from ..numerics.devices import run_devices, traced_run_devices
 from ..numerics.lru import LRU
 from ..numerics.newton import NewtonOptions
@@ -386,13 +385,15 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
             limit = _next_limit(rows, wall, limit)
             if code == Result.BAND_FULL:
                 t1 = time.perf_counter()
-                law = _exact_contact(model).widened(model.tools)
-                model = _with_band(model, None if law is None else law.band)
+                law = None if model.contact is None else model.contact.widened(model.tools)
+                if law is None:
+                    raise RuntimeError("the run ended a chunk with BAND_FULL, but its contact has no band to widen")
+                model = eqx.tree_at(lambda m: m.contact, model, law)
                 start, step = _compiled(model, newton, control, observe, snapshot)
                 compile_s += time.perf_counter() - t1
                 check_memory(step, model)
-                record.band_widened.append((float(path.ctrl.failed_t), _exact_contact(model).band))
-                band = record.band_widened[-1][1]
+                band = law.proximity_band
+                record.band_widened.append((float(path.ctrl.failed_t), band))
                 monitor.note(f"exact contact's proximity band widened to "
                              f"{'every candidate node' if band is None else f'{band} nodes'} at t = "
                              f"{record.band_widened[-1][0]:.6g} (Result.BAND_FULL)")
@@ -437,22 +438,16 @@ def extend_stroke(checkpoint: Checkpoint, model: StripModel, scale: float, *,
     return Checkpoint(path=jax.device_get(path), record=record)
 
 
-def _exact_contact(model: StripModel) -> Complementarity:
-    """``model``'s exact contact formulation, the one with a proximity band.
+def _with_band(model: StripModel, band: int | None) -> StripModel:
+    """``model`` with its exact contact's proximity band ``band`` (a resumed run's widened band).
 
     Raises:
-        ValueError: ``model`` has another contact formulation (a checkpoint of a run with exact contact
-            resumed on another), naming the field.
+        ValueError: ``model`` has no contact with a proximity band, naming the field.
     """
-    if not isinstance(model.contact, Complementarity):
-        raise ValueError(f"field 'contact': the run widened exact contact's proximity band, but this model's "
-                         f"contact is {type(model.contact).__name__}")
-    return model.contact
-
-
-def _with_band(model: StripModel, band: int | None) -> StripModel:
-    """``model`` with its exact contact's proximity band ``band``."""
-    return eqx.tree_at(lambda m: m.contact, model, dataclasses.replace(_exact_contact(model), band=band))
+    if model.contact is None:
+        raise ValueError("field 'contact': the resumed run widened exact contact's proximity band, but this "
+                         "model has no contact")
+    return eqx.tree_at(lambda m: m.contact, model, model.contact.with_band(band))
 
 
 def _history(model, record: Record) -> dict:
