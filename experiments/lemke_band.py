@@ -15,7 +15,6 @@ the largest numbers of closed pairs in the draw, and the drawing force at the en
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 
 import equinox as eqx
@@ -71,14 +70,14 @@ def main() -> None:
     draw_s = float(res.history["wall_s"][k:].sum())
     rows.append(_draw_row("lcp_ssn", None, res, k, draw_s))
     print(rows[-1], flush=True)
+    write_rows(out, rows)   # row by row: a band that takes hours can be stopped
     for text in opts.bands:
         band = None if text == "none" else int(text)
-        model = eqx.tree_at(lambda m: m.contact, sc.model, dataclasses.replace(sc.model.contact, band=band))
+        model = eqx.tree_at(lambda m: m.contact, sc.model, sc.model.contact.with_band(band))
         res = jf.run(model, **kw, resume=first.checkpoint)
         rows.append(_draw_row("lcp_lemke", band, res, n0, res.wall_s - first.wall_s))
         print(rows[-1], flush=True)
-        write_rows(out, rows)   # row by row: a band that takes hours can be stopped
-    write_rows(out, rows)
+        write_rows(out, rows)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ import re
 
 import numpy as np
 
-from ..numerics.results import causes
+from ..numerics.results import band_widening, causes
 from .instants import (
     TIME_TOL,
     column,
@@ -361,8 +361,7 @@ def band_note(widened) -> str:
     (pseudo-time, band) pairs); "" where it kept its size."""
     if not widened:
         return ""
-    grown = ", ".join(f"to {'every candidate node' if band is None else f'{band} nodes'} at t = {t:.6g}"
-                      for t, band in widened)
+    grown = ", ".join(band_widening(t, band) for t, band in widened)
     return f"exact contact's proximity band widened (the contact zone outgrew it: Result.BAND_FULL) {grown}"
 
 

@@ -23,7 +23,7 @@ import numpy as np
 from ..numerics.devices import run_devices, traced_run_devices
 from ..numerics.lru import LRU
 from ..numerics.newton import NewtonOptions
-from ..numerics.results import Result, SimulationError, causes, describe
+from ..numerics.results import Result, SimulationError, band_widening, causes, describe
 from .controller import StepControl, max_steps
 from .model import SimState, StripModel, default_observe
 from .progress import ProgressMonitor
@@ -392,11 +392,9 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
                 start, step = _compiled(model, newton, control, observe, snapshot)
                 compile_s += time.perf_counter() - t1
                 check_memory(step, model)
-                band = law.proximity_band
-                record.band_widened.append((float(path.ctrl.failed_t), band))
-                monitor.note(f"exact contact's proximity band widened to "
-                             f"{'every candidate node' if band is None else f'{band} nodes'} at t = "
-                             f"{record.band_widened[-1][0]:.6g} (Result.BAND_FULL)")
+                record.band_widened.append((float(path.ctrl.failed_t), law.proximity_band))
+                monitor.note(f"exact contact's proximity band widened {band_widening(*record.band_widened[-1])} "
+                             f"(Result.BAND_FULL)")
                 path = eqx.tree_at(lambda p: p.ctrl.code, path, jnp.asarray(Result.CONTINUE, jnp.int32))
                 code = Result.CONTINUE
             if on_chunk is not None:

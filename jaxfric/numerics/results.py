@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["Result", "SimulationError", "describe", "causes"]
+__all__ = ["Result", "SimulationError", "describe", "causes", "band_widening"]
 
 
 class Result(enum.IntEnum):
@@ -65,6 +65,12 @@ def causes(mask: int) -> list[str]:
     mask = int(mask)
     return ["stage" if code == Result.SUCCESS else code.name.lower()
             for code in Result if code >= 0 and mask >> int(code) & 1]
+
+
+def band_widening(t: float, band: int | None) -> str:
+    """One widening of exact contact's proximity band after ``BAND_FULL`` (``RunResult.band_widened``) in
+    words: "to 512 nodes at t = 2.4"."""
+    return f"to {'every candidate node' if band is None else f'{band} nodes'} at t = {t:.6g}"
 
 
 class SimulationError(RuntimeError):
