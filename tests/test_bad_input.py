@@ -485,6 +485,18 @@ def test_a_run_that_needs_more_memory_than_available_is_refused_before_it_starts
     RUN_MODULE.check_memory(compiled, model, available=need)
 
 
+def test_a_resume_that_is_no_checkpoint_is_refused_before_anything_compiles(monkeypatch):
+    from models import clamped_pull
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("compiled before the input was checked")
+
+    monkeypatch.setattr(RUN_MODULE, "_compiled", refuse)
+    with pytest.raises(ValueError, match="field 'resume' must be a Checkpoint") as info:
+        jf.run(clamped_pull(), progress=False, resume={"t": 1.0})
+    assert "\n" not in str(info.value)
+
+
 def test_compiled_programs_are_bounded_least_recently_used_first(monkeypatch):
     """The public entry point keeps a few compiled programs, not one per structure ever run: a process
     running many scene variants must not run out of memory. A stand-in compiler (one compilation per

@@ -345,7 +345,9 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
         if not (callable(function) or (name != "observe" and function is None)):
             raise ValueError(f"field '{name}' must be a function{' or None' if name != 'observe' else ''}, "
                              f"got {function!r}")
-    if resume is not None and isinstance(resume, Checkpoint) and resume.record.band_widened:
+    if resume is not None and not isinstance(resume, Checkpoint):
+        raise ValueError(f"field 'resume' must be a Checkpoint (RunResult.checkpoint), got {resume!r}")
+    if resume is not None and resume.record.band_widened:
         model = _with_band(model, resume.record.band_widened[-1][1])
     t0 = time.perf_counter()
     start, step = _compiled(model, newton, control, observe, snapshot)
@@ -357,8 +359,6 @@ def run(model: StripModel, *, newton: NewtonOptions = NewtonOptions(),
         record = Record()
         record.add(chunk, 0.0, 0.0)
     else:
-        if not isinstance(resume, Checkpoint):
-            raise ValueError(f"field 'resume' must be a Checkpoint (RunResult.checkpoint), got {resume!r}")
         path = jax.tree_util.tree_map(jnp.asarray, resume.path)
         record = dataclasses.replace(resume.record, parts=list(resume.record.parts),
                                      snapshots=dict(resume.record.snapshots),
