@@ -211,7 +211,7 @@ def _committed_rows(study: str, opts) -> dict:
     for row in _read_table(study):
         if opts.rerun and _selected(opts, row["case"]):
             continue
-        if not os.path.exists(os.path.join(ROOT, study, "runs", row["case"], "summary.json")):
+        if not _on_disk(study, row["case"]):
             out[row["case"]] = {k: value(v) for k, v in row.items()}
     return out
 
@@ -224,10 +224,15 @@ def _write_partial(study: str, rows: list[dict]) -> None:
     write_table(study, rows + [r for r in _read_table(study) if r["case"] not in seen])
 
 
+def _on_disk(study: str, name: str) -> bool:
+    """Whether case ``name`` of ``study`` has a finished run in ``runs/``."""
+    return os.path.exists(os.path.join(ROOT, study, "runs", name, "summary.json"))
+
+
 def _want(opts, study: str, name: str) -> bool:
     """Whether case ``name`` enters the table: selected, or not selected but already on disk (read back).
     Cases left out are listed in the section (``opts.missing``)."""
-    ok = _selected(opts, name) or os.path.exists(os.path.join(ROOT, study, "runs", name, "summary.json"))
+    ok = _selected(opts, name) or _on_disk(study, name)
     if not ok:
         opts.missing.append(name)
     return ok
@@ -627,7 +632,7 @@ def algorithm_agreement(opts) -> None:
 
         def take(algorithm, label, run_algorithm, overrides, run=True):
             """Put case ``label`` into ``runs`` or ``legacy``; with ``run`` False, never run it."""
-            on_disk = os.path.exists(os.path.join(ROOT, study, "runs", label, "summary.json"))
+            on_disk = _on_disk(study, label)
             shared = _shared_run(name, variant, algorithm)
             if shared is not None:
                 runs[algorithm] = shared
@@ -821,11 +826,13 @@ def common_steps(opts) -> None:
             for algorithm in COMMON_REPLAYS:
                 take(algorithm, algorithm, f"{group}_{algorithm}", np.asarray(plan["history"]["time"][1:]),
                      _full_steps(algorithm))
-            lemke = got.get("lcp_lemke")
-            if lemke is not None and lemke["summary"].get("n_steps") != plan["summary"].get("n_steps"):
-                # Lemke's full Newton steps left the plan: again line-searched as lcp_ssn's (the scenes' default).
-                take(SEARCHED, "lcp_lemke", f"{group}_{SEARCHED}", np.asarray(plan["history"]["time"][1:]),
-                     {"lemke_search": True})
+            lemke, searched = got.get("lcp_lemke"), f"{group}_{SEARCHED}"
+            left_plan = lemke is not None and lemke["summary"].get("n_steps") != plan["summary"].get("n_steps")
+            asked = searched in kept or _selected(opts, searched) or _on_disk(study, searched)
+            if left_plan or (lemke is None and asked):
+                # Lemke's full Newton steps left the plan, or were not run (where they crawl: the blankholder's
+                # long lands): line-searched as lcp_ssn's (the scenes' default).
+                take(SEARCHED, "lcp_lemke", searched, np.asarray(plan["history"]["time"][1:]), {"lemke_search": True})
         rows += [_common_row(name, variant, a, got[a], plan) for a in (*first, SEARCHED) if a in got]
         done = [got[a] for a in first if a in got and got[a]["summary"].get("converged") and got[a]["history"]]
         if opts.union and len(done) == len(first) and any(c["summary"].get("n_steps") != plan["summary"].get("n_steps")
@@ -857,12 +864,16 @@ def common_steps(opts) -> None:
                                  "where the numbers of closed or slipping pairs differ); `refined_steps`: "
                                  "Lemke steps whose answer needed the semismooth polish; `cut_causes`: "
                                  "the steps cut per result code of their failed attempts (history.csv's "
-                                 "`cut_codes`; blank where a run's summary has none). Lemke never cut "
-                                 "a step where `extra_steps` is 0, so its proximity band never saturated "
-                                 "(a closing pair outside it fails the attempt: `contact_band`). Where "
+                                 "`cut_codes`; blank where a run's summary has none); `contact_band` "
+                                 "there is an attempt that ended with a closing pair outside Lemke's "
+                                 "proximity band, after which the run widened the band (its `message` "
+                                 "in the table's CSV). Where "
                                  "Lemke left the plan's steps, `lcp_lemke_search` replays them again with "
                                  "Lemke's Newton steps line-searched as `lcp_ssn`'s (the scenes' default "
-                                 "`lemke_search`). Rows with `steps` = "
+                                 "`lemke_search`); on blankholder shapes 2 and 4 only that row was run: "
+                                 "there Lemke's full Newton steps crawl from the draw's start (shape4: "
+                                 "124 to 131 Newton iterations a step after two failed attempts, about 95 s "
+                                 "a step; `--only blankholder_shape4_lcp_lemke`, stopped). Rows with `steps` = "
                                  "`union` (`--union`, where the first pass cut the plan's steps): every "
                                  "algorithm, `lcp_ssn` included, on the union of the steps the first pass "
                                  "accepted, against `lcp_ssn` on those steps.")
