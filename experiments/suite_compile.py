@@ -93,12 +93,28 @@ def pytest_runtest_setup(item):
 
 
 def pytest_unconfigure(config):
+    write_records(config, _records, RECORDS)
+
+
+def write_records(config, records: list, folder: str) -> None:
+    """A process's ``records`` as ``<worker>.json`` in ``folder`` (pytest-xdist's worker id, or main), if any."""
     worker = getattr(config, "workerinput", {}).get("workerid", "main")
-    if not _records:
+    if not records:
         return
-    os.makedirs(RECORDS, exist_ok=True)
-    with open(os.path.join(RECORDS, f"{worker}.json"), "w") as fh:
-        json.dump(_records, fh)
+    os.makedirs(folder, exist_ok=True)
+    with open(os.path.join(folder, f"{worker}.json"), "w") as fh:
+        json.dump(records, fh)
+
+
+def read_records(folder: str) -> list:
+    """Every process's records in ``folder``; exits with a message where there are none."""
+    records = []
+    for path in sorted(glob.glob(os.path.join(folder, "*.json"))):
+        with open(path) as fh:
+            records += json.load(fh)
+    if not records:
+        raise SystemExit(f"no records in {folder}: run the suite with the plugin first (see the docstring)")
+    return records
 
 
 # ---- the summary -------------------------------------------------------------------------------------
@@ -117,12 +133,7 @@ def summarise(records: list) -> tuple[dict, dict]:
 
 
 def main() -> None:
-    records = []
-    for path in sorted(glob.glob(os.path.join(RECORDS, "*.json"))):
-        with open(path) as fh:
-            records += json.load(fh)
-    if not records:
-        raise SystemExit(f"no records in {RECORDS}: run the suite with the plugin first (see the docstring)")
+    records = read_records(RECORDS)
     per_test, totals = summarise(records)
     kinds, stages = ("op by op", "curve", "other"), ("trace", "lower", "xla")
     columns = [f"{k.replace(' ', '_')}_{s}_s" for k in kinds for s in stages] + \

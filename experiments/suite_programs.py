@@ -33,13 +33,13 @@ from __future__ import annotations
 
 import collections
 import csv
-import glob
 import hashlib
-import json
 import os
 import re
 import shutil
 import time
+
+from suite_compile import read_records, write_records
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 RESULTS = os.path.join(HERE, "results")
@@ -91,12 +91,7 @@ def pytest_runtest_setup(item):
 
 
 def pytest_unconfigure(config):
-    worker = getattr(config, "workerinput", {}).get("workerid", "main")
-    if not _records:
-        return
-    os.makedirs(RECORDS, exist_ok=True)
-    with open(os.path.join(RECORDS, f"{worker}.json"), "w") as fh:
-        json.dump(_records, fh)
+    write_records(config, _records, RECORDS)
 
 
 # ---- the summary -------------------------------------------------------------------------------------
@@ -120,12 +115,7 @@ def by_structure(records: list) -> list[dict]:
 
 
 def main() -> None:
-    records = []
-    for path in sorted(glob.glob(os.path.join(RECORDS, "*.json"))):
-        with open(path) as fh:
-            records += json.load(fh)
-    if not records:
-        raise SystemExit(f"no records in {RECORDS}: run the suite with the plugin first (see the docstring)")
+    records = read_records(RECORDS)
     rows = by_structure(records)
     with open(OUT, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(rows[0]))

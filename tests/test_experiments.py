@@ -374,6 +374,26 @@ def test_suite_compile_reads_jax_s_compile_log_and_sorts_programs_by_kind():
     assert per_test["t"][("op by op", "programs")] == 1 and totals[("curve", "xla")] == 2.0
 
 
+def test_suite_programs_groups_one_computation_at_other_sizes_into_one_structure():
+    import suite_programs
+
+    def module(n, op="add"):
+        return (f"func.func public @main(%arg0: tensor<{n}x2xf64>) -> tensor<{n}xf64> {{\n"
+                f"  %0 = stablehlo.slice %arg0 [0:{n}, 1:2] : (tensor<{n}x2xf64>) -> tensor<{n}x1xf64>\n"
+                f"  %1 = stablehlo.constant dense<{n}.5> : tensor<f64>\n"
+                f"  %2 = stablehlo.{op} %0, %1 : tensor<{n}x1xf64>\n}}")
+
+    (p20, s20), (p40, s40), (m20, t20) = (suite_programs.fingerprints(module(20)),
+                                          suite_programs.fingerprints(module(40)),
+                                          suite_programs.fingerprints(module(20, "multiply")))
+    assert p20 != p40 and s20 == s40 and s20 != t20 and p20 != m20
+    rows = suite_programs.by_structure([("tests/test_a.py::t", "main", p20, s20, 3, 1.0),
+                                        ("tests/test_b.py::u", "main", p40, s40, 3, 3.0),
+                                        ("tests/test_b.py::v", "main", m20, t20, 3, 0.5)])
+    assert [(r["programs"], r["compile_s"], r["one_program_s"], r["beyond_one_s"], r["tests"]) for r in rows] == \
+        [(2, 4.0, 3.0, 1.0, "test_a.py test_b.py"), (1, 0.5, 0.5, 0.0, "test_b.py")]
+
+
 def test_bench_preselection_times_the_pairs_with_and_without_the_selection():
     import bench_preselection
 
