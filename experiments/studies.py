@@ -870,7 +870,7 @@ def common_steps(opts) -> None:
                                  "in the table's CSV). Where "
                                  "Lemke left the plan's steps, `lcp_lemke_search` replays them again with "
                                  "Lemke's Newton steps line-searched as `lcp_ssn`'s (the scenes' default "
-                                 "`lemke_search`); on blankholder shapes 2 and 4 only that row was run: "
+                                 "`lemke_search`); on blankholder shapes 2, 4 and 7 only that row was run: "
                                  "there Lemke's full Newton steps crawl from the draw's start (shape4: "
                                  "124 to 131 Newton iterations a step after two failed attempts, about 95 s "
                                  "a step; `--only blankholder_shape4_lcp_lemke`, stopped). Rows with `steps` = "
