@@ -229,11 +229,11 @@ def _on_disk(study: str, name: str) -> bool:
     return os.path.exists(os.path.join(ROOT, study, "runs", name, "summary.json"))
 
 
-def _want(opts, study: str, name: str) -> bool:
+def _want(opts, study: str, name: str, optional: bool = False) -> bool:
     """Whether case ``name`` enters the table: selected, or not selected but already on disk (read back).
-    Cases left out are listed in the section (``opts.missing``)."""
+    Cases left out are listed in the section (``opts.missing``), unless ``optional``."""
     ok = _selected(opts, name) or _on_disk(study, name)
-    if not ok:
+    if not ok and not optional:
         opts.missing.append(name)
     return ok
 
@@ -807,10 +807,12 @@ def common_steps(opts) -> None:
     for name, variant in _variants():
         got: dict = {}
 
-        def take(key, algorithm, label, steps=None, overrides=None):
+        def take(key, algorithm, label, steps=None, overrides=None, optional=False):
+            """Case ``label`` into ``got[key]``: read back, or run where wanted (``optional``: not listed as
+            missing where it is not)."""
             if label in kept and os.path.exists(_curves_path(study, label)):
                 got[key] = _case_from_curves(study, label, kept[label], COMMON_COLUMNS)
-            elif _want(opts, study, label):
+            elif _want(opts, study, label, optional):
                 got[key] = case(study, label, name, variant, algorithm, overrides or {}, opts, steps=steps)
                 cases.append(got[key])
                 if got[key]["dir"]:
@@ -826,13 +828,12 @@ def common_steps(opts) -> None:
             for algorithm in COMMON_REPLAYS:
                 take(algorithm, algorithm, f"{group}_{algorithm}", np.asarray(plan["history"]["time"][1:]),
                      _full_steps(algorithm))
-            lemke, searched = got.get("lcp_lemke"), f"{group}_{SEARCHED}"
-            left_plan = lemke is not None and lemke["summary"].get("n_steps") != plan["summary"].get("n_steps")
-            asked = searched in kept or _selected(opts, searched) or _on_disk(study, searched)
-            if left_plan or (lemke is None and asked):
-                # Lemke's full Newton steps left the plan, or were not run (where they crawl: the blankholder's
-                # long lands): line-searched as lcp_ssn's (the scenes' default).
-                take(SEARCHED, "lcp_lemke", searched, np.asarray(plan["history"]["time"][1:]), {"lemke_search": True})
+            lemke = got.get("lcp_lemke")
+            if lemke is None or lemke["summary"].get("n_steps") != plan["summary"].get("n_steps"):
+                # Lemke's full Newton steps left the plan: line-searched as lcp_ssn's (the scenes' default); where
+                # they were not run (they crawl on the blankholder's long lands), only if asked for or on disk.
+                take(SEARCHED, "lcp_lemke", f"{group}_{SEARCHED}", np.asarray(plan["history"]["time"][1:]),
+                     {"lemke_search": True}, optional=lemke is None)
         rows += [_common_row(name, variant, a, got[a], plan) for a in (*first, SEARCHED) if a in got]
         done = [got[a] for a in first if a in got and got[a]["summary"].get("converged") and got[a]["history"]]
         if opts.union and len(done) == len(first) and any(c["summary"].get("n_steps") != plan["summary"].get("n_steps")
