@@ -306,8 +306,10 @@ def test_a_cycle_of_active_sets_ends_with_the_increment_of_all_its_passes(monkey
     np.testing.assert_array_equal(cut.history.newton_iters[:n], full.history.newton_iters[:n])
     passes_cut, passes_full = (np.asarray(r.history.solver_stats[:n]) for r in runs)
     np.testing.assert_array_equal(passes_cut[:, 2], passes_full[:, 2])     # iterations left cycling
-    assert passes_full[:, 2].sum() > 0                                     # measured: 37
-    assert passes_cut[:, 1].sum() < 0.6 * passes_full[:, 1].sum()         # measured: 1221 against 2854
+    # Measured at the fast suite's XLA settings: 118 iterations left cycling, in the pull's last steps
+    # (rows 146 to 167 of 172); 1723 passes against 6994.
+    assert passes_full[:, 2].sum() > 0
+    assert passes_cut[:, 1].sum() < 0.6 * passes_full[:, 1].sum()
 
 
 @pytest.mark.slow  # the Nine at 300 x 3 to the end of its draw, about a minute (make test-all)

@@ -149,18 +149,19 @@ def _last_force_derivatives(par, algorithm: str, steps) -> tuple[np.ndarray, np.
     1e-6 (the test below says why)."""
     f = path_function(par, newton=NewtonOptions(du_rtol=1e-6, max_iterations=60) if algorithm == "lcp_ssn" else None)
 
-    @jax.jit
     def force(p):
         hist, _ = f(p)
         return hist.observed["drawing_force"][hist.n_rows - 1]
 
+    # One compiled program gives both: the forward derivative along a unit vector, and the values at the
+    # shifted parameters (along a zero tangent).
+    with_tangent = jax.jit(lambda p, v: jax.jvp(force, (p,), (v,)))
     p0 = jnp.asarray(par.p0)
-    grad = np.asarray(jax.jacfwd(force)(p0))
-    fd = []
-    for i, h in enumerate(steps):
-        e = np.zeros(len(steps))
-        e[i] = h
-        fd.append((float(force(p0 + e)) - float(force(p0 - e))) / (2 * h))
+    unit = np.eye(len(steps))
+    grad = np.array([float(with_tangent(p0, jnp.asarray(e))[1]) for e in unit])
+    zero = jnp.zeros(len(steps))
+    fd = [(float(with_tangent(p0 + h * e, zero)[0]) - float(with_tangent(p0 - h * e, zero)[0])) / (2 * h)
+          for h, e in zip(steps, unit, strict=True)]
     return grad, np.array(fd)
 
 
