@@ -27,6 +27,15 @@ The summary's rows, largest first: per structure its compile seconds in all, the
 fingerprints) and compilations, the seconds a single program of the structure would have taken (the
 largest compilation), what the rest cost (``beyond_one_s``), and the tests.
 Command lines that tests start in a new process are not recorded.
+
+The plugin also records each run program that :func:`jaxfric.run` compiles (its start and chunk,
+:func:`jaxfric.loadpath.run._compile`) with the model's configuration: the tools, the mesh, the element
+formulation, the contact formulation, the material, the snapshot and the Newton and step-control options,
+and a digest of the model's structure (its pytree definition, static fields included: the mesh's node
+numbers among them, so another mesh is another structure). The summary writes
+``experiments/results/suite_programs_runs.csv`` (one row per compilation) and prints how many model
+configurations there are and which of them share a model structure, differing only in the options
+(those would compile once if the options were data).
 """
 
 from __future__ import annotations
@@ -44,7 +53,10 @@ from suite_compile import read_records, write_records
 HERE = os.path.dirname(os.path.abspath(__file__))
 RESULTS = os.path.join(HERE, "results")
 RECORDS = os.path.join(RESULTS, "suite_programs_records")
+RUN_RECORDS = os.path.join(RESULTS, "suite_programs_runs_records")
 OUT = os.path.join(RESULTS, "suite_programs.csv")
+RUNS_OUT = os.path.join(RESULTS, "suite_programs_runs.csv")
+OPTIONS = ("snapshot", "newton", "control")   # a run program's options besides the model
 
 _DENSE = re.compile(r"dense<[^>]*>")
 _NAME = re.compile(r"@[A-Za-z0-9_.$-]+")
@@ -77,13 +89,47 @@ def _wrap(compile_or_get_cached):
     return recorded
 
 
+_run_records: list = []
+
+
+def describe_run(model, newton, control, snapshot) -> dict:
+    """A run program's configuration (module docstring): what tells the suite's run programs apart."""
+    import jax
+
+    mesh = model.mesh
+    contact = model.contact
+    return {"tools": " ".join(t.name for t in model.tools) or "-",
+            "mesh": f"{mesh.nx}x{mesh.ny}" + ("" if mesh.order == 1 else f" order {mesh.order}"),
+            "formulation": model.formulation,
+            "contact": "-" if contact is None else type(contact).__name__ + (
+                f" {contact.solver}" if hasattr(contact, "solver") else ""),
+            "material": type(model.material).__name__,
+            "snapshot": "-" if snapshot is None else type(snapshot).__name__,
+            "newton": repr(newton), "control": repr(control),
+            "structure": hashlib.sha1(str(jax.tree_util.tree_structure(model)).encode()).hexdigest()[:16]}
+
+
+def _wrap_run(compile_run):
+    def recorded(model, newton, control, observe, snapshot):
+        t = time.perf_counter()
+        out = compile_run(model, newton, control, observe, snapshot)
+        _run_records.append({"test": _current["test"], "seconds": round(time.perf_counter() - t, 3),
+                             **describe_run(model, newton, control, snapshot)})
+        return out
+    return recorded
+
+
 def pytest_configure(config):
     from jax._src import compiler
     from jax._src.interpreters import pxla
 
+    from jaxfric.loadpath import run
+
     if not hasattr(config, "workerinput"):     # the run's first process: earlier records go
         shutil.rmtree(RECORDS, ignore_errors=True)
+        shutil.rmtree(RUN_RECORDS, ignore_errors=True)
     pxla.compiler.compile_or_get_cached = _wrap(compiler.compile_or_get_cached)
+    run._compile = _wrap_run(run._compile)
 
 
 def pytest_runtest_setup(item):
@@ -92,6 +138,7 @@ def pytest_runtest_setup(item):
 
 def pytest_unconfigure(config):
     write_records(config, _records, RECORDS)
+    write_records(config, _run_records, RUN_RECORDS)
 
 
 # ---- the summary -------------------------------------------------------------------------------------
@@ -114,7 +161,43 @@ def by_structure(records: list) -> list[dict]:
     return sorted(rows, key=lambda r: -r["compile_s"])
 
 
+def shared_structures(runs: list) -> list[dict]:
+    """The model structures compiled with more than one set of options: per structure, its configurations'
+    compilations, seconds and tests, and the options that differ."""
+    groups: dict = collections.defaultdict(list)
+    for r in runs:
+        groups[r["structure"]].append(r)
+    out = []
+    for structure, recs in groups.items():
+        configurations = {tuple(r[k] for k in OPTIONS) for r in recs}
+        if len(configurations) > 1:
+            out.append({"structure": structure, "tools": recs[0]["tools"], "mesh": recs[0]["mesh"],
+                        "compilations": len(recs), "seconds": round(sum(r["seconds"] for r in recs), 1),
+                        "differ": [k for i, k in enumerate(OPTIONS) if len({c[i] for c in configurations}) > 1],
+                        "tests": sorted({(r["test"] or "").split("::")[0].removeprefix("tests/") for r in recs})})
+    return sorted(out, key=lambda r: -r["seconds"])
+
+
+def summarise_runs(runs: list) -> None:
+    """Writes :data:`RUNS_OUT` and prints the run programs' configurations (module docstring)."""
+    fields = ["test", "seconds", "tools", "mesh", "formulation", "contact", "material", *OPTIONS, "structure"]
+    with open(RUNS_OUT, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(sorted(runs, key=lambda r: (r["tools"], r["mesh"], r["test"] or "")))
+    configurations = {(r["structure"], *(r[k] for k in OPTIONS)) for r in runs}
+    print(f"run programs (jaxfric.run's start and chunk): {len(runs)} compilations, "
+          f"{sum(r['seconds'] for r in runs):.0f} s (tracing included), {len(configurations)} configurations of "
+          f"{len({r['structure'] for r in runs})} model structures")
+    for row in shared_structures(runs):
+        print(f"  one model structure ({row['tools']}, {row['mesh']}), other {' and '.join(row['differ'])}: "
+              f"{row['compilations']} compilations, {row['seconds']} s ({', '.join(row['tests'])})")
+    print(f"wrote {RUNS_OUT}")
+
+
 def main() -> None:
+    if os.path.isdir(RUN_RECORDS):
+        summarise_runs(read_records(RUN_RECORDS))
     records = read_records(RECORDS)
     rows = by_structure(records)
     with open(OUT, "w", newline="") as fh:

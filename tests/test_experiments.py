@@ -394,6 +394,45 @@ def test_suite_programs_groups_one_computation_at_other_sizes_into_one_structure
         [(2, 4.0, 3.0, 1.0, "test_a.py test_b.py"), (1, 0.5, 0.5, 0.0, "test_b.py")]
 
 
+def test_suite_programs_tells_run_programs_apart_by_model_structure_and_options():
+    """A scene on two meshes is two model structures; one structure run with other Newton options is one
+    structure with two configurations, listed as differing in those options only."""
+    import suite_programs
+    from jaxfric import scenes
+    from jaxfric.numerics.newton import NewtonOptions
+
+    coarse, fine = (scenes.make("flat_die", None, "lcp_ssn", {"mesh": m}) for m in ("6x1", "8x1"))
+    a = suite_programs.describe_run(coarse.model, coarse.newton, coarse.control, None)
+    b = suite_programs.describe_run(coarse.model, NewtonOptions(rtol=1e-10), coarse.control, None)
+    c = suite_programs.describe_run(fine.model, coarse.newton, coarse.control, None)
+    assert (a["tools"], a["mesh"], a["formulation"], a["contact"], a["snapshot"]) == \
+        ("die", "6x1", coarse.model.formulation, "Complementarity ssn", "-")
+    assert a["structure"] == b["structure"] != c["structure"] and a["newton"] != b["newton"]
+    runs = [{**r, "test": f"tests/test_{k}.py::t", "seconds": 1.0} for k, r in zip("abc", (a, b, c), strict=True)]
+    (shared,) = suite_programs.shared_structures(runs)
+    assert (shared["mesh"], shared["compilations"], shared["differ"], shared["tests"]) == \
+        ("6x1", 2, ["newton"], ["test_a.py", "test_b.py"])
+
+
+def test_blankholder_penalty_newton_counts_each_phase_and_names_the_cut_causes():
+    """Row 0 (the initial state) is no step; a cut step's causes are read from its bit mask (bit k: Result k)."""
+    import types
+
+    import blankholder_penalty_newton
+    from jaxfric.numerics.results import Result
+
+    history = {"phase_name": np.array(["close", "close", "close", "draw", "draw"]),
+               "newton_iters": np.array([0, 4, 30, 5, 6]), "cutbacks": np.array([0, 0, 2, 0, 1]),
+               "cut_codes": np.array([0, 0, (1 << Result.MAX_ITERATIONS) | (1 << Result.INVERTED_ELEMENT), 0,
+                                      1 << Result.MAX_ITERATIONS]),
+               "drawing_force": np.array([0.0, 0.0, 0.0, 1.0, 2.0]), "clamping_force": np.full(5, 3.0)}
+    result = types.SimpleNamespace(history=history, wall_s=1.5, converged=True)
+    rows = blankholder_penalty_newton.phase_rows("penalty", result)
+    assert [(r["phase"], r["steps"], r["newton_iterations"], r["cut_steps"], r["cut_causes"]) for r in rows] == \
+        [("close", 2, 34, 1, "inverted_element:1 max_iterations:1"), ("draw", 2, 11, 1, "max_iterations:1")]
+    assert rows[0]["drawing_force_end"] == 2.0
+
+
 def test_bench_preselection_times_the_pairs_with_and_without_the_selection():
     import bench_preselection
 
