@@ -11,8 +11,9 @@ their causes, and the solve's wall time, with the drawing and clamping forces at
 
 Then, for the penalty law and for the largest S, takes the state converged at the first step end at or
 beyond ``--at`` mm of draw and solves the next nominal increment by hand from it (not from the secant
-prediction): Newton steps on :func:`jaxfric.contact.system.linearize` with the solver's line search (the
-full step, a quarter, a sixteenth, the first that does not raise the residual's norm). Per iteration: the
+prediction): Newton steps on :func:`jaxfric.contact.system.linearize` with the solver's line search
+(``stiff_penalty_newton.searched_step``: the full step, a quarter, a sixteenth, the first that does not raise
+the residual's norm). Per iteration: the
 step length, the residual before and after (max norm, N/mm), and the pairs whose status changed (open 0,
 stick 1, slip 2) by kind, with the largest gap (mm) and normal force (N/mm) among them. Writes
 ``experiments/results/blankholder_penalty_newton_trace.csv``.
@@ -33,13 +34,10 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxfric.contact.system import linearize  # noqa: E402
-from jaxfric.loadpath.model import tool_positions  # noqa: E402
 from jaxfric.loadpath.run import run  # noqa: E402
-from jaxfric.loadpath.step import StepContext, step_args, unknowns  # noqa: E402
-from jaxfric.numerics.linalg import linear_solve  # noqa: E402
 from jaxfric.numerics.results import causes  # noqa: E402
 from jaxfric.scenes import make  # noqa: E402
+from stiff_penalty_newton import by_hand, searched_step  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 RUNS_OUT = os.path.join(HERE, "results", "blankholder_penalty_newton.csv")
@@ -83,20 +81,12 @@ def trace(label: str, scene, result, at: float) -> list[dict]:
     model = scene.model
     pull = float(scene.config.U_pull)
     t = float(h["time"][row]) + float(scene.config.dU) / pull
-    args, _, _ = step_args(model, state, int(state.phase), t, StepContext.build(model))
-    lin_at = jax.jit(lambda x: linearize(x, args))
-    solve = jax.jit(linear_solve)
-    x = unknowns(model, state.u, tool_positions(state))
-    lin = lin_at(x)
+    lin_at, x, lin = by_hand(model, state, t)
     opts = scene.newton
     tol = opts.atol + opts.rtol * max(float(lin.scale), 1e-6)
     out = []
     for k in range(ITERATIONS):
-        dx = solve(lin.jacobian, -lin.residual)
-        for alpha in (1.0, 0.25, 1.0 / 16.0):
-            new = lin_at(x + alpha * dx)
-            if jnp.sum(new.residual**2) <= jnp.sum(lin.residual**2):
-                break
+        dx, alpha, new = searched_step(lin_at, x, lin)
         before, after = (jax.tree_util.tree_map(np.asarray, v.aux[2]) for v in (lin, new))
         changed = np.flatnonzero(before["status"] != after["status"])
         kinds = collections.Counter(KINDS[(int(before["status"][i]), int(after["status"][i]))] for i in changed)

@@ -35,6 +35,30 @@ from jaxfric.scenes import make  # noqa: E402
 NINE = {"mesh": "30x2", "stroke": 3.0, "dq_clamp": 0.5, "U_draw": 1.0, "dU": 0.25}
 
 
+def by_hand(model, state, t: float):
+    """The step to pseudo-time ``t`` from the converged ``state``, for Newton by hand: the jitted
+    linearisation (:func:`jaxfric.contact.system.linearize`), the start point and its linearisation."""
+    args, _, _ = step_args(model, state, int(state.phase), t, StepContext.build(model))
+    lin_at = jax.jit(lambda x: linearize(x, args))
+    x = unknowns(model, state.u, tool_positions(state))
+    return lin_at, x, lin_at(x)
+
+
+_solve = jax.jit(linear_solve)
+
+
+def searched_step(lin_at, x, lin):
+    """One Newton step from ``x`` (linearised as ``lin``) with the solver's line search: the full step, a
+    quarter, a sixteenth, the first that does not raise the residual's norm (the last otherwise). Returns
+    (the full correction, the step length taken, the linearisation there)."""
+    dx = _solve(lin.jacobian, -lin.residual)
+    for alpha in (1.0, 0.25, 1.0 / 16.0):
+        new = lin_at(x + alpha * dx)
+        if jnp.sum(new.residual**2) <= jnp.sum(lin.residual**2):
+            break
+    return dx, alpha, new
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--eps-n", type=float, default=1e9)
@@ -58,22 +82,14 @@ def main(argv=None) -> None:
         return
     state, t = res.simulation.final, float(res.simulation.failed_time)
     model = scene.model
-    args, _, _ = step_args(model, state, int(state.phase), t, StepContext.build(model))
-    lin_at = jax.jit(lambda x: linearize(x, args))
-    solve = jax.jit(linear_solve)
-    x = unknowns(model, state.u, tool_positions(state))
-    lin = lin_at(x)
+    lin_at, x, lin = by_hand(model, state, t)
     opts = scene.newton
     print(f"step t {t:.9g}; residual tolerance at the start point "
           f"{opts.atol + opts.rtol * max(float(lin.scale), 1e-6):.3e} N/mm "
           f"(scale |f_int| {float(lin.scale):.4g} N/mm)")
     for k in range(a.iterations):
-        dx = solve(lin.jacobian, -lin.residual)
+        dx, alpha, new = searched_step(lin_at, x, lin)
         lin_res = float(jnp.max(jnp.abs(lin.jacobian.matvec(dx) + lin.residual)))  # linear solve's own residual
-        for alpha in (1.0, 0.25, 1.0 / 16.0):
-            new = lin_at(x + alpha * dx)
-            if jnp.sum(new.residual**2) <= jnp.sum(lin.residual**2):
-                break
         before, after = lin.aux[2], new.aux[2]
         changed = np.nonzero(np.asarray(before["status"] != after["status"]))[0]
         pairs = [f"pair {i}: {int(before['status'][i])}->{int(after['status'][i])}, gap {float(before['gap'][i]):.2e}"
