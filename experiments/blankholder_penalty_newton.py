@@ -9,21 +9,19 @@ softplus law of :mod:`jaxfric.contact.laws`); per run and phase its steps, Newto
 their causes, and the solve's wall time, with the drawing and clamping forces at the end. Writes
 ``experiments/results/blankholder_penalty_newton.csv``.
 
-Then, for the penalty law and for the largest S, takes the state converged at the first step end at or
-beyond ``--at`` mm of draw and solves the next nominal increment by hand from it (not from the secant
+Then, for the penalty law and for the last ``--smoothing`` S, takes the state converged at the first step end
+at or beyond ``--at`` mm of draw and solves the next nominal increment by hand from it (not from the secant
 prediction): Newton steps on :func:`jaxfric.contact.system.linearize` with the solver's line search
 (``stiff_penalty_newton.searched_step``: the full step, a quarter, a sixteenth, the first that does not raise
-the residual's norm). Per iteration: the
-step length, the residual before and after (max norm, N/mm), and the pairs whose status changed (open 0,
-stick 1, slip 2) by kind, with the largest gap (mm) and normal force (N/mm) among them. Writes
-``experiments/results/blankholder_penalty_newton_trace.csv``.
+the residual's norm). Per iteration: the step length, the residual before and after (max norm, N/mm), and
+the pairs whose status changed (open 0, stick 1, slip 2) by kind, with the largest gap (mm) and normal force
+(N/mm) among them. Writes ``experiments/results/blankholder_penalty_newton_trace.csv``.
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
-import csv
 import dataclasses
 import os
 
@@ -34,6 +32,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from benchutil import write_rows  # noqa: E402
 from jaxfric.loadpath.run import run  # noqa: E402
 from jaxfric.numerics.results import causes  # noqa: E402
 from jaxfric.scenes import make  # noqa: E402
@@ -104,14 +103,6 @@ def trace(label: str, scene, result, at: float) -> list[dict]:
     return out
 
 
-def _write(path: str, rows: list[dict]) -> None:
-    with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"wrote {path}")
-
-
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--variant", default="shape1")
@@ -135,8 +126,8 @@ def main(argv=None) -> None:
             last = traces[-1]
             print(f"{label:>16} traced step after U = {last['u_draw']:.3f} mm: {last['iteration'] + 1} iterations, "
                   f"{sum(r['status_changes'] for r in traces if r['run'] == label)} status changes")
-    _write(RUNS_OUT, runs)
-    _write(TRACE_OUT, traces)
+    write_rows(RUNS_OUT, runs)
+    write_rows(TRACE_OUT, traces)
 
 
 if __name__ == "__main__":
