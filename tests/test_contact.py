@@ -2,6 +2,7 @@
 Lagrangian, penetration law, Hertz, capstan, objectivity, derivatives, bad input."""
 
 import dataclasses
+import functools
 
 import equinox as eqx
 import jax
@@ -10,7 +11,13 @@ import numpy as np
 import pytest
 
 import jaxfric as jf
-from jaxfric.contact.formulations import AugmentedLagrangian, Complementarity, Penalty, StiffPenalty
+from jaxfric.contact.formulations import (
+    AugmentedLagrangian,
+    Complementarity,
+    ExactStartPenalty,
+    Penalty,
+    StiffPenalty,
+)
 from jaxfric.contact.rigid import Force, Move, RigidTool
 from jaxfric.contact.tools import Tool
 from models import STEEL, flat_die_strip, wrapped_strip
@@ -207,21 +214,70 @@ def test_objectivity_of_frictional_contact_under_rotation():
 TIGHT = jf.NewtonOptions(rtol=1e-12, atol=1e-10)
 
 
+def _exit_tension(law, mu):
+    """The sliding capstan's exit tension with the contact formulation ``law(mu)``, the run's result code
+    and its Newton iterations."""
+    model, _, d2 = capstan_model(mu=mu)
+    sim = jf.simulate(dataclasses.replace(model, contact=law(mu)), newton=TIGHT)
+    h = sim.history
+    return h.observed["reaction_right"][h.n_rows - 1] @ jnp.asarray(d2), sim.code, jnp.sum(h.newton_iters)
+
+
+@functools.cache
+def _capstan_with_tangent(start: str):
+    """The compiled exit tension (:func:`_exit_tension`) and its forward derivative in mu, with the capstan's
+    penalty law (eps_n = 1e6, eps_t = mu eps_n) started from the load loop's guess ("plain") or from exact
+    contact ("exact"): one program per law for the tests of this file (one pytest worker per file)."""
+    law = {"plain": Penalty, "exact": ExactStartPenalty}[start]
+    return jax.jit(lambda mu: jax.jvp(lambda m: _exit_tension(lambda k: law(1e6, 1e6 * k), m), (mu,),
+                                      (jnp.ones_like(mu),)))
+
+
 def test_jvp_of_sliding_force_with_respect_to_mu():
     """Exit tension of the fully sliding capstan: forward derivative in mu vs central differences."""
-
-    @jax.jit
-    def exit_tension(mu):
-        model, _, d2 = capstan_model(mu=mu)
-        sim = jf.simulate(model, newton=TIGHT)
-        return sim.history.observed["reaction_right"][sim.history.n_rows - 1] @ jnp.asarray(d2)
-
     # One compiled function (the primal and its tangent) serves the derivative and the differences.
-    with_tangent = jax.jit(lambda mu: jax.jvp(exit_tension, (mu,), (jnp.ones_like(mu),)))
-    _, tangent = with_tangent(jnp.asarray(0.2))
+    with_tangent = _capstan_with_tangent("plain")
+    _, (tangent, _, _) = with_tangent(jnp.asarray(0.2))
     h = 1e-5
-    fd = (with_tangent(jnp.asarray(0.2 + h))[0] - with_tangent(jnp.asarray(0.2 - h))[0]) / (2 * h)
+    fd = (with_tangent(jnp.asarray(0.2 + h))[0][0] - with_tangent(jnp.asarray(0.2 - h))[0][0]) / (2 * h)
     np.testing.assert_allclose(float(tangent), float(fd), rtol=1e-6)
+
+
+def test_exact_start_gives_the_penalty_law_s_solution_and_derivative():
+    """The sliding capstan (eps_n = 1e6, where the plain penalty law takes every nominal step): every step
+    started from exact contact (ExactStartPenalty) converges to the plain law's solution, its exit tension
+    within Newton's tolerance of the plain law's (measured 2e-15 relative), with the same forward
+    derivative in mu (the implicit function theorem at the same solution), in 81 Newton iterations of
+    both solves against the plain law's 223."""
+    (plain, plain_code, plain_its), (plain_dot, _, _) = _capstan_with_tangent("plain")(jnp.asarray(0.2))
+    (started, code, its), (started_dot, _, _) = _capstan_with_tangent("exact")(jnp.asarray(0.2))
+    assert int(plain_code) == 0 and int(code) == 0
+    np.testing.assert_allclose(float(started), float(plain), rtol=1e-9)
+    np.testing.assert_allclose(float(started_dot), float(plain_dot), rtol=1e-8)
+    assert int(its) < int(plain_its)
+
+
+@pytest.mark.slow  # 2 min: exact contact's and the AL's derivatives compiled
+def test_auglag_exact_start_takes_exact_contact_s_step_and_derivative():
+    """The sliding capstan: the augmented Lagrangian started from exact contact (``exact_start``) stops at
+    exact contact's solution, its fixed point, without an augmentation: exit tension within 1e-10 of
+    ``lcp_ssn``'s (measured 1e-13) in one Newton iteration a step more (61 against 41; the plain AL 168),
+    and the forward derivative in mu that ``lcp_ssn``'s implicit derivative gives (measured 2e-12),
+    carried by the multipliers into the AL's implicit function theorem; central differences agree."""
+    exact = jax.jit(lambda mu: jax.jvp(lambda m: _exit_tension(lambda k: Complementarity("ssn"), m), (mu,),
+                                       (jnp.ones_like(mu),)))
+    (value, code, its), (tangent, _, _) = exact(jnp.asarray(0.2))
+    started = jax.jit(lambda mu: jax.jvp(
+        lambda m: _exit_tension(lambda k: AugmentedLagrangian(1e6, 1e6 * k, exact_start=True), m), (mu,),
+        (jnp.ones_like(mu),)))
+    (al_value, al_code, al_its), (al_tangent, _, _) = started(jnp.asarray(0.2))
+    assert int(code) == 0 and int(al_code) == 0
+    np.testing.assert_allclose(float(al_value), float(value), rtol=1e-10)
+    np.testing.assert_allclose(float(al_tangent), float(tangent), rtol=1e-9)
+    assert int(al_its) <= int(its) + 20   # one iteration in each of the 20 steps
+    h = 1e-5
+    fd = (started(jnp.asarray(0.2 + h))[0][0] - started(jnp.asarray(0.2 - h))[0][0]) / (2 * h)
+    np.testing.assert_allclose(float(al_tangent), float(fd), rtol=1e-6)
 
 
 @pytest.mark.slow  # 2 min: the exact solver compiled with the penalty's derivative
@@ -232,19 +288,13 @@ def test_stiff_penalty_finishes_where_the_plain_law_does_not_with_its_derivative
     per N/mm), and its forward derivative in mu equals central differences. No tangent reaches the
     exact solve, which has none."""
 
-    def exit_tension(law, mu):
-        model, _, d2 = capstan_model(mu=mu)
-        model = dataclasses.replace(model, contact=law(mu))
-        sim = jf.simulate(model, newton=TIGHT)
-        return sim.history.observed["reaction_right"][sim.history.n_rows - 1] @ jnp.asarray(d2), sim.code
-
-    plain = jax.jit(lambda mu: exit_tension(lambda m: Penalty(1e9, 1e9 * m), mu))(jnp.asarray(0.2))
+    plain = jax.jit(lambda mu: _exit_tension(lambda m: Penalty(1e9, 1e9 * m), mu))(jnp.asarray(0.2))
     assert int(plain[1]) != 0
-    exact = jax.jit(lambda mu: exit_tension(lambda m: Complementarity("ssn"), mu))(jnp.asarray(0.2))
+    exact = jax.jit(lambda mu: _exit_tension(lambda m: Complementarity("ssn"), mu))(jnp.asarray(0.2))
     assert int(exact[1]) == 0
-    with_tangent = jax.jit(lambda mu: jax.jvp(lambda m: exit_tension(lambda k: StiffPenalty(1e9, 1e9 * k), m),
+    with_tangent = jax.jit(lambda mu: jax.jvp(lambda m: _exit_tension(lambda k: StiffPenalty(1e9, 1e9 * k), m),
                                               (mu,), (jnp.ones_like(mu),)))
-    (value, code), (tangent, _) = with_tangent(jnp.asarray(0.2))
+    (value, code, _), (tangent, _, _) = with_tangent(jnp.asarray(0.2))
     assert int(code) == 0
     np.testing.assert_allclose(float(value), float(exact[0]), rtol=1e-5)
     h = 1e-5

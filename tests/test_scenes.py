@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxfric.contact.formulations import ExactStartPenalty, Penalty
 from jaxfric.contact.rigid import pair_nodes
 from jaxfric.contact.tools import project
 from jaxfric.fem.loading import schedule
@@ -388,11 +389,17 @@ def test_max_augmentations_field_reaches_the_law(scene):
 
 
 @pytest.mark.parametrize("scene", ["flat_die", "bead", "nine", "blankholder"])
-def test_lemke_search_field_reaches_the_law(scene):
-    """Every scene's ``lemke_search`` (default True) is lcp_lemke's line search; lcp_ssn has its own."""
+def test_solver_fields_reach_the_law(scene):
+    """Every scene's ``lemke_search`` (default True) is lcp_lemke's line search; lcp_ssn has its own.
+    Its ``exact_start`` (default False) makes the penalty law ExactStartPenalty and starts the augmented
+    Lagrangian from exact contact; exact contact ignores it."""
     assert make(scene, None, "lcp_lemke").model.contact.search is True
     assert make(scene, None, "lcp_lemke", overrides={"lemke_search": False}).model.contact.search is False
     assert make(scene, None, "lcp_ssn", overrides={"lemke_search": False}).model.contact.solver == "ssn"
+    assert type(make(scene, None, "penalty").model.contact) is Penalty
+    assert type(make(scene, None, "penalty", overrides={"exact_start": True}).model.contact) is ExactStartPenalty
+    assert make(scene, None, "auglag", overrides={"exact_start": True}).model.contact.exact_start is True
+    assert make(scene, None, "lcp_ssn", overrides={"exact_start": True}).model.contact.solver == "ssn"
 
 
 @pytest.mark.parametrize("scene", ["flat_die", "nine"])

@@ -37,7 +37,7 @@ from .system import StepArgs, linearize, residual
 
 __all__ = ["ALGORITHMS", "DIFFERENTIABLE_ALGORITHMS", "AbstractContactFormulation", "Penalty",
            "AugmentedLagrangian", "Complementarity", "StepSolution", "formulation", "from_newton", "newton_step",
-           "StiffPenalty", "STIFF_PENALTY_RATIO"]
+           "StiffPenalty", "ExactStartPenalty", "exact_start_point", "STIFF_PENALTY_RATIO"]
 
 
 class StepSolution(NamedTuple):
@@ -203,15 +203,47 @@ class Penalty(_Regularised):
         return eqx.tree_at(lambda law: (law.eps_n, law.eps_t), self, (self.eps_n * scale, self.eps_t * scale))
 
 
+def _penalty_from_exact(law: Penalty, args: StepArgs, x0, x_ref, newton: NewtonOptions, search=True,
+                        stage=False) -> StepSolution:
+    """The penalty law's step attempt started from exact contact: the step solved with exact contact
+    (:class:`Complementarity`, semismooth Newton) from ``x0``, every closed pair's node then pushed R_N / eps_n
+    into its tool (where the penalty law gives the exact normal force), and the penalty's Newton solve from
+    there (from ``x0`` where the exact solve fails). The solution is the penalty law's; only Newton's
+    starting point changes. No tangent reaches the exact solve, which has no derivative: the step is
+    differentiated at its converged solution, as :class:`Penalty`'s. ``iterations`` counts both solves'
+    Newton iterations, ``hardest`` the larger of the two.
+
+    ``args.contact.lam_n`` is the exact solve's guess of its first active set (the last converged normal
+    forces where the formulation's ``warm_start`` puts them there); the penalty solve takes lambda_N = 0."""
+    start, penalty, exact = exact_start_point(law, args, x0, x_ref, newton)
+    sol = newton_step(penalty, start, x_ref, newton, search, stage)
+    return sol._replace(iterations=exact.iterations + sol.iterations,
+                        hardest=jnp.maximum(exact.iterations, sol.iterations))
+
+
+def exact_start_point(law: Penalty, args: StepArgs, x0, x_ref, newton: NewtonOptions):
+    """``(start, penalty_args, exact)``: the penalty law's Newton start of :func:`_penalty_from_exact` (the
+    exact solution with every closed pair's node pushed R_N / eps_n into its tool, or ``x0`` where the exact
+    solve failed), the step's data with the penalty law's lambda_N = 0, and the exact solve's
+    :class:`StepSolution`. No tangent reaches the exact solve."""
+    contact = args.contact
+    assert contact is not None   # a step with tools
+    frozen = jax.tree_util.tree_map(lambda a: jax.lax.stop_gradient(a) if eqx.is_array(a) else a, (args, x0, x_ref))
+    exact = from_newton(*exact_solve(*frozen, options=newton, law=Complementarity("ssn")))
+    nodes = pair_nodes(contact.tools)
+    _, _, c = cast(tuple, exact.aux)   # (f_int, point states, contact output)
+    push = -(c["rn"] / law.eps_n)[:, None] * c["normal"]   # gap -R_N / eps_n on every closed pair
+    start = exact.x.at[2 * nodes].add(push[:, 0]).at[2 * nodes + 1].add(push[:, 1])
+    start = jnp.where(exact.code == Result.SUCCESS, start, jax.lax.stop_gradient(x0))
+    penalty = eqx.tree_at(lambda a: a.contact.lam_n, args, jax.tree_util.tree_map(jnp.zeros_like, contact.lam_n))
+    return start, penalty, exact
+
+
 class StiffPenalty(Penalty):
     """The penalty law for penalties far stiffer than a scene's own (:func:`formulation` picks it above
     ``stiff_above``: the scenes give ``STIFF_PENALTY_RATIO`` times their spec penalty). An attempt is
-    the plain law's Newton solve; where that fails, the step is solved with exact contact
-    (:class:`Complementarity`, semismooth Newton) and the penalty's Newton solve starts again from there,
-    every pair's node pushed R_N / eps_n into its tool, where the penalty law gives the exact normal
-    force. The solution is the penalty law's; only Newton's starting
-    point changes (no derivative flows through it: the step is differentiated at its converged solution,
-    as for :class:`Penalty`). Steps the plain law takes cost what they cost with it.
+    the plain law's Newton solve; where that fails, the attempt is solved again from exact contact
+    (:func:`_penalty_from_exact`). Steps the plain law takes cost what they cost with it.
 
     Reason: at eps_n >> E a Newton iterate that moves a node by the sheet's compliance across a tool
     surface meets a force eps_n times the overshoot; on a curved tool a pair then 2-cycles between open
@@ -232,23 +264,38 @@ class StiffPenalty(Penalty):
         plain = newton_step(args, x0, x_ref, newton, search, stage)
 
         def from_exact():
-            # No tangent reaches the exact solve (which has no derivative): only the penalty's carries one.
-            frozen = jax.tree_util.tree_map(lambda a: jax.lax.stop_gradient(a) if eqx.is_array(a) else a,
-                                            (args, x0, x_ref))
-            exact = from_newton(*exact_solve(*frozen, options=newton, law=Complementarity("ssn")))
-            nodes = pair_nodes(args.contact.tools)
-            _, _, c = cast(tuple, exact.aux)   # (f_int, point states, contact output)
-            push = -(c["rn"] / self.eps_n)[:, None] * c["normal"]   # gap -R_N / eps_n on every closed pair
-            start = exact.x.at[2 * nodes].add(push[:, 0]).at[2 * nodes + 1].add(push[:, 1])
-            start = jnp.where(exact.code == Result.SUCCESS, start, jax.lax.stop_gradient(x0))
-            sol = newton_step(args, start, x_ref, newton, search, stage)
-            return sol._replace(iterations=plain.iterations + exact.iterations + sol.iterations,
-                                hardest=jnp.maximum(exact.iterations, sol.iterations))
+            sol = _penalty_from_exact(self, args, x0, x_ref, newton, search, stage)
+            return sol._replace(iterations=plain.iterations + sol.iterations)
 
         def as_is():
             return plain._replace(hardest=plain.iterations)
 
         return jax.lax.cond(plain.code == Result.SUCCESS, as_is, from_exact)
+
+
+class ExactStartPenalty(Penalty):
+    """The penalty law with every step attempt started from exact contact (:func:`_penalty_from_exact`;
+    :func:`formulation` with ``exact_start``). The solution, its load path and its derivatives are the
+    penalty law's; only where Newton starts changes, so the steps the plain law cuts are taken.
+
+    Reason: from the load loop's guess the plain law spends most of its iterations and cut steps on
+    pairs that open, close, stick and slip from one iterate to the next (docs/results.md, penalty
+    iterations on the blankholder), which exact contact's active-set solve settles in a few iterations;
+    from its solution the penalty's Newton solve takes about four. Measured in docs/results.md,
+    "The penalty law started from exact contact" (``python experiments/bench_exact_start.py``).
+
+    Its multipliers start from the last converged normal forces (``warm_start``): they are the exact
+    solve's guess of its first active set, not the penalty law's lambda_N (0).
+    """
+
+    one_newton_solve: ClassVar[bool] = False
+    warm_start: ClassVar[bool] = True
+
+    def __init__(self, eps_n, eps_t, smoothing=0.0, smooth: bool | None = None):   # as StiffPenalty's
+        self._set_penalties(eps_n, eps_t, smoothing, smooth)
+
+    def solve_step(self, args, x0, x_ref, newton, search=True, stage=False) -> StepSolution:
+        return _penalty_from_exact(self, args, x0, x_ref, newton, search, stage)
 
 
 class AugmentedLagrangian(_Regularised):
@@ -262,15 +309,28 @@ class AugmentedLagrangian(_Regularised):
 
     Multipliers start each step from the converged forces of the last one (warm start), so a step that
     already meets the target needs no augmentation.
+
+    ``exact_start`` (static): the step is first solved with exact contact (:class:`Complementarity`,
+    semismooth Newton), and the Uzawa iteration starts from that solution with its forces as the
+    multipliers (where the exact solve fails: as without). The exact solution is a fixed point of the
+    iteration: with lambda = its forces, every closed pair at zero gap and every sticking pair without slip
+    gives back lambda, so the first Newton solve converges in one iteration and meets the target without an
+    augmentation. Its derivative: the exact solve's (:mod:`jaxfric.contact.exact_derivative`) carried by the
+    multipliers into the implicit function theorem of the AL's solve, which at the fixed point gives the
+    exact step's derivative. ``iterations`` counts both solves' Newton iterations.
     """
 
     target_gap: jax.Array
     max_augmentations: int = eqx.field(static=True)
+    exact_start: bool = eqx.field(static=True)
     warm_start: ClassVar[bool] = True
 
     def __init__(self, eps_n, eps_t, target_gap=1e-5, max_augmentations: int = 20, smoothing=0.0,
-                 smooth: bool | None = None):
+                 smooth: bool | None = None, exact_start: bool = False):
         self._set_penalties(eps_n, eps_t, smoothing, smooth)
+        if not isinstance(exact_start, bool):
+            raise ValueError(f"field 'exact_start' must be True or False, got {exact_start!r}")
+        self.exact_start = exact_start
         check_nonnegative("target_gap", target_gap)
         if is_concrete(target_gap) and not float(target_gap) > 0:
             raise ValueError(f"field 'target_gap' must be > 0, got {float(target_gap)}")
@@ -300,6 +360,16 @@ class AugmentedLagrangian(_Regularised):
             return newton_solve(eqx.tree_at(lambda b: b.contact, a, step), x_start, x_ref,
                                 linearize=linearize, residual=residual, options=newton, search=search)
 
+        lam_n0, lam_t0, x_first, iters0 = args.contact.lam_n, args.contact.lam_t, x0, jnp.array(0, jnp.int32)
+        if self.exact_start:   # static
+            exact, _ = exact_solve(args, x0, x_ref, options=newton, law=Complementarity("ssn"))
+            ok = exact.code == Result.SUCCESS
+            out = exact.aux[2]
+            on_exact = lambda e, a: jnp.where(ok, e, a)  # noqa: E731
+            lam_n0 = jax.tree_util.tree_map(on_exact, split_pairs(tools, out["rn"]), lam_n0)
+            lam_t0 = jax.tree_util.tree_map(on_exact, split_pairs(tools, out["rt"]), lam_t0)
+            x_first, iters0 = jnp.where(ok, jax.lax.stop_gradient(exact.x), x0), exact.iterations
+
         def pending(c):
             sol, n_aug = c[:2]
             return (n_aug < 0) | ((sol.code == Result.SUCCESS) & (_constraint_error(sol.aux[2]) > self.target_gap))
@@ -309,9 +379,9 @@ class AugmentedLagrangian(_Regularised):
             out = sol.aux[2]
             first = n_aug < 0     # the step's own multipliers (the last converged forces) and start
             pick = lambda a, b: jnp.where(first, a, b)  # noqa: E731
-            lam_n = jax.tree_util.tree_map(pick, args.contact.lam_n, split_pairs(tools, out["rn"]))
-            lam_t = jax.tree_util.tree_map(pick, args.contact.lam_t, split_pairs(tools, out["rt"]))
-            new = solve(args, lam_n, lam_t, pick(x0, sol.x))
+            lam_n = jax.tree_util.tree_map(pick, lam_n0, split_pairs(tools, out["rn"]))
+            lam_t = jax.tree_util.tree_map(pick, lam_t0, split_pairs(tools, out["rt"]))
+            new = solve(args, lam_n, lam_t, pick(x_first, sol.x))
             # After the last allowed augmentation the target must be met, or the attempt fails.
             exhausted = (n_aug + 1 >= self.max_augmentations) & (new.code == Result.SUCCESS) & (
                 _constraint_error(new.aux[2]) > self.target_gap)
@@ -323,11 +393,10 @@ class AugmentedLagrangian(_Regularised):
 
         shape = eqx.filter_eval_shape(solve, args, args.contact.lam_n, args.contact.lam_t, x0)
         sol0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shape)
-        int0 = jnp.array(0, jnp.int32)
         # A scan of the first solve and every allowed augmentation, the passes after the last needed one
         # skipped, rather than a while_loop: the same passes, and reverse mode (jax.grad through
         # simulate_fixed) can differentiate a loop of known length.
-        (sol, n_aug, iters, hardest), _ = jax.lax.scan(bounded, (sol0, jnp.array(-1, jnp.int32), int0, int0),
+        (sol, n_aug, iters, hardest), _ = jax.lax.scan(bounded, (sol0, jnp.array(-1, jnp.int32), iters0, iters0),
                                                        length=self.max_augmentations + 1)
         return StepSolution(sol.x, sol.aux, iters, sol.code, sol.residual_norm, sol.residual_history, n_aug,
                             jnp.zeros(3, jnp.int32), hardest)
@@ -415,20 +484,26 @@ DIFFERENTIABLE_ALGORITHMS = tuple(name for name, cls in _CLASSES.items() if cls.
 
 
 def formulation(algorithm: str, eps_n, eps_t, target_gap, band: int | None = None, smoothing=0.0,
-                max_augmentations: int = 20, stiff_above=None, search: bool = True) -> AbstractContactFormulation:
+                max_augmentations: int = 20, stiff_above=None, search: bool = True,
+                exact_start: bool = False) -> AbstractContactFormulation:
     """The contact formulation of an algorithm identifier (outputs spec section 1); ``smoothing`` > 0
     (N/mm) smooths the penalty and AL laws (:mod:`jaxfric.contact.laws`); exact contact has none.
     ``max_augmentations`` is the AL's limit per step attempt (spec 1.6: 20). A concrete penalty eps_n
     above ``stiff_above`` (N/mm per mm; None: never) gets :class:`StiffPenalty`. ``search``: ``lcp_lemke``'s
-    line search (:class:`Complementarity`); the other algorithms ignore it."""
+    line search (:class:`Complementarity`); the other algorithms ignore it. ``exact_start``: the penalty law's
+    and the augmented Lagrangian's attempts start from exact contact (:class:`ExactStartPenalty`, whatever
+    eps_n; :class:`AugmentedLagrangian`'s ``exact_start``); exact contact ignores it."""
     if algorithm in ("lcp_lemke", "lcp_ssn") and smoothing != 0:
         raise ValueError(f"field 'smoothing' = {smoothing!r} applies to algorithms penalty and auglag only; "
                          f"exact contact ({algorithm}) has no smoothed law")
     if algorithm == "penalty":
+        if exact_start:
+            return ExactStartPenalty(eps_n, eps_t, smoothing)
         stiff = stiff_above is not None and is_concrete(eps_n) and float(eps_n) > float(stiff_above)
         return (StiffPenalty if stiff else Penalty)(eps_n, eps_t, smoothing)
     if algorithm == "auglag":
-        return AugmentedLagrangian(eps_n, eps_t, target_gap, max_augmentations, smoothing=smoothing)
+        return AugmentedLagrangian(eps_n, eps_t, target_gap, max_augmentations, smoothing=smoothing,
+                                   exact_start=bool(exact_start))
     if algorithm == "lcp_lemke":
         return Complementarity("lemke", band, search=bool(search))
     if algorithm == "lcp_ssn":

@@ -28,7 +28,7 @@ from ..fem.mesh import ORDERS
 from ..loadpath.controller import STABILIZE, STALL_STEPS, StepControl
 from ..loadpath.model import reactions
 
-__all__ = ["spec_field", "PreselectField", "LemkeSearchField", "preselected",
+__all__ = ["spec_field", "PreselectField", "SolverFields", "preselected",
            "check_config", "check_steady_window", "check_variant", "check_algorithm", "pair_forces",
            "tool_resultants", "contact_columns", "phase_progress", "ContactSnapshot", "n_steps",
            "schedule_entry", "friction_table", "material", "material_dict", "config_dict", "end_reaction",
@@ -137,11 +137,19 @@ LEMKE_SEARCH_DOC = ("lcp_lemke: line-search its Newton steps on the semismooth m
                     "Nine's plan for 1.6 to 1.8 times its steps (docs/results.md, study common_steps) [chosen]")
 
 
+EXACT_START_DOC = ("penalty: start every step attempt's Newton solve from the step solved with exact contact "
+                   "(jaxfric.contact.formulations.ExactStartPenalty; the penalty law's solution and derivatives, "
+                   "taking the steps the plain law cuts); False: from the load loop's guess, and from exact "
+                   "contact only after a failed attempt above the stiff threshold [chosen]")
+
+
 @dataclasses.dataclass(frozen=True)
-class LemkeSearchField:
-    """The line search switch of Lemke's Newton steps every scene's config has (``Complementarity.search``)."""
+class SolverFields:
+    """The solver switches every scene's config has: Lemke's line search (``Complementarity.search``) and
+    the penalty law's start (:class:`jaxfric.contact.formulations.ExactStartPenalty`)."""
 
     lemke_search: bool = spec_field(True, "-", LEMKE_SEARCH_DOC)
+    exact_start: bool = spec_field(False, "-", EXACT_START_DOC)
 
 
 @dataclasses.dataclass(frozen=True)

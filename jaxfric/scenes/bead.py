@@ -68,7 +68,7 @@ ROLLER_SEAM = math.radians(202.5)
 
 
 @dataclasses.dataclass(frozen=True)
-class BeadConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationField, cm.LemkeSearchField):
+class BeadConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationField, cm.SolverFields):
     """Every value of the bead scene (spec section 3); defaults are the spec's (``th090_mu017``)."""
 
     x_left: float = cm.spec_field(-100.0, "mm", "left (clamped, free) end of the strip [chosen]")
@@ -223,7 +223,7 @@ def build(config: BeadConfig = BeadConfig(), algorithm: str = "penalty", variant
     eps_t = cm.resolve_eps_t(config, max(config.mu_clamp, config.mu_roller))
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations, stiff_above=cm.stiff_penalty(config),
-                      search=config.lemke_search)
+                      search=config.lemke_search, exact_start=config.exact_start)
     material = cm.material(config)
     model = StripModel(mesh, material, phases, tools=cm.preselected(tools, mesh, config.preselect),
                        contact=law, formulation=config.element,

@@ -122,7 +122,7 @@ TABLE7 = ((6, 6, 3, 7.25, 25), (6, 6, 3, 7.25, 50), (9, 6, 4.5, 10.2, 25), (9, 6
 
 
 @dataclasses.dataclass(frozen=True)
-class BlankholderConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationField, cm.LemkeSearchField):
+class BlankholderConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationField, cm.SolverFields):
     """Every value of the blankholder scene (spec section 5); defaults are the spec's (``shape1``)."""
 
     H: float = cm.spec_field(6.0, "mm", "bead height above the lower lands = closing stroke (Table 7) [paper]")
@@ -335,7 +335,7 @@ def build(config: BlankholderConfig = BlankholderConfig(), algorithm: str = "pen
     eps_t = cm.resolve_eps_t(config, config.mu)
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations, stiff_above=cm.stiff_penalty(config),
-                      search=config.lemke_search)
+                      search=config.lemke_search, exact_start=config.exact_start)
     material = cm.material(config)
     model = StripModel(mesh, material, phases, tools=cm.preselected(tools, mesh, config.preselect),
                        contact=law, formulation=config.element,

@@ -52,7 +52,7 @@ INSTANTS = tuple(INSTANT_RULES)
 
 
 @dataclasses.dataclass(frozen=True)
-class FlatDieConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationField, cm.LemkeSearchField):
+class FlatDieConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationField, cm.SolverFields):
     """Every value of the flat die scene (spec section 2); defaults are the spec's (``const_force``)."""
 
     L: float = cm.spec_field(48.0, "mm", "sheet length, x in [0, L] [chosen]")
@@ -165,7 +165,7 @@ def build(config: FlatDieConfig = FlatDieConfig(), algorithm: str = "penalty",
     eps_t = cm.resolve_eps_t(config, config.mu)
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations, stiff_above=cm.stiff_penalty(config),
-                      search=config.lemke_search)
+                      search=config.lemke_search, exact_start=config.exact_start)
     material = cm.material(config)
     model = StripModel(mesh, material, phases, tools=cm.preselected((tool,), mesh, config.preselect),
                        contact=law, formulation=config.element,

@@ -113,7 +113,7 @@ INSTANTS = tuple(INSTANT_RULES)
 
 
 @dataclasses.dataclass(frozen=True)
-class NineConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationField, cm.LemkeSearchField):
+class NineConfig(cm.FrictionLawFields, cm.PreselectField, cm.PlasticIntegrationField, cm.SolverFields):
     """Every value of the Nine scene (spec section 4); defaults are the spec's (variant ``mu017``)."""
 
     x_left: float = cm.spec_field(-50.0, "mm", "left (free) end of the strip; -Delta x1 [chosen reading]")
@@ -284,7 +284,7 @@ def build(config: NineConfig = NineConfig(), algorithm: str = "penalty", variant
     eps_t = cm.resolve_eps_t(config, mu_max)
     law = formulation(algorithm, config.eps_n, eps_t, config.target_gap, config.band, config.smoothing,
                       config.max_augmentations, stiff_above=cm.stiff_penalty(config),
-                      search=config.lemke_search)
+                      search=config.lemke_search, exact_start=config.exact_start)
     material = cm.material(config)
     model = StripModel(mesh, material, phases, tools=cm.preselected(tools, mesh, config.preselect),
                        contact=law, formulation=config.element,
