@@ -281,8 +281,9 @@ class ExactStartPenalty(Penalty):
     Reason: from the load loop's guess the plain law spends most of its iterations and cut steps on
     pairs that open, close, stick and slip from one iterate to the next (docs/results.md, penalty
     iterations on the blankholder), which exact contact's active-set solve settles in a few iterations;
-    from its solution the penalty's Newton solve takes about four. Measured in docs/results.md,
-    "The penalty law started from exact contact" (``python experiments/bench_exact_start.py``).
+    from its solution the penalty's Newton solve takes four to seven (pairs that exact contact leaves open
+    at small gaps close under the penalty's penetration). Measured in docs/results.md, "The penalty law
+    and the augmented Lagrangian started from exact contact" (``python experiments/bench_exact_start.py``).
 
     Its multipliers start from the last converged normal forces (``warm_start``): they are the exact
     solve's guess of its first active set, not the penalty law's lambda_N (0).
@@ -313,11 +314,13 @@ class AugmentedLagrangian(_Regularised):
     ``exact_start`` (static): the step is first solved with exact contact (:class:`Complementarity`,
     semismooth Newton), and the Uzawa iteration starts from that solution with its forces as the
     multipliers (where the exact solve fails: as without). The exact solution is a fixed point of the
-    iteration: with lambda = its forces, every closed pair at zero gap and every sticking pair without slip
-    gives back lambda, so the first Newton solve converges in one iteration and meets the target without an
-    augmentation. Its derivative: the exact solve's (:mod:`jaxfric.contact.exact_derivative`) carried by the
-    multipliers into the implicit function theorem of the AL's solve, which at the fixed point gives the
-    exact step's derivative. ``iterations`` counts both solves' Newton iterations.
+    iteration (of the exact law; a smoothed law's lies near it): with lambda = its forces, every closed pair
+    at zero gap and every sticking pair without slip gives back lambda, so the first Newton solve meets the
+    target without an augmentation, in one iteration where no pair's status changes (the Nine; two or three
+    on the blankholder, docs/results.md). Its derivative: the exact solve's
+    (:mod:`jaxfric.contact.exact_derivative`) carried by the multipliers into the implicit function theorem
+    of the AL's solve, which at the fixed point gives the exact step's derivative. ``iterations`` counts
+    both solves' Newton iterations.
     """
 
     target_gap: jax.Array

@@ -137,16 +137,18 @@ LEMKE_SEARCH_DOC = ("lcp_lemke: line-search its Newton steps on the semismooth m
                     "Nine's plan for 1.6 to 1.8 times its steps (docs/results.md, study common_steps) [chosen]")
 
 
-EXACT_START_DOC = ("penalty: start every step attempt's Newton solve from the step solved with exact contact "
-                   "(jaxfric.contact.formulations.ExactStartPenalty; the penalty law's solution and derivatives, "
-                   "taking the steps the plain law cuts); False: from the load loop's guess, and from exact "
-                   "contact only after a failed attempt above the stiff threshold [chosen]")
+EXACT_START_DOC = ("penalty and auglag: solve every step attempt first with exact contact and start from its "
+                   "solution (penalty: jaxfric.contact.formulations.ExactStartPenalty, the penalty law's solution "
+                   "and derivatives on the steps the plain law cuts; auglag: its forces as the multipliers, exact "
+                   "contact's solution and derivatives without augmenting); False: from the load loop's guess "
+                   "(the penalty law from exact contact only after a failed attempt above the stiff "
+                   "threshold) [chosen]")
 
 
 @dataclasses.dataclass(frozen=True)
 class SolverFields:
     """The solver switches every scene's config has: Lemke's line search (``Complementarity.search``) and
-    the penalty law's start (:class:`jaxfric.contact.formulations.ExactStartPenalty`)."""
+    the penalty law's and the augmented Lagrangian's start from exact contact (``exact_start``)."""
 
     lemke_search: bool = spec_field(True, "-", LEMKE_SEARCH_DOC)
     exact_start: bool = spec_field(False, "-", EXACT_START_DOC)
