@@ -22,14 +22,13 @@ end at or beyond U mm of draw, solves the next nominal increment from there with
 penalty law's Newton by hand from its start, with the solver's line search
 (``stiff_penalty_newton.searched_step``). Per iteration: step length, residual before and after (max norm,
 N/mm), the step's size against the increment test, and the pairs whose status changed (open 0, stick 1,
-slip 2) by kind with the largest normal force among them. Writes
+slip 2) by kind with the largest gap and normal force among them. Writes
 ``experiments/results/bench_exact_start_trace.csv``.
 """
 
 from __future__ import annotations
 
 import argparse
-import collections
 import dataclasses
 import importlib
 import os
@@ -42,7 +41,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from benchutil import read_rows, write_rows  # noqa: E402
-from blankholder_penalty_newton import KINDS  # noqa: E402
+from blankholder_penalty_newton import status_changes  # noqa: E402
 from jaxfric.contact.formulations import exact_start_point  # noqa: E402
 from jaxfric.contact.system import linearize  # noqa: E402
 from jaxfric.io.instants import steady_drawing_force  # noqa: E402
@@ -63,7 +62,7 @@ CASES = {
     "nine_mu000": ("nine", "mu000", {}),
     "blankholder_shape1_U3": ("blankholder", "shape1", {"U_pull": 3.0}),
     "blankholder_shape1": ("blankholder", "shape1", {}),
-    "bead_round": ("bead", "round", {}),
+    "bead_th045_mu017": ("bead", "th045_mu017", {}),
     "flat_die_const_force": ("flat_die", "const_force", {}),
 }
 RUNS = {"lcp_ssn": ("lcp_ssn", {}), "penalty": ("penalty", {}),
@@ -123,10 +122,6 @@ def trace(case: str, at: float, iterations: int = 30) -> list[dict]:
     out = []
     for k in range(iterations):
         dx, alpha, new = searched_step(lin_at, x, lin)
-        before, after = (np.asarray(v.aux[2]["status"]) for v in (lin, new))
-        changed = np.flatnonzero(before != after)
-        kinds = collections.Counter(KINDS[(int(before[i]), int(after[i]))] for i in changed)
-        rn = np.maximum(np.abs(np.asarray(lin.aux[2]["rn"])[changed]), np.abs(np.asarray(new.aux[2]["rn"])[changed]))
         step = alpha * float(jnp.max(jnp.abs(dx)))
         out.append({"case": case, "u_draw": float(h["drawing_displacement"][row]),
                     "exact_iterations": int(exact.iterations), "iteration": k, "step_length": alpha,
@@ -134,14 +129,13 @@ def trace(case: str, at: float, iterations: int = 30) -> list[dict]:
                     "residual_after": float(jnp.max(jnp.abs(new.residual))), "tolerance": tol,
                     "step": step,
                     "step_tolerance": opts.du_atol + opts.du_rtol * float(jnp.max(jnp.abs(x + alpha * dx - x_ref))),
-                    "status_changes": len(changed), **{kind: kinds.get(kind, 0) for kind in KINDS.values()},
-                    "largest_rn": float(rn.max()) if len(changed) else 0.0})
+                    **status_changes(lin, new)})
         x, lin = x + alpha * dx, new
         r = out[-1]
         print(f"{k}: length {alpha:g}, residual {r['residual_before']:.3e} -> {r['residual_after']:.3e} "
-              f"(tolerance {tol:.1e}), step {step:.2e} ({r['step_tolerance']:.1e}), {len(changed)} status changes",
-              flush=True)
-        if r["residual_after"] <= tol and not len(changed) and step <= r["step_tolerance"]:
+              f"(tolerance {tol:.1e}), step {step:.2e} ({r['step_tolerance']:.1e}), "
+              f"{r['status_changes']} status changes", flush=True)
+        if r["residual_after"] <= tol and not r["status_changes"] and step <= r["step_tolerance"]:
             break
     return out
 

@@ -71,6 +71,20 @@ def phase_rows(label: str, result) -> list[dict]:
     return rows
 
 
+def status_changes(lin, new) -> dict:
+    """The pairs whose status changed from the linearisation ``lin`` to ``new`` (their contact outputs,
+    ``aux[2]``): how many, how many of each kind (``KINDS``), and the largest gap (mm) and normal force
+    (N/mm) among them, before or after."""
+    before, after = (jax.tree_util.tree_map(np.asarray, v.aux[2]) for v in (lin, new))
+    changed = np.flatnonzero(before["status"] != after["status"])
+    kinds = collections.Counter(KINDS[(int(before["status"][i]), int(after["status"][i]))] for i in changed)
+    rn = np.maximum(np.abs(before["rn"][changed]), np.abs(after["rn"][changed]))
+    gap = np.maximum(np.abs(before["gap"][changed]), np.abs(after["gap"][changed]))
+    return {"status_changes": len(changed), **{kind: kinds.get(kind, 0) for kind in KINDS.values()},
+            "largest_gap": float(gap.max()) if len(changed) else 0.0,
+            "largest_rn": float(rn.max()) if len(changed) else 0.0}
+
+
 def trace(label: str, scene, result, at: float) -> list[dict]:
     """Newton by hand on the nominal increment after the first step end at or beyond ``at`` mm of draw."""
     h = result.history
@@ -86,17 +100,10 @@ def trace(label: str, scene, result, at: float) -> list[dict]:
     out = []
     for k in range(ITERATIONS):
         dx, alpha, new = searched_step(lin_at, x, lin)
-        before, after = (jax.tree_util.tree_map(np.asarray, v.aux[2]) for v in (lin, new))
-        changed = np.flatnonzero(before["status"] != after["status"])
-        kinds = collections.Counter(KINDS[(int(before["status"][i]), int(after["status"][i]))] for i in changed)
-        rn = np.maximum(np.abs(before["rn"][changed]), np.abs(after["rn"][changed]))
-        gap = np.maximum(np.abs(before["gap"][changed]), np.abs(after["gap"][changed]))
         out.append({"run": label, "u_draw": float(h["drawing_displacement"][row]), "iteration": k,
                     "step_length": alpha, "residual_before": float(jnp.max(jnp.abs(lin.residual))),
                     "residual_after": float(jnp.max(jnp.abs(new.residual))), "tolerance": tol,
-                    "status_changes": len(changed), **{kind: kinds.get(kind, 0) for kind in KINDS.values()},
-                    "largest_gap": float(gap.max()) if len(changed) else 0.0,
-                    "largest_rn": float(rn.max()) if len(changed) else 0.0})
+                    **status_changes(lin, new)})
         x, lin = x + alpha * dx, new
         if out[-1]["residual_after"] <= tol:
             break
