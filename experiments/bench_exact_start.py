@@ -5,20 +5,21 @@ exact contact itself.
 
 Per case (a scene, variant and config overrides; ``CASES``) runs exact contact (``lcp_ssn``), the penalty law
 as it is by default (``penalty``), the penalty law with every step attempt started from the step solved
-with exact contact (``exact_start``: ``--set exact_start=true``,
-:class:`jaxfric.contact.formulations.ExactStartPenalty`), and the augmented Lagrangian without and with that
-start (``auglag``, ``auglag_exact_start``), one after the other in this process, with compilation timed
-apart. Per run: steps, cut steps, Newton iterations (the exact start's both solves), solve
-and compile time, the steady drawing force over the scene's steady window (or the drawing force at the end
-where the stroke stops short of it), the largest penetration and the clamping force at the end. Writes
+by exact contact's semismooth Newton with the penalty's compliance (``exact_start``: ``--set
+exact_start=true``, :class:`jaxfric.contact.formulations.ExactStartPenalty`), and the augmented Lagrangian
+without and with its start from exact contact (``auglag``, ``auglag_exact_start``), one after the other in
+this process, with compilation timed apart. Per run: steps, cut steps, Newton iterations (the exact start's
+both solves), solve and compile time, the steady drawing force over the scene's steady window (or the
+drawing force at the end where the stroke stops short of it), the largest penetration and the clamping
+force at the end. Writes
 ``experiments/results/bench_exact_start.csv`` (rows of the cases run replace that case's earlier rows).
 
 Timings are ratios within one process: run it alone (one XLA thread per run, as ``jaxfric run``'s
 single-device setting: ``XLA_FLAGS=--xla_force_host_platform_device_count=1``).
 
 ``--trace CASE --at U``: where the exact start's iterations go. Runs ``exact_start`` on CASE to the first step
-end at or beyond U mm of draw, solves the next nominal increment from there with exact contact
-(:func:`jaxfric.contact.formulations.exact_start_point`, from the load loop's secant guess) and then the
+end at or beyond U mm of draw, solves the next nominal increment from there with the compliant semismooth
+Newton (:func:`jaxfric.contact.formulations.exact_start_point`, from the load loop's secant guess) and then the
 penalty law's Newton by hand from its start, with the solver's line search
 (``stiff_penalty_newton.searched_step``). Per iteration: step length, residual before and after (max norm,
 N/mm), the step's size against the increment test, and the pairs whose status changed (open 0, stick 1,

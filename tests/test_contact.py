@@ -17,9 +17,13 @@ from jaxfric.contact.formulations import (
     ExactStartPenalty,
     Penalty,
     StiffPenalty,
+    exact_start_point,
+    newton_step,
 )
 from jaxfric.contact.rigid import Force, Move, RigidTool
 from jaxfric.contact.tools import Tool
+from jaxfric.loadpath.model import tool_positions
+from jaxfric.loadpath.step import StepContext, step_args, unknowns
 from models import STEEL, flat_die_strip, wrapped_strip
 
 MU, FORCE = 0.15, 50.0
@@ -245,16 +249,44 @@ def test_jvp_of_sliding_force_with_respect_to_mu():
 
 def test_exact_start_gives_the_penalty_law_s_solution_and_derivative():
     """The sliding capstan (eps_n = 1e6, where the plain penalty law takes every nominal step): every step
-    started from exact contact (ExactStartPenalty) converges to the plain law's solution, its exit tension
-    within Newton's tolerance of the plain law's (measured 2e-15 relative), with the same forward
-    derivative in mu (the implicit function theorem at the same solution), in 81 Newton iterations of
-    both solves against the plain law's 223."""
+    started from the compliant semismooth solve (ExactStartPenalty) converges to the plain law's solution,
+    its exit tension within Newton's tolerance of the plain law's (measured 6e-14 relative), with the same
+    forward derivative in mu (the implicit function theorem at the same solution; 2e-13), in 61 Newton
+    iterations of both solves (lcp_ssn takes 41, and the penalty's Newton one a step) against the plain
+    law's 223."""
     (plain, plain_code, plain_its), (plain_dot, _, _) = _capstan_with_tangent("plain")(jnp.asarray(0.2))
     (started, code, its), (started_dot, _, _) = _capstan_with_tangent("exact")(jnp.asarray(0.2))
     assert int(plain_code) == 0 and int(code) == 0
     np.testing.assert_allclose(float(started), float(plain), rtol=1e-9)
     np.testing.assert_allclose(float(started_dot), float(plain_dot), rtol=1e-8)
     assert int(its) < int(plain_its)
+
+
+@pytest.mark.slow  # 25 s: the compliant solve and two penalty solves compiled beside a run
+def test_compliant_solve_lands_on_the_penalty_law_s_step():
+    """One step of the sliding capstan (eps_n = 1e6, eps_t = mu eps_n) from t = 0.4 of its pull: the
+    compliant semismooth solve (exact_start_point) converges to the plain penalty Newton solve's solution
+    (within Newton's tolerance: measured 2e-13 of the step's largest increment; 3 iterations against the
+    plain solve's 4), and the penalty law's Newton solve from there converges on its first iteration."""
+    model, _, _ = capstan_model(mu=0.2)
+    law = Penalty(1e6, 2e5)
+    model = dataclasses.replace(model, contact=law)
+    state = jf.run(model, newton=TIGHT, control=jf.StepControl(max_steps=10), progress=False,
+                   raise_on_failure=False).simulation.final
+    assert 0.4 < float(state.time) < 0.6
+    args, _, _ = step_args(model, state, int(state.phase), float(state.time) + 0.05, StepContext.build(model))
+    x_ref = unknowns(model, state.u, tool_positions(state))
+
+    @jax.jit
+    def solve(a, x):
+        start, penalty, exact = exact_start_point(law, a, x, x, TIGHT)
+        return start, exact, newton_step(penalty, x, x, TIGHT), newton_step(penalty, start, x, TIGHT)
+
+    start, compliant_sol, plain, started = solve(args, x_ref)
+    assert int(compliant_sol.code) == 0 and int(plain.code) == 0 and int(started.code) == 0
+    scale = float(jnp.max(jnp.abs(plain.x - x_ref)))
+    np.testing.assert_allclose(np.asarray(start), np.asarray(plain.x), rtol=0, atol=1e-9 * scale)
+    assert int(started.iterations) == 1 < int(plain.iterations)
 
 
 @pytest.mark.slow  # 2 min: exact contact's and the AL's derivatives compiled
@@ -283,10 +315,10 @@ def test_auglag_exact_start_takes_exact_contact_s_step_and_derivative():
 @pytest.mark.slow  # 2 min: the exact solver compiled with the penalty's derivative
 def test_stiff_penalty_finishes_where_the_plain_law_does_not_with_its_derivative():
     """The sliding capstan at eps_n = 1e9 (5e3 times the sheet's modulus): the plain penalty law does
-    not finish; StiffPenalty (a failed attempt solved again from exact contact) does, its exit tension
+    not finish; StiffPenalty (a failed attempt solved again from the compliant semismooth solve) does, its exit tension
     within 1e-5 of exact contact's (the penalty's elastic slip and penetration are 1e-9 of the forces
     per N/mm), and its forward derivative in mu equals central differences. No tangent reaches the
-    exact solve, which has none."""
+    compliant solve, which has none."""
 
     plain = jax.jit(lambda mu: _exit_tension(lambda m: Penalty(1e9, 1e9 * m), mu))(jnp.asarray(0.2))
     assert int(plain[1]) != 0

@@ -5,6 +5,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxfric.contact.alart_curnier import OPEN as AC_OPEN
+from jaxfric.contact.alart_curnier import STICK as AC_STICK
+from jaxfric.contact.alart_curnier import alart_curnier_residual, piece_jacobian
+from jaxfric.contact.exact_active_set import Compliance, compliant
 from jaxfric.contact.laws import augmented_pair
 from jaxfric.contact.status import OPEN, SLIP, STICK, contact_status
 
@@ -93,3 +97,40 @@ def test_static_flags_follow_the_given_values_inside_jit():
         return eps
 
     flags(1e5)
+
+
+def test_penalty_law_is_the_alart_curnier_law_of_the_compliant_gap_and_slip():
+    """The compliant semismooth solve (Complementarity(compliant=True), exact_start's start) rests on this:
+    the penalty law's forces make the Alart-Curnier residual of g~ = g + R_N / eps_N, s~ = s + (R_T - R_T,n)
+    / eps_T vanish (open, stick and slip pairs, any c_N, c_T > 0), with the active set the penalty law
+    took, and on that piece the residual's derivative in the forces is W_F + W_K diag(1 / eps_N, 1 / eps_T),
+    the matrix piece_system assembles."""
+    rng = np.random.default_rng(3)
+    n = 400
+    gap = rng.uniform(-3e-4, 1e-4, n)
+    slip = rng.uniform(-2e-3, 2e-3, n) * rng.choice([1e-3, 1.0], n)    # sticking and slipping pairs
+    lam_t = rng.uniform(-5.0, 5.0, n)
+    c_n, c_t = rng.uniform(1e2, 1e6, n), rng.uniform(1e2, 1e6, n)
+    f = jax.vmap(lambda g, s, lt: penalty_pair(g, s, lt, MU, EPS_N, EPS_T))(gap, slip, lam_t)
+    mu = jnp.full(n, MU)
+    cp = Compliance(jnp.asarray(1.0 / EPS_N), jnp.asarray(1.0 / EPS_T), jnp.asarray(lam_t))
+    pairs = jnp.arange(n)
+
+    def residual(R_N, R_T):
+        g, s = compliant(cp, pairs, mu, R_N, R_T, gap, slip)
+        return alart_curnier_residual(R_N, R_T, g, s, mu, c_n, c_t)
+
+    state, C, _ = residual(f.normal, f.tangential)
+    kinds = {int(k) for k in np.asarray(f.status)}
+    assert kinds == {OPEN, STICK, SLIP}
+    np.testing.assert_allclose(np.asarray(C), 0.0, atol=1e-12 * float(jnp.max(f.normal)))
+    expected = np.where(f.status == OPEN, AC_OPEN, np.where(f.status == STICK, AC_STICK, -1))
+    took = np.asarray(state)
+    assert np.all((took == expected) | ((expected == -1) & (took > AC_STICK)))
+    # The piece's Jacobian in the forces (away from the kinks, where the piece is the penalty law's).
+    J = jax.vmap(jax.jacfwd(lambda p, g, s, lt, cn, ct: alart_curnier_residual(
+        p[0], p[1], *compliant(cp._replace(lam_t=lt), 0, MU, p[0], p[1], g, s), MU, cn, ct)[1]))(
+        jnp.stack([f.normal, f.tangential], -1), gap, slip, lam_t[:, None], c_n, c_t)
+    w_f, w_k = piece_jacobian(state, mu, c_n, c_t)
+    np.testing.assert_allclose(np.asarray(J), np.asarray(w_f + w_k * jnp.array([1.0 / EPS_N, 1.0 / EPS_T])),
+                               rtol=1e-12, atol=1e-12)

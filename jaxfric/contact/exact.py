@@ -105,7 +105,7 @@ from ..numerics.newton import (
     with_carry,
     without_carry,
 )
-from .exact_active_set import active_set_step, contact_frames, frames_at_forces, semismooth_merit
+from .exact_active_set import active_set_step, compliance_of, contact_frames, frames_at_forces, semismooth_merit
 from .exact_condensed import contact_newton_step
 from .exact_derivative import exact_step_tangents
 from .exact_iterate import Iterate, iterate_residual, linearize_iterate, pair_status
@@ -170,12 +170,16 @@ class ExactContactProblem(AbstractNewtonProblem):
         status = pair_status(pred.p, pair_friction(c.tools, c.mu, args.mesh.nodes, pred.p[:, 0], pair_speeds(c)))
         penetrating = it.valid & (it.gap < -10.0 * self.options.du_atol)
         finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in (R, it.f_int, it.K.diag, it.gap)]))
-        merit = semismooth_merit(x, it, args, pred.p, pred.frames) if self.searched else None
+        merit = semismooth_merit(x, it, args, pred.p, pred.frames, self.compliance(args)) if self.searched else None
         n = args.mesh.n_dofs
         return Evaluation(R, jnp.max(jnp.abs(it.f_int)), finite, ~(it.det_min <= 0.0),
                           Point(it, pred.p, status, penetrating), merit=merit,
                           in_band=~jnp.any(~pred.in_band & penetrating),
                           preselected=holds(c, x[:n].reshape(-1, 2), it.q), inner=it.enhanced_gap)
+
+    def compliance(self, args):
+        """The penalty law's compliance where the law is compliant (:class:`~.exact_active_set.Compliance`)."""
+        return compliance_of(args) if self.law.compliant else None
 
     def settled(self, new, old, trial) -> jax.Array:
         pred = trial.data
@@ -204,7 +208,7 @@ class ExactContactProblem(AbstractNewtonProblem):
             dx, p_new, in_band, stats, solved = active_set_step(it, args, x, p, self.law, hint, frames=frames)
         else:
             dx, p_new, in_band, stats, solved = contact_newton_step(it, args, x, p, self.law, hint)
-        merit = semismooth_merit(x, it, args, hint, frames[0])
+        merit = semismooth_merit(x, it, args, hint, frames[0], self.compliance(args))
         return Trial(dx, jnp.array(1.0), merit, solved, stats, Prediction(p_new, in_band, frames[0], it.predictor))
 
     def aux(self, x, point, args):
@@ -238,6 +242,9 @@ def exact_solve(args, x0, x_ref, *, options: NewtonOptions, law):
 
 @exact_solve.def_jvp
 def _exact_solve_jvp(primals, tangents, *, options, law):
+    if law.compliant:
+        raise NotImplementedError("a compliant exact solve (the penalty law's start) has no derivative: "
+                                  "differentiate the penalty law's own step")
     args, x0, x_ref = primals
     solution, stats = exact_solve(args, x0, x_ref, options=options, law=law)
     # The derivative's evaluations condense the elements exactly (no carried predictor).

@@ -38,7 +38,7 @@ from .system import _constrain_rows
 CYCLE_WINDOW = 64
 
 __all__ = ["active_set_step", "contact_frames", "frames_at_forces", "semismooth_merit", "Frames", "PieceData",
-           "piece_data", "classify", "piece_system"]
+           "piece_data", "classify", "piece_system", "Compliance", "compliance_of"]
 
 
 # ---- semismooth Newton inside the global Newton loop (solver "ssn") --------------------------------
@@ -116,6 +116,55 @@ def frames_at_forces(fr: Frames, args, p) -> Frames:
     return fr._replace(mu=jnp.where(fr.valid, mu[fr.pairs], 0.0))
 
 
+class Compliance(NamedTuple):
+    """The penalty law's compliance written into the Alart-Curnier equations (a compliant
+    :class:`~jaxfric.contact.formulations.Complementarity`). The penalty law (:mod:`jaxfric.contact.laws`,
+    lambda_N = 0) is the Signorini-Coulomb law of the compliant gap and slip
+
+        g~ = g_N + R_N / eps_N,        s~ = s + (R_T - R_T,n) / eps_T:
+
+    R_N = eps_N <-g_N> is R_N >= 0, g~ >= 0, R_N g~ = 0; the stick predictor R_T = R_T,n - eps_T s is
+    s~ = 0 inside the Coulomb cone, and on its boundary s~ is opposite to R_T as Coulomb's slip is. So the
+    semismooth Newton pass, with (g~, s~) in place of (g_N, s), solves the penalty law's step (exactly the
+    unsmoothed law's)."""
+
+    inv_eps_n: jax.Array   # () 1 / eps_N (mm per N/mm)
+    inv_eps_t: jax.Array   # () 1 / eps_T (0 where eps_T = 0: no tangential compliance)
+    lam_t: jax.Array       # (m,) R_T,n per pair: the last converged tangential forces
+
+
+def compliance_of(args) -> Compliance:
+    """The compliance of the penalty law of ``args`` (its ``contact.law``: the penalties of the step, softened
+    where a continuation stage softens them)."""
+    law = args.contact.law
+    eps_t = jnp.asarray(law.eps_t)
+    return Compliance(1.0 / law.eps_n, jnp.where(eps_t > 0.0, 1.0 / jnp.where(eps_t > 0.0, eps_t, 1.0), 0.0),
+                      jnp.concatenate(args.contact.lam_t))
+
+
+def compliant(cp: Compliance | None, pairs, mu, R_N, R_T, g, s):
+    """The gap and slip the Alart-Curnier equations take for candidates with forces (R_N, R_T), gaps g and
+    slips s, each (n_u,), whose pairs are ``pairs``: (g, s) themselves without compliance, (g~, s~) of
+    :class:`Compliance` with it (s~ = 0 where mu = 0, as the frictionless candidates' slip)."""
+    if cp is None:
+        return g, s
+    return g + cp.inv_eps_n * R_N, jnp.where(mu > 0, s + cp.inv_eps_t * (R_T - cp.lam_t[pairs]), 0.0)
+
+
+def compliant_frames(fr: Frames, cp: Compliance | None) -> Frames:
+    """``fr`` with Alart-Curnier constants for the compliant equations: c eps / (c + eps) in place of each c
+    (``fr`` itself without compliance). The solution does not depend on them; the classification does:
+    sigma_N = R_N - c (g_N + R_N / eps_N) weighs the force by 1 - c / eps_N, which this choice keeps
+    positive (c << eps_N: exact contact's constant; c >> eps_N: about eps_N, where sigma_N is the penalty
+    law's own trial force -eps_N g_N). With c above eps_N the classification of a pair's predicted force
+    turns over, and on thin sheets, whose nodes are far stiffer in their frame than the penalty, the solve
+    did not converge."""
+    if cp is None:
+        return fr
+    harmonic = lambda c, inv_eps: c / (1.0 + c * inv_eps)  # noqa: E731
+    return fr._replace(c_n=harmonic(fr.c_n, cp.inv_eps_n), c_t=harmonic(fr.c_t, cp.inv_eps_t))
+
+
 def equilibrium_force(it: Iterate, args, x, hint, kappa) -> jax.Array:
     """f~ (n_dofs,): the internal force on free dofs, ``f_c^prev + kappa (u - u_presc)`` on prescribed
     ones, with f_c^prev the pair forces ``hint`` (m, 2)."""
@@ -137,11 +186,11 @@ def driven_rows(args, fr: Frames, x, f_tilde, n):
     return mine, dofs, v, r_q
 
 
-def semismooth_merit(x, it: Iterate, args, hint, fr: Frames) -> jax.Array:
+def semismooth_merit(x, it: Iterate, args, hint, fr: Frames, compliance: Compliance | None = None) -> jax.Array:
     """Squared norm of the semismooth residual the in-loop solver drives to zero: f~ on the sheet's
-    dofs with every candidate node's two rows replaced by its Alart-Curnier residual (C_N, C_T),
-    and the tool's row. The constants and kappa of ``fr`` (the iterate the search started from) are
-    kept, so that trial points are compared on one function."""
+    dofs with every candidate node's two rows replaced by its Alart-Curnier residual (C_N, C_T; of the
+    compliant gap and slip with a ``compliance``), and the tool's row. The constants and kappa of ``fr`` (the
+    iterate the search started from) are kept, so that trial points are compared on one function."""
     n = args.mesh.n_dofs
     f_tilde = equilibrium_force(it, args, x, hint, fr.kappa)
     f_nodes = f_tilde.reshape(-1, 2)
@@ -151,6 +200,8 @@ def semismooth_merit(x, it: Iterate, args, hint, fr: Frames) -> jax.Array:
     R_T = jnp.einsum("ui,ui->u", tangents(normal), f_nodes[band.nodes])
     gap = jnp.where(valid, it.gap[band.pairs], GAP_FAR)
     slip = jnp.where(valid & (fr.mu > 0), it.slip[band.pairs], 0.0)
+    gap, slip = compliant(compliance, band.pairs, fr.mu, R_N, R_T, gap, slip)
+    fr = compliant_frames(fr, compliance)
     _, C, _ = alart_curnier_residual(R_N, R_T, gap, slip, fr.mu, fr.c_n, fr.c_t)
     total = jnp.sum(f_nodes.at[band.nodes].set(C) ** 2)
     if args.force_idx:
@@ -175,12 +226,14 @@ class PieceData(NamedTuple):
     gap: jax.Array
     slip: jax.Array
     driven: Any              # (mine, dofs, v, r_q, e_dot_n, C_row) of the force-driven tool, or None
+    compliance: Compliance | None = None   # the penalty law's (a compliant solve), or None: exact contact
 
 
-def piece_data(it: Iterate, args, x, hint, frames=None) -> PieceData:
+def piece_data(it: Iterate, args, x, hint, frames=None, compliance: Compliance | None = None) -> PieceData:
     """:class:`PieceData` at the iterate ``it`` (at x), with ``hint`` (m, 2) the contact forces of the
     prescribed dofs' rows (:func:`equilibrium_force`); ``frames``: :func:`contact_frames` at ``it`` when the
-    caller has it already, with a friction law's coefficients at ``hint`` (:func:`frames_at_forces`)."""
+    caller has it already, with a friction law's coefficients at ``hint`` (:func:`frames_at_forces`).
+    ``gap`` and ``slip`` are the geometric ones; ``compliance`` makes the equations the penalty law's."""
     c = args.contact
     n = args.mesh.n_dofs
     if frames is None:
@@ -190,6 +243,7 @@ def piece_data(it: Iterate, args, x, hint, frames=None) -> PieceData:
         fr = frames_at_forces(fr, args, hint)
     else:
         fr, K = frames
+    fr = compliant_frames(fr, compliance)
     nodes, pairs, valid = fr.nodes, fr.pairs, fr.valid
     f_tilde = equilibrium_force(it, args, x, hint, fr.kappa)
     f_nodes = f_tilde.reshape(-1, 2)
@@ -209,13 +263,15 @@ def piece_data(it: Iterate, args, x, hint, frames=None) -> PieceData:
         e_dot_n = jnp.where(mine, fr.normal @ c.tools[args.force_idx[0]].drive, 0.0)[:, None]
         C_row = jnp.where(c.force_mask[args.force_idx[0]], K.transpose().matvec(v), 0.0)
         driven = (mine, dofs, v, r_q, e_dot_n, C_row)
-    return PieceData(fr, K, f_tilde, vals, d_u, d_q, R_N, R_T, gap, slip, driven)
+    return PieceData(fr, K, f_tilde, vals, d_u, d_q, R_N, R_T, gap, slip, driven, compliance)
 
 
 def classify(d: PieceData, args, R_N, R_T, g, s) -> jax.Array:
     """The active set (open / stick / slip with its sign) of forces (R_N, R_T), gaps and slips of the
-    candidate nodes; a force-driven tool keeps touching the sheet (:func:`keep_tools_touching`)."""
+    candidate nodes (the compliant ones of ``d.compliance``); a force-driven tool keeps touching the sheet
+    (:func:`keep_tools_touching`)."""
     fr = d.fr
+    g, s = compliant(d.compliance, fr.pairs, fr.mu, R_N, R_T, g, s)
     state, _, sig_n = alart_curnier_residual(R_N, R_T, g, s, fr.mu, fr.c_n, fr.c_t)
     if d.driven is not None:
         force_driven = args.contact.force_mask[args.force_idx[0]]
@@ -230,7 +286,9 @@ def piece_system(d: PieceData, args, state, constrained=None, x=None, mu_force=N
     ``M dx = -F``. ``constrained`` (n_u,) bool, with the iterate ``x``: candidates whose second row (the slip law) is
     replaced by the row of their one prescribed dof, kappa (u_i - u_presc,i)
     (:mod:`jaxfric.contact.exact_derivative`). ``mu_force`` (n_u,): the matrix's slip rows take it as the
-    coefficient of R_N (:func:`~jaxfric.contact.alart_curnier.piece_jacobian`; the residual keeps mu)."""
+    coefficient of R_N (:func:`~jaxfric.contact.alart_curnier.piece_jacobian`; the residual keeps mu).
+    With ``d.compliance``, C_a = W_F p_a + W_K (g~, s~) (:class:`Compliance`), whose matrix takes
+    W_F + W_K diag(1 / eps_N, 1 / eps_T) where exact contact's takes W_F."""
     c = args.contact
     fr, K = d.fr, d.K
     n = args.mesh.n_dofs
@@ -239,10 +297,15 @@ def piece_system(d: PieceData, args, state, constrained=None, x=None, mu_force=N
     ny1 = bs // 2
     col, loc = nodes // ny1, nodes % ny1
     w_f, w_k = piece_jacobian(state, fr.mu, fr.c_n, fr.c_t)
+    g, s = compliant(d.compliance, pairs, fr.mu, d.R_N, d.R_T, d.gap, d.slip)
     C_rows = jnp.einsum("uij,uj->ui", w_f, jnp.stack([d.R_N, d.R_T], -1)) + \
-        jnp.einsum("uij,uj->ui", w_k, jnp.stack([d.gap, d.slip], -1))
+        jnp.einsum("uij,uj->ui", w_k, jnp.stack([g, s], -1))
     if mu_force is not None:
         w_f = piece_jacobian(state, fr.mu, fr.c_n, fr.c_t, mu_force)[0]
+    if d.compliance is not None:
+        cp = d.compliance
+        w_f = w_f + w_k * jnp.stack([jnp.broadcast_to(cp.inv_eps_n, fr.mu.shape),
+                                     jnp.where(fr.mu > 0, cp.inv_eps_t, 0.0)], -1)[:, None, :]
     A = jnp.einsum("uij,ukj->uik", w_f, rotation)                    # W_F R^T
     local = jnp.einsum("uij,ujk->uik", w_f, d.d_u[pairs, :2]) + jnp.einsum("uij,ujk->uik", w_k, d.d_u[pairs, 2:])
     if constrained is not None:
@@ -284,13 +347,16 @@ def active_set_step(it: Iterate, args, x, p_prev, law, hint, frames=None):
     sum_a e_q . f~_a = P over its candidates. ``hint`` gives f_c^prev and the first active set (the last
     converged forces at a step's first iteration); ``p_prev`` is not used (the signature is the condensed
     step's). ``frames``: the result of :func:`contact_frames` at ``it`` when the caller has it already.
+    A compliant ``law`` solves the penalty law of ``args`` instead (:class:`Compliance`).
     """
     n = args.mesh.n_dofs
     m = it.gap.shape[0]
-    d = piece_data(it, args, x, hint, frames)
+    d = piece_data(it, args, x, hint, frames, compliance_of(args) if law.compliant else None)
     fr, K = d.fr, d.K
     nodes, pairs, valid, rotation, mu = fr.nodes, fr.pairs, fr.valid, fr.rotation, fr.mu
-    gap = d.gap
+    # The gap at this iterate (the compliant one with the penalty's compliance: a closed pair's penetration
+    # R_N / eps_N is its contact, not an overlap).
+    gap = compliant(d.compliance, pairs, mu, d.R_N, d.R_T, d.gap, d.slip)[0]
 
     def solve(state):
         """The increment on the active set ``state``, and the forces, gap and slip it predicts."""
@@ -316,7 +382,7 @@ def active_set_step(it: Iterate, args, x, p_prev, law, hint, frames=None):
     # converged step's) with this iterate's gaps: on the three-cylinder bench 18.6 passes per step
     # against 25.8 when read off this iterate's own (unbalanced) forces.
     h = jnp.where(valid[:, None], hint[pairs], 0.0)
-    state0 = classify(d, args, h[:, 0], h[:, 1], gap, d.slip)
+    state0 = classify(d, args, h[:, 0], h[:, 1], d.gap, d.slip)
 
     # One solve in the traced program (its first pass takes state0): each copy of the block solve
     # costs compile time.

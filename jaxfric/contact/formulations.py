@@ -33,7 +33,7 @@ from ..numerics.results import Result
 from .exact import exact_solve
 from .rigid import max_penetration, pair_nodes, split_pairs
 from .status import STICK
-from .system import StepArgs, linearize, residual
+from .system import StepArgs, kept_predictor, linearize, residual
 
 __all__ = ["ALGORITHMS", "DIFFERENTIABLE_ALGORITHMS", "AbstractContactFormulation", "Penalty",
            "AugmentedLagrangian", "Complementarity", "StepSolution", "formulation", "from_newton", "newton_step",
@@ -205,15 +205,17 @@ class Penalty(_Regularised):
 
 def _penalty_from_exact(law: Penalty, args: StepArgs, x0, x_ref, newton: NewtonOptions, search=True,
                         stage=False) -> StepSolution:
-    """The penalty law's step attempt started from exact contact: the step solved with exact contact
-    (:class:`Complementarity`, semismooth Newton) from ``x0``, every closed pair's node then pushed R_N / eps_n
-    into its tool (where the penalty law gives the exact normal force), and the penalty's Newton solve from
-    there (from ``x0`` where the exact solve fails). The solution is the penalty law's; only Newton's
-    starting point changes. No tangent reaches the exact solve, which has no derivative: the step is
+    """The penalty law's step attempt started from its own solution by exact contact's solver: the step
+    solved by semismooth Newton on the Alart-Curnier equations with the penalty's compliance
+    (:class:`Complementarity` with ``compliant``, :func:`exact_start_point`) from ``x0``, then the penalty's
+    Newton solve from there (from ``x0`` where the compliant solve fails). The solution is the penalty law's;
+    only Newton's starting point changes, and from the compliant solution the penalty's Newton solve
+    converges on its first iteration (the unsmoothed law's: the smoothed law starts from the unsmoothed one's
+    solution). No tangent reaches the compliant solve, which has no derivative: the step is
     differentiated at its converged solution, as :class:`Penalty`'s. ``iterations`` counts both solves'
     Newton iterations, ``hardest`` the larger of the two.
 
-    ``args.contact.lam_n`` is the exact solve's guess of its first active set (the last converged normal
+    ``args.contact.lam_n`` is the compliant solve's guess of its first active set (the last converged normal
     forces where the formulation's ``warm_start`` puts them there); the penalty solve takes lambda_N = 0."""
     start, penalty, exact = exact_start_point(law, args, x0, x_ref, newton)
     sol = newton_step(penalty, start, x_ref, newton, search, stage)
@@ -222,35 +224,44 @@ def _penalty_from_exact(law: Penalty, args: StepArgs, x0, x_ref, newton: NewtonO
 
 
 def exact_start_point(law: Penalty, args: StepArgs, x0, x_ref, newton: NewtonOptions):
-    """``(start, penalty_args, exact)``: the penalty law's Newton start of :func:`_penalty_from_exact` (the
-    exact solution with every closed pair's node pushed R_N / eps_n into its tool, or ``x0`` where the exact
-    solve failed), the step's data with the penalty law's lambda_N = 0, and the exact solve's
-    :class:`StepSolution`. No tangent reaches the exact solve."""
+    """``(start, penalty_args, compliant)``: the penalty law's Newton start of :func:`_penalty_from_exact` (the
+    solution of the compliant semismooth Newton solve for ``law``, or ``x0`` where that solve failed), the
+    step's data with the penalty law's lambda_N = 0, and the compliant solve's :class:`StepSolution`. No
+    tangent reaches the compliant solve."""
     contact = args.contact
     assert contact is not None   # a step with tools
-    frozen = jax.tree_util.tree_map(lambda a: jax.lax.stop_gradient(a) if eqx.is_array(a) else a, (args, x0, x_ref))
-    exact = from_newton(*exact_solve(*frozen, options=newton, law=Complementarity("ssn")))
-    nodes = pair_nodes(contact.tools)
-    _, _, c = cast(tuple, exact.aux)   # (f_int, point states, contact output)
-    push = -(c["rn"] / law.eps_n)[:, None] * c["normal"]   # gap -R_N / eps_n on every closed pair
-    start = exact.x.at[2 * nodes].add(push[:, 0]).at[2 * nodes + 1].add(push[:, 1])
-    start = jnp.where(exact.code == Result.SUCCESS, start, jax.lax.stop_gradient(x0))
+    frozen = jax.tree_util.tree_map(lambda a: jax.lax.stop_gradient(a) if eqx.is_array(a) else a,
+                                    (eqx.tree_at(lambda a: a.contact.law, args, law), x0, x_ref))
+    exact = from_newton(*exact_solve(*frozen, options=newton, law=Complementarity("ssn", compliant=True)))
+    ok = exact.code == Result.SUCCESS
+    start = jnp.where(ok, exact.x, jax.lax.stop_gradient(x0))
     penalty = eqx.tree_at(lambda a: a.contact.lam_n, args, jax.tree_util.tree_map(jnp.zeros_like, contact.lam_n))
-    return start, penalty, exact
+    return start, _continuing(penalty, exact, ok), exact
+
+
+def _continuing(args: StepArgs, sol: StepSolution, ok) -> StepArgs:
+    """``args`` for a Newton solve started at the converged point of ``sol`` where ``ok``: with the enhanced
+    predictor of that point (:func:`~jaxfric.contact.system.kept_predictor`; no tangent reaches it, a
+    starting value), as the load loop's next step starts from its last one's; ``args`` elsewhere."""
+    if args.predictor is None:
+        return args
+    kept = jax.lax.stop_gradient(kept_predictor(cast(tuple, sol.aux)[1]))
+    return args.with_carry(jnp.where(ok, kept, args.predictor))
 
 
 class StiffPenalty(Penalty):
     """The penalty law for penalties far stiffer than a scene's own (:func:`formulation` picks it above
     ``stiff_above``: the scenes give ``STIFF_PENALTY_RATIO`` times their spec penalty). An attempt is
-    the plain law's Newton solve; where that fails, the attempt is solved again from exact contact
-    (:func:`_penalty_from_exact`). Steps the plain law takes cost what they cost with it.
+    the plain law's Newton solve; where that fails, the attempt is solved again by exact contact's
+    semismooth Newton with the penalty's compliance (:func:`_penalty_from_exact`). Steps the plain law
+    takes cost what they cost with it.
 
     Reason: at eps_n >> E a Newton iterate that moves a node by the sheet's compliance across a tool
     surface meets a force eps_n times the overshoot; on a curved tool a pair then 2-cycles between open
     and a spurious force, and steps are cut down to nothing (the Nine at eps_n = 1e9: thousands of cut
-    steps, the history buffer full in the clamp). From the exact solution the active set is right and the
-    normal forces within O(R_N / eps_n) of the penalty's, so the penalty's Newton converges in a few
-    iterations.
+    steps, the history buffer full in the clamp). The semismooth Newton settles the active set on the
+    linearised problem, where no iterate meets that overshoot, and its solution is the penalty law's, so
+    the penalty's Newton solve converges on its first iteration.
     """
 
     one_newton_solve: ClassVar[bool] = False
@@ -274,18 +285,19 @@ class StiffPenalty(Penalty):
 
 
 class ExactStartPenalty(Penalty):
-    """The penalty law with every step attempt started from exact contact (:func:`_penalty_from_exact`;
+    """The penalty law with every step attempt solved first by exact contact's semismooth Newton with the
+    penalty's compliance, then by the penalty's own Newton from that solution (:func:`_penalty_from_exact`;
     :func:`formulation` with ``exact_start``). The solution, its load path and its derivatives are the
     penalty law's; only where Newton starts changes, so the steps the plain law cuts are taken.
 
     Reason: from the load loop's guess the plain law spends most of its iterations and cut steps on
     pairs that open, close, stick and slip from one iterate to the next (docs/results.md, penalty
-    iterations on the blankholder), which exact contact's active-set solve settles in a few iterations;
-    from its solution the penalty's Newton solve takes four to seven (pairs that exact contact leaves open
-    at small gaps close under the penalty's penetration). Measured in docs/results.md, "The penalty law
-    and the augmented Lagrangian started from exact contact" (``python experiments/bench_exact_start.py``).
+    iterations on the blankholder), which the active-set solve settles on each linearised problem; its
+    solution is the penalty law's own, so the penalty's Newton solve then converges on its first iteration,
+    which also gives the step its derivative. Measured in docs/results.md, "The penalty law and the
+    augmented Lagrangian started from exact contact" (``python experiments/bench_exact_start.py``).
 
-    Its multipliers start from the last converged normal forces (``warm_start``): they are the exact
+    Its multipliers start from the last converged normal forces (``warm_start``): they are the compliant
     solve's guess of its first active set, not the penalty law's lambda_N (0).
     """
 
@@ -364,6 +376,7 @@ class AugmentedLagrangian(_Regularised):
                                 linearize=linearize, residual=residual, options=newton, search=search)
 
         lam_n0, lam_t0, x_first, iters0 = args.contact.lam_n, args.contact.lam_t, x0, jnp.array(0, jnp.int32)
+        first_args = args
         if self.exact_start:   # static
             exact, _ = exact_solve(args, x0, x_ref, options=newton, law=Complementarity("ssn"))
             ok = exact.code == Result.SUCCESS
@@ -372,6 +385,7 @@ class AugmentedLagrangian(_Regularised):
             lam_n0 = jax.tree_util.tree_map(on_exact, split_pairs(tools, out["rn"]), lam_n0)
             lam_t0 = jax.tree_util.tree_map(on_exact, split_pairs(tools, out["rt"]), lam_t0)
             x_first, iters0 = jnp.where(ok, jax.lax.stop_gradient(exact.x), x0), exact.iterations
+            first_args = _continuing(args, from_newton(exact), ok)
 
         def pending(c):
             sol, n_aug = c[:2]
@@ -384,7 +398,9 @@ class AugmentedLagrangian(_Regularised):
             pick = lambda a, b: jnp.where(first, a, b)  # noqa: E731
             lam_n = jax.tree_util.tree_map(pick, lam_n0, split_pairs(tools, out["rn"]))
             lam_t = jax.tree_util.tree_map(pick, lam_t0, split_pairs(tools, out["rt"]))
-            new = solve(args, lam_n, lam_t, pick(x_first, sol.x))
+            # The first solve's predictor (the exact solution's, with exact_start); the later ones the step's.
+            a = args if args.predictor is None else args.with_carry(pick(first_args.predictor, args.predictor))
+            new = solve(a, lam_n, lam_t, pick(x_first, sol.x))
             # After the last allowed augmentation the target must be met, or the attempt fails.
             exhausted = (n_aug + 1 >= self.max_augmentations) & (new.code == Result.SUCCESS) & (
                 _constraint_error(new.aux[2]) > self.target_gap)
@@ -435,12 +451,17 @@ class Complementarity(AbstractContactFormulation):
         search: static, "lemke" only: line-search its Newton steps on the semismooth merit as "ssn"'s
             are (:mod:`jaxfric.contact.exact`, step 6), so that Lemke takes the steps "ssn" takes. False:
             full Newton steps.
+        compliant: static, "ssn" only: solve the penalty law of the step's ``contact.law`` instead of exact
+            contact, its compliance written into the Alart-Curnier equations
+            (:class:`~jaxfric.contact.exact_active_set.Compliance`): the start of
+            :class:`ExactStartPenalty`'s attempts, which is not differentiated.
     """
 
     solver: str = eqx.field(static=True, default="ssn")
     band: int | None = eqx.field(static=True, default=None)
     ssn_max_iter: int = eqx.field(static=True, default=50)
     search: bool = eqx.field(static=True, default=True)
+    compliant: bool = eqx.field(static=True, default=False)
     warm_start: ClassVar[bool] = True
     unsearched_retry: ClassVar[bool] = False
     solver_stats: ClassVar[tuple] = ("lcp_pivots", "ssn_iters", "ssn_fallbacks")
@@ -451,6 +472,8 @@ class Complementarity(AbstractContactFormulation):
             raise ValueError(f"field 'solver' must be one of {', '.join(map(repr, SOLVERS))}, got {self.solver!r}")
         check_int("band", self.band, optional=True)
         check_int("ssn_max_iter", self.ssn_max_iter, 1, 10_000)
+        if self.compliant and self.solver != "ssn":
+            raise ValueError(f"field 'compliant' needs solver 'ssn', got {self.solver!r}")
 
     def solve_step(self, args, x0, x_ref, newton, search=True, stage=False) -> StepSolution:
         sol, stats = exact_solve(args, x0, x_ref, options=newton, law=self)
@@ -494,8 +517,9 @@ def formulation(algorithm: str, eps_n, eps_t, target_gap, band: int | None = Non
     ``max_augmentations`` is the AL's limit per step attempt (spec 1.6: 20). A concrete penalty eps_n
     above ``stiff_above`` (N/mm per mm; None: never) gets :class:`StiffPenalty`. ``search``: ``lcp_lemke``'s
     line search (:class:`Complementarity`); the other algorithms ignore it. ``exact_start``: the penalty law's
-    and the augmented Lagrangian's attempts start from exact contact (:class:`ExactStartPenalty`, whatever
-    eps_n; :class:`AugmentedLagrangian`'s ``exact_start``); exact contact ignores it."""
+    attempts start from the compliant semismooth solve (:class:`ExactStartPenalty`, whatever eps_n), the
+    augmented Lagrangian's from exact contact (:class:`AugmentedLagrangian`'s ``exact_start``); exact contact
+    ignores it."""
     if algorithm in ("lcp_lemke", "lcp_ssn") and smoothing != 0:
         raise ValueError(f"field 'smoothing' = {smoothing!r} applies to algorithms penalty and auglag only; "
                          f"exact contact ({algorithm}) has no smoothed law")

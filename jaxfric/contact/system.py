@@ -35,7 +35,7 @@ from .rigid import ContactStep, evaluate_pairs, pair_friction, pair_nodes, pair_
 from .status import settled_status
 from .tools import GAP_OPEN
 
-__all__ = ["StepArgs", "residual", "linearize", "damped"]
+__all__ = ["StepArgs", "residual", "linearize", "damped", "kept_predictor"]
 
 
 class StepArgs(eqx.Module):
@@ -66,6 +66,13 @@ class StepArgs(eqx.Module):
     def with_carry(self, predictor) -> StepArgs:
         """These args for an evaluation that continues from ``predictor`` (None: the local solve)."""
         return dataclasses.replace(self, predictor=predictor)
+
+
+def kept_predictor(states) -> jax.Array:
+    """The enhanced predictor the point states of a converged solution keep (``anst`` and ``eas`` with the
+    enhanced-strain update): its last linearisation's, from which a Newton solve that starts at that solution
+    continues (:attr:`StepArgs.predictor`)."""
+    return states.enhanced[:, 0]
 
 
 def _constrain_rows(K: BlockTridiag, mask: jax.Array, scale=1.0) -> BlockTridiag:

@@ -104,10 +104,9 @@ class StepControl(eqx.Module):
             increment took, its Newton iterations crawling while the 16 slipping pairs at the clamp's
             exit switch together between stick and slip; with eta = 1 N/mm per mm (5e-6 E) that step
             converges in 5 iterations, the damper's largest force 3e-4 N/mm. Later steps need more:
-            with 1e-5 E alone the run stops again 2 steps on, with 1e-3 E it finishes. A 0.1 mm foil
-            over the 5 mm roller between frictionless dies, drawn at almost no force, finishes with
-            15 steps stabilised at 1e-5 E (drawing work 1.2e-3 N mm/mm), while with 1e-3 E from the
-            start 259 steps are stabilised and the drawing work is 1.6 N mm/mm, the damper's force
+            with 1e-5 E alone the run stops again 2 steps on, with 1e-3 E it finishes. The smaller damper is
+            tried first because the damped step is off equilibrium by eta |u - u_n|: on a sheet drawn at
+            almost no force a damper of 1e-3 E from the start carries the drawing force itself
             (``tests/test_extreme.py::test_bead_edges``). Exact contact solves the damped equilibrium
             likewise (:mod:`jaxfric.contact.exact_iterate`): without it the blankholder's 12 mm bead (shape6)
             held at half depth stops at U = 50.2 mm, where a node of the sheet pressed into the groove has a
@@ -130,7 +129,7 @@ class StepControl(eqx.Module):
             each, and would have filled its history buffer (5,000 rows) after about half an hour; it now
             stops after step 346, in 80 s. The runs that need the stabilised attempt but get through
             finish as before (``tests/test_extreme.py``: the bead with mu = 1 on roller and clamp dies,
-            53 of 153 steps stabilised; the foil, 453 of 2713 with XLA's threaded Eigen). A stalled run
+            53 of 153 steps stabilised). A stalled run
             says so at once, so that a caller can take another algorithm (the bead card falls back to the
             penalty law).
         step_error: 0 (default): the nominal increments, cut and grown as above. > 0: the increments

@@ -28,7 +28,7 @@ from ..contact.rigid import (
     split_pairs,
 )
 from ..contact.status import contact_status
-from ..contact.system import StepArgs, linearize
+from ..contact.system import StepArgs, kept_predictor, linearize
 from ..fem.assembly import mesh_geometry
 from ..fem.element import ElementGeometry, enhanced_count
 from ..fem.loading import constraint_masks, prescribed_values
@@ -125,7 +125,7 @@ def enhanced_carry(model: StripModel, state: SimState):
     Newton's first point (the secant guess) gets the enhanced parameters linearised about the converged
     ones."""
     if enhanced_count(model.formulation, model.mesh.nodes_per_element) and model.enhanced_update == "iterate":
-        return state.material.enhanced[:, 0]
+        return kept_predictor(state.material)
     return None
 
 

@@ -137,12 +137,12 @@ LEMKE_SEARCH_DOC = ("lcp_lemke: line-search its Newton steps on the semismooth m
                     "Nine's plan for 1.6 to 1.8 times its steps (docs/results.md, study common_steps) [chosen]")
 
 
-EXACT_START_DOC = ("penalty and auglag: solve every step attempt first with exact contact and start from its "
-                   "solution (penalty: jaxfric.contact.formulations.ExactStartPenalty, the penalty law's solution "
-                   "and derivatives on the steps the plain law cuts; auglag: its forces as the multipliers, exact "
-                   "contact's solution and derivatives without augmenting); False: from the load loop's guess "
-                   "(the penalty law from exact contact only after a failed attempt above the stiff "
-                   "threshold) [chosen]")
+EXACT_START_DOC = ("penalty and auglag: solve every step attempt first by exact contact's semismooth Newton and "
+                   "start from its solution (penalty: jaxfric.contact.formulations.ExactStartPenalty, with the "
+                   "penalty's compliance, which gives the penalty law's solution and derivatives on the steps the "
+                   "plain law cuts; auglag: exact contact, its forces as the multipliers, exact contact's "
+                   "solution and derivatives without augmenting); False: from the load loop's guess (the penalty "
+                   "law from the compliant solve only after a failed attempt above the stiff threshold) [chosen]")
 
 
 @dataclasses.dataclass(frozen=True)
