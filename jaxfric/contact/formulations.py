@@ -217,10 +217,10 @@ def _penalty_from_exact(law: Penalty, args: StepArgs, x0, x_ref, newton: NewtonO
 
     ``args.contact.lam_n`` is the compliant solve's guess of its first active set (the last converged normal
     forces where the formulation's ``warm_start`` puts them there); the penalty solve takes lambda_N = 0."""
-    start, penalty, exact = exact_start_point(law, args, x0, x_ref, newton)
+    start, penalty, compliant = exact_start_point(law, args, x0, x_ref, newton)
     sol = newton_step(penalty, start, x_ref, newton, search, stage)
-    return sol._replace(iterations=exact.iterations + sol.iterations,
-                        hardest=jnp.maximum(exact.iterations, sol.iterations))
+    return sol._replace(iterations=compliant.iterations + sol.iterations,
+                        hardest=jnp.maximum(compliant.iterations, sol.iterations))
 
 
 def exact_start_point(law: Penalty, args: StepArgs, x0, x_ref, newton: NewtonOptions):
@@ -232,11 +232,11 @@ def exact_start_point(law: Penalty, args: StepArgs, x0, x_ref, newton: NewtonOpt
     assert contact is not None   # a step with tools
     frozen = jax.tree_util.tree_map(lambda a: jax.lax.stop_gradient(a) if eqx.is_array(a) else a,
                                     (eqx.tree_at(lambda a: a.contact.law, args, law), x0, x_ref))
-    exact = from_newton(*exact_solve(*frozen, options=newton, law=Complementarity("ssn", compliant=True)))
-    ok = exact.code == Result.SUCCESS
-    start = jnp.where(ok, exact.x, jax.lax.stop_gradient(x0))
+    solved = from_newton(*exact_solve(*frozen, options=newton, law=Complementarity("ssn", compliant=True)))
+    ok = solved.code == Result.SUCCESS
+    start = jnp.where(ok, solved.x, jax.lax.stop_gradient(x0))
     penalty = eqx.tree_at(lambda a: a.contact.lam_n, args, jax.tree_util.tree_map(jnp.zeros_like, contact.lam_n))
-    return start, _continuing(penalty, exact, ok), exact
+    return start, _continuing(penalty, solved, ok), solved
 
 
 def _continuing(args: StepArgs, sol: StepSolution, ok) -> StepArgs:
@@ -324,15 +324,15 @@ class AugmentedLagrangian(_Regularised):
     already meets the target needs no augmentation.
 
     ``exact_start`` (static): the step is first solved with exact contact (:class:`Complementarity`,
-    semismooth Newton), and the Uzawa iteration starts from that solution with its forces as the
-    multipliers (where the exact solve fails: as without). The exact solution is a fixed point of the
-    iteration (of the exact law; a smoothed law's lies near it): with lambda = its forces, every closed pair
-    at zero gap and every sticking pair without slip gives back lambda, so the first Newton solve meets the
-    target without an augmentation (measured: a step takes one Newton iteration more than ``lcp_ssn``'s on
-    the Nine, two or three on the blankholder, docs/results.md). Its derivative: the exact solve's
-    (:mod:`jaxfric.contact.exact_derivative`) carried by the multipliers into the implicit function theorem
-    of the AL's solve, which at the fixed point gives the exact step's derivative. ``iterations`` counts
-    both solves' Newton iterations.
+    semismooth Newton), and the Uzawa iteration starts from that solution (and its elements' enhanced
+    predictor) with its forces as the multipliers (where the exact solve fails: as without). The exact
+    solution is a fixed point of the iteration (of the exact law; a smoothed law's lies near it): with
+    lambda = its forces, every closed pair at zero gap and every sticking pair without slip gives back
+    lambda, so the first Newton solve meets the target without an augmentation (measured: a step takes one
+    Newton iteration more than ``lcp_ssn``'s on the Nine and on the blankholder, docs/results.md). Its
+    derivative: the exact solve's (:mod:`jaxfric.contact.exact_derivative`) carried by the multipliers into
+    the implicit function theorem of the AL's solve, which at the fixed point gives the exact step's
+    derivative. ``iterations`` counts both solves' Newton iterations.
     """
 
     target_gap: jax.Array
