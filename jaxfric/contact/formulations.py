@@ -398,8 +398,11 @@ class AugmentedLagrangian(_Regularised):
             pick = lambda a, b: jnp.where(first, a, b)  # noqa: E731
             lam_n = jax.tree_util.tree_map(pick, lam_n0, split_pairs(tools, out["rn"]))
             lam_t = jax.tree_util.tree_map(pick, lam_t0, split_pairs(tools, out["rt"]))
-            # The first solve's predictor (the exact solution's, with exact_start); the later ones the step's.
-            a = args if args.predictor is None else args.with_carry(pick(first_args.predictor, args.predictor))
+            # With exact_start, the first solve continues from the exact solution's predictor; the later ones,
+            # and every solve without it, from the step's.
+            a = args
+            if self.exact_start and args.predictor is not None:   # static
+                a = args.with_carry(pick(first_args.predictor, args.predictor))
             new = solve(a, lam_n, lam_t, pick(x_first, sol.x))
             # After the last allowed augmentation the target must be met, or the attempt fails.
             exhausted = (n_aug + 1 >= self.max_augmentations) & (new.code == Result.SUCCESS) & (
