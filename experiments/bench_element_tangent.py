@@ -1,11 +1,12 @@
-"""The element tangent's cost, with F-bar's gradient and geometric term in closed form (the library) or by
-automatic differentiation of the kinematics (forward, and forward over reverse, as the tangent was
-assembled before).
+"""The element tangent's cost: the library's (F-bar's gradient and geometric term and the radial return's
+consistent tangent dP/dF in closed form), the same with dP/dF by ``jacfwd`` of the point law
+(``tangent_material_ad``), and everything by automatic differentiation (``tangent_ad``: dP/dF by
+``jacfwd``, the kinematics forward, and forward over reverse for the geometric term).
 
     python experiments/bench_element_tangent.py [--mesh 300x3] [--element ans] [--rounds 15]
 
 Times, on the Nine's mesh at a plastic state (random nodal displacements of 0.03 mm from the virgin
-state), the forces and tangents of all elements, one ``vmap`` jitted alone, the two variants alternated
+state), the forces and tangents of all elements, one ``vmap`` jitted alone, the variants alternated
 in one process, and the geometric term alone both ways. Process CPU time (``time.process_time``), so
 that another process on the same core does not enter the figures; pin it with ``taskset -c N`` and one
 XLA thread (``XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"``). Writes
@@ -27,6 +28,7 @@ import numpy as np
 from jaxfric import scenes
 from jaxfric.fem import element as el
 from jaxfric.fem.element import element_geometry
+from jaxfric.fem.material import piola_and_tangent_ad
 from jaxfric.io.batch import write_csv
 from jaxfric.loadpath.model import initial_state
 
@@ -41,12 +43,22 @@ def tangent_with_ad_geometric_term(material, formulation, dN_dX, dN_dX_center, w
 
     v = u_e.ravel()
     Fb, _, dF_dv = el._value_and_jacfwd(kinematics, v)
-    dP_dF, (P, _, _) = jax.vmap(jax.jacfwd(el._piola(material), has_aux=True))(Fb, states)
+    dP_dF, (P, _, _) = jax.vmap(lambda F, s: piola_and_tangent_ad(material, F, s))(Fb, states)
     wP = weight[:, None, None] * P
     f_e = jnp.einsum("gij,gija->a", wP, dF_dv)
     K_e = jnp.einsum("g,gija,gijkl,gklb->ab", weight, dF_dv, dP_dF, dF_dv)
     K_e = K_e + jax.jacfwd(jax.grad(lambda w: jnp.sum(jax.lax.stop_gradient(wP) * kinematics(w)[0])))(v)
     return f_e.reshape(4, 2), K_e
+
+
+def tangent_with_ad_material(*args):
+    """:func:`jaxfric.fem.element.element_force_and_tangent` with dP/dF by ``jacfwd`` of the point law."""
+    closed = el.piola_and_tangent
+    el.piola_and_tangent = piola_and_tangent_ad   # while the call is traced
+    try:
+        return el.element_force_and_tangent(*args)
+    finally:
+        el.piola_and_tangent = closed
 
 
 def main(argv=None) -> int:
@@ -74,14 +86,16 @@ def main(argv=None) -> int:
 
     calls = {
         "tangent_closed_form": (batched(el.element_force_and_tangent), (u_e, states)),
+        "tangent_material_ad": (batched(tangent_with_ad_material), (u_e, states)),
         "tangent_ad": (batched(tangent_with_ad_geometric_term), (u_e, states)),
         "geometric_term_closed_form": (jax.jit(jax.vmap(
             lambda S_e, d, d0, u: el._fbar_geometric_term(S_e, el._fbar_parts(d, d0, u), d))), (S, dN, dN0, u_e)),
         "geometric_term_ad": (jax.jit(jax.vmap(ad_term)), (S, dN, dN0, w, u_e)),
     }
     out = {name: jax.block_until_ready(fn(*a)) for name, (fn, a) in calls.items()}
-    K_new, K_ad = out["tangent_closed_form"][1], out["tangent_ad"][1]
-    agree = float(jnp.max(jnp.abs(K_new - K_ad)) / jnp.max(jnp.abs(K_ad)))
+    K_ad = out["tangent_ad"][1]
+    agree = max(float(jnp.max(jnp.abs(out[name][1] - K_ad)) / jnp.max(jnp.abs(K_ad)))
+                for name in ("tangent_closed_form", "tangent_material_ad"))
     plastic = float(jnp.mean(jax.vmap(lambda *a: el.element_force(material, formulation, *a)[1][0].eqps)(
         dN, dN0, w, u_e, states) > 0))
     times: dict[str, list] = {name: [] for name in calls}

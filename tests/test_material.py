@@ -7,7 +7,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfric.fem.material import INTEGRATIONS, J2Material, MaterialState, von_mises
+from jaxfric.fem.material import (
+    INTEGRATIONS,
+    J2Material,
+    MaterialState,
+    piola_and_tangent,
+    piola_and_tangent_ad,
+    von_mises,
+)
 
 # Sheet materials of the benchmark scenes (spec tables 1 and 2): a very steep initial hardening
 # (A = 1e4) and a moderate one.
@@ -490,3 +497,47 @@ def test_midpoint_return_is_the_radial_return_on_a_proportional_path():
 def test_unknown_integration_is_named():
     with pytest.raises(ValueError, match="integration = 'trapezoid'"):
         J2Material(**BEAD, integration="trapezoid")
+
+
+@jax.jit
+def closed_and_ad_tangents(material, Fs, states):
+    """The radial return's closed-form dP/dF (what the element code takes) and jacfwd's, over points,
+    with each one's derivative along a change of F and of the material's parameters."""
+    def both(mat, F):
+        return (jax.vmap(lambda f, s: piola_and_tangent(mat, f, s)[0])(F, states),
+                jax.vmap(lambda f, s: piola_and_tangent_ad(mat, f, s)[0])(F, states))
+    dmat = jax.tree.map(lambda leaf: 1e-3 * leaf, material)
+    dF = 0.01 * jnp.ones_like(Fs).at[..., 0, 1].set(-0.02)
+    values, derivatives = jax.jvp(both, (material, Fs), (dmat, dF))
+    pieces = jax.vmap(lambda f, s: piola_and_tangent(material, f, s)[1])(Fs, states)
+    pieces_ad = jax.vmap(lambda f, s: piola_and_tangent_ad(material, f, s)[1])(Fs, states)
+    return values, derivatives, pieces, pieces_ad
+
+
+@pytest.mark.parametrize("law", ALL_LAWS + [dict(E=1.0e5, nu=0.25, sigma_y=np.inf, A=0.0, n=0.0)],
+                         ids=ALL_LAW_IDS + ["elastic"])
+def test_closed_form_tangent_is_the_jacfwd_tangent(law):
+    """At the virgin state (F = I, equal eigenvalues: the log's series branch), after a plastic step, on a
+    further plastic step, on elastic unloading and on a near-identity trial from a plastic state, the
+    closed-form consistent tangent equals ``jacfwd`` of P = tau F^-T to round-off, the stress and the
+    updated history are the same bit for bit, and its own derivative (along F and the law's parameters,
+    what a derivative of the whole path takes through the tangent) is jacfwd's to round-off and finite."""
+    material = J2Material(**law)
+    virgin = material.init_state()
+    _, after_first = update(material, jnp.asarray(F_FIRST), virgin)
+    F_unload = np.eye(2) + 0.5 * (F_FIRST - np.eye(2))
+    cases = [(np.eye(2), virgin), (F_FIRST, virgin), (F_SECOND, after_first), (F_unload, after_first),
+             (F_FIRST + 1e-9, after_first), (np.array([[1.3, 0.2], [-0.1, 0.8]]), virgin)]
+    Fs = jnp.asarray(np.stack([F for F, _ in cases]))
+    states = jax.tree.map(lambda *leaves: jnp.stack(leaves), *[s for _, s in cases])
+    (closed, ad), (d_closed, d_ad), pieces, pieces_ad = closed_and_ad_tangents(material, Fs, states)
+    for got, want in ((closed, ad), (d_closed, d_ad)):
+        got, want = np.asarray(got), np.asarray(want)
+        assert np.all(np.isfinite(got))
+        scale = np.max(np.abs(want), axis=(1, 2, 3, 4), keepdims=True)
+        assert np.all(np.abs(got - want) <= 1e-13 * scale), np.max(np.abs(got - want) / scale)
+    for a, b in zip(jax.tree.leaves(pieces), jax.tree.leaves(pieces_ad)):
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+    if np.isfinite(law["sigma_y"]):   # the cases cover both branches of the return
+        plastic = np.asarray(pieces[2].eqps) > np.asarray(states.eqps)
+        assert plastic.any() and not plastic.all()

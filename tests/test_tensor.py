@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxfric.numerics.tensor import safe_norm, sym2_exp, sym2_log
+from jaxfric.numerics.tensor import safe_norm, sym2_exp, sym2_log, sym2_log_derivative
 
 RNG_SEED = 20240611
 
@@ -142,6 +142,27 @@ def test_derivative_near_equal_eigenvalues(fn, f_np, dd, l1, l2):
         h = 1e-5
         fd = (reference_function(A + h * H, f_np) - reference_function(A - h * H, f_np)) / (2 * h)
         assert np.linalg.norm(got - fd) <= 1e-8 * np.linalg.norm(exact)
+
+
+LOG_DERIVATIVE = jax.jit(sym2_log_derivative)
+
+
+@pytest.mark.parametrize("l1, l2", NEAR_EQUAL + [(0.5, 3.0)])
+def test_log_derivative_in_several_directions_is_the_jvp_of_the_log(l1, l2):
+    """sym2_log_derivative's directions at once equal the log's jvp in each (both branches and the switch
+    between them), and Daleckii-Krein's derivative; directions need not be symmetric (only their
+    symmetric part counts, as for the log itself)."""
+    rng = np.random.default_rng(RNG_SEED + 2)
+    A = jnp.asarray(spd_with_eigenvalues(l1, l2, 0.4))
+    H = jnp.asarray(np.stack([symmetric_direction(rng) for _ in range(3)] + [rng.standard_normal((2, 2))]))
+    value, derivative = LOG_DERIVATIVE(A, H)
+    assert np.array_equal(np.asarray(value), np.asarray(VALUE[sym2_log](A)))
+    for H_i, got in zip(H, np.asarray(derivative)):
+        jvp = np.asarray(JVP[sym2_log](A, H_i))
+        scale = np.linalg.norm(jvp)
+        assert np.linalg.norm(got - jvp) <= 1e-13 * scale
+        exact = reference_derivative(np.asarray(A), 0.5 * np.asarray(H_i + H_i.T), divided_difference_log)
+        assert np.linalg.norm(got - exact) <= 1e-12 * scale
 
 
 def test_second_derivative_of_log_at_equal_eigenvalues():

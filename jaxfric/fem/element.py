@@ -143,6 +143,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..numerics.tensor import det2, inv2
+from .material import piola, piola_and_tangent
 
 __all__ = ["FORMULATIONS", "QUADRATIC_FORMULATIONS", "ElementGeometry", "gauss_rule", "element_geometry",
            "deformation_gradients", "initial_point_state", "element_force", "element_force_and_tangent",
@@ -401,14 +402,6 @@ def _kinematics(formulation, dN_dX, dN_dX_center, weight, u_e, alpha):
     return F, det_min
 
 
-def _piola(material):
-    def piola(F, state):
-        tau, new_state = material.update(F, state)
-        P = tau[:2, :2] @ inv2(F).T
-        return P, (P, tau, new_state)
-    return piola
-
-
 _EPS2 = np.array([[0.0, 1.0], [-1.0, 0.0]])  # the 2D permutation symbol: det F = 1/2 eps_ik eps_jl F_ij F_kl
 
 
@@ -503,7 +496,7 @@ def _condensed(material, formulation, dN_dX, dN_dX_center, weight, u_e, states):
         return jnp.zeros(0, u_e.dtype)
     F_c, _, G = _value_and_jacfwd(lambda a: _kinematics(formulation, dN_dX, dN_dX_center, weight, u_e, a),
                                   jnp.zeros(n, u_e.dtype))
-    point = jax.vmap(_piola(material))
+    point = jax.vmap(lambda F, state: piola(material, F, state))
     norm_g = jnp.sqrt(jnp.sum(G**2, axis=(1, 2, 3)))
 
     def residual_and_tolerance(alpha):
@@ -600,7 +593,8 @@ def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight
 
         K_e = sum_g w_g [ (dF_g/du)^T (dP_g/dF_g) (dF_g/du) + P_g : d2F_g/du2 ]
 
-    dP/dF by ``jacfwd`` of the point law (consistent with the return mapping). For ``fbar`` and ``ans``,
+    dP/dF the point law's consistent tangent (:func:`~jaxfric.fem.material.piola_and_tangent`: in closed
+    form for the radial return, else ``jacfwd``). For ``fbar`` and ``ans``,
     dF/du and the geometric term (the Hessian of u -> sum_g w_g P_g : F_g(u) with P held fixed) in
     closed form from the determinants' derivatives (:func:`_fbar_geometric_term`: about 0.7 times the
     element cost of differentiating the kinematics, ``experiments/bench_element_tangent.py``); for the
@@ -632,7 +626,7 @@ def element_force_and_tangent(material, formulation, dN_dX, dN_dX_center, weight
     else:
         v = jnp.concatenate([u_e.ravel(), alpha])
         Fb, det_min, dF_dv = _value_and_jacfwd(kinematics, v)  # dF_dv: (gp, 2, 2, nd + n_alpha)
-    dP_dF, (P, tau, new_states) = jax.vmap(jax.jacfwd(_piola(material), has_aux=True))(Fb, states)
+    dP_dF, (P, tau, new_states) = jax.vmap(lambda F, state: piola_and_tangent(material, F, state))(Fb, states)
     wP = weight[:, None, None] * P
     K_e = jnp.einsum("g,gija,gijkl,gklb->ab", weight, dF_dv, dP_dF, dF_dv)
     if formulation in ("fbar", "ans"):

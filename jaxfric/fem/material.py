@@ -22,15 +22,17 @@ jacfwd, parameter sensitivities forward and reverse).
 """
 
 import math
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfric.numerics.tensor import inv2, safe_norm, sym2_exp, sym2_log
+from jaxfric.numerics.tensor import inv2, safe_norm, sym2_exp, sym2_log, sym2_log_derivative
 
-__all__ = ["MaterialState", "J2Material", "INTEGRATIONS", "von_mises", "trial_log_strain", "scalar_newton"]
+__all__ = ["MaterialState", "J2Material", "INTEGRATIONS", "von_mises", "trial_log_strain", "scalar_newton", "piola",
+           "piola_and_tangent", "piola_and_tangent_ad"]
 
 INTEGRATIONS = ("radial", "midpoint")
 
@@ -232,10 +234,13 @@ class J2Material(eqx.Module):
         forward and reverse mode (first derivatives; higher ones are not exact). A run past the
         iteration cap returns its last iterate.
         """
-        kappa, G = self.bulk_modulus, self.shear_modulus
+        tau, new_state, _ = self._from_trial(F, state, *trial_log_strain(F, state))
+        return tau, new_state
 
-        # Trial elastic state (eq. b^e_tr = f b^e_n f^T, written with C_p^-1).
-        eps_trial, eps_trial_zz = trial_log_strain(F, state)
+    def _from_trial(self, F, state, eps_trial, eps_trial_zz):
+        """:meth:`update` from the trial elastic log strain (eq. b^e_tr = f b^e_n f^T, written with C_p^-1):
+        tau, the new state, and the radial return's :class:`_Flow` (None for the midpoint rule)."""
+        kappa, G = self.bulk_modulus, self.shear_modulus
         trace = jnp.trace(eps_trial) + eps_trial_zz
         dev_trial = eps_trial - (trace / 3.0) * jnp.eye(2, dtype=F.dtype)
         dev_trial_zz = eps_trial_zz - trace / 3.0
@@ -250,6 +255,7 @@ class J2Material(eqx.Module):
         # Overshoots below 1e-10 sigma_Y are taken as elastic; the stress error is below that.
         plastic = q_trial - self.yield_stress(state.eqps) > _YIELD_TOL * self.yield_stress(state.eqps)
 
+        flow = None
         if self.integration == "midpoint":
             dev, dev_zz, dg = self._midpoint_return(F, state, dev_trial, dev_trial_zz, plastic)
         else:
@@ -271,6 +277,7 @@ class J2Material(eqx.Module):
             shrink = 1.0 - 3.0 * G * dg / q_divisor
             dev = shrink * dev_trial
             dev_zz = shrink * dev_trial_zz
+            flow = _Flow(dev_trial, dev_trial_zz, dev_norm, plastic, dg, slope, q_divisor, shrink)
         tau_2d = kappa * trace * jnp.eye(2, dtype=F.dtype) + 2.0 * G * dev
         tau_zz = kappa * trace + 2.0 * G * dev_zz
         tau = jnp.zeros((3, 3), F.dtype).at[:2, :2].set(tau_2d).at[2, 2].set(tau_zz)
@@ -289,7 +296,59 @@ class J2Material(eqx.Module):
             F_n=F if self.integration == "midpoint" else None,
             dev_n=jnp.concatenate([dev.ravel(), dev_zz[None]]) if self.integration == "midpoint" else None,
         )
-        return tau, new_state
+        return tau, new_state, flow
+
+    def piola_and_tangent(self, F: jax.Array, state: MaterialState):
+        """The first Piola stress P = tau F^-T (in-plane block), its derivative dP/dF and the update.
+
+        Returns:
+            dP_dF: (2, 2, 2, 2), dP_ij / dF_kl; (P, tau, new_state): :func:`piola`'s.
+
+        The radial return's consistent tangent in closed form: d eps_tr = 1/2 d log(b^e_tr)[dF C_p^-1 F^T
+        + F C_p^-1 dF^T] (:func:`~jaxfric.numerics.tensor.sym2_log_derivative`, the four unit dF at
+        once), then, with the return's dg differentiated as :meth:`update` does (d dg = -dq_tr / R'(dg*),
+        zero where elastic) and shrink = 1 - 3G dg / q_tr,
+            d tau = kappa tr(d eps) I + 2G (shrink d dev + d shrink dev eps_tr),
+            dP = d tau F^-T - tau F^-T dF^T F^-T:
+        ``jacfwd`` of :func:`piola` to round-off, at about a third of its cost
+        (``tests/test_material.py``; ``python experiments/bench_element_tangent.py``). The midpoint rule
+        takes ``jacfwd``.
+        """
+        if self.integration != "radial":
+            return piola_and_tangent_ad(self, F, state)
+        kappa, G = self.bulk_modulus, self.shear_modulus
+        # Written entry by entry, each entry a vector over the four directions dF = e_k (x) e_l (k-major):
+        # under vmap every operation is then elementwise, which XLA's CPU backend vectorises (batches of
+        # tiny matrix products or reductions run several times slower).
+        row_k, col_l = np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1])
+        half_metric = state.cp_inv @ F.T                             # C_p^-1 F^T, as trial_log_strain
+        row = half_metric[col_l]                                     # (4, 2): row l of it, per direction
+        on_0, on_1 = jnp.asarray(row_k == 0, F.dtype), jnp.asarray(row_k == 1, F.dtype)
+        # d b = S + S^T with S = dF C_p^-1 F^T, whose only nonzero row is row k = row l of C_p^-1 F^T.
+        d_b = jnp.stack([jnp.stack([2.0 * on_0 * row[:, 0], on_0 * row[:, 1] + on_1 * row[:, 0]], -1),
+                         jnp.stack([on_0 * row[:, 1] + on_1 * row[:, 0], 2.0 * on_1 * row[:, 1]], -1)], -2)
+        log_b, d_log_b = sym2_log_derivative(F @ half_metric, d_b)
+        tau, new_state, flow = self._from_trial(F, state, 0.5 * log_b, 0.5 * jnp.log(state.cp_inv_zz))
+        assert flow is not None
+
+        d_eps = [[0.5 * d_log_b[:, i, j] for j in range(2)] for i in range(2)]   # d eps_zz = 0
+        d_trace = d_eps[0][0] + d_eps[1][1]
+        d_dev = [[d_eps[i][j] - (d_trace / 3.0 if i == j else 0.0) for j in range(2)] for i in range(2)]
+        dev = flow.dev_trial
+        d_norm = (sum(dev[i, j] * d_dev[i][j] for i in range(2) for j in range(2))
+                  - flow.dev_trial_zz * d_trace / 3.0) / jnp.where(flow.dev_norm > 0, flow.dev_norm, 1.0)
+        d_q = jnp.where(flow.plastic, _SQRT_3_2 * 2.0 * G * d_norm, 0.0)   # elastic: q held on the surface
+        d_dg = jnp.where(flow.plastic, -d_q / flow.slope, 0.0)
+        d_shrink = -3.0 * G * (d_dg / flow.q_divisor - flow.dg * d_q / flow.q_divisor**2)
+        F_inv_T = inv2(F).T
+        P = tau[:2, :2] @ F_inv_T
+        # dP = (d tau - P dF^T) F^-T, and (P dF^T)_ij = P_il delta_jk.
+        d_stress = [[kappa * d_trace * (1.0 if i == j else 0.0)
+                     + 2.0 * G * (flow.shrink * d_dev[i][j] + d_shrink * dev[i, j])
+                     - P[i, col_l] * jnp.asarray(row_k == j, F.dtype) for j in range(2)] for i in range(2)]
+        d_P = jnp.stack([jnp.stack([d_stress[i][0] * F_inv_T[0, j] + d_stress[i][1] * F_inv_T[1, j]
+                                    for j in range(2)]) for i in range(2)])   # (2, 2, 4)
+        return d_P.reshape(2, 2, 2, 2), (P, tau, new_state)
 
     def _midpoint_residual(self, dg, size, along, eqps_n):
         """R(dg) = sqrt(6) G |v - sqrt(3/2) dg w| - sigma_Y(eqps_n + dg) and R'(dg), from |v|^2 (``size``)
@@ -353,6 +412,41 @@ class J2Material(eqx.Module):
         dg = jnp.where(plastic, dg_star - residual / slope, jnp.zeros_like(dg_star))
         v = v_tr - _SQRT_3_2 * dg * w
         return v[:4].reshape(2, 2), v[4], dg
+
+
+class _Flow(NamedTuple):
+    """What the radial return's consistent tangent needs of :meth:`J2Material._from_trial`."""
+
+    dev_trial: jax.Array      # (2, 2) deviatoric trial log strain, in-plane
+    dev_trial_zz: jax.Array   # () its zz entry
+    dev_norm: jax.Array       # () |dev eps_tr| over the 3 x 3 tensor
+    plastic: jax.Array        # () bool
+    dg: jax.Array             # () the plastic increment (0 where elastic)
+    slope: jax.Array          # () R'(dg*) of the return's equation
+    q_divisor: jax.Array      # () q_tr where plastic, 1 where elastic
+    shrink: jax.Array         # () 1 - 3G dg / q_divisor
+
+
+def piola(material, F: jax.Array, state: MaterialState):
+    """(P, tau, new_state) of a point law (``update(F, state) -> (tau, new_state)``): the first Piola
+    stress P = tau F^-T (in-plane block), the Kirchhoff stress and the updated history."""
+    tau, new_state = material.update(F, state)
+    return tau[:2, :2] @ inv2(F).T, tau, new_state
+
+
+def piola_and_tangent(material, F: jax.Array, state: MaterialState):
+    """(dP/dF (2, 2, 2, 2), (P, tau, new_state)) of a point law: the law's own closed form where it has
+    one (:meth:`J2Material.piola_and_tangent`), else ``jacfwd`` of :func:`piola`."""
+    closed = getattr(material, "piola_and_tangent", None)
+    return closed(F, state) if closed is not None else piola_and_tangent_ad(material, F, state)
+
+
+def piola_and_tangent_ad(material, F: jax.Array, state: MaterialState):
+    """:func:`piola_and_tangent` with dP/dF by ``jacfwd`` of :func:`piola`, whatever the law."""
+    def with_aux(f):
+        out = piola(material, f, state)
+        return out[0], out
+    return jax.jacfwd(with_aux, has_aux=True)(F)
 
 
 def _newton_return(material: J2Material, q_trial: jax.Array, eqps_n: jax.Array) -> jax.Array:

@@ -3,7 +3,8 @@
 - `safe_norm`: Euclidean norm whose value and gradient are 0 at x = 0.
 - `sym2_log`, `sym2_exp`: matrix logarithm and exponential of a symmetric 2x2 matrix, in closed form,
   differentiable (forward and reverse mode, to any order the Taylor branch allows) at equal
-  eigenvalues without `eigh` and without random perturbation.
+  eigenvalues without `eigh` and without random perturbation; `sym2_log_derivative`: the logarithm's
+  directional derivatives, several at once.
 
 The isotropic function of a symmetric 2x2 matrix A with eigenvalues l1,2 = m +/- d, where
 m = tr(A)/2 and d^2 = ((A11 - A22)/2)^2 + A12^2, is (Cayley-Hamilton)
@@ -23,7 +24,7 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-__all__ = ["safe_norm", "sym2_log", "sym2_exp", "det2", "inv2"]
+__all__ = ["safe_norm", "sym2_log", "sym2_log_derivative", "sym2_exp", "det2", "inv2"]
 
 # Series branch when d < _SERIES_RATIO * scale. The series below keeps terms up to t^3, so its
 # truncation error is ~ ratio^8 = 1e-16; the exact branch loses ~ eps / ratio = 2e-14 to cancellation
@@ -45,16 +46,17 @@ def safe_norm(x: jax.Array, axis: int | tuple[int, ...] | None = None) -> jax.Ar
     return jnp.where(nonzero, jnp.sqrt(squared_safe), jnp.zeros_like(squared))
 
 
-def _sym2_isotropic(
-    A: jax.Array,
+def _sym2_coefficients(
+    mean: jax.Array,
+    t: jax.Array,
     f: Callable[[jax.Array], jax.Array],
     taylor: Callable[[jax.Array], list[jax.Array]],
     scale: Callable[[jax.Array], jax.Array],
-) -> jax.Array:
-    """Isotropic matrix function f(A) of a symmetric 2x2 matrix A, shape (2, 2).
+) -> tuple[jax.Array, jax.Array]:
+    """(s0, a1) of f(A) = s0 I + a1 (A - m I) from the mean m of A's eigenvalues and t = d^2.
 
     Args:
-        A: (2, 2) symmetric matrix; only its symmetric part is used.
+        mean, t: m = tr(A) / 2 and t = ((A11 - A22)/2)^2 + A12^2.
         f: scalar function applied to the eigenvalues.
         taylor: m -> [c_0, ..., c_7], the Taylor coefficients c_j = f^(j)(m) / j! about the mean.
         scale: m -> length over which f varies near m (m for log, 1 for exp); the series branch is
@@ -63,12 +65,6 @@ def _sym2_isotropic(
     With t = d^2: s0 = sum_k c_2k t^k and a1 = sum_k c_(2k+1) t^k (series), or
     s0 = (f(m+d) + f(m-d)) / 2 and a1 = (f(m+d) - f(m-d)) / (2d) (exact).
     """
-    a, c = A[0, 0], A[1, 1]
-    b = 0.5 * (A[0, 1] + A[1, 0])
-    mean = 0.5 * (a + c)
-    half_diff = 0.5 * (a - c)
-    t = half_diff * half_diff + b * b  # d^2: no sqrt, so smooth at equal eigenvalues
-
     threshold = _SERIES_RATIO * scale(mean)
     use_series = t < threshold * threshold
 
@@ -86,14 +82,35 @@ def _sym2_isotropic(
     s0_exact = 0.5 * (f_plus + f_minus)
     a1_exact = (f_plus - f_minus) / (2.0 * d)
 
-    s0 = jnp.where(use_series, s0_series, s0_exact)
-    a1 = jnp.where(use_series, a1_series, a1_exact)
-    return jnp.stack(
-        [
-            jnp.stack([s0 + a1 * half_diff, a1 * b]),
-            jnp.stack([a1 * b, s0 - a1 * half_diff]),
-        ]
-    )
+    return jnp.where(use_series, s0_series, s0_exact), jnp.where(use_series, a1_series, a1_exact)
+
+
+def _sym2_invariants(A: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """(m, (A11 - A22)/2, the symmetric off-diagonal entry, t = d^2) of the 2x2 matrices A (..., 2, 2)."""
+    mean = 0.5 * (A[..., 0, 0] + A[..., 1, 1])
+    half_diff = 0.5 * (A[..., 0, 0] - A[..., 1, 1])
+    off = 0.5 * (A[..., 0, 1] + A[..., 1, 0])
+    return mean, half_diff, off, half_diff * half_diff + off * off  # t: no sqrt, so smooth at equal eigenvalues
+
+
+def _sym2_from(s0: jax.Array, a1: jax.Array, half_diff: jax.Array, off: jax.Array) -> jax.Array:
+    """The symmetric (..., 2, 2) matrix s0 I + a1 [[h, o], [o, -h]]."""
+    diagonal = a1 * half_diff
+    return jnp.stack([jnp.stack([s0 + diagonal, a1 * off], axis=-1),
+                      jnp.stack([a1 * off, s0 - diagonal], axis=-1)], axis=-2)
+
+
+def _sym2_isotropic(
+    A: jax.Array,
+    f: Callable[[jax.Array], jax.Array],
+    taylor: Callable[[jax.Array], list[jax.Array]],
+    scale: Callable[[jax.Array], jax.Array],
+) -> jax.Array:
+    """Isotropic matrix function f(A) of a symmetric 2x2 matrix A, shape (2, 2) (only its symmetric part
+    is used; f, taylor and scale as :func:`_sym2_coefficients`)."""
+    mean, half_diff, off, t = _sym2_invariants(A)
+    s0, a1 = _sym2_coefficients(mean, t, f, taylor, scale)
+    return _sym2_from(s0, a1, half_diff, off)
 
 
 def _log_taylor(m: jax.Array) -> list[jax.Array]:
@@ -119,6 +136,29 @@ def sym2_log(A: jax.Array) -> jax.Array:
         equal eigenvalues (at A = l I, d log(A)[H] = H / l).
     """
     return _sym2_isotropic(A, jnp.log, _log_taylor, lambda m: m)
+
+
+def sym2_log_derivative(A: jax.Array, H: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """log(A) and its directional derivatives d log(A)[H] for a batch of directions H (k, 2, 2).
+
+    Differentiating f(A) = s0 I + a1 (A - m I) gives
+    d f[H] = ds0 I + da1 (A - m I) + a1 (H - dm I), with dm = tr(H) / 2, dt = 2 (h dh + o do), and
+    (ds0, da1) from the four partial derivatives of (s0, a1) in (m, t), taken once for all the
+    directions: what ``jax.jvp(sym2_log, (A,), (H_i,))`` gives, in about a quarter of its work.
+    """
+    mean, half_diff, off, t = _sym2_invariants(A)
+
+    def coefficients(m, t_):
+        return jnp.stack(_sym2_coefficients(m, t_, jnp.log, _log_taylor, lambda x: x))
+
+    value = coefficients(mean, t)
+    d_mean, d_t = jax.jacfwd(coefficients, argnums=(0, 1))(mean, t)   # (2,) each: (s0, a1) per unit m, t
+    h_mean, h_half_diff, h_off, _ = _sym2_invariants(H)
+    h_t = 2.0 * (half_diff * h_half_diff + off * h_off)
+    ds0 = d_mean[0] * h_mean + d_t[0] * h_t
+    da1 = d_mean[1] * h_mean + d_t[1] * h_t
+    derivative = _sym2_from(ds0, da1, half_diff, off) + _sym2_from(jnp.zeros_like(ds0), value[1], h_half_diff, h_off)
+    return _sym2_from(value[0], value[1], half_diff, off), derivative
 
 
 def sym2_exp(A: jax.Array) -> jax.Array:
