@@ -14,10 +14,11 @@ deformation keeps its full 2x2 integration (no hourglass modes). F-bar is chosen
 element because it keeps the displacement-only data structure (same unknowns, same block-tridiagonal
 stiffness) and works with any material law written as ``update(F, state)``.
 
-Internal force: the virtual work ``sum_gp w_gp P_bar : dF_bar/du`` with P_bar = tau F_bar^-T, obtained
-by pulling P_bar back through the map u -> F_bar with a JAX VJP. The element tangent is the exact
-derivative of that force (:func:`element_force_and_tangent`), with the material's part a forward-mode
-derivative of the return mapping, which makes it consistent with the return mapping by construction.
+Internal force: the virtual work ``sum_gp w_gp P_bar : dF_bar/du`` with P_bar = tau F_bar^-T (the forces
+alone, :func:`element_force`, by pulling P_bar back through the map u -> F_bar with a JAX VJP). The element
+tangent is the exact derivative of that force (:func:`element_force_and_tangent`), with the material's
+part the point law's consistent tangent (:func:`~jaxfric.fem.material.piola_and_tangent`: the radial
+return's in closed form, equal to the forward-mode derivative of the return mapping to round-off).
 
 ``formulation="ans"``: F-bar on assumed natural strains through the thickness. A bilinear element
 x(xi, eta) = x_0 + a_1 xi + a_2 eta + h xi eta bent along xi (the strip's length) has
