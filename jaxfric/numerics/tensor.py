@@ -144,7 +144,8 @@ def sym2_log_derivative(A: jax.Array, H: jax.Array) -> tuple[jax.Array, jax.Arra
     Differentiating f(A) = s0 I + a1 (A - m I) gives
     d f[H] = ds0 I + da1 (A - m I) + a1 (H - dm I), with dm = tr(H) / 2, dt = 2 (h dh + o do), and
     (ds0, da1) from the four partial derivatives of (s0, a1) in (m, t), taken once for all the
-    directions: what ``jax.jvp(sym2_log, (A,), (H_i,))`` gives, in about a quarter of its work.
+    directions: what ``jax.jvp(sym2_log, (A,), (H_i,))`` gives in each direction (to round-off,
+    ``tests/test_tensor.py``), without differentiating the series and the exact branch once per direction.
     """
     mean, half_diff, off, t = _sym2_invariants(A)
 
