@@ -17,8 +17,9 @@ docs/results.md, integration of the plastic flow).
 
 Units: stresses (E, sigma_y, tau) in MPa; strains, A, n and eqps dimensionless.
 Plane strain: F = [[F_2D, 0], [0, 1]]; every 3x3 tensor is block diagonal (in-plane 2x2 block + zz).
-The law acts on one point; the element code vmaps it and differentiates it (consistent tangent by
-jacfwd, parameter sensitivities forward and reverse).
+The law acts on one point; the element code vmaps it and takes its consistent tangent from
+:func:`piola_and_tangent` (the radial return's in closed form, :meth:`J2Material.piola_and_tangent`; ``jacfwd``
+for the midpoint rule); parameter sensitivities by automatic differentiation, forward and reverse.
 """
 
 import math
