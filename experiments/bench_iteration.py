@@ -13,7 +13,7 @@ step's converged solution (the program pieces compiled apart, median process CPU
 
 - ``elements``: the element forces and consistent tangents, assembled (block-tridiagonal);
 - ``elements_force``: the element forces alone (what a line search's trial needs);
-- ``pairs``: the pairs' projections and their forward derivatives (``evaluated_pairs`` of the ``pairs``
+- ``pairs``: the pairs' projections and their derivatives (``evaluated_pairs`` of the ``pairs``
   candidates: those the step's pre-selection keeps, :mod:`jaxfric.contact.preselection`);
 - ``evaluate``: one point of the Newton loop (elements, pairs, residual, the line search's merit);
 - ``direction``: one direction of the semismooth Newton (the frames, the active-set passes, each a

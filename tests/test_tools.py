@@ -470,6 +470,97 @@ def test_open_pair_has_zero_finite_derivatives():
         assert all(np.all(np.asarray(leaf) == 0.0) for leaf in jax.tree.leaves(cotangent))
 
 
+def _pair_jacobians(part, X, u, u_ref, q, q_ref):
+    """The pair's projection Jacobian d(n, g_N, zeta_increment)/d(u, q) (4, 3) in closed form and by
+    ``jax.jacfwd``, and the projection's validity, for one point."""
+    def local(z):
+        pr = part.projection(X, z[:2], u_ref, z[2], q_ref)
+        return jnp.concatenate([pr.normal, pr.gap[None], pr.zeta_increment[None]]), pr
+
+    ad, pr = jax.jacfwd(local, has_aux=True)(jnp.concatenate([u, q[None]]))
+    return part.jacobian(pr), ad, pr.valid
+
+
+_pair_jacobians_many = jax.jit(jax.vmap(_pair_jacobians, in_axes=(None, 0, 0, 0, None, None)))
+
+
+PAIR_TOOLS = [blankholder_upper_die, blankholder_lower_tool, bead_lower_die, lambda: Tool.circle((0.0, -5.0), 5.0)]
+DRIVE = np.array([0.3, -1.0]) / np.hypot(0.3, 1.0)   # a slanted closing direction
+
+
+def _pair_points(tool, rng):
+    """Pair data near every primitive of ``tool`` (on both sides of it, and some too deep to count): the
+    reference positions X (tool at q_ref), displacements u (tool at q), u_ref, and q, q_ref."""
+    lengths = [float(p.length()) for p in tool.primitives]
+    starts = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])
+    points = []
+    for s0, length in zip(starts, lengths):
+        for frac in rng.uniform(0.05, 0.95, 12):
+            point, normal = walk(tool, s0 + frac * length)
+            points.append(point + rng.uniform(-1.5, 1.0) * normal)
+        points.append(walk(tool, s0 + 0.5 * length)[0] - 2.5 * walk(tool, s0 + 0.5 * length)[1])   # too deep: open
+    n = len(points)
+    q, q_ref = jnp.asarray(0.35), jnp.asarray(0.2)
+    X = np.asarray(points) + float(q_ref) * DRIVE - 0.01
+    u = rng.uniform(-0.05, 0.05, (n, 2)) + float(q - q_ref) * DRIVE
+    u_ref = u - rng.uniform(-0.03, 0.03, (n, 2))
+    return jnp.asarray(X), jnp.asarray(u), jnp.asarray(u_ref), q, q_ref
+
+
+def _pair_tool(tool, friction=None, frictional=False):
+    from jaxfric.contact.pair_batches import PairTool
+    return PairTool(tool.primitives, jnp.asarray(float(tool.side)), tool.d_capture, jnp.asarray(DRIVE), friction,
+                    frictional)
+
+
+@pytest.mark.parametrize("make", PAIR_TOOLS)
+def test_closed_form_pair_jacobian_is_the_forward_derivative(make):
+    """`PairTool.jacobian` (the pairs' derivatives in every contact law) equals jacfwd of the projection, at
+    points near every primitive (convex and concave arcs, segments, either normal side), in contact and
+    open, with a slanted closing direction, slip increments and a moved tool."""
+    tool = make()
+    X, u, u_ref, q, q_ref = _pair_points(tool, np.random.default_rng(RNG_SEED + 5))
+    closed, ad, valid = _pair_jacobians_many(_pair_tool(tool), X, u, u_ref, q, q_ref)
+    valid = np.asarray(valid)
+    assert valid.sum() > 0.6 * valid.size and (~valid).sum() >= len(tool.primitives) - 1, (valid.sum(), valid.size)
+    np.testing.assert_allclose(np.asarray(closed), np.asarray(ad), rtol=1e-12, atol=1e-13)
+    assert np.all(np.asarray(closed)[~valid] == 0.0)
+
+
+@pytest.mark.parametrize("law", ["penalty_pressure_law", "auglag_smoothed"])
+def test_penalty_pair_force_jacobian_is_the_forward_derivative(law):
+    """The regularised laws' pair force Jacobian d f / d(u, q), by the chain rule of the projection's
+    closed-form derivatives and the law's in (g_N, slip), equals forward mode through the whole pair, on
+    the blankholder's upper die (convex and concave arcs, segments): the penalty law with a friction
+    coefficient of the pressure, the augmented
+    Lagrangian with multipliers and smoothing; open, sticking and slipping pairs."""
+    from jaxfric.contact.formulations import AugmentedLagrangian, Penalty
+    from jaxfric.contact.friction import Polynomial
+    from jaxfric.contact.rigid import _pair, _pair_and_jacobian
+    tool = blankholder_upper_die()
+    rng = np.random.default_rng(RNG_SEED + 6)
+    X, u, u_ref, q, q_ref = _pair_points(tool, rng)
+    n = X.shape[0]
+    lam_n = jnp.zeros(n) if law.startswith("penalty") else jnp.asarray(rng.uniform(0.0, 50.0, n))
+    lam_t = jnp.asarray(rng.uniform(-10.0, 10.0, n))
+    contact = (Penalty(1e4, 1.7e3) if law != "auglag_smoothed" else
+               AugmentedLagrangian(1e4, 1.7e3, smoothing=2.0))
+    part = _pair_tool(tool, Polynomial(c_p=-2e-6) if law.endswith("pressure_law") else None, frictional=True)
+    length, speed, mu = 0.4, 0.0, jnp.asarray(0.17)
+
+    def both(X, u, u_ref, lam_n, lam_t):
+        one = lambda u, q: _pair(part, contact, X, u, q, mu, lam_n, lam_t, u_ref, q_ref, length, speed)[0]  # noqa: E731
+        ad = jnp.concatenate([jax.jacfwd(one, argnums=0)(u, q), jax.jacfwd(one, argnums=1)(u, q)[:, None]], 1)
+        (f, aux), closed = _pair_and_jacobian(part, contact, X, u, q, mu, lam_n, lam_t, u_ref, q_ref, length, speed)
+        return closed, ad, aux[2]
+
+    closed, ad, status = jax.jit(jax.vmap(both))(X, u, u_ref, lam_n, lam_t)
+    status = np.asarray(status)
+    assert {0, 1, 2} <= set(status.tolist()), status   # open, sticking and slipping pairs
+    scale = float(jnp.max(jnp.abs(ad)))
+    np.testing.assert_allclose(np.asarray(closed), np.asarray(ad), rtol=1e-11, atol=1e-13 * scale)
+
+
 # ---------------------------------------------------------------------------------------------------
 # Transformations
 

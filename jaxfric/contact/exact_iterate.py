@@ -63,20 +63,14 @@ def iterate_tool_positions(args, qf) -> jax.Array:
 def _geometry(step: ContactStep, nodes_ref, u, q, derivatives: bool = True):
     """Projection of every pair at (u, q): gap, normal, zeta, the slip since the step start, validity,
     and the derivatives of (normal, gap, slip) with respect to the pair's node displacement and its
-    tool's position, all from one forward-mode pass per pair (``derivatives`` False: zeros instead).
-    Tools of one structure are evaluated as one batch (:func:`jaxfric.contact.pair_batches.map_pairs`)."""
+    tool's position, in closed form from the projection (:meth:`jaxfric.contact.pair_batches.PairTool.jacobian`;
+    ``derivatives`` False: zeros instead). Tools of one structure are evaluated as one batch
+    (:func:`jaxfric.contact.pair_batches.map_pairs`)."""
     def pair_fn(tool: PairTool, tool_values, pair_values):
         q_k, q_ref = tool_values
         X, u_a, u_ref = pair_values
-
-        def local(z):   # z = (u_a, q_k)
-            pr = tool.projection(X, z[:2], u_ref, z[2], q_ref)
-            return jnp.concatenate([pr.normal, pr.gap[None], pr.zeta_increment[None]]), pr
-
-        z = jnp.concatenate([u_a, q_k[None]])
-        if not derivatives:
-            return jnp.zeros((4, 3)), local(z)[1]
-        return jax.jacfwd(local, has_aux=True)(z)
+        pr = tool.projection(X, u_a, u_ref, q_k, q_ref)
+        return (tool.jacobian(pr) if derivatives else jnp.zeros((4, 3))), pr
 
     def pair_args(k):
         idx = np.asarray(step.tools[k].candidates)

@@ -48,6 +48,20 @@ class PairTool(eqx.Module):
         increment = (u - u_ref) - (q - q_ref) * self.drive
         return self.project(X, q_ref * self.drive, displacement=u_ref, increment=increment)
 
+    def jacobian(self, pr) -> jax.Array:
+        """(4, 3) d(n_x, n_y, g_N, zeta_increment) / d(u, q) of a :meth:`projection` ``pr``, in closed form.
+
+        The projection depends on (u, q) through the point's motion relative to the tool, u - q e_q, so
+        d/dq = -(d/du) e_q; and on the chosen primitive (piecewise constant, as the projection's own
+        derivatives): d g_N = n . du, d n = curvature (t . du) t, d zeta = slip_rate (t . du). Zero for
+        an open pair (its n and t are zero). Equal to ``jax.jacfwd`` of the projection to round-off
+        (``tests/test_tools.py``), and differentiable itself (a derivative along the path differentiates
+        it)."""
+        n, t = pr.normal, pr.tangent
+        bend = pr.curvature * t
+        d_u = jnp.stack([bend * t[0], bend * t[1], n, pr.slip_rate * t])   # (4, 2)
+        return jnp.concatenate([d_u, -(d_u @ self.drive)[:, None]], axis=1)
+
     def project(self, x, offset, displacement=None, increment=None):
         """:func:`jaxfric.contact.tools.project` on this tool's chain."""
         return project_chain(self.primitives, self.side, self.d_capture, x, offset, displacement, increment)

@@ -18,8 +18,9 @@ phase; a scene with none has no extra unknown):
 with f_c,a = R_N n + R_T t the force on the sheet at pair a (spec 1.4). The contact forces depend on
 each pair's node and tool only, so dR_u/du keeps the block-tridiagonal structure (a 2x2 block per
 pair on the diagonal) and the tools add a border (:class:`jaxfric.numerics.linalg.Bordered`). The Jacobian of
-every pair force, including the derivatives of n, t and zeta with respect to the node position and
-the tool position, comes from ``jax.jacfwd`` of the pair law.
+every pair force is the chain rule of the projection's derivatives (n, t, g_N and the slip with respect to the
+node and the tool position, in closed form: :meth:`jaxfric.contact.pair_batches.PairTool.jacobian`) and the
+pair law's with respect to g_N and the slip (``jax.jacfwd``).
 
 A force-driven tool that has lost every contact cannot balance its force, and its balance row no
 longer depends on its position (a singular Newton matrix). Its row then asks it to close the nearest
@@ -238,19 +239,51 @@ class PairResult(NamedTuple):
     slip: jax.Array       # slip since the reference configuration (mm)
 
 
-def _pair(tool: PairTool, law, X, u, q, mu, lam_n, lam_t, u_ref, q_ref, length=None, speed=0.0):
-    proj = tool.projection(X, u, u_ref, q, q_ref)
+def _pair_law(tool: PairTool, law, gap, slip, valid, mu, lam_n, lam_t, length, speed):
+    """The pair law's forces (:class:`jaxfric.contact.laws.PairForce`) at the gap and slip of a projection."""
     smoothing = law.smoothing if law.smooth else None
     if tool.frictional:
         friction = tool.friction
         coefficient = mu if friction is None else (lambda rn: friction.coefficient(mu, rn / length, speed))
-        force = augmented_pair(proj.gap, proj.zeta_increment, lam_n, lam_t, coefficient, law.eps_n, law.eps_t,
-                               proj.valid, smoothing)
-    else:  # static: a frictionless tool builds no tangential term at all
-        force = augmented_pair(proj.gap, 0.0, lam_n, 0.0, 0.0, law.eps_n, 0.0, proj.valid, smoothing)
+        return augmented_pair(gap, slip, lam_n, lam_t, coefficient, law.eps_n, law.eps_t, valid, smoothing)
+    # static: a frictionless tool builds no tangential term at all
+    return augmented_pair(gap, 0.0, lam_n, 0.0, 0.0, law.eps_n, 0.0, valid, smoothing)
+
+
+def _pair_outputs(proj, force):
+    """The force on the sheet, R_N n + R_T t, and the pair's outputs."""
     f = force.normal * proj.normal + force.tangential * proj.tangent
     return f, (force.normal, force.tangential, force.status, proj.gap, proj.zeta, proj.normal,
                proj.zeta_increment)
+
+
+def _pair_and_jacobian(tool: PairTool, law, X, u, q, mu, lam_n, lam_t, u_ref, q_ref, length, speed):
+    """:func:`_pair_outputs` and d f / d(u, q) (2, 3) by the chain rule: the projection's derivatives in
+    closed form (:meth:`PairTool.jacobian`), the law's with respect to (g_N, slip) by forward mode,
+
+        d f = n d R_N + t d R_T + R_N d n + R_T d t,   d R = dR/d(g_N, s) d(g_N, s),
+
+    the same derivative as forward mode through the whole pair, for a smaller program."""
+    proj = tool.projection(X, u, u_ref, q, q_ref)
+
+    def law_of(gs):
+        force = _pair_law(tool, law, gs[0], gs[1], proj.valid, mu, lam_n, lam_t, length, speed)
+        return jnp.stack([force.normal, force.tangential]), force
+
+    d_force, force = jax.jacfwd(law_of, has_aux=True)(jnp.stack([proj.gap, proj.zeta_increment]))
+    J = tool.jacobian(proj)                      # rows n_x, n_y, g_N, slip; columns u_x, u_y, q
+    d_r = d_force @ J[2:]                        # (2, 3): d R_N, d R_T
+    d_n = J[:2]
+    d_t = jnp.stack([-d_n[1], d_n[0]])           # t = (-n_y, n_x)
+    df = (proj.normal[:, None] * d_r[0] + proj.tangent[:, None] * d_r[1]
+          + force.normal * d_n + force.tangential * d_t)
+    return _pair_outputs(proj, force), df
+
+
+def _pair(tool: PairTool, law, X, u, q, mu, lam_n, lam_t, u_ref, q_ref, length=None, speed=0.0):
+    proj = tool.projection(X, u, u_ref, q, q_ref)
+    return _pair_outputs(proj, _pair_law(tool, law, proj.gap, proj.zeta_increment, proj.valid, mu, lam_n, lam_t,
+                                         length, speed))
 
 
 def evaluate_pairs(step: ContactStep, nodes_ref: jax.Array, u: jax.Array, q: jax.Array,
@@ -268,14 +301,11 @@ def evaluate_pairs(step: ContactStep, nodes_ref: jax.Array, u: jax.Array, q: jax
         q_k, mu, q_ref = tool_values
         u_a, X_a, lam_n, lam_t, u_ref, length, speed = pair_values
 
-        def one(u_a, q_k):
-            f, aux = _pair(tool, step.law, X_a, u_a, q_k, mu, lam_n, lam_t, u_ref, q_ref, length, speed)
-            return f, (f, aux)
-
         if jacobian:  # d f / d x_node = d f / d u_node
-            (dfdx, dfdq), (f, aux) = jax.jacfwd(one, argnums=(0, 1), has_aux=True)(u_a, q_k)
-            return f, aux, dfdx, dfdq
-        return (*one(u_a, q_k)[1], None, None)
+            (f, aux), df = _pair_and_jacobian(tool, step.law, X_a, u_a, q_k, mu, lam_n, lam_t, u_ref, q_ref, length,
+                                              speed)
+            return f, aux, df[:, :2], df[:, 2]
+        return (*_pair(tool, step.law, X_a, u_a, q_k, mu, lam_n, lam_t, u_ref, q_ref, length, speed), None, None)
 
     def pair_args(k):
         tool = step.tools[k]

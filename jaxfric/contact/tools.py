@@ -108,6 +108,8 @@ class _Foot(NamedTuple):
     ds: jax.Array  # () mm, increase of s caused by the increment (see `project`)
     closest: jax.Array  # (2,) mm, the foot of the perpendicular
     inside: jax.Array  # () bool, the foot lies inside the primitive's extent
+    curvature: jax.Array  # () 1/mm: a motion dx of the point turns the normal by curvature (t . dx) t
+    rate: jax.Array  # () ds / d(t . x): 1 on a segment, radius / distance from the centre on an arc
 
 
 class Segment(eqx.Module):
@@ -159,7 +161,8 @@ class Segment(eqx.Module):
         rel = ((y - self.start) + dy) + inc  # see `project`: the large parts cancel first
         s = rel @ direction
         inside = (length > 0) & (s >= -_EXTENT_TOL) & (s <= length + _EXTENT_TOL)
-        return _Foot(rel @ normal, normal, s, inc @ direction, self.start + s * direction, inside)
+        zero = jnp.zeros_like(s)
+        return _Foot(rel @ normal, normal, s, inc @ direction, self.start + s * direction, inside, zero, zero + 1.0)
 
 
 class Arc(eqx.Module):
@@ -267,7 +270,11 @@ class Arc(eqx.Module):
         dot = rel0 @ rel0 + rel0 @ inc
         ok = (jnp.abs(cross) + jnp.abs(dot)) > 0
         turned = jnp.arctan2(jnp.where(ok, cross, 0.0), jnp.where(ok, dot, 1.0))
-        return _Foot(gap, normal, s, walk * self.radius * turned, self.centre + self.radius * radial, inside)
+        # The normal is the radial direction (or its opposite), which a motion along t turns by 1/rho; an
+        # arc length on the circle is R / rho times the motion along t at the distance rho.
+        inv_rho = 1.0 / jnp.where(off_centre, rho, jnp.ones_like(rho))
+        return _Foot(gap, normal, s, walk * self.radius * turned, self.centre + self.radius * radial, inside,
+                     -inv_rho if self.concave else inv_rho, self.radius * inv_rho)
 
 
 def Circle(centre, radius, seam=-0.5 * math.pi) -> Arc:
@@ -370,6 +377,12 @@ class Projection(NamedTuple):
         valid: () bool, False for an open pair (no qualifying primitive, or deeper than d_capture).
         zeta_increment: () change of zeta caused by `increment` on the chosen primitive (mm); 0 without
             an increment or when invalid.
+        curvature: () 1/mm, how the normal turns as the point moves: d n = curvature (t . d x) t (0 on a
+            segment, 1/rho on a convex arc and -1/rho on a concave one, rho the point's distance from
+            the centre); 0 when invalid.
+        slip_rate: () d zeta / d(t . x), the arc length the foot travels per unit motion of the point
+            along t (1 on a segment, R / rho on an arc); 0 when invalid. With d g_N = n . d x, these give
+            the projection's derivatives in closed form (:meth:`jaxfric.contact.pair_batches.PairTool.jacobian`).
     """
 
     gap: jax.Array
@@ -379,6 +392,8 @@ class Projection(NamedTuple):
     closest: jax.Array
     valid: jax.Array
     zeta_increment: jax.Array
+    curvature: jax.Array
+    slip_rate: jax.Array
 
 
 def project(tool: Tool, x: jax.Array, offset: jax.Array, displacement=None, increment=None) -> Projection:
@@ -441,6 +456,8 @@ def project_chain(primitives: tuple, side, d_capture, x: jax.Array, offset: jax.
         zeta_increment=jnp.where(valid, side * jnp.stack([f.ds for f in feet])[k], 0.0),
         closest=jnp.where(valid, jnp.stack([f.closest for f in feet])[k] + offset, zero2),
         valid=valid,
+        curvature=jnp.where(valid, jnp.stack([f.curvature for f in feet])[k], 0.0),
+        slip_rate=jnp.where(valid, jnp.stack([f.rate for f in feet])[k], 0.0),
     )
 
 

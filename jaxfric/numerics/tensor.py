@@ -143,23 +143,43 @@ def sym2_log_derivative(A: jax.Array, H: jax.Array) -> tuple[jax.Array, jax.Arra
 
     Differentiating f(A) = s0 I + a1 (A - m I) gives
     d f[H] = ds0 I + da1 (A - m I) + a1 (H - dm I), with dm = tr(H) / 2, dt = 2 (h dh + o do), and
-    (ds0, da1) from the four partial derivatives of (s0, a1) in (m, t), taken once for all the
-    directions: what ``jax.jvp(sym2_log, (A,), (H_i,))`` gives in each direction (to round-off,
-    ``tests/test_tensor.py``), without differentiating the series and the exact branch once per direction.
+    (ds0, da1) from the four partial derivatives of (s0, a1) in (m, t), in closed form on either branch
+    (:func:`_log_coefficient_partials`) and taken once for all the directions: what
+    ``jax.jvp(sym2_log, (A,), (H_i,))`` gives in each direction (to round-off, ``tests/test_tensor.py``).
     """
     mean, half_diff, off, t = _sym2_invariants(A)
-
-    def coefficients(m, t_):
-        return jnp.stack(_sym2_coefficients(m, t_, jnp.log, _log_taylor, lambda x: x))
-
-    value = coefficients(mean, t)
-    d_mean, d_t = jax.jacfwd(coefficients, argnums=(0, 1))(mean, t)   # (2,) each: (s0, a1) per unit m, t
+    s0, a1 = _sym2_coefficients(mean, t, jnp.log, _log_taylor, lambda x: x)
+    (s0_m, a1_m), (s0_t, a1_t) = _log_coefficient_partials(mean, t, a1)
     h_mean, h_half_diff, h_off, _ = _sym2_invariants(H)
     h_t = 2.0 * (half_diff * h_half_diff + off * h_off)
-    ds0 = d_mean[0] * h_mean + d_t[0] * h_t
-    da1 = d_mean[1] * h_mean + d_t[1] * h_t
-    derivative = _sym2_from(ds0, da1, half_diff, off) + _sym2_from(jnp.zeros_like(ds0), value[1], h_half_diff, h_off)
-    return _sym2_from(value[0], value[1], half_diff, off), derivative
+    ds0 = s0_m * h_mean + s0_t * h_t
+    da1 = a1_m * h_mean + a1_t * h_t
+    derivative = _sym2_from(ds0, da1, half_diff, off) + _sym2_from(jnp.zeros_like(ds0), a1, h_half_diff, h_off)
+    return _sym2_from(s0, a1, half_diff, off), derivative
+
+
+def _log_coefficient_partials(mean: jax.Array, t: jax.Array, a1: jax.Array):
+    """((ds0/dm, da1/dm), (ds0/dt, da1/dt)) of the log's coefficients (:func:`_sym2_coefficients`, whose
+    a1 is given), on the same branches. Series: the Taylor coefficients about the mean obey
+    dc_j/dm = (j + 1) c_(j+1). Exact, with p, q = m +- d: ds0/dm = (1/p + 1/q)/2, da1/dm = (1/p - 1/q)/(2d),
+    ds0/dt = da1/dm / 2 and da1/dt = (ds0/dm - a1) / (2t)."""
+    threshold = _SERIES_RATIO * mean
+    use_series = t < threshold * threshold
+    t_series = jnp.where(use_series, t, jnp.zeros_like(t))
+    c = _log_taylor(mean)
+    c.append(-(1.0 / mean) ** _N_TAYLOR / _N_TAYLOR)   # c_8: the derivative of c_7's term
+    series = ((c[1] + t_series * (3.0 * c[3] + t_series * (5.0 * c[5] + t_series * 7.0 * c[7]))),
+              (2.0 * c[2] + t_series * (4.0 * c[4] + t_series * (6.0 * c[6] + t_series * 8.0 * c[8])))), \
+             ((c[2] + t_series * (2.0 * c[4] + t_series * 3.0 * c[6])),
+              (c[3] + t_series * (2.0 * c[5] + t_series * 3.0 * c[7])))
+    t_exact = jnp.where(use_series, 4.0 * threshold * threshold, t)
+    d = jnp.sqrt(t_exact)
+    inv_p, inv_q = 1.0 / (mean + d), 1.0 / (mean - d)
+    s0_m = 0.5 * (inv_p + inv_q)
+    a1_m = (inv_p - inv_q) / (2.0 * d)
+    # Off its branch, a1 is the series' value and t_exact a dummy: finite, and not selected.
+    exact = (s0_m, a1_m), (0.5 * a1_m, (s0_m - a1) / (2.0 * t_exact))
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(use_series, a, b), series, exact)
 
 
 def sym2_exp(A: jax.Array) -> jax.Array:
