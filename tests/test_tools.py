@@ -531,13 +531,13 @@ def test_closed_form_pair_jacobian_is_the_forward_derivative(make):
 def test_penalty_pair_force_jacobian_is_the_forward_derivative(law):
     """The regularised laws' pair force Jacobian d f / d(u, q), by the chain rule of the projection's
     closed-form derivatives and the law's in (g_N, slip), equals forward mode through the whole pair, on
-    the blankholder's upper die (convex and concave arcs, segments): the penalty law with a friction
-    coefficient of the pressure, the augmented
+    the bead's lower die (arcs and a segment; the concave arcs' derivatives are checked above): the penalty
+    law with a friction coefficient of the pressure, the augmented
     Lagrangian with multipliers and smoothing; open, sticking and slipping pairs."""
     from jaxfric.contact.formulations import AugmentedLagrangian, Penalty
     from jaxfric.contact.friction import Polynomial
     from jaxfric.contact.rigid import _pair, _pair_and_jacobian
-    tool = blankholder_upper_die()
+    tool = bead_lower_die()
     rng = np.random.default_rng(RNG_SEED + 6)
     X, u, u_ref, q, q_ref = _pair_points(tool, rng)
     n = X.shape[0]
