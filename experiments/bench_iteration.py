@@ -9,7 +9,9 @@ holds one process per mesh: more than three meshes in one process ran LLVM out o
 ``bench_scaling.py`` times the size-dependent parts of every mesh in alternation, in one process).
 
 Runs the Nine (``lcp_ssn``, the scene's defaults) to U = u0 mm, then times, at the state of a drawing
-step's converged solution (the program pieces compiled apart, median process CPU time of 15 calls):
+step's converged solution (the program pieces compiled apart, each called on the flat list of its arguments'
+arrays, :func:`benchutil.on_leaves`, so that the time is the computation's and not the dispatch of the
+step's modules; median process CPU time of 15 calls):
 
 - ``elements``: the element forces and consistent tangents, assembled (block-tridiagonal);
 - ``elements_force``: the element forces alone (what a line search's trial needs);
@@ -46,7 +48,7 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from benchutil import median_time, write_rows  # noqa: E402
+from benchutil import median_time, on_leaves, write_rows  # noqa: E402
 from jaxfric import scenes  # noqa: E402
 from jaxfric.contact.exact import ExactContactProblem  # noqa: E402
 from jaxfric.contact.exact_active_set import contact_frames, semismooth_merit  # noqa: E402
@@ -91,17 +93,18 @@ def main(argv=None) -> None:
 HALVINGS = 3
 
 
-def size_parts(args, u, q, K=None) -> dict:
-    """The parts whose cost grows with the mesh, as ``{name: (compiled function, *its arguments)}``, at the
-    step arguments ``args``, displacements ``u`` and tool positions ``q``: the element forces and tangents,
-    assembled (``elements``), the pairs' projections and derivatives (``pairs``) and one block-Thomas solve
-    of ``K`` (``solve``; default: the assembled tangent)."""
-    elements = eqx.filter_jit(lambda ar: internal_force_and_tangent(ar.mesh, ar.material, ar.formulation, ar.geo,
-                                                                    u, ar.states))
-    K = elements(args).tangent if K is None else K
-    return {"elements": (elements, args),
-            "pairs": (eqx.filter_jit(lambda ar: _geometry(ar.contact, ar.mesh.nodes, u, q)), args),
-            "solve": (eqx.filter_jit(block_tridiag_solve), K, jnp.ones(K.diag.shape[0] * K.diag.shape[1]))}
+def size_parts(args, u, q, K=None) -> tuple[dict, object]:
+    """The parts whose cost grows with the mesh, as ``{name: (compiled function, its arguments)}``
+    (:func:`benchutil.on_leaves`), at the step arguments ``args``, displacements ``u`` and tool positions
+    ``q``: the element forces and tangents, assembled (``elements``), the pairs' projections and derivatives
+    (``pairs``) and one block-Thomas solve of ``K`` (``solve``; default: the assembled tangent); and ``K``."""
+    def elements(ar, u):
+        return internal_force_and_tangent(ar.mesh, ar.material, ar.formulation, ar.geo, u, ar.states)
+
+    K = eqx.filter_jit(elements)(args, u).tangent if K is None else K
+    return {"elements": on_leaves(elements, args, u),
+            "pairs": on_leaves(lambda ar, u, q: _geometry(ar.contact, ar.mesh.nodes, u, q), args, u, q),
+            "solve": on_leaves(block_tridiag_solve, K, jnp.ones(K.diag.shape[0] * K.diag.shape[1]))}, K
 
 
 def bench(variant: str, overrides: dict, u0: float, steps: int, label: str = "") -> list[dict]:
@@ -153,17 +156,18 @@ def bench(variant: str, overrides: dict, u0: float, steps: int, label: str = "")
     c0 = newton_start(problem, x, args, opts)
     c1 = eqx.filter_jit(lambda c, ar: newton_pass(c, ar, x, problem, opts))(c0, args)   # evaluated x
     u = state.u
-    sized = size_parts(args, u, tool_positions(state), c1.point.state.it.K)
+    sized, _ = size_parts(args, u, tool_positions(state), c1.point.state.it.K)
+    point = c1.point
     parts = {
         "elements": sized["elements"],
-        "elements_force": (eqx.filter_jit(lambda ar: internal_force(
-            ar.mesh, ar.material, ar.formulation, ar.geo, u, ar.states)), args),
+        "elements_force": on_leaves(lambda ar, u: internal_force(ar.mesh, ar.material, ar.formulation, ar.geo, u,
+                                                                 ar.states), args, u),
         "pairs": sized["pairs"],
-        "evaluate": (eqx.filter_jit(lambda ar: problem.evaluate(x, c1.trial, ar)), args),
-        "direction": (eqx.filter_jit(lambda ar: problem.direction(x, c1.point, ar, jnp.array(False))), args),
-        "frames": (eqx.filter_jit(lambda ar: contact_frames(c1.point.state.it, ar)), args),
-        "merit": (eqx.filter_jit(lambda ar: semismooth_merit(x, c1.point.state.it, ar, c1.point.state.p,
-                                                             contact_frames(c1.point.state.it, ar)[0])), args),
+        "evaluate": on_leaves(lambda ar, x, trial: problem.evaluate(x, trial, ar), args, x, c1.trial),
+        "direction": on_leaves(lambda ar, x, pt: problem.direction(x, pt, ar, jnp.array(False)), args, x, point),
+        "frames": on_leaves(lambda ar, pt: contact_frames(pt.state.it, ar), args, point),
+        "merit": on_leaves(lambda ar, x, pt: semismooth_merit(x, pt.state.it, ar, pt.state.p,
+                                                              contact_frames(pt.state.it, ar)[0]), args, x, point),
         "solve": sized["solve"],
     }
 

@@ -13,8 +13,8 @@ evaluated (``preselect`` off), the variants alternated within each round:
   (:func:`jaxfric.contact.rigid.evaluate_pairs`, the scene's penalty), by the chain rule of the closed
   form and the law's derivatives / by ``jax.jacfwd`` through the whole pair.
 
-Each variant is one ``jax.jit`` of the displacements alone (the rest closed over, so that a call passes
-one array), timed by process CPU time (pin it: ``taskset -c N``, one XLA thread), median of 15 calls per
+Each variant is one ``jax.jit`` called on the flat list of its arguments' arrays (``benchutil.on_leaves``),
+timed by process CPU time (pin it: ``taskset -c N``, one XLA thread), median of 15 calls per
 round; the columns are the median over the rounds, the program's StableHLO operations, and the largest
 difference of the derivatives from the forward-mode ones, relative to their largest entry. Writes
 ``results/bench_pair_jacobian.csv``.
@@ -34,7 +34,7 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from benchutil import median_time, write_rows  # noqa: E402
+from benchutil import median_time, on_leaves, write_rows  # noqa: E402
 from jaxfric import scenes  # noqa: E402
 from jaxfric.contact import exact_iterate, rigid  # noqa: E402
 from jaxfric.loadpath.model import tool_positions  # noqa: E402
@@ -65,57 +65,53 @@ def forward_pair_and_jacobian(tool, law, X, u, q, mu, lam_n, lam_t, u_ref, q_ref
     return out, jnp.concatenate([dfdx, dfdq[:, None]], axis=1)
 
 
-def variants(model, state, u0_time, penalty_model):
+def variants(model, state, u0_time, penalty_model) -> dict:
+    """``{name: (compiled, its arguments' arrays)}`` (:func:`benchutil.on_leaves`: the step's data are
+    arguments, not constants XLA could fold) at the state ``state``."""
     ctx = StepContext.build(model)
     args, _, _ = step_args(model, state, 1, u0_time, ctx)
-    nodes, q = model.mesh.nodes, tool_positions(state)
-    p_ctx = StepContext.build(penalty_model)
-    p_args, _, _ = step_args(penalty_model, state, 1, u0_time, p_ctx)
+    nodes, q, u = model.mesh.nodes, tool_positions(state), state.u
+    p_args, _, _ = step_args(penalty_model, state, 1, u0_time, StepContext.build(penalty_model))
 
     def exact(derivatives):   # (derivatives, gaps): the gaps keep the projection in the values-only program
-        return jax.jit(lambda u: (lambda g: (g[-1], g[0]))(exact_iterate._geometry(args.contact, nodes, u, q,
-                                                                                     derivatives)))
+        def fn(step, nodes, u, q):
+            g = exact_iterate._geometry(step, nodes, u, q, derivatives)
+            return g[-1], g[0]
+        return fn
 
-    def penalty(u):
-        return [(p.df_dx, p.df_dq) for p in rigid.evaluate_pairs(p_args.contact, nodes, u, q, jacobian=True)]
+    def penalty(step, nodes, u, q):
+        return [(p.df_dx, p.df_dq) for p in rigid.evaluate_pairs(step, nodes, u, q, jacobian=True)]
 
-    library_pair = rigid._pair_and_jacobian
+    def penalty_forward(step, nodes, u, q):
+        """:func:`penalty` traced with the pair force Jacobian by forward mode in place of the chain rule."""
+        library = rigid._pair_and_jacobian
+        rigid._pair_and_jacobian = forward_pair_and_jacobian
+        try:
+            return penalty(step, nodes, u, q)
+        finally:
+            rigid._pair_and_jacobian = library
 
-    def with_forward(fn):
-        """``fn`` traced with the pair force Jacobian by forward mode in place of the chain rule."""
-        def traced(u):
-            rigid._pair_and_jacobian = forward_pair_and_jacobian
-            try:
-                return fn(u)
-            finally:
-                rigid._pair_and_jacobian = library_pair
-        return jax.jit(traced)
-
-    return {"exact_closed": exact(True),
-            "exact_forward": _forward_exact(args, nodes, q),
-            "exact_values": exact(False),
-            "penalty_closed": jax.jit(penalty),
-            "penalty_forward": with_forward(penalty)}
+    exact_args, penalty_args = (args.contact, nodes, u, q), (p_args.contact, nodes, u, q)
+    return {"exact_closed": on_leaves(exact(True), *exact_args),
+            "exact_forward": on_leaves(_forward_exact, *exact_args),
+            "exact_values": on_leaves(exact(False), *exact_args),
+            "penalty_closed": on_leaves(penalty, *penalty_args),
+            "penalty_forward": on_leaves(penalty_forward, *penalty_args)}
 
 
-def _forward_exact(args, nodes, q):
+def _forward_exact(step, nodes, u, q):
     """Exact contact's geometry with the derivatives by ``jax.jacfwd`` of the projection."""
-    step = args.contact
-
     def pair_fn(tool, tool_values, pair_values):
         q_k, q_ref = tool_values
         X, u_a, u_ref = pair_values
         return forward_geometry_jacobian(tool, (X, u_a, u_ref, q_k, q_ref))
 
-    def geometry(u):
-        def pair_args(k):
-            idx = np.asarray(step.tools[k].candidates)
-            return nodes[idx], u[idx], step.u_ref[k]
-        out = exact_iterate.map_pairs(step.tools, pair_fn, lambda k: (q[k], step.q_ref[k]), pair_args,
-                                      friction=False)
-        return jnp.concatenate([J for J, _ in out]), jnp.concatenate([pr.gap for _, pr in out])
+    def pair_args(k):
+        idx = np.asarray(step.tools[k].candidates)
+        return nodes[idx], u[idx], step.u_ref[k]
 
-    return jax.jit(geometry)
+    out = exact_iterate.map_pairs(step.tools, pair_fn, lambda k: (q[k], step.q_ref[k]), pair_args, friction=False)
+    return jnp.concatenate([J for J, _ in out]), jnp.concatenate([pr.gap for _, pr in out])
 
 
 def main(argv=None) -> None:
@@ -131,9 +127,8 @@ def main(argv=None) -> None:
     u0_time = 1.0 + a.u0 / scene.config.U_draw
     state = eqx.tree_at(lambda s: s.time, sim.final, jnp.asarray(u0_time))
     fns = variants(scene.model, state, u0_time + scene.config.dU / scene.config.U_draw, penalty.model)
-    u = state.u
-    values = {name: jax.block_until_ready(fn(u)) for name, fn in fns.items()}
-    ops = {name: fn.lower(u).as_text().count("stablehlo.") for name, fn in fns.items()}
+    values = {name: jax.block_until_ready(fn(leaves)) for name, (fn, leaves) in fns.items()}
+    ops = {name: fn.lower(leaves).as_text().count("stablehlo.") for name, (fn, leaves) in fns.items()}
 
     def agreement(name):
         ref = {"exact_closed": "exact_forward", "penalty_closed": "penalty_forward"}.get(name)
@@ -146,8 +141,8 @@ def main(argv=None) -> None:
 
     times: dict = {name: [] for name in fns}
     for _ in range(a.rounds):
-        for name, fn in fns.items():
-            times[name].append(1e3 * median_time(fn, u, repeat=15, clock=time.process_time))
+        for name, (fn, leaves) in fns.items():
+            times[name].append(1e3 * median_time(fn, leaves, repeat=15, clock=time.process_time))
     rows = []
     for name in fns:
         rows.append({"variant": name, "ms": round(float(np.median(times[name])), 3),

@@ -48,8 +48,7 @@ def parts_of(mesh: str, u0: float) -> tuple[dict, dict]:
         raise RuntimeError(f"{mesh}: the run to U = {u0} mm did not converge (code {int(sim.code)})")
     state = sim.final
     args, _, _ = step_args(model, state, 1, state.time, StepContext.build(model))
-    parts = size_parts(args, state.u, tool_positions(state))
-    K = parts["solve"][1]
+    parts, K = size_parts(args, state.u, tool_positions(state))
     size = {"mesh": mesh, "elements": int(model.mesh.n_elements), "dofs": int(model.mesh.n_dofs),
             "blocks": int(K.diag.shape[0]), "block_size": int(K.diag.shape[1]),
             "pairs": int(sum(len(t.candidates) for t in model.tools)),

@@ -25,6 +25,20 @@ def median_time(fn, *args, repeat: int = 20, clock=time.perf_counter) -> float:
     return float(np.median(times))
 
 
+def on_leaves(fn, *args):
+    """``(compiled, leaves)``: ``fn(*args)`` compiled as a function of the array leaves of ``args`` (their other
+    leaves static), and those leaves, for ``median_time(compiled, leaves)``. A call then passes one flat list
+    of arrays, which ``jax.jit`` dispatches in microseconds, where ``eqx.filter_jit`` partitions and flattens
+    every module of its arguments again at each call: about a millisecond for a step's arguments, which a
+    part of a Newton iteration timed on its own would count as its cost."""
+    import equinox as eqx
+
+    dynamic, static = eqx.partition(args, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(dynamic)
+    compiled = jax.jit(lambda flat: fn(*eqx.combine(jax.tree_util.tree_unflatten(treedef, flat), static)))
+    return compiled, leaves
+
+
 def read_rows(path: str) -> list[dict]:
     """The rows of the CSV at ``path`` as dicts of strings ([] where there is no such file)."""
     if not os.path.exists(path):
