@@ -532,8 +532,8 @@ def test_penalty_pair_force_jacobian_is_the_forward_derivative(law):
     """The regularised laws' pair force Jacobian d f / d(u, q), by the chain rule of the projection's
     closed-form derivatives and the law's in (g_N, slip), equals forward mode through the whole pair, on
     the bead's lower die (arcs and a segment; the concave arcs' derivatives are checked above): the penalty
-    law with a friction coefficient of the pressure, the augmented
-    Lagrangian with multipliers and smoothing; open, sticking and slipping pairs."""
+    law with a friction coefficient of the pressure, and the augmented Lagrangian with multipliers and
+    smoothing; open, sticking and slipping pairs."""
     from jaxfric.contact.formulations import AugmentedLagrangian, Penalty
     from jaxfric.contact.friction import Polynomial
     from jaxfric.contact.rigid import _pair, _pair_and_jacobian
