@@ -101,8 +101,11 @@ def size_parts(args, u, q, K=None) -> tuple[dict, object]:
     def elements(ar, u):
         return internal_force_and_tangent(ar.mesh, ar.material, ar.formulation, ar.geo, u, ar.states)
 
-    K = eqx.filter_jit(elements)(args, u).tangent if K is None else K
-    return {"elements": on_leaves(elements, args, u),
+    element_part = on_leaves(elements, args, u)
+    if K is None:
+        compiled, leaves = element_part
+        K = compiled(leaves).tangent
+    return {"elements": element_part,
             "pairs": on_leaves(lambda ar, u, q: _geometry(ar.contact, ar.mesh.nodes, u, q), args, u, q),
             "solve": on_leaves(block_tridiag_solve, K, jnp.ones(K.diag.shape[0] * K.diag.shape[1]))}, K
 

@@ -9,6 +9,7 @@ import os
 import sys
 import time
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -31,8 +32,6 @@ def on_leaves(fn, *args):
     of arrays, which ``jax.jit`` dispatches in microseconds, where ``eqx.filter_jit`` partitions and flattens
     every module of its arguments again at each call: about a millisecond for a step's arguments, which a
     part of a Newton iteration timed on its own would count as its cost."""
-    import equinox as eqx
-
     dynamic, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree_util.tree_flatten(dynamic)
     compiled = jax.jit(lambda flat: fn(*eqx.combine(jax.tree_util.tree_unflatten(treedef, flat), static)))
