@@ -5,10 +5,14 @@ compilation took 1426 s of the 1559 s that the tests ran (backend 1185 s, loweri
 147 s, in 3176 compilations). The suite therefore asks XLA to compile faster, for results equal to
 round-off: the command lines' flags (:mod:`jaxfric.io.xla_flags`: its older CPU fusion emitters, the same
 two test files, each pinned to a core of its own, 451 s against 715 s; reductions in one loop), and,
-where exactly the slow runs are deselected (``-m "not slow"``, as ``make test`` does), its backend
-optimisation level 0 (LLVM's cheap passes: the fast suite 8 min 14 s and 8 min 49 s against 10 min 1 s;
-its longest runs take up to twice as long, the many short ones less, so the slow runs, which are mostly
-run time, keep the default level). The flags are probed in a child
+where exactly the slow runs are deselected (``-m "not slow"``, as ``make test`` does), little
+optimisation (JAX's ``jax_disable_most_optimizations``: XLA's backend optimisation level 0 and LLVM's
+cheap passes; the fast suite 8 min 14 s and 8 min 49 s against 10 min 1 s). Its programs run up to
+three times slower, so the tests that mostly run (marked ``xla_optimized``: their simulations take
+longer than the optimisation's compilation, measured per test, docs/results.md, test suite run time)
+and the slow runs keep XLA's default optimisation. The setting is JAX's, read at each compilation: a
+test's own programs, and those of the command lines it starts (``JAX_DISABLE_MOST_OPTIMIZATIONS`` in
+their environment), get its marker's. The flags are probed in a child
 process first, because an XLA that no longer knows one aborts the process at start-up; they are then
 left out. Flags already in ``XLA_FLAGS`` are kept, and ``JAXFRIC_TEST_XLA_DEFAULTS=1`` runs the suite
 with XLA's defaults (the package's functions set no XLA flag; the command lines ask for
@@ -24,11 +28,12 @@ import os
 import shutil
 import tempfile
 
+import pytest
+
 # Importing jaxfric starts no XLA backend, so the flags set below still apply; FAST_COMPILE_FLAGS are the
 # command lines' own.
 from jaxfric.io.xla_flags import FAST_COMPILE_FLAGS, xla_accepts
 
-FAST_SUITE_FLAGS = ("--xla_backend_optimization_level=0",)   # when the slow runs are deselected
 # One host device: `jaxfric run` would otherwise ask for one per core (jaxfric.io.xla_flags.use_host_cores) in
 # the command lines that tests start, whose cores the two workers already keep busy; the split over two
 # host devices is tested in a child process of its own (tests/test_host_devices.py).
@@ -48,9 +53,42 @@ def _ask_for_fast_compilation(wanted):
         os.environ["XLA_FLAGS"] = flags
 
 
+# JAX's switch for little optimisation, read at each compilation; its environment variable reaches the command
+# lines that tests start.
+_LITTLE_OPTIMISATION = "JAX_DISABLE_MOST_OPTIMIZATIONS"
+_SUITE = {"little_optimisation": False}
+
+
+# In the fast suite XLA also leaves its while loops' invariant code where it is: that pass took a quarter of the
+# HLO passes' time in the runs' chunk programs at little optimisation, and its programs ran 3 to 7 % slower
+# without it (docs/results.md, test suite run time).
+FAST_SUITE_PASSES_OFF = ("while-loop-invariant-code-motion",)
+
+
+def _passes_off(flags, passes):
+    """``flags`` with ``passes`` added to its ``--xla_disable_hlo_passes`` list."""
+    name = "--xla_disable_hlo_passes="
+    return tuple(f + "," + ",".join(passes) if f.startswith(name) else f for f in flags)
+
+
 def pytest_configure(config):
     fast_suite = " ".join((config.option.markexpr or "").split()) == "not slow"
-    _ask_for_fast_compilation(FAST_COMPILE_FLAGS + ONE_DEVICE_FLAGS + (FAST_SUITE_FLAGS if fast_suite else ()))
+    flags = _passes_off(FAST_COMPILE_FLAGS, FAST_SUITE_PASSES_OFF) if fast_suite else FAST_COMPILE_FLAGS
+    _ask_for_fast_compilation(flags + ONE_DEVICE_FLAGS)
+    _SUITE["little_optimisation"] = fast_suite and os.environ.get("JAXFRIC_TEST_XLA_DEFAULTS") != "1"
+
+
+def _optimise(on: bool):
+    jax.config.update("jax_disable_most_optimizations", not on)
+    os.environ[_LITTLE_OPTIMISATION] = "0" if on else "1"
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item):
+    """Before the test's fixtures: its programs' optimisation (a module fixture is compiled with that of the
+    first test that asks for it)."""
+    if _SUITE["little_optimisation"]:
+        _optimise(item.get_closest_marker("xla_optimized") is not None)
 
 
 def _share_compiled_programs():

@@ -155,6 +155,7 @@ def test_penetrations_and_card_owned_fields_are_checked():
 SMALL = {"element_length": 1.0, "U_pull": 6.0, "steady_window": (4.0, 6.0)}  # shape1 on 1 mm elements
 
 
+@pytest.mark.xla_optimized   # mostly run time (tests/conftest.py)
 def test_small_card_rises_with_penetration_and_splits_bending_from_friction(tmp_path):
     """shape1 on 1 mm elements, pulled 6 mm (window [4, 6] mm), at half and full depth, with its mu = 0.15 and
     without friction: both forces rise with the penetration, both parts of the restraining force are

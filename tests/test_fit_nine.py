@@ -14,12 +14,14 @@ import csv
 import os
 
 import numpy as np
+import pytest
 
 from jaxfric.identification.fit import fit
 
 DATA = os.path.join(os.path.dirname(__file__), os.pardir, "experiments", "results", "fit_bias_mesh", "reference.csv")
 
 
+@pytest.mark.xla_optimized   # mostly run time (tests/conftest.py)
 def test_nine_mu_from_a_finer_exact_model_at_the_recommended_fit_mesh():
     with open(DATA, newline="") as fh:
         rows = list(csv.DictReader(fh))

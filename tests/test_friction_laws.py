@@ -41,6 +41,7 @@ def test_law_values_clip_and_frictionless_phase():
     assert float(sliding_speed(1e-3, 0.0, 5.0, 1e-4)) == 0.0
 
 
+@pytest.mark.xla_optimized   # mostly run time (tests/conftest.py)
 def test_steady_sliding_reads_the_drawing_speed():
     """The flat die slides as a whole at the drawing speed, so its steady drawing force is mu(v) F_clamp
     with v = draw_speed, for a coefficient rising with speed (mu = 0.12 + 0.01 v). Through the default

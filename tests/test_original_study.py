@@ -34,6 +34,7 @@ def _sliding(h) -> int:
     return int(np.flatnonzero(draw & (h["n_active"] > 0) & (h["n_slip"] == h["n_active"]))[0])
 
 
+@pytest.mark.xla_optimized   # mostly run time (tests/conftest.py)
 def test_flat_die_const_force_slides_where_the_study_says(flat_die):
     """Constant die force: global sliding sets in at a drawing displacement of 0.01064 mm in the study.
     The run can only place it at the end of one of its 1e-4 mm draw increments (0.9 % of the value), and

@@ -541,6 +541,7 @@ def test_blankholder_short_run():
     assert h["drawing_displacement"][-1] == pytest.approx(1.0)
 
 
+@pytest.mark.xla_optimized   # mostly run time (tests/conftest.py)
 def test_blankholder_starts_closing_at_the_spec_mesh():
     """Shape 1 at its spec mesh (309 x 2): the first 12 steps of 'close' converge, and the run then ends
     on its 12-row history buffer (MAX_STEPS), not on a Newton failure. Guards the first-step line
