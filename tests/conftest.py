@@ -54,7 +54,7 @@ def _ask_for_fast_compilation(wanted):
 
 
 # In the fast suite XLA also leaves its while loops' invariant code where it is: at little optimisation that pass
-# took a quarter of the HLO passes' time, the runs' chunk programs compiled in 14 to 24 % less time without it
+# took a quarter of the HLO passes' time, the runs' chunk programs compiled in 10 to 35 % less time without it
 # and ran 3 to 7 % longer (docs/results.md, test suite run time).
 FAST_SUITE_PASSES_OFF = ("while-loop-invariant-code-motion",)
 
