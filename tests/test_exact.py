@@ -283,7 +283,11 @@ def test_a_cycle_of_active_sets_ends_with_the_increment_of_all_its_passes(monkey
     linearised problem (semismooth Newton, ``lcp_ssn``). Recognised in the window of the last sets
     (:data:`jaxfric.contact.exact_active_set.CYCLE_WINDOW`), a cycle is cut short with the increment that
     all ``ssn_max_iter`` passes end on: the run is the run without the window (a window of one set sees
-    no cycle) in every column, bit for bit, in fewer passes, with the same iterations left cycling."""
+    no cycle) in every step's Newton iterations and every column, in fewer passes, with the same
+    iterations left cycling. The columns and the final state agree to round-off, not bit for bit: the two
+    runs are two XLA programs, which may fuse and round differently. Measured on one core at little
+    optimisation with XLA's while-loop invariant code motion kept: 1.3e-13 of a force column's largest
+    value from row 8 on, long before the first cycle (row 146); bit for bit with the fast suite's flags."""
     import equinox as eqx
 
     from jaxfric import scenes
@@ -301,8 +305,10 @@ def test_a_cycle_of_active_sets_ends_with_the_increment_of_all_its_passes(monkey
     n = int(full.history.n_rows)
     assert int(cut.history.n_rows) == n
     for name, column in full.history.observed.items():
-        np.testing.assert_array_equal(cut.history.observed[name][:n], column[:n], err_msg=name)
-    np.testing.assert_array_equal(cut.final.u, full.final.u)
+        column = np.asarray(column[:n])
+        np.testing.assert_allclose(cut.history.observed[name][:n], column, rtol=0,
+                                   atol=1e-11 * np.max(np.abs(column)) + 1e-12, err_msg=name)
+    np.testing.assert_allclose(cut.final.u, full.final.u, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(cut.history.newton_iters[:n], full.history.newton_iters[:n])
     passes_cut, passes_full = (np.asarray(r.history.solver_stats[:n]) for r in runs)
     np.testing.assert_array_equal(passes_cut[:, 2], passes_full[:, 2])     # iterations left cycling
