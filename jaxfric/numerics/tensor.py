@@ -46,11 +46,12 @@ def safe_norm(x: jax.Array, axis: int | tuple[int, ...] | None = None) -> jax.Ar
     return jnp.where(nonzero, jnp.sqrt(squared_safe), jnp.zeros_like(squared))
 
 
-def _sym2_branches(mean: jax.Array, t: jax.Array, scale: jax.Array):
-    """(use_series, t_series, t_exact, d): which branch of :func:`_sym2_coefficients` each matrix takes, and
-    each branch's arguments. Double where on both branches: each sees only arguments where it and its
-    derivative are finite. The series sees t = 0 outside its region (a large t^3 could overflow); the exact
-    branch sees d = 2 * threshold inside it, which keeps m - d in f's domain (log) and 1/d finite."""
+def _sym2_branches(t: jax.Array, scale: jax.Array):
+    """(use_series, t_series, t_exact, d): which branch of :func:`_sym2_coefficients` each matrix takes (the
+    series where d = sqrt(t) is below _SERIES_RATIO * ``scale``), and each branch's arguments. Double where on
+    both branches: each sees only arguments where it and its derivative are finite. The series sees t = 0
+    outside its region (a large t^3 could overflow); the exact branch sees d = 2 * threshold inside it, which
+    keeps m - d in f's domain (log) and 1/d finite."""
     threshold = _SERIES_RATIO * scale
     use_series = t < threshold * threshold
     t_series = jnp.where(use_series, t, jnp.zeros_like(t))
@@ -77,7 +78,7 @@ def _sym2_coefficients(
     With t = d^2: s0 = sum_k c_2k t^k and a1 = sum_k c_(2k+1) t^k (series), or
     s0 = (f(m+d) + f(m-d)) / 2 and a1 = (f(m+d) - f(m-d)) / (2d) (exact).
     """
-    use_series, t_series, t_exact, d = _sym2_branches(mean, t, scale(mean))
+    use_series, t_series, t_exact, d = _sym2_branches(t, scale(mean))
     coeffs = taylor(mean)
     s0_series = coeffs[0] + t_series * (coeffs[2] + t_series * (coeffs[4] + t_series * coeffs[6]))
     a1_series = coeffs[1] + t_series * (coeffs[3] + t_series * (coeffs[5] + t_series * coeffs[7]))
@@ -167,7 +168,7 @@ def _log_coefficient_partials(mean: jax.Array, t: jax.Array, a1: jax.Array):
     a1 is given), on the same branches. Series: the Taylor coefficients about the mean obey
     dc_j/dm = (j + 1) c_(j+1). Exact, with p, q = m +- d: ds0/dm = (1/p + 1/q)/2, da1/dm = (1/p - 1/q)/(2d),
     ds0/dt = da1/dm / 2 and da1/dt = (ds0/dm - a1) / (2t)."""
-    use_series, t_series, t_exact, d = _sym2_branches(mean, t, mean)
+    use_series, t_series, t_exact, d = _sym2_branches(t, mean)
     c = _log_taylor(mean)
     c.append(-(1.0 / mean) ** _N_TAYLOR / _N_TAYLOR)   # c_8: the derivative of c_7's term
     series = ((c[1] + t_series * (3.0 * c[3] + t_series * (5.0 * c[5] + t_series * 7.0 * c[7]))),
