@@ -65,17 +65,19 @@ def _passes_off(flags, passes):
     return tuple(f + "," + ",".join(passes) if f.startswith(name) else f for f in flags)
 
 
+def _fast_suite(config) -> bool:
+    """Exactly the slow runs deselected (``-m "not slow"``, as ``make test`` runs the suite)."""
+    return " ".join((config.option.markexpr or "").split()) == "not slow"
+
+
 # JAX's switch for little optimisation, read at each compilation; its environment variable reaches the command
-# lines that tests start. On in the fast suite (pytest_configure), off in its tests marked xla_optimized.
+# lines that tests start. On in the fast suite, off in its tests marked xla_optimized (pytest_runtest_setup).
 _LITTLE_OPTIMISATION = "JAX_DISABLE_MOST_OPTIMIZATIONS"
-_SUITE = {"little_optimisation": False}
 
 
 def pytest_configure(config):
-    fast_suite = " ".join((config.option.markexpr or "").split()) == "not slow"
-    flags = _passes_off(FAST_COMPILE_FLAGS, FAST_SUITE_PASSES_OFF) if fast_suite else FAST_COMPILE_FLAGS
+    flags = _passes_off(FAST_COMPILE_FLAGS, FAST_SUITE_PASSES_OFF) if _fast_suite(config) else FAST_COMPILE_FLAGS
     _ask_for_fast_compilation(flags + ONE_DEVICE_FLAGS)
-    _SUITE["little_optimisation"] = fast_suite and os.environ.get("JAXFRIC_TEST_XLA_DEFAULTS") != "1"
 
 
 def _optimise(on: bool):
@@ -87,7 +89,7 @@ def _optimise(on: bool):
 def pytest_runtest_setup(item):
     """Before the test's fixtures: its programs' optimisation (a module fixture is compiled with that of the
     first test that asks for it)."""
-    if _SUITE["little_optimisation"]:
+    if _fast_suite(item.config) and os.environ.get("JAXFRIC_TEST_XLA_DEFAULTS") != "1":
         _optimise(item.get_closest_marker("xla_optimized") is not None)
 
 
