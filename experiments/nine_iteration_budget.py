@@ -33,7 +33,7 @@ from jaxfric.scenes import make  # noqa: E402
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_CASES = ("0.1,0.1,1e-8", "0.05,0.05,1e-8", "0.1,0.1,1e-6", "0.1,0.1,1e-5", "0.1,0.1,1e-4",
                  "0.1,0.1,1e-3", "0.15,0.15,1e-5", "0.2,0.2,1e-8", "0.2,0.2,1e-5", "0.3,0.3,1e-5",
-                 "0.4,0.4,1e-5")
+                 "0.4,0.4,1e-5", "0.4,0.4,1e-8")
 FIELDS = ("dU", "dq_clamp", "rtol", "converged", "n_steps", "cutbacks", "newton_iters_total", "iters_clamp",
           "iters_draw", "iters_per_draw_step", "steady_drawing_force", "step_error_estimate", "wall_s",
           "compile_s", "message")

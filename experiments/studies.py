@@ -616,7 +616,7 @@ def _case_from_curves(study: str, name: str, row: dict, columns=CURVE_COLUMNS) -
     summary["cutback_causes"] = row.get("cut_causes")
     history = {k: arrays[k] for k in columns if k in arrays}
     contact = {k: v for k, v in arrays.items() if k not in columns}
-    return {"summary": summary, "history": history, "contact": contact, "dir": None}
+    return {"summary": summary, "history": history, "contact": contact, "dir": None, "row": row}
 
 
 def algorithm_agreement(opts) -> None:
@@ -769,6 +769,10 @@ def _common_row(name: str, variant: str, algorithm: str, c: dict, plan: dict, st
     if algorithm != "lcp_ssn" and h and p:
         fs, fp = s.get("steady_drawing_force"), plan["summary"].get("steady_drawing_force")
         row["rel_diff_steady"] = _r((fs - fp) / abs(fp)) if fs is not None and fp else None
+        if c.get("row") is not None and plan.get("row") is not None:
+            # Both read back from committed rows, whose steady forces keep 6 digits: the difference the
+            # invocation that ran them computed from the runs' own values stands.
+            row["rel_diff_steady"] = c["row"].get("rel_diff_steady")
         # The rows of this run that end where the plan's steps end (all of them, unless it stopped).
         ip, k = matching_rows(p["time"], h["time"])
         scale = float(np.max(np.abs(p["drawing_force"])) + np.max(np.abs(p["clamping_force"])))

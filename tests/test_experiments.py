@@ -118,6 +118,22 @@ def test_common_steps_row_compares_a_replay_with_its_plan_at_the_plan_s_step_end
     assert row["refined_steps"] == 2
 
 
+def test_common_steps_row_of_two_committed_cases_keeps_their_committed_steady_difference():
+    """A case and its plan both read back from committed rows (their steady forces to 6 digits there)
+    keep the difference the invocation that ran them computed; a case run now against a committed plan
+    is compared afresh."""
+    t = np.array([0.0, 1.0, 2.0])
+    h = {"time": t, "drawing_force": np.array([0.0, 5.0, 7.5]), "clamping_force": np.array([0.0, 50.0, 50.0]),
+         "n_active": np.array([0, 3, 3]), "n_slip": np.array([0, 0, 3])}
+    plan = {"summary": {"n_steps": 2, "steady_drawing_force": 7.5}, "history": h,
+            "row": {"steady_drawing_force": 7.5}}
+    run = {"summary": {"n_steps": 2, "steady_drawing_force": 7.5}, "history": h,
+           "row": {"rel_diff_steady": -1.386e-14}}
+    assert studies._common_row("flat_die", "const_force", "lcp_lemke", run, plan)["rel_diff_steady"] == -1.386e-14
+    fresh = {k: v for k, v in run.items() if k != "row"}
+    assert studies._common_row("flat_die", "const_force", "lcp_lemke", fresh, plan)["rel_diff_steady"] == 0.0
+
+
 def test_union_of_accepted_steps_merges_step_ends_equal_to_round_off():
     a = {"time": np.array([0.0, 0.5, 1.0, 2.0])}
     b = {"time": np.array([0.0, 0.25, 0.5 + 1e-12, 1.0, 1.5, 2.0])}
