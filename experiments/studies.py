@@ -619,6 +619,20 @@ def _case_from_curves(study: str, name: str, row: dict, columns=CURVE_COLUMNS) -
     return {"summary": summary, "history": history, "contact": contact, "dir": None, "row": row}
 
 
+def _steady_difference(c: dict, ref: dict, signed: bool = True, reference: str | None = None):
+    """Case ``c``'s steady drawing force relative to ``ref``'s (signed, or its magnitude), as a table keeps it.
+    Where both were read back from committed rows, whose steady forces keep 6 digits, and ``c``'s row was
+    compared with the same ``reference`` (the ``reference`` column; none in ``common_steps``), the difference
+    the invocation that ran them computed from the runs' own values stands."""
+    row = c.get("row")
+    if row is not None and ref.get("row") is not None and row.get("reference") == reference:
+        return row.get("rel_diff_steady")
+    fs, fr = c["summary"].get("steady_drawing_force"), ref["summary"].get("steady_drawing_force")
+    if fs is None or not fr:
+        return None
+    return _r((fs - fr) / abs(fr) if signed else abs(fs - fr) / abs(fr))
+
+
 def algorithm_agreement(opts) -> None:
     """Each case comes from its run directory, else from its committed row and curves (a case of an
     earlier invocation), else it is run if selected. Rows of earlier invocations that have no curves (before
@@ -674,8 +688,7 @@ def algorithm_agreement(opts) -> None:
             row = {"case": f"{name}_{variant}_{algorithm}", "scene": name, "variant": variant,
                    "algorithm": algorithm, "reference": ref_alg, **common(s)}
             if ref is not None and h:
-                fs, fr = s.get("steady_drawing_force"), ref["summary"].get("steady_drawing_force")
-                row["rel_diff_steady"] = _r(abs(fs - fr) / abs(fr)) if fs is not None and fr else None
+                row["rel_diff_steady"] = _steady_difference(c, ref, signed=False, reference=ref_alg)
                 row["curve_diff_drawing"] = _curve_diff(h, ref["history"], "drawing_displacement",
                                                         "drawing_force", "draw")
                 row["curve_diff_clamping"] = _curve_diff(h, ref["history"], "drawing_displacement",
@@ -767,12 +780,7 @@ def _common_row(name: str, variant: str, algorithm: str, c: dict, plan: dict, st
     if row["n_steps"] is not None and plan["summary"].get("n_steps") is not None:
         row["extra_steps"] = int(row["n_steps"]) - int(plan["summary"]["n_steps"])
     if algorithm != "lcp_ssn" and h and p:
-        fs, fp = s.get("steady_drawing_force"), plan["summary"].get("steady_drawing_force")
-        row["rel_diff_steady"] = _r((fs - fp) / abs(fp)) if fs is not None and fp else None
-        if c.get("row") is not None and plan.get("row") is not None:
-            # Both read back from committed rows, whose steady forces keep 6 digits: the difference the
-            # invocation that ran them computed from the runs' own values stands.
-            row["rel_diff_steady"] = c["row"].get("rel_diff_steady")
+        row["rel_diff_steady"] = _steady_difference(c, plan)
         # The rows of this run that end where the plan's steps end (all of them, unless it stopped).
         ip, k = matching_rows(p["time"], h["time"])
         scale = float(np.max(np.abs(p["drawing_force"])) + np.max(np.abs(p["clamping_force"])))

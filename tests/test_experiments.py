@@ -132,6 +132,10 @@ def test_common_steps_row_of_two_committed_cases_keeps_their_committed_steady_di
     assert studies._common_row("flat_die", "const_force", "lcp_lemke", run, plan)["rel_diff_steady"] == -1.386e-14
     fresh = {k: v for k, v in run.items() if k != "row"}
     assert studies._common_row("flat_die", "const_force", "lcp_lemke", fresh, plan)["rel_diff_steady"] == 0.0
+    # algorithm_agreement: only a row compared with the same reference keeps its difference.
+    against_lemke = {**run, "row": {"rel_diff_steady": 1.4e-14, "reference": "lcp_lemke"}}
+    assert studies._steady_difference(against_lemke, plan, signed=False, reference="lcp_lemke") == 1.4e-14
+    assert studies._steady_difference(against_lemke, plan, signed=False, reference="auglag_gap1e-06") == 0.0
 
 
 def test_union_of_accepted_steps_merges_step_ends_equal_to_round_off():
