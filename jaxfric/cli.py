@@ -30,7 +30,6 @@ import shlex
 import shutil
 import signal
 import sys
-import time
 from typing import Any
 
 from .contact.formulations import ALGORITHMS
@@ -418,30 +417,24 @@ class _StopRequest:
 
 
 class _PartialWriter:
-    """``on_chunk`` of a CLI run: the run directory's data files and checkpoint rewritten from the
-    partial result, after the first chunk and then every :data:`WRITE_INTERVAL_S` s at least (a write
-    takes at most about 1 % of the run)."""
+    """What a CLI run writes while it goes (:class:`jaxfric.io.checkpoint.Every` calls it after the first
+    chunk and then every :data:`WRITE_INTERVAL_S` s at least): the run directory's data files and
+    checkpoint, rewritten from the partial result."""
 
     def __init__(self, scene, out: str, tag, config: dict):
         self.scene, self.out, self.tag, self.config = scene, out, tag, config
-        self.due = 0.0
         self.failed = False
 
-    def __call__(self, partial) -> None:
-        start = time.perf_counter()
-        if start < self.due:
-            return
+    def __call__(self, result) -> None:
         from .io import output
 
         try:
-            _write(self.scene, partial(), self.out, self.tag, self.config, figures=False)
+            _write(self.scene, result, self.out, self.tag, self.config, figures=False)
         except (OSError, output.OutputError) as err:
             if not self.failed:
                 print(f"note: the run directory could not be updated during the run: {_one_line(err)}",
                       file=sys.stderr)
             self.failed = True
-        cost = time.perf_counter() - start
-        self.due = time.perf_counter() + max(WRITE_INTERVAL_S, 100.0 * cost)
 
 
 def _write(scene, result, out: str, tag, config: dict, **options) -> dict:
@@ -521,7 +514,8 @@ def _run(args) -> int:
             result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
                          snapshot=scene.snapshot, keep_snapshots=InstantRows(scene.name),
                          progress=not args.quiet, raise_on_failure=False, label=label, resume=resume,
-                         on_chunk=_PartialWriter(scene, out, args.tag, config), stop=stop)
+                         on_chunk=checkpoint.Every(_PartialWriter(scene, out, args.tag, config), WRITE_INTERVAL_S),
+                         stop=stop)
     except MemoryBudgetError as err:
         # Refused before it started: remove the directories made for it, if still empty.
         if created is not None and not any(files for _, _, files in os.walk(created)):

@@ -14,7 +14,7 @@ import pytest
 
 import jaxfric as jf
 from jaxfric import cli, scenes
-from jaxfric.io import checkpoint, output
+from jaxfric.io import batch, checkpoint, output
 from jaxfric.io.contract import check_run_dir
 from jaxfric.io.instants import InstantRows
 from jaxfric.loadpath import run as run_module
@@ -144,6 +144,49 @@ def test_a_stopped_run_resumes_bit_for_bit_from_its_checkpoint_on_disk(whole, tm
     with pytest.raises(jf.SimulationError, match="stopped on request"):
         jf.run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
                snapshot=scene.snapshot, progress=False, stop=lambda: True)
+
+
+def test_a_study_case_killed_while_it_runs_continues_from_its_checkpoint(whole, tmp_path, monkeypatch):
+    """``jaxfric.io.batch.run_case`` (the studies' cases) keeps a running case's checkpoint in its directory.
+    Killed after its first checkpoint (here after the first chunk), the case has no summary.json; the
+    next call continues it from the checkpoint, the uninterrupted run's history and contact states bit
+    for bit, and removes the checkpoint. A checkpoint of another case (other settings, other steps) is
+    not resumed."""
+    scene, result = whole
+    out = str(tmp_path / "case")
+    save, saved = checkpoint.save, []
+
+    class Killed(BaseException):  # not a failed case: run_case lets it through, as SIGTERM ends the process
+        pass
+
+    def save_then_kill(*args):
+        saved.append(save(*args))
+        raise Killed
+
+    monkeypatch.setattr(checkpoint, "save", save_then_kill)
+    with pytest.raises(Killed):
+        batch.run_case(out, "flat_die", None, "lcp_ssn", OVERRIDES, checkpoint_s=0.0, log=lambda m: None)
+    assert not os.path.exists(os.path.join(out, "summary.json")) and os.path.exists(saved[-1])
+    logs: list = []
+    other = scenes.make("flat_die", None, "lcp_ssn", {**OVERRIDES, "mu": "0.2"})
+    assert batch._saved_checkpoint(out, other, batch.case_configuration(other), logs.append) is None
+    assert "another case" in logs[-1] and "mu" in logs[-1]
+    replay = batch.case_configuration(scene, result.history["time"][1:])
+    assert batch._saved_checkpoint(out, scene, replay, logs.append) is None and "steps" in logs[-1]
+    monkeypatch.setattr(checkpoint, "save", save)
+    done = batch.run_case(out, "flat_die", None, "lcp_ssn", OVERRIDES, checkpoint_s=0.0, log=logs.append)
+    resumed = [m for m in logs if "resumed from its checkpoint at step" in m]
+    assert len(resumed) == 1 and int(resumed[0].split("at step ")[1].split(",")[0]) > 0, logs
+    assert done["summary"]["converged"] and not os.path.exists(saved[-1])
+    output.write_run(scene, result, str(tmp_path / "whole"), figures=False)
+    expected = batch.read_history(str(tmp_path / "whole" / "history.csv"))
+    assert set(done["history"]) == set(expected)
+    for key, column in expected.items():
+        if key != "wall_s":
+            assert np.array_equal(done["history"][key], column), key
+    with np.load(tmp_path / "whole" / "contact.npz") as whole_contact:
+        assert sorted(done["contact"]) == sorted(whole_contact.files)
+        assert all(np.array_equal(done["contact"][k], whole_contact[k]) for k in whole_contact.files)
 
 
 def test_kept_snapshots_write_the_contact_file_of_all_snapshots(whole, tmp_path):

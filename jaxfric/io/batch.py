@@ -3,12 +3,16 @@
 A case is an ordinary :func:`jaxfric.loadpath.run.run` written by :func:`jaxfric.io.output.write_run` into its own
 directory. A directory that already holds a ``summary.json`` is read back instead of recomputed (unless
 ``rerun``), so an interrupted study resumes where it stopped, and a case that fails keeps its partial
-run directory with the reason in ``summary.json`` ``message``.
+run directory with the reason in ``summary.json`` ``message``. A case still running keeps a checkpoint in
+its directory (``checkpoint.npz``, every :data:`CHECKPOINT_EVERY_S` s): a study killed in the middle of a
+case (a time limit's SIGTERM, Ctrl-C, a crash) continues that case from it, bit for bit the run that never
+stopped, so a case of hours can run over several sittings.
 """
 
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import math
 import os
@@ -16,7 +20,12 @@ import time
 
 import numpy as np
 
-__all__ = ["read_history", "phase_curve", "matching_rows", "replay_steps", "run_case", "stale", "write_csv"]
+__all__ = ["CHECKPOINT_EVERY_S", "read_history", "phase_curve", "matching_rows", "replay_steps", "run_case",
+           "stale", "write_csv"]
+
+#: The shortest interval between two checkpoints of a running case (s; longer where writing one takes
+#: over 1 % of it). A case killed while it runs loses at most about this much of its solve.
+CHECKPOINT_EVERY_S = 60.0
 
 
 def read_history(path: str) -> dict:
@@ -47,7 +56,7 @@ def phase_curve(history: dict, x_name: str, y_name: str, phase: str, start: bool
 
 def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, overrides: dict, *,
              rerun: bool = False, progress: bool = False, figures: bool = False, tag: str | None = None,
-             log=print, rerun_stale: bool = True, steps=None) -> dict:
+             log=print, rerun_stale: bool = True, steps=None, checkpoint_s: float = CHECKPOINT_EVERY_S) -> dict:
     """Run one case into ``out`` (or read it back) and return ``{"summary", "history", "contact", "dir"}``.
 
     ``summary`` always has ``converged`` and ``message``: a case that could not even be built or run
@@ -59,10 +68,16 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
     number of phases), for example another run's accepted steps (its history's ``time`` without the
     first row); they replace the scene's nominal increments (:func:`replay_steps`). The stale check
     does not compare them: a run directory made with other steps is read back as it is.
+
+    A running case writes its checkpoint into ``out`` every ``checkpoint_s`` seconds (none in its first
+    ``checkpoint_s``); a case without ``summary.json`` whose checkpoint has this case's configuration
+    (:func:`case_configuration`) continues from it (unless ``rerun``), and the checkpoint is removed once
+    ``summary.json`` is written. The resumed case's ``wall_s`` and ``cpu_s`` include the solve before the
+    stop; its ``compile_s`` is the last process's.
     """
     from .. import scenes
     from ..loadpath.run import run
-    from . import output
+    from . import checkpoint, output
     from .instants import InstantRows
 
     path = os.path.join(out, "summary.json")
@@ -76,9 +91,15 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
             scene = scenes.make(scene_name, variant, algorithm, dict(overrides))
             if steps is not None:
                 scene = replay_steps(scene, steps)
+            config = case_configuration(scene, steps)
+            saved = None if rerun else _saved_checkpoint(out, scene, config, log)
+            os.makedirs(out, exist_ok=True)
+            keep = checkpoint.Every(lambda partial: checkpoint.save(out, partial.checkpoint, config), checkpoint_s,
+                                    first_s=checkpoint_s)
             result = run(scene.model, newton=scene.newton, control=scene.control, observe=scene.observe,
-                         snapshot=scene.snapshot, keep_snapshots=InstantRows(scene.name),
-                         progress=progress, raise_on_failure=False, label=f"{os.path.basename(out)} ")
+                         snapshot=scene.snapshot, keep_snapshots=InstantRows(scene.name), resume=saved,
+                         on_chunk=keep, progress=progress, raise_on_failure=False,
+                         label=f"{os.path.basename(out)} ")
             output.write_run(scene, result, out, tag=tag, figures=figures)
         except output.OutputError as err:  # partial run directory; the reason is in summary.json
             log(f"{out}: {err}")
@@ -90,6 +111,8 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
                            "algorithm": algorithm, "overrides": output.json_ready(overrides)},
                           fh, indent=2)
             log(f"{out}: failed: {message}")
+        if os.path.exists(os.path.join(out, checkpoint.FILE)):  # summary.json written: nothing to resume
+            os.remove(os.path.join(out, checkpoint.FILE))
         log(f"{out}: done in {time.perf_counter() - t0:.1f} s")
     with open(path) as fh:
         summary = json.load(fh)
@@ -97,6 +120,37 @@ def run_case(out: str, scene_name: str, variant: str | None, algorithm: str, ove
     npz = os.path.join(out, "contact.npz")
     return {"summary": summary, "history": read_history(hist) if os.path.exists(hist) else {},
             "contact": dict(np.load(npz, allow_pickle=False)) if os.path.exists(npz) else {}, "dir": out}
+
+
+def case_configuration(scene, steps=None) -> dict:
+    """What a case's checkpoint must share with the case that resumes from it: the scene's configuration
+    (:func:`jaxfric.io.checkpoint.configuration`) and the digest of the steps it replays (None: the
+    scene's own increments)."""
+    from .checkpoint import configuration
+
+    digest = None if steps is None else hashlib.sha256(np.ascontiguousarray(steps, float).tobytes()).hexdigest()
+    return {**configuration(scene), "steps": digest}
+
+
+def _saved_checkpoint(out: str, scene, config: dict, log):
+    """The checkpoint that a case stopped while running left in ``out`` (:func:`run_case`), or None: none
+    there, or one that does not fit this case (other settings or model), which is then run from the start."""
+    from . import checkpoint
+
+    if not os.path.exists(os.path.join(out, checkpoint.FILE)):
+        return None
+    try:
+        saved, saved_config = checkpoint.load(out, scene)
+    except (OSError, ValueError) as err:
+        log(f"{out}: its checkpoint cannot be resumed ({err}): run from the start")
+        return None
+    diff = checkpoint.configuration_difference(saved_config, config)
+    if diff is not None:
+        log(f"{out}: its checkpoint is of another case ({diff}): run from the start")
+        return None
+    log(f"{out}: resumed from its checkpoint at step {saved.record.n_rows - 1}, "
+        f"t = {float(saved.path.state.time):.6g}")
+    return saved
 
 
 def matching_rows(t_a, t_b, tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from typing import Any
 
 import equinox as eqx
@@ -23,7 +24,7 @@ from ..loadpath.run import Checkpoint, Record
 from ..loadpath.simulate import begin
 from .output import json_ready
 
-__all__ = ["FILE", "configuration", "save", "load", "configuration_difference"]
+__all__ = ["FILE", "Every", "configuration", "save", "load", "configuration_difference"]
 
 FILE = "checkpoint.npz"
 
@@ -92,6 +93,25 @@ def load(out_dir: str, scene) -> tuple[Checkpoint, dict]:
     record = Record(parts=[part], snapshots=snapshots, wall_s=float(meta["wall_s"]), cpu_s=float(meta["cpu_s"]),
                     band_widened=[(float(t), band) for t, band in meta.get("band_widened", [])])
     return Checkpoint(path=jax.tree_util.tree_unflatten(treedef, saved), record=record), meta["config"]
+
+
+class Every:
+    """An ``on_chunk`` of :func:`jaxfric.loadpath.run.run` that passes the partial result to ``write`` when
+    due: after the first chunk that ends ``first_s`` seconds or more after it was made, then every
+    ``every_s`` seconds at least, and longer where a write takes more than 1 % of that interval, so that the
+    writes take at most about 1 % of the run."""
+
+    def __init__(self, write, every_s: float, first_s: float = 0.0):
+        self.write, self.every_s = write, every_s
+        self.due = time.perf_counter() + first_s
+
+    def __call__(self, partial) -> None:
+        start = time.perf_counter()
+        if start < self.due:
+            return
+        self.write(partial())
+        cost = time.perf_counter() - start
+        self.due = time.perf_counter() + max(self.every_s, 100.0 * cost)
 
 
 def configuration_difference(saved: dict, now: dict) -> str | None:
