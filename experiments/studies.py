@@ -49,7 +49,7 @@ import numpy as np
 
 from jaxfric import scenes
 from jaxfric.contact.formulations import ALGORITHMS
-from jaxfric.io.batch import matching_rows, phase_curve, run_case, write_csv
+from jaxfric.io.batch import matching_rows, phase_curve, run_case, stale, write_csv
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.join(HERE, "results", "studies")
@@ -80,7 +80,13 @@ MESHES = [(nx, ny) for ny in (3, 6) for nx in (150, 300, 600, 1200)]
 STUDY_SETTINGS = {"element": "fbar"}
 SCENE_STUDY_SETTINGS = {"nine": {"entry_guide_kind": "end_nodes"}, "blankholder": {"thickness_points": 2}}
 AT_DEFAULTS = ("mesh_convergence", "common_steps", "penalty_sensitivity", "auglag_sensitivity",
-               "blankholder_shapes")
+               "blankholder_shapes", "algorithm_agreement")
+
+
+def settings_label(study: str) -> str:
+    """A table's ``settings`` column for the cases ``study`` runs now: ``defaults`` (in AT_DEFAULTS) or
+    ``study`` (STUDY_SETTINGS and SCENE_STUDY_SETTINGS). Rows without the column were run at ``study``."""
+    return "defaults" if study in AT_DEFAULTS else "study"
 
 
 def study_settings(scene_name: str, study: str = "") -> dict:
@@ -572,17 +578,17 @@ def _status_mismatch(contact, ref):
 def _shared_run(name: str, variant: str, algorithm: str):
     """A case another study already ran with the same inputs, read back from its directory: the
     blankholder's penalty runs are the ``blankholder_shapes`` cases (penalty), where both studies run at
-    the same settings. ``--rerun`` does not reach them here: rerun them with ``studies.py
-    blankholder_shapes --rerun``."""
-    same = study_settings(name, "blankholder_shapes") == study_settings(name, "algorithm_agreement")
-    if name != "blankholder" or algorithm != "penalty" or not same:
+    the same settings and the run on disk was made at them (a stale one is left to its own study).
+    ``--rerun`` does not reach them here: rerun them with ``studies.py blankholder_shapes --rerun``."""
+    settings = study_settings(name, "blankholder_shapes")
+    if name != "blankholder" or algorithm != "penalty" or settings != study_settings(name, "algorithm_agreement"):
         return None
     directory = os.path.join(ROOT, "blankholder_shapes", "runs", variant)
-    if not os.path.exists(os.path.join(directory, "summary.json")):
+    path = os.path.join(directory, "summary.json")
+    if not os.path.exists(path) or stale(path, settings, variant, algorithm) is not None:
         return None
-    return run_case(directory, name, variant, algorithm, study_settings(name), rerun=False, progress=False,
-                    figures=False,
-                    tag="blankholder_shapes", log=lambda m: None)
+    return run_case(directory, name, variant, algorithm, settings, rerun=False, progress=False, figures=False,
+                    tag="blankholder_shapes", log=lambda m: None, rerun_stale=False)
 
 
 CURVE_COLUMNS = ("phase", "drawing_displacement", "drawing_force", "clamping_force", "theta_deg")
@@ -639,10 +645,13 @@ def _steady_difference(c: dict, ref: dict, signed: bool = True, reference: str |
 
 def algorithm_agreement(opts) -> None:
     """Each case comes from its run directory, else from its committed row and curves (a case of an
-    earlier invocation), else it is run if selected. Rows of earlier invocations that have no curves (before
-    curves were kept) stay as they were committed, with the reference they were compared with (column
-    ``reference``), which may differ from the one the group's newer rows are compared with."""
+    earlier invocation at the study's settings), else it is run if selected. Rows of earlier invocations
+    that have no curves (before curves were kept) or were run at other settings (column ``settings``,
+    :func:`settings_label`) stay as they were committed until their case runs again, with the reference
+    they were compared with (column ``reference``); a group's comparisons are among cases at the study's
+    settings only."""
     study = "algorithm_agreement"
+    settings = settings_label(study)
     kept = _committed_rows(study, opts)
     rows, panels, cases = [], [], []
     for name, variant in _variants():
@@ -652,16 +661,17 @@ def algorithm_agreement(opts) -> None:
             """Put case ``label`` into ``runs`` or ``legacy``; with ``run`` False, never run it."""
             on_disk = _on_disk(study, label)
             shared = _shared_run(name, variant, algorithm)
+            same = label in kept and (kept[label].get("settings") or "study") == settings
             if shared is not None:
                 runs[algorithm] = shared
-            elif label in kept and os.path.exists(_curves_path(study, label)):
+            elif same and os.path.exists(_curves_path(study, label)):
                 runs[algorithm] = _case_from_curves(study, label, kept[label])
             elif label in kept and not (run and _selected(opts, label)):
                 legacy[algorithm] = kept[label]
             elif on_disk and not run:
                 runs[algorithm] = run_case(os.path.join(ROOT, study, "runs", label), name, variant,
-                                           run_algorithm, {**study_settings(name), **overrides}, log=lambda m: None,
-                                           rerun_stale=False)
+                                           run_algorithm, {**study_settings(name, study), **overrides},
+                                           log=lambda m: None, rerun_stale=False)
             elif run and _want(opts, study, label):
                 runs[algorithm] = case(study, label, name, variant, run_algorithm, overrides, opts)
             if runs.get(algorithm, {}).get("dir"):
@@ -673,7 +683,8 @@ def algorithm_agreement(opts) -> None:
         # The AL reference runs only where Lemke has not converged (in this invocation or an earlier one,
         # whose row without curves still shows the group has its exact reference); one that ran before
         # stays a row.
-        lemke_done = ref_alg is not None or bool(legacy.get("lcp_lemke", {}).get("converged"))
+        lemke_done = ref_alg is not None or bool(legacy.get("lcp_lemke", {}).get("converged")
+                                                 and (legacy["lcp_lemke"].get("settings") or "study") == settings)
         take("auglag_gap1e-06", f"{name}_{variant}_auglag_gap1e-06", "auglag", {"target_gap": 1e-6},
              run=not lemke_done)
         if ref_alg is None and runs.get("auglag_gap1e-06", {}).get("summary", {}).get("converged"):
@@ -682,15 +693,15 @@ def algorithm_agreement(opts) -> None:
             continue
         ref = runs.get(ref_alg)
         for algorithm in [*ALGORITHMS, "auglag_gap1e-06"]:
-            if algorithm in legacy:
-                rows.append(dict(legacy[algorithm]))  # its differences are from its own `reference`
+            if algorithm in legacy:  # its differences are from its own `reference`, at its own settings
+                rows.append({**legacy[algorithm], "settings": legacy[algorithm].get("settings") or "study"})
                 continue
             if algorithm not in runs:
                 continue
             c = runs[algorithm]
             s, h = c["summary"], c["history"]
             row = {"case": f"{name}_{variant}_{algorithm}", "scene": name, "variant": variant,
-                   "algorithm": algorithm, "reference": ref_alg, **common(s)}
+                   "algorithm": algorithm, "settings": settings, "reference": ref_alg, **common(s)}
             if ref is not None and h:
                 row["rel_diff_steady"] = _steady_difference(c, ref, signed=False, reference=ref_alg)
                 row["curve_diff_drawing"] = _curve_diff(h, ref["history"], "drawing_displacement",
@@ -708,12 +719,20 @@ def algorithm_agreement(opts) -> None:
             panels.append((name, variant, runs))
         _write_partial(study, rows)
     _agreement_figure(panels)
-    cols = ["scene", "variant", "algorithm", "reference", "converged", "n_steps", "newton_iters_total",
+    cols = ["scene", "variant", "algorithm", "settings", "reference", "converged", "n_steps", "newton_iters_total",
             "wall_s", "cpu_s", "max_penetration", "steady_drawing_force", "rel_diff_steady",
             "curve_diff_drawing", "curve_diff_clamping", "max_status_mismatch"]
     drawn = ", ".join(f"{n} / {v}" for n, v, _ in panels) or "none"
+    behind = [r["case"] for r in rows if r.get("settings") != settings]
     write_section(study, _header(study, cases,
-                                 "Every scene variant with every algorithm at default parameters; the "
+                                 f"Every scene variant with every algorithm at default parameters, at the "
+                                 f"settings in column `settings`: `defaults`, the scenes' defaults (the "
+                                 f"element `ans` on the Nine and the bead, `anst` with 4 points per layer on "
+                                 f"the blankholder, the Nine's entry channel), or `study`, the settings the "
+                                 f"study ran at before (F-bar, the Nine's left-end nodes held, 2 points per "
+                                 f"layer on the blankholder; `STUDY_SETTINGS` in the script). Cases are "
+                                 f"compared only with the reference at their own settings; this invocation "
+                                 f"runs `{settings}`. The "
                                  "reference (column `reference`) is `lcp_lemke`, or `auglag` with target "
                                  "gap 1e-6 where Lemke did not converge or has not run. The blankholder's "
                                  "penalty rows are the runs of study `blankholder_shapes` where both studies "
@@ -724,12 +743,19 @@ def algorithm_agreement(opts) -> None:
                                  "curves were kept have none, are not in the figure and keep the "
                                  "reference they were compared with.")
                   + "\n\n" + markdown_table(rows, cols) + "\n\n" + failures(rows, opts.missing)
-                  + f"\n\nFigure panels (groups with curves): {drawn}."
-                  + "\n\n![algorithm agreement](../experiments/results/studies/algorithm_agreement/figure.png)")
+                  + (f"\n\n**Not yet run at `{settings}`** ({len(behind)} of {len(rows)} rows, kept from the "
+                     f"study's earlier settings until their cases run again): "
+                     + ", ".join(f"`{c}`" for c in behind) + "." if behind else "")
+                  + f"\n\nFigure panels (groups with curves at `{settings}`): {drawn}."
+                  + ("\n\n![algorithm agreement](../experiments/results/studies/algorithm_agreement/figure.png)"
+                     if panels else ""))
 
 
 def _agreement_figure(panels, study: str = "algorithm_agreement") -> None:
+    """The study's figure of ``panels``; none (an older one removed) where there is nothing to draw."""
     if not panels:
+        if os.path.exists(os.path.join(ROOT, study, "figure.png")):
+            os.remove(os.path.join(ROOT, study, "figure.png"))
         return
     plt = _plt()
     n = len(panels)

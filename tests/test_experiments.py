@@ -82,17 +82,66 @@ def test_study_table_between_cases_keeps_the_rows_still_to_come(tmp_path, monkey
 
 def test_the_agreement_shares_the_blankholder_shapes_runs_only_at_equal_settings(tmp_path, monkeypatch):
     """The agreement's blankholder penalty rows are read from study ``blankholder_shapes``'s run directories
-    only where both studies run at the same settings: a run read back at other settings would be stale
-    to ``run_case`` and run again into the shapes study's own directory."""
+    where both studies run at the same settings, and only runs made at them (read back as they are, never
+    run again into the shapes study's directory); a stale one is left to its own study."""
     monkeypatch.setattr(studies, "ROOT", str(tmp_path))
     summary = tmp_path / "blankholder_shapes" / "runs" / "shape1" / "summary.json"
     summary.parent.mkdir(parents=True)
     summary.write_text("{}")
     shapes = studies.study_settings("blankholder", "blankholder_shapes")
-    agreement = studies.study_settings("blankholder", "algorithm_agreement")
-    assert agreement == {"element": "fbar", "thickness_points": 2} and shapes == {}
-    assert studies._shared_run("blankholder", "shape1", "penalty") is None
-    assert summary.read_text() == "{}"
+    assert studies.study_settings("blankholder", "algorithm_agreement") == shapes == {}
+    read = []
+    monkeypatch.setattr(studies, "run_case", lambda *args, **kwargs: read.append((args, kwargs)) or {"dir": args[0]})
+    monkeypatch.setattr(studies, "stale", lambda path, overrides, variant, algorithm: "element 'fbar', not 'anst'")
+    assert studies._shared_run("blankholder", "shape1", "penalty") is None and not read
+    monkeypatch.setattr(studies, "stale", lambda path, overrides, variant, algorithm: None)
+    assert studies._shared_run("blankholder", "shape1", "penalty") == {"dir": str(summary.parent)}
+    (args, kwargs), = read
+    assert args[4] == shapes and kwargs["rerun"] is False and kwargs["rerun_stale"] is False
+    assert studies._shared_run("blankholder", "shape1", "lcp_ssn") is None and len(read) == 1
+    monkeypatch.setattr(studies, "AT_DEFAULTS", ("blankholder_shapes",))  # the two studies' settings differ
+    assert studies._shared_run("blankholder", "shape1", "penalty") is None and len(read) == 1
+
+
+def test_agreement_rows_of_other_settings_stay_until_their_cases_run_and_are_never_a_reference(tmp_path, monkeypatch):
+    """Rows committed at the study's earlier settings (no ``settings`` column) stay in the table, marked
+    ``study`` and listed as not yet run at the defaults, until their case is selected; a case run at the
+    defaults is not compared with them, although the old Lemke row has its curves."""
+    import argparse
+
+    monkeypatch.setattr(studies, "ROOT", str(tmp_path))
+    monkeypatch.setattr(studies, "RESULTS_MD", str(tmp_path / "results.md"))
+    monkeypatch.setattr(studies, "_variants", lambda: iter([("nine", "mu017")]))
+    study = tmp_path / "algorithm_agreement"
+    (study / "curves").mkdir(parents=True)
+    old = [{"case": f"nine_mu017_{a}", "scene": "nine", "variant": "mu017", "algorithm": a, "reference": "lcp_lemke",
+            "converged": True, "n_steps": 800, "steady_drawing_force": 150.0, "rel_diff_steady": 1e-3}
+           for a in ("penalty", "auglag", "lcp_lemke", "lcp_ssn")]
+    studies.write_csv(str(study / "table.csv"), old)
+    np.savez(study / "curves" / "nine_mu017_lcp_lemke.npz", phase=np.array(["draw", "draw"]),
+             drawing_displacement=np.array([0.0, 1.0]), drawing_force=np.array([0.0, 150.0]))
+    ran = []
+
+    def fake_case(study_name, label, name, variant, algorithm, overrides, opts, steps=None):
+        ran.append(label)
+        h = {"time": np.array([0.0, 1.0]), "phase": np.array(["draw", "draw"]),
+             "drawing_displacement": np.array([0.0, 1.0]), "drawing_force": np.array([0.0, 140.0]),
+             "clamping_force": np.array([0.0, 1.0])}
+        return {"summary": {"converged": True, "n_steps": 1, "steady_drawing_force": 140.0}, "history": h,
+                "contact": {}, "dir": None}
+
+    monkeypatch.setattr(studies, "case", fake_case)
+    studies.algorithm_agreement(argparse.Namespace(only=["nine_mu017_lcp_ssn"], rerun=False, collect=False,
+                                                   missing=[], progress=False, run_figures=False))
+    assert ran == ["nine_mu017_lcp_ssn"]
+    rows = {r["case"]: r for r in studies._read_table("algorithm_agreement")}
+    new = rows["nine_mu017_lcp_ssn"]
+    assert new["settings"] == "defaults" and new["steady_drawing_force"] == "140.0"
+    assert new["reference"] == "" and new["rel_diff_steady"] == ""
+    for a in ("penalty", "auglag", "lcp_lemke"):
+        assert rows[f"nine_mu017_{a}"]["settings"] == "study" and rows[f"nine_mu017_{a}"]["rel_diff_steady"] == "0.001"
+    text = (tmp_path / "results.md").read_text()
+    assert "**Not yet run at `defaults`** (3 of 4 rows" in text and "`nine_mu017_lcp_lemke`" in text
 
 
 def test_common_steps_row_compares_a_replay_with_its_plan_at_the_plan_s_step_ends():
