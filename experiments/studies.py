@@ -657,8 +657,9 @@ def algorithm_agreement(opts) -> None:
     for name, variant in _variants():
         runs, legacy = {}, {}
 
-        def take(algorithm, label, run_algorithm, overrides, run=True):
-            """Put case ``label`` into ``runs`` or ``legacy``; with ``run`` False, never run it."""
+        def take(algorithm, label, run_algorithm, overrides, run=True, optional=False):
+            """Put case ``label`` into ``runs`` or ``legacy``; with ``run`` False, never run it (``optional``:
+            not listed as missing where it is not run)."""
             on_disk = _on_disk(study, label)
             shared = _shared_run(name, variant, algorithm)
             same = label in kept and (kept[label].get("settings") or "study") == settings
@@ -672,7 +673,7 @@ def algorithm_agreement(opts) -> None:
                 runs[algorithm] = run_case(os.path.join(ROOT, study, "runs", label), name, variant,
                                            run_algorithm, {**study_settings(name, study), **overrides},
                                            log=lambda m: None, rerun_stale=False)
-            elif run and _want(opts, study, label):
+            elif run and _want(opts, study, label, optional):
                 runs[algorithm] = case(study, label, name, variant, run_algorithm, overrides, opts)
             if runs.get(algorithm, {}).get("dir"):
                 _save_curves(study, label, runs[algorithm])
@@ -685,8 +686,9 @@ def algorithm_agreement(opts) -> None:
         # stays a row.
         lemke_done = ref_alg is not None or bool(legacy.get("lcp_lemke", {}).get("converged")
                                                  and (legacy["lcp_lemke"].get("settings") or "study") == settings)
+        # Needed only where Lemke ran at these settings and did not converge: not missing before that.
         take("auglag_gap1e-06", f"{name}_{variant}_auglag_gap1e-06", "auglag", {"target_gap": 1e-6},
-             run=not lemke_done)
+             run=not lemke_done, optional="lcp_lemke" not in runs)
         if ref_alg is None and runs.get("auglag_gap1e-06", {}).get("summary", {}).get("converged"):
             ref_alg = "auglag_gap1e-06"
         if not runs and not legacy:
@@ -723,7 +725,10 @@ def algorithm_agreement(opts) -> None:
             "wall_s", "cpu_s", "max_penetration", "steady_drawing_force", "rel_diff_steady",
             "curve_diff_drawing", "curve_diff_clamping", "max_status_mismatch"]
     drawn = ", ".join(f"{n} / {v}" for n, v, _ in panels) or "none"
-    behind = [r["case"] for r in rows if r.get("settings") != settings]
+    behind: dict = {}
+    for r in rows:
+        if r.get("settings") != settings:
+            behind[f"{r['scene']} {r['variant']}"] = behind.get(f"{r['scene']} {r['variant']}", 0) + 1
     write_section(study, _header(study, cases,
                                  f"Every scene variant with every algorithm at default parameters, at the "
                                  f"settings in column `settings`: `defaults`, the scenes' defaults (the "
@@ -743,9 +748,9 @@ def algorithm_agreement(opts) -> None:
                                  "curves were kept have none, are not in the figure and keep the "
                                  "reference they were compared with.")
                   + "\n\n" + markdown_table(rows, cols) + "\n\n" + failures(rows, opts.missing)
-                  + (f"\n\n**Not yet run at `{settings}`** ({len(behind)} of {len(rows)} rows, kept from the "
-                     f"study's earlier settings until their cases run again): "
-                     + ", ".join(f"`{c}`" for c in behind) + "." if behind else "")
+                  + (f"\n\n**Not yet run at `{settings}`** ({sum(behind.values())} of {len(rows)} rows, kept "
+                     f"from the study's earlier settings until their cases run again; rows per group): "
+                     + ", ".join(f"{g} ({n})" for g, n in behind.items()) + "." if behind else "")
                   + f"\n\nFigure panels (groups with curves at `{settings}`): {drawn}."
                   + ("\n\n![algorithm agreement](../experiments/results/studies/algorithm_agreement/figure.png)"
                      if panels else ""))
