@@ -189,6 +189,23 @@ def test_a_study_case_killed_while_it_runs_continues_from_its_checkpoint(whole, 
         assert all(np.array_equal(done["contact"][k], whole_contact[k]) for k in whole_contact.files)
 
 
+def test_partial_writes_come_when_due_and_take_at_most_a_hundredth_of_the_run(monkeypatch):
+    """``checkpoint.Every``: nothing before ``first_s``, then a write at the first chunk after each due time,
+    the next one ``every_s`` later, or 100 times the write's own duration where that is longer."""
+    clock, cost, written = [0.0], [0.0], []
+    monkeypatch.setattr(checkpoint.time, "perf_counter", lambda: clock[0])
+
+    def write(result):
+        written.append(result)
+        clock[0] += cost[0]
+
+    every = checkpoint.Every(write, 10.0, first_s=5.0)
+    for now, duration in ((0.0, 0), (4.9, 0), (5.0, 0), (14.9, 0), (15.0, 0.5), (65.4, 0), (65.5, 0), (75.4, 0)):
+        clock[0], cost[0] = now, duration
+        every(lambda: now)
+    assert written == [5.0, 15.0, 65.5]
+
+
 def test_kept_snapshots_write_the_contact_file_of_all_snapshots(whole, tmp_path):
     """The rows `InstantRows` keeps as the run goes are the rows contact.npz needs at the end."""
     scene, result = whole
