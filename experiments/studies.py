@@ -427,22 +427,34 @@ def _cost_accuracy_figure(pen: list[dict], al: list[dict], studies: tuple) -> No
 # --------------------------------------------------------------------------- (3) mesh convergence
 def mesh_convergence(opts) -> None:
     study = "mesh_convergence"
-    rows, cases = [], []
+    found, cases = {}, []
     kept = _committed_rows(study, opts)
+
+    def add(nx, ny, name):
+        c = case(study, name, "nine", "mu000", "penalty", {"mesh": name, "eps_n": 1e5}, opts)
+        s = c["summary"]
+        found[name] = {"case": name, "nx": nx, "ny": ny, "n_elements": nx * ny, **common(s),
+                       "message": s.get("message", "")}
+        cases.append(c)
+
+    def in_order():
+        return [found[f"{nx}x{ny}"] for nx, ny in MESHES if f"{nx}x{ny}" in found]
+
+    # The cases finished earlier first (committed rows, run directories), so that the table written after
+    # each case run compares every row with the finest mesh finished, not the finest reached so far.
     for nx, ny in MESHES:
         name = f"{nx}x{ny}"
         if name in kept:
-            rows.append(kept[name])
+            found[name] = kept[name]
+        elif _on_disk(study, name) and not (opts.rerun and _selected(opts, name)):
+            add(nx, ny, name)
+    for nx, ny in MESHES:
+        name = f"{nx}x{ny}"
+        if name in found or not _want(opts, study, name):
             continue
-        if not _want(opts, study, name):
-            continue
-        c = case(study, name, "nine", "mu000", "penalty", {"mesh": name, "eps_n": 1e5}, opts)
-        s = c["summary"]
-        rows.append({"case": name, "nx": nx, "ny": ny, "n_elements": nx * ny, **common(s),
-                     "message": s.get("message", "")})
-        cases.append(c)
-        _write_partial(study, _with_rel_diff(rows))
-    rows = _with_rel_diff(rows)
+        add(nx, ny, name)
+        _write_partial(study, _with_rel_diff(in_order()))
+    rows = _with_rel_diff(in_order())
     write_table(study, rows)
     plt = _plt()
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.5))

@@ -146,6 +146,30 @@ def test_agreement_rows_of_other_settings_stay_until_their_cases_run_and_are_nev
     assert "Not run yet" not in text
 
 
+def test_mesh_convergence_tables_between_cases_compare_with_the_finest_mesh_finished(tmp_path, monkeypatch):
+    """The table written after a case runs compares every row with the finest mesh finished (a committed row
+    here, 600 x 6), not the finest the loop has reached: a study stopped after that case leaves a table
+    whose rows agree with its last row."""
+    import argparse
+
+    monkeypatch.setattr(studies, "ROOT", str(tmp_path))
+    monkeypatch.setattr(studies, "RESULTS_MD", str(tmp_path / "results.md"))
+    (tmp_path / "mesh_convergence").mkdir()
+    studies.write_csv(str(tmp_path / "mesh_convergence" / "table.csv"),
+                      [{"case": "600x6", "nx": 600, "ny": 6, "n_elements": 3600, "steady_drawing_force": 81.0,
+                        "converged": True, "wall_s": 1.0}])
+    monkeypatch.setattr(studies, "case", lambda study, name, *a, **k: {"summary": {
+        "converged": True, "steady_drawing_force": 82.0 if name == "150x3" else 80.0, "wall_s": 1.0}})
+    partial = []
+    monkeypatch.setattr(studies, "_write_partial", lambda study, rows: partial.append([dict(r) for r in rows]))
+    studies.mesh_convergence(argparse.Namespace(only=["150x3", "1200x3"], rerun=False, collect=False, missing=[],
+                                                progress=False, run_figures=False))
+    first = {r["case"]: r for r in partial[0]}
+    assert set(first) == {"150x3", "600x6"} and first["150x3"]["finest"] == "600x6"
+    assert first["150x3"]["rel_diff_to_finest"] == pytest.approx(1 / 81, rel=1e-5)
+    assert [r["finest"] for r in partial[1]] == ["600x6"] * 3  # 1200 x 3 has as many elements, fewer layers
+
+
 def test_common_steps_row_compares_a_replay_with_its_plan_at_the_plan_s_step_ends():
     """A replay that cut one step has one row more than its plan; the comparison takes the rows that end
     where the plan's steps end, so the extra row does not enter the force or status differences."""
