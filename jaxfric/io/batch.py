@@ -20,8 +20,8 @@ import time
 
 import numpy as np
 
-__all__ = ["CHECKPOINT_EVERY_S", "read_history", "phase_curve", "matching_rows", "replay_steps", "run_case",
-           "stale", "write_csv"]
+__all__ = ["CHECKPOINT_EVERY_S", "case_configuration", "read_history", "phase_curve", "matching_rows",
+           "replay_steps", "run_case", "stale", "write_csv"]
 
 #: The shortest interval between two checkpoints of a running case (s; longer where writing one takes
 #: over 1 % of it). A case killed while it runs loses at most about this much of its solve.
