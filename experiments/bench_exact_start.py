@@ -64,6 +64,8 @@ CASES = {
     "blankholder_shape1_U3": ("blankholder", "shape1", {"U_pull": 3.0}),
     "blankholder_shape1": ("blankholder", "shape1", {}),
     "bead_th045_mu017": ("bead", "th045_mu017", {}),
+    "bead_th090_mu017": ("bead", "th090_mu017", {}),
+    "bead_th135_mu017": ("bead", "th135_mu017", {}),
     "flat_die_const_force": ("flat_die", "const_force", {}),
 }
 RUNS = {"lcp_ssn": ("lcp_ssn", {}), "penalty": ("penalty", {}),

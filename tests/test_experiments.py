@@ -116,7 +116,7 @@ def test_agreement_rows_of_other_settings_stay_until_their_cases_run_and_are_nev
     (study / "curves").mkdir(parents=True)
     old = [{"case": f"nine_mu017_{a}", "scene": "nine", "variant": "mu017", "algorithm": a, "reference": "lcp_lemke",
             "converged": True, "n_steps": 800, "steady_drawing_force": 150.0, "rel_diff_steady": 1e-3}
-           for a in ("penalty", "auglag", "lcp_lemke", "lcp_ssn")]
+           for a in ("penalty", "auglag", "lcp_lemke", "lcp_ssn", "auglag_gap1e-06")]
     studies.write_csv(str(study / "table.csv"), old)
     np.savez(study / "curves" / "nine_mu017_lcp_lemke.npz", phase=np.array(["draw", "draw"]),
              drawing_displacement=np.array([0.0, 1.0]), drawing_force=np.array([0.0, 150.0]))
@@ -141,9 +141,17 @@ def test_agreement_rows_of_other_settings_stay_until_their_cases_run_and_are_nev
     for a in ("penalty", "auglag", "lcp_lemke"):
         assert rows[f"nine_mu017_{a}"]["settings"] == "study" and rows[f"nine_mu017_{a}"]["rel_diff_steady"] == "0.001"
     text = (tmp_path / "results.md").read_text()
-    assert "**Not yet run at `defaults`** (3 of 4 rows" in text and "rows per group): nine mu017 (3)." in text
+    assert "**Not yet run at `defaults`** (4 of 5 rows" in text and "rows per group): nine mu017 (4)." in text
     # The AL reference is needed only where Lemke ran at these settings and failed: not missing yet.
     assert "Not run yet" not in text
+    # Lemke converged at the defaults: the AL reference of the earlier settings is no longer needed.
+    np.savez(study / "curves" / "nine_mu017_auglag_gap1e-06.npz", phase=np.array(["draw"]))
+    studies.algorithm_agreement(argparse.Namespace(only=["nine_mu017_lcp_lemke"], rerun=False, collect=False,
+                                                   missing=[], progress=False, run_figures=False))
+    rows = {r["case"]: r for r in studies._read_table("algorithm_agreement")}
+    assert "nine_mu017_auglag_gap1e-06" not in rows
+    assert not (study / "curves" / "nine_mu017_auglag_gap1e-06.npz").exists()
+    assert rows["nine_mu017_lcp_lemke"]["settings"] == "defaults" == rows["nine_mu017_lcp_ssn"]["settings"]
 
 
 def test_mesh_convergence_tables_between_cases_compare_with_the_finest_mesh_finished(tmp_path, monkeypatch):
