@@ -33,6 +33,7 @@ study taken on one machine; the device is recorded in every run's ``summary.json
 from __future__ import annotations
 
 import argparse
+import collections
 import csv
 import json
 import math
@@ -87,6 +88,11 @@ def settings_label(study: str) -> str:
     """A table's ``settings`` column for the cases ``study`` runs now: ``defaults`` (in AT_DEFAULTS) or
     ``study`` (STUDY_SETTINGS and SCENE_STUDY_SETTINGS). Rows without the column were run at ``study``."""
     return "defaults" if study in AT_DEFAULTS else "study"
+
+
+def row_settings(row: dict) -> str:
+    """The settings a table row was run at (:func:`settings_label`; ``study`` where it has none)."""
+    return row.get("settings") or "study"
 
 
 def study_settings(scene_name: str, study: str = "") -> dict:
@@ -674,7 +680,7 @@ def algorithm_agreement(opts) -> None:
             not listed as missing where it is not run)."""
             on_disk = _on_disk(study, label)
             shared = _shared_run(name, variant, algorithm)
-            same = label in kept and (kept[label].get("settings") or "study") == settings
+            same = label in kept and row_settings(kept[label]) == settings
             if shared is not None:
                 runs[algorithm] = shared
             elif same and os.path.exists(_curves_path(study, label)):
@@ -697,7 +703,7 @@ def algorithm_agreement(opts) -> None:
         # whose row without curves still shows the group has its exact reference); one that ran before
         # stays a row.
         lemke_done = ref_alg is not None or bool(legacy.get("lcp_lemke", {}).get("converged")
-                                                 and (legacy["lcp_lemke"].get("settings") or "study") == settings)
+                                                 and row_settings(legacy["lcp_lemke"]) == settings)
         # Needed only where Lemke ran at these settings and did not converge: not missing before that.
         take("auglag_gap1e-06", f"{name}_{variant}_auglag_gap1e-06", "auglag", {"target_gap": 1e-6},
              run=not lemke_done, optional="lcp_lemke" not in runs)
@@ -708,7 +714,7 @@ def algorithm_agreement(opts) -> None:
         ref = runs.get(ref_alg)
         for algorithm in [*ALGORITHMS, "auglag_gap1e-06"]:
             if algorithm in legacy:  # its differences are from its own `reference`, at its own settings
-                row = {**legacy[algorithm], "settings": legacy[algorithm].get("settings") or "study"}
+                row = {**legacy[algorithm], "settings": row_settings(legacy[algorithm])}
                 if algorithm == "auglag_gap1e-06" and row["settings"] != settings and ref_alg == "lcp_lemke":
                     # The AL reference of other settings, which Lemke's convergence at these makes unneeded.
                     path = _curves_path(study, row["case"])
@@ -745,18 +751,15 @@ def algorithm_agreement(opts) -> None:
             "wall_s", "cpu_s", "max_penetration", "steady_drawing_force", "rel_diff_steady",
             "curve_diff_drawing", "curve_diff_clamping", "max_status_mismatch"]
     drawn = ", ".join(f"{n} / {v}" for n, v, _ in panels) or "none"
-    behind: dict = {}
-    for r in rows:
-        if r.get("settings") != settings:
-            behind[f"{r['scene']} {r['variant']}"] = behind.get(f"{r['scene']} {r['variant']}", 0) + 1
+    behind = collections.Counter(f"{r['scene']} {r['variant']}" for r in rows if r.get("settings") != settings)
     write_section(study, _header(study, cases,
-                                 f"Every scene variant with every algorithm at default parameters, at the "
-                                 f"settings in column `settings`: `defaults`, the scenes' defaults (the "
-                                 f"element `ans` on the Nine and the bead, `anst` with 4 points per layer on "
-                                 f"the blankholder, the Nine's entry channel), or `study`, the settings the "
-                                 f"study ran at before (F-bar, the Nine's left-end nodes held, 2 points per "
-                                 f"layer on the blankholder; `STUDY_SETTINGS` in the script). Cases are "
-                                 f"compared only with the reference at their own settings; this invocation "
+                                 "Every scene variant with every algorithm at default parameters, at the "
+                                 "settings in column `settings`: `defaults`, the scenes' defaults (the "
+                                 "element `ans` on the Nine and the bead, `anst` with 4 points per layer on "
+                                 "the blankholder, the Nine's entry channel), or `study`, the settings the "
+                                 "study ran at before (F-bar, the Nine's left-end nodes held, 2 points per "
+                                 "layer on the blankholder; `STUDY_SETTINGS` in the script). Cases are "
+                                 "compared only with the reference at their own settings; this invocation "
                                  f"runs `{settings}`. The "
                                  "reference (column `reference`) is `lcp_lemke`, or `auglag` with target "
                                  "gap 1e-6 where Lemke did not converge or has not run. The blankholder's "
