@@ -15,7 +15,7 @@ Nothing is lost when a run fails or the script is interrupted:
 - the table is rewritten after every case, so it always holds every case finished so far;
 - a case whose run directory already holds a ``summary.json`` is read back instead of run again
   (``--rerun`` forces a new run), so an interrupted study resumes where it stopped;
-- a case keeps its checkpoint in its run directory while it runs (every minute,
+- a case keeps its checkpoint in its run directory while it runs (about every minute,
   :func:`jaxfric.io.batch.run_case`), so a study killed in the middle of a case (a time limit's SIGTERM,
   Ctrl-C) continues that case from where it stood, bit for bit: a case of hours can run over several
   sittings;

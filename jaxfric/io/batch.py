@@ -24,7 +24,7 @@ __all__ = ["CHECKPOINT_EVERY_S", "case_configuration", "read_history", "phase_cu
            "replay_steps", "run_case", "stale", "write_csv"]
 
 #: The shortest interval between two checkpoints of a running case (s; longer where writing one takes
-#: over 1 % of it). A case killed while it runs loses at most about this much of its solve.
+#: over 1 % of it). A case killed while it runs loses at most one interval of its solve.
 CHECKPOINT_EVERY_S = 60.0
 
 
