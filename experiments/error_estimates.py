@@ -20,8 +20,9 @@ coarser companion shares no run with the reference.
 Cases ``SCENE_VARIANT`` at the spec mesh, and the Nine at the fitting mesh 100 x 2 (:data:`CASES`; the Nine
 drawn 36 mm). Each run's steady drawing force is kept
 in ``OUT/CASE.json`` as it finishes, so an interrupted study resumes where it stopped. Writes
-``experiments/results/error_estimates.csv`` with every case whose runs are all in ``OUT``. Exact contact
-(``lcp_ssn``), the scenes' defaults otherwise.
+``experiments/results/error_estimates.csv`` with every case whose runs are all in ``OUT``, and the
+committed row of every other case (records are not committed): a run of a few cases on a fresh checkout
+keeps the others' rows. Exact contact (``lcp_ssn``), the scenes' defaults otherwise.
 """
 
 from __future__ import annotations
@@ -40,8 +41,13 @@ RESULTS = os.path.join(os.path.dirname(__file__), "results")
 #: (20 to 35 mm) and one more, as the accuracy study's tests.
 CASES = {
     "flat_die_const_position": ("flat_die", "const_position", {}),
+    "flat_die_const_force": ("flat_die", "const_force", {}),
+    "bead_th045_mu000": ("bead", "th045_mu000", {}),
+    "bead_th045_mu017": ("bead", "th045_mu017", {}),
     "bead_th090_mu000": ("bead", "th090_mu000", {}),
     "bead_th090_mu017": ("bead", "th090_mu017", {}),
+    "bead_th135_mu000": ("bead", "th135_mu000", {}),
+    "bead_th135_mu017": ("bead", "th135_mu017", {}),
     "blankholder_shape1": ("blankholder", "shape1", {}),
     "blankholder_shape5": ("blankholder", "shape5", {}),
     "blankholder_shape9": ("blankholder", "shape9", {}),
@@ -93,6 +99,21 @@ def run_case(case: str, out: str, extra: tuple = ()) -> dict:
         done[name] = {"steady": check["steady"], "n_steps": check["n_steps"], "mesh": list(check["mesh"])}
         write_record(path, done)
     return done
+
+
+def committed_rows(path: str) -> dict:
+    """The rows of the table at ``path`` by case, as written (none if there is no table)."""
+    if not os.path.exists(path):
+        return {}
+    with open(path, newline="") as f:
+        return {row["case"]: row for row in csv.DictReader(f)}
+
+
+def table(rows: list[dict], committed: dict) -> list[dict]:
+    """The table in :data:`CASES`' order: the summarised ``rows``, and the ``committed`` row of every other
+    case (its runs not all recorded here, as on a fresh checkout)."""
+    fresh = {r["case"]: r for r in rows}
+    return [fresh.get(case) or committed[case] for case in CASES if case in fresh or case in committed]
 
 
 def read_record(path: str) -> dict:
@@ -198,7 +219,7 @@ def main(argv=None) -> int:
     rows = [summarise(case, done[case]) for case in CASES if case in done and all(k in done[case] for k in RUNS)]
     os.makedirs(RESULTS, exist_ok=True)
     path = os.path.join(RESULTS, "error_estimates.csv")
-    write_csv(path, rows)
+    write_csv(path, table(rows, committed_rows(path)))
     for r in rows:
         print(f"{r['case']:26s} F {r['force']:9.4f}  true {r['true_pct']:+7.3f} %  estimate {r['estimate_pct']:6.3f} %"
               f" (fine {r['estimate_fine_pct']:6.3f} %)  along {r['true_along_pct']:+.3f} / est {r['est_mesh_pct']:.3f}"

@@ -414,6 +414,24 @@ def test_error_estimate_summary_compares_the_run_s_estimate_with_its_reference()
     assert layered["reference"] == pytest.approx(100.0 + 1.0 - 0.8)
 
 
+def test_error_estimate_table_keeps_the_committed_rows_of_cases_not_recorded(tmp_path):
+    import error_estimates
+
+    forces = {"run": 104.0, "coarse": 108.0, "fine2": 102.0, "fine4": 101.0, "half_step": 103.6,
+              "quarter_step": 103.4, "layers": 104.5}
+    runs = {k: {"steady": v, "n_steps": 1, "mesh": [100 if k != "coarse" else 50, 2]} for k, v in forces.items()}
+    first, second, third = list(error_estimates.CASES)[:3]
+    path = str(tmp_path / "table.csv")
+    error_estimates.write_csv(path, [error_estimates.summarise(c, runs) for c in (first, third)])
+    committed = error_estimates.committed_rows(path)
+    assert set(committed) == {first, third} and committed[first]["force"] == "104"
+    # The second case run now, the first run again with another force: both fresh, the third kept as written.
+    runs["run"] = {**runs["run"], "steady": 105.0}
+    rows = error_estimates.table([error_estimates.summarise(c, runs) for c in (second, first)], committed)
+    assert [r["case"] for r in rows] == [first, second, third]
+    assert rows[0]["force"] == 105.0 and rows[2] is committed[third]
+
+
 def test_error_estimate_runs_refine_the_spec_configuration():
     import error_estimates
     from jaxfric import scenes
