@@ -133,9 +133,10 @@ def write_record(path: str, done: dict) -> None:
 
 
 def write_csv(path: str, rows: list[dict]) -> None:
-    """``rows`` as a CSV table, floats to 6 significant digits."""
+    """``rows`` as a CSV table, floats to 6 significant digits; the columns of every row (a committed row of
+    an earlier version of :func:`summarise` leaves the columns it lacks empty)."""
     with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer = csv.DictWriter(f, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
         writer.writeheader()
         writer.writerows({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()} for r in rows)
 
