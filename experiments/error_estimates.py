@@ -103,10 +103,9 @@ def run_case(case: str, out: str, extra: tuple = ()) -> dict:
 
 def committed_rows(path: str) -> dict:
     """The rows of the table at ``path`` by case, as written (none if there is no table)."""
-    if not os.path.exists(path):
-        return {}
-    with open(path, newline="") as f:
-        return {row["case"]: row for row in csv.DictReader(f)}
+    from benchutil import read_rows
+
+    return {row["case"]: row for row in read_rows(path)}
 
 
 def table(rows: list[dict], committed: dict) -> list[dict]:
