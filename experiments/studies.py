@@ -709,6 +709,12 @@ def algorithm_agreement(opts) -> None:
              run=not lemke_done, optional="lcp_lemke" not in runs)
         if ref_alg is None and runs.get("auglag_gap1e-06", {}).get("summary", {}).get("converged"):
             ref_alg = "auglag_gap1e-06"
+        elif ref_alg is None and "auglag_gap1e-06" in runs and runs.get("lcp_ssn", {}).get("summary", {}).get(
+                "converged"):
+            # Neither Lemke nor the AL reference finished (blankholder shape4 at the defaults: both fail where
+            # the pull starts): the semismooth Newton solution, which is Lemke's on common steps
+            # (test_semismooth_newton_equals_lemke_on_a_common_step_sequence, study common_steps).
+            ref_alg = "lcp_ssn"
         if not runs and not legacy:
             continue
         ref = runs.get(ref_alg)
@@ -762,7 +768,8 @@ def algorithm_agreement(opts) -> None:
                                  "compared only with the reference at their own settings; this invocation "
                                  f"runs `{settings}`. The "
                                  "reference (column `reference`) is `lcp_lemke`, or `auglag` with target "
-                                 "gap 1e-6 where Lemke did not converge or has not run. The blankholder's "
+                                 "gap 1e-6 where Lemke did not converge or has not run, or `lcp_ssn` where "
+                                 "that did not converge either. The blankholder's "
                                  "penalty rows are the runs of study `blankholder_shapes` where both studies "
                                  "run at the same settings and those runs are on disk. Curves compared on 200 points "
                                  "over the common `draw` range (and `theta_deg` over `wind` for the bead). "

@@ -154,6 +154,35 @@ def test_agreement_rows_of_other_settings_stay_until_their_cases_run_and_are_nev
     assert rows["nine_mu017_lcp_lemke"]["settings"] == "defaults" == rows["nine_mu017_lcp_ssn"]["settings"]
 
 
+def test_agreement_falls_back_on_semismooth_newton_where_lemke_and_the_al_reference_fail(tmp_path, monkeypatch):
+    """Where neither Lemke nor the AL reference (target gap 1e-6) finishes, the group is compared with
+    ``lcp_ssn``, whose solution is Lemke's on common steps, instead of having no reference."""
+    import argparse
+
+    monkeypatch.setattr(studies, "ROOT", str(tmp_path))
+    monkeypatch.setattr(studies, "RESULTS_MD", str(tmp_path / "results.md"))
+    monkeypatch.setattr(studies, "_variants", lambda: iter([("nine", "mu017")]))
+    force = {"penalty": 151.5, "auglag": 150.3, "lcp_ssn": 150.0}
+
+    def fake_case(study_name, label, name, variant, algorithm, overrides, opts, steps=None):
+        done = algorithm in force and "target_gap" not in overrides
+        f = force[algorithm] if done else None
+        h = {"time": np.array([0.0, 1.0]), "phase": np.array(["draw", "draw"]),
+             "drawing_displacement": np.array([0.0, 1.0]), "drawing_force": np.array([0.0, f or 0.0]),
+             "clamping_force": np.array([0.0, 1.0])}
+        return {"summary": {"converged": done, "n_steps": 1, "steady_drawing_force": f}, "history": h,
+                "contact": {}, "dir": None}
+
+    monkeypatch.setattr(studies, "case", fake_case)
+    studies.algorithm_agreement(argparse.Namespace(only=["nine_mu017_"], rerun=False, collect=False,
+                                                   missing=[], progress=False, run_figures=False))
+    rows = {r["algorithm"]: r for r in studies._read_table("algorithm_agreement")}
+    assert set(rows) == {"penalty", "auglag", "lcp_lemke", "lcp_ssn", "auglag_gap1e-06"}
+    assert {r["reference"] for r in rows.values()} == {"lcp_ssn"}
+    assert float(rows["penalty"]["rel_diff_steady"]) == pytest.approx(0.01)
+    assert float(rows["lcp_ssn"]["rel_diff_steady"]) == 0.0
+
+
 def test_mesh_convergence_tables_between_cases_compare_with_the_finest_mesh_finished(tmp_path, monkeypatch):
     """The table written after a case runs compares every row with the finest mesh finished (a committed row
     here, 600 x 6), not the finest the loop has reached: a study stopped after that case leaves a table
