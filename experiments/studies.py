@@ -661,6 +661,11 @@ def _steady_difference(c: dict, ref: dict, signed: bool = True, reference: str |
     return _r((fs - fr) / abs(fr) if signed else abs(fs - fr) / abs(fr))
 
 
+def _finished(runs: dict, algorithm: str) -> bool:
+    """Whether ``runs`` holds a converged run of ``algorithm``."""
+    return bool(runs.get(algorithm, {}).get("summary", {}).get("converged"))
+
+
 def algorithm_agreement(opts) -> None:
     """Each case comes from its run directory, else from its committed row and curves (a case of an
     earlier invocation at the study's settings), else it is run if selected. Rows of earlier invocations
@@ -698,7 +703,7 @@ def algorithm_agreement(opts) -> None:
 
         for algorithm in ALGORITHMS:
             take(algorithm, f"{name}_{variant}_{algorithm}", algorithm, _full_steps(algorithm))
-        ref_alg = "lcp_lemke" if runs.get("lcp_lemke", {}).get("summary", {}).get("converged") else None
+        ref_alg = "lcp_lemke" if _finished(runs, "lcp_lemke") else None
         # The AL reference runs only where Lemke has not converged (in this invocation or an earlier one,
         # whose row without curves still shows the group has its exact reference); one that ran before
         # stays a row.
@@ -707,12 +712,12 @@ def algorithm_agreement(opts) -> None:
         # Needed only where Lemke ran at these settings and did not converge: not missing before that.
         take("auglag_gap1e-06", f"{name}_{variant}_auglag_gap1e-06", "auglag", {"target_gap": 1e-6},
              run=not lemke_done, optional="lcp_lemke" not in runs)
-        if ref_alg is None and runs.get("auglag_gap1e-06", {}).get("summary", {}).get("converged"):
+        if ref_alg is None and _finished(runs, "auglag_gap1e-06"):
             ref_alg = "auglag_gap1e-06"
-        elif ref_alg is None and "auglag_gap1e-06" in runs and runs.get("lcp_ssn", {}).get("summary", {}).get(
-                "converged"):
-            # Neither Lemke nor the AL reference finished (blankholder shape4 at the defaults: both fail where
-            # the pull starts): the semismooth Newton solution, which is Lemke's on common steps
+        elif ref_alg is None and "auglag_gap1e-06" in runs and _finished(runs, "lcp_ssn"):
+            # Neither Lemke nor the AL reference finished (blankholder shape4 at the defaults: Lemke's full
+            # steps crawl early in the pull, the AL stops at its start): the semismooth Newton solution,
+            # which is Lemke's on common steps
             # (test_semismooth_newton_equals_lemke_on_a_common_step_sequence, study common_steps).
             ref_alg = "lcp_ssn"
         if not runs and not legacy:
