@@ -3,7 +3,7 @@ and XLA compilation of every program, and a summary of the records by kind of pr
 
 Record (the suite as ``make test`` runs it, with this plugin; each process writes its own file):
 
-    PYTHONPATH=experiments .venv/bin/python -m pytest -p suite_compile -m "not slow" -n 2 \\
+    JAXFRIC_TEST_CACHE=fresh PYTHONPATH=experiments .venv/bin/python -m pytest -p suite_compile -m "not slow" -n 2 \\
         --dist loadfile --no-loadscope-reorder tests
 
 Summarise (writes ``experiments/results/suite_compile.csv``, one row per test, and prints the totals):

@@ -3,7 +3,7 @@ pytest plugin that records every XLA compilation with the program's identity, an
 
 Record (the suite as ``make test`` runs it, with this plugin; each process writes its own file):
 
-    PYTHONPATH=experiments .venv/bin/python -m pytest -p suite_programs -m "not slow" -n 2 \\
+    JAXFRIC_TEST_CACHE=fresh PYTHONPATH=experiments .venv/bin/python -m pytest -p suite_programs -m "not slow" -n 2 \\
         --dist loadfile --no-loadscope-reorder tests
 
 Summarise (writes ``experiments/results/suite_programs.csv``, one row per structure, and prints the

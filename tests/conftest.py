@@ -19,9 +19,13 @@ with XLA's defaults (the package's functions set no XLA flag; the command lines 
 :data:`~jaxfric.io.xla_flags.FAST_COMPILE_FLAGS` only).
 
 The suite's processes (pytest-xdist's two workers and the command lines that tests start) share one JAX
-persistent compilation cache, a fresh folder per test run (removed at its end), so that a program
-compiled in one process is read from disk in the others (``JAX_COMPILATION_CACHE_DIR`` already set: that
-folder is used, and kept).
+persistent compilation cache, so that a program compiled in one process is read from disk in the others,
+and it is kept between test runs (``.pytest_cache/d/jaxfric-xla``; ``pytest --cache-clear`` or ``make clean``
+empties it, and it is emptied when it passes :data:`CACHE_LIMIT_MB`): a later run reads the programs that
+took a second or more to compile, unless a change touched them (the fast suite 380 s instead of 493 s,
+docs/results.md, test suite run time). ``JAXFRIC_TEST_CACHE=fresh`` gives a test run a folder of its own,
+removed at its end (what a clean clone sees, and how the suite's compilation is measured:
+``experiments/suite_compile.py``); ``JAX_COMPILATION_CACHE_DIR`` already set: that folder is used, and kept.
 """
 
 import os
@@ -93,17 +97,35 @@ def pytest_runtest_setup(item):
         _optimise(item.get_closest_marker("xla_optimized") is not None)
 
 
+# The kept cache's folder, and the size past which it is emptied at the start of a test run: JAX trims a
+# cache only with the filelock package, not a dependency of jaxfric. The fast suite writes 132 programs, 51 MB.
+CACHE_FOLDER = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".pytest_cache", "d",
+                            "jaxfric-xla")   # pytest's folder for plugins' data, which --cache-clear empties
+CACHE_LIMIT_MB = 2000
+
+
+def _folder_mb(folder) -> float:
+    """The size of the files in ``folder`` (JAX's cache keeps its entries side by side), in MB."""
+    return sum(entry.stat().st_size for entry in os.scandir(folder) if entry.is_file()) / 2**20
+
+
 def _share_compiled_programs():
     """One compilation cache for the test run, set in the environment before JAX starts (the workers and the
     command lines that tests run inherit it). Returns the folder to remove at the end, if made here."""
-    # The command lines keep every program (jaxfric.io.cache); the suite keeps JAX's default, programs that
-    # took a second or more to compile, as it was measured with (docs/results.md, test suite run time).
+    # The command lines keep every program (jaxfric.io.cache); the suite keeps JAX's default, the programs
+    # that took a second or more: keeping the 4,000 shorter ones too made the next run 317 s instead of 380 s
+    # but the first one 556 s instead of 493 s (docs/results.md, test suite run time).
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1.0")
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         return None
-    folder = tempfile.mkdtemp(prefix="jaxfric-tests-xla-")
-    os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
-    return folder
+    if os.environ.get("JAXFRIC_TEST_CACHE") == "fresh":
+        folder = tempfile.mkdtemp(prefix="jaxfric-tests-xla-")
+        os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
+        return folder
+    if os.path.isdir(CACHE_FOLDER) and _folder_mb(CACHE_FOLDER) > CACHE_LIMIT_MB:
+        shutil.rmtree(CACHE_FOLDER, ignore_errors=True)
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = CACHE_FOLDER
+    return None
 
 
 _SESSION_CACHE = _share_compiled_programs()
