@@ -103,6 +103,15 @@ def test_the_agreement_shares_the_blankholder_shapes_runs_only_at_equal_settings
     assert studies._shared_run("blankholder", "shape1", "penalty") is None and len(read) == 1
 
 
+def _one_step_run(force):
+    """A stubbed study case: one drawing step to ``force`` (N/mm), converged unless ``force`` is None."""
+    h = {"time": np.array([0.0, 1.0]), "phase": np.array(["draw", "draw"]),
+         "drawing_displacement": np.array([0.0, 1.0]), "drawing_force": np.array([0.0, force or 0.0]),
+         "clamping_force": np.array([0.0, 1.0])}
+    return {"summary": {"converged": force is not None, "n_steps": 1, "steady_drawing_force": force},
+            "history": h, "contact": {}, "dir": None}
+
+
 def test_agreement_rows_of_other_settings_stay_until_their_cases_run_and_are_never_a_reference(tmp_path, monkeypatch):
     """Rows committed at the study's earlier settings (no ``settings`` column) stay in the table, marked
     ``study`` and listed as not yet run at the defaults, until their case is selected; a case run at the
@@ -124,11 +133,7 @@ def test_agreement_rows_of_other_settings_stay_until_their_cases_run_and_are_nev
 
     def fake_case(study_name, label, name, variant, algorithm, overrides, opts, steps=None):
         ran.append(label)
-        h = {"time": np.array([0.0, 1.0]), "phase": np.array(["draw", "draw"]),
-             "drawing_displacement": np.array([0.0, 1.0]), "drawing_force": np.array([0.0, 140.0]),
-             "clamping_force": np.array([0.0, 1.0])}
-        return {"summary": {"converged": True, "n_steps": 1, "steady_drawing_force": 140.0}, "history": h,
-                "contact": {}, "dir": None}
+        return _one_step_run(140.0)
 
     monkeypatch.setattr(studies, "case", fake_case)
     studies.algorithm_agreement(argparse.Namespace(only=["nine_mu017_lcp_ssn"], rerun=False, collect=False,
@@ -166,12 +171,7 @@ def test_agreement_falls_back_on_semismooth_newton_where_lemke_and_the_al_refere
 
     def fake_case(study_name, label, name, variant, algorithm, overrides, opts, steps=None):
         done = algorithm in force and "target_gap" not in overrides
-        f = force[algorithm] if done else None
-        h = {"time": np.array([0.0, 1.0]), "phase": np.array(["draw", "draw"]),
-             "drawing_displacement": np.array([0.0, 1.0]), "drawing_force": np.array([0.0, f or 0.0]),
-             "clamping_force": np.array([0.0, 1.0])}
-        return {"summary": {"converged": done, "n_steps": 1, "steady_drawing_force": f}, "history": h,
-                "contact": {}, "dir": None}
+        return _one_step_run(force[algorithm] if done else None)
 
     monkeypatch.setattr(studies, "case", fake_case)
     studies.algorithm_agreement(argparse.Namespace(only=["nine_mu017_"], rerun=False, collect=False,
