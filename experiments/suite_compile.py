@@ -6,7 +6,9 @@ Record (the suite as ``make test`` runs it, with this plugin; each process write
     JAXFRIC_TEST_CACHE=fresh PYTHONPATH=experiments .venv/bin/python -m pytest -p suite_compile -m "not slow" -n 2 \\
         --dist loadfile --no-loadscope-reorder tests
 
-Summarise (writes ``experiments/results/suite_compile.csv``, one row per test, and prints the totals):
+Summarise (writes ``experiments/results/suite_compile.csv``, one row per test, and
+``experiments/results/suite_compile_callers.csv``, the one-primitive programs per function that ran them,
+and prints the totals):
 
     python experiments/suite_compile.py
 
@@ -16,7 +18,9 @@ jaxpr to MLIR module conversion ...", "Finished XLA compilation of ..."). Kinds 
   when array code runs outside a compiled function (building scenes, tests' own array code);
 - ``curve``: the identification's forward-mode replays (:mod:`jaxfric.identification.fit_curve`);
 - ``other``: every other program (the runs' start and chunk programs, the tests' compiled functions).
-Command lines that tests start in a new process are not recorded.
+Command lines that tests start in a new process are not recorded. A one-primitive program's caller is the
+innermost function of the package on the call stack when XLA compiled it, else that of the tests or the
+experiments (``tests/test_mesh.py:test_...``): where array code ran outside a compiled function.
 """
 
 from __future__ import annotations
@@ -29,11 +33,14 @@ import logging
 import os
 import re
 import shutil
+import traceback
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 RESULTS = os.path.join(HERE, "results")
 RECORDS = os.path.join(RESULTS, "suite_compile_records")
 OUT = os.path.join(RESULTS, "suite_compile.csv")
+CALLERS_OUT = os.path.join(RESULTS, "suite_compile_callers.csv")
+ROOT = os.path.dirname(HERE) + os.sep
 
 _MESSAGE = re.compile(r"Finished (tracing|jaxpr to MLIR module conversion|XLA compilation of) (.*?) "
                       r"(?:for jit )?in ([0-9.e+-]+) sec")
@@ -67,11 +74,27 @@ _records: list = []
 _current = {"test": None}
 
 
+def caller(frames) -> str:
+    """``path:function`` of the innermost frame of ``frames`` (``traceback.extract_stack()``, outermost
+    first) in the package, else in the tests or the experiments; ``-`` where there is none."""
+    inside = [None, None]
+    for frame in reversed(frames):
+        if os.path.abspath(frame.filename) == os.path.abspath(__file__):
+            continue   # the recorder's own frames
+        path = frame.filename[len(ROOT):] if frame.filename.startswith(ROOT) else ""
+        where = 0 if path.startswith("jaxfric" + os.sep) else 1 if path.startswith(("tests", "experiments")) else None
+        if where is not None and inside[where] is None:
+            inside[where] = f"{path}:{frame.name}"
+    return inside[0] or inside[1] or "-"
+
+
 class _Recorder(logging.Handler):
     def emit(self, record):
         found = parse(record.getMessage())
         if found is not None:
-            _records.append((_current["test"], *found))
+            stage, name, _ = found
+            where = caller(traceback.extract_stack()) if stage == "xla" and kind(name) == "op by op" else None
+            _records.append((_current["test"], *found, where))
 
 
 def pytest_configure(config):
@@ -123,13 +146,25 @@ def summarise(records: list) -> tuple[dict, dict]:
     """Per test: seconds per (kind, stage) and programs per kind; and the totals per (kind, stage)."""
     per_test: dict = collections.defaultdict(collections.Counter)
     totals: dict = collections.Counter()
-    for test, stage, name, seconds in records:
+    for test, stage, name, seconds, *_ in records:
         k = kind(name)
         per_test[test or "(collection)"][(k, stage)] += seconds
         if stage == "xla":
             per_test[test or "(collection)"][(k, "programs")] += 1
         totals[(k, stage)] += seconds
     return per_test, totals
+
+
+def callers(records: list) -> dict:
+    """One-primitive programs per caller (records of the plugin above): (programs, seconds of XLA's
+    compilation)."""
+    out: dict = collections.defaultdict(lambda: [0, 0.0])
+    for _, stage, name, seconds, *where in records:
+        if stage == "xla" and kind(name) == "op by op":
+            row = out[(where or ["-"])[0] or "-"]
+            row[0] += 1
+            row[1] += seconds
+    return dict(out)
 
 
 def main() -> None:
@@ -151,7 +186,15 @@ def main() -> None:
     for k in kinds:
         part = [totals[(k, s)] for s in stages]
         print(f"  {k:9s}: {sum(part):6.0f} s (trace {part[0]:.0f}, lower {part[1]:.0f}, XLA {part[2]:.0f})")
-    print(f"wrote {OUT}")
+    by_caller = callers(records)
+    with open(CALLERS_OUT, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["caller", "programs", "xla_s"])
+        for where, (n, seconds) in sorted(by_caller.items(), key=lambda item: -item[1][0]):
+            writer.writerow([where, n, f"{seconds:.2f}"])
+    top = sorted(by_caller.items(), key=lambda item: -item[1][0])[:8]
+    print("one-primitive programs by caller: " + ", ".join(f"{w} {n}" for w, (n, _) in top))
+    print(f"wrote {OUT} and {CALLERS_OUT}")
 
 
 if __name__ == "__main__":

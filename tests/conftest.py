@@ -22,7 +22,7 @@ The suite's processes (pytest-xdist's two workers and the command lines that tes
 persistent compilation cache, so that a program compiled in one process is read from disk in the others,
 and it is kept between test runs (``.pytest_cache/d/jaxfric-xla``; ``pytest --cache-clear`` or ``make clean``
 empties it, and it is emptied when it passes :data:`CACHE_LIMIT_MB`): a later run reads the programs that
-took a second or more to compile, unless a change touched them (the fast suite 380 s instead of 493 s,
+took 0.05 s or more to compile, unless a change touched them (the fast suite 323 s instead of 493 s,
 docs/results.md, test suite run time). ``JAXFRIC_TEST_CACHE=fresh`` gives a test run a folder of its own,
 removed at its end (what a clean clone sees, and how the suite's compilation is measured:
 ``experiments/suite_compile.py``); ``JAX_COMPILATION_CACHE_DIR`` already set: that folder is used, and kept.
@@ -98,7 +98,7 @@ def pytest_runtest_setup(item):
 
 
 # The kept cache's folder, and the size past which it is emptied at the start of a test run: JAX trims a
-# cache only with the filelock package, not a dependency of jaxfric. The fast suite writes 132 programs, 51 MB.
+# cache only with the filelock package, not a dependency of jaxfric. The fast suite writes 360 programs, 67 MB.
 CACHE_FOLDER = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".pytest_cache", "d",
                             "jaxfric-xla")   # pytest's folder for plugins' data, which --cache-clear empties
 CACHE_LIMIT_MB = 2000
@@ -112,10 +112,11 @@ def _folder_mb(folder) -> float:
 def _share_compiled_programs():
     """One compilation cache for the test run, set in the environment before JAX starts (the workers and the
     command lines that tests run inherit it). Returns the folder to remove at the end, if made here."""
-    # The command lines keep every program (jaxfric.io.cache); the suite keeps JAX's default, the programs
-    # that took a second or more: keeping the 4,000 shorter ones too made the next run 317 s instead of 380 s
-    # but the first one 556 s instead of 493 s (docs/results.md, test suite run time).
-    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1.0")
+    # The command lines keep every program (jaxfric.io.cache); the suite keeps those that took 0.05 s or more
+    # (360 programs; 250 of them from 0.05 to 1 s took 68 s of XLA's time in a cold run), not the 4,400 shorter
+    # one-primitive programs (58 s): writing them too made a first run 556 s, against 493 s. The next run
+    # 323 s, against 355 s keeping JAX's default, a second or more (docs/results.md, test suite run time).
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.05")
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         return None
     if os.environ.get("JAXFRIC_TEST_CACHE") == "fresh":

@@ -4,6 +4,7 @@
 import csv
 import math
 import os
+import traceback
 
 import bench_core  # experiments/ is on the tests' import path (pyproject.toml, pytest's pythonpath)
 
@@ -519,9 +520,21 @@ def test_suite_compile_reads_jax_s_compile_log_and_sorts_programs_by_kind():
     kinds = [suite_compile.kind(n) for n in ("jit(add)", "jit(broadcast_in_dim)", "jit(curve)", "jit(<lambda>)",
                                              "jit(_project_all)", "<lambda>")]
     assert kinds == ["op by op", "op by op", "curve", "other", "other", "other"]
-    per_test, totals = suite_compile.summarise([("t", "xla", "jit(add)", 1.0), ("t", "trace", "jit(add)", 0.5),
-                                                ("u", "xla", "jit(curve)", 2.0)])
+    records = [("t", "xla", "jit(add)", 1.0, "jaxfric/numerics/tensor.py:inv2"), ("t", "trace", "jit(add)", 0.5, None),
+               ("u", "xla", "jit(curve)", 2.0, None), ("u", "xla", "jit(mul)", 0.25, "jaxfric/numerics/tensor.py:inv2")]
+    per_test, totals = suite_compile.summarise(records)
     assert per_test["t"][("op by op", "programs")] == 1 and totals[("curve", "xla")] == 2.0
+    assert suite_compile.callers(records) == {"jaxfric/numerics/tensor.py:inv2": [2, 1.25]}
+    # The caller is the package's innermost function on the stack, else the tests' or experiments'.
+    frames = traceback.StackSummary.from_list([
+        (suite_compile.ROOT + "tests/test_x.py", 1, "test_x", ""),
+        (suite_compile.ROOT + "jaxfric/fem/element.py", 2, "gradients", ""),
+        (suite_compile.ROOT + "jaxfric/numerics/tensor.py", 3, "inv2", ""),
+        ("/somewhere/jax/_src/dispatch.py", 4, "apply_primitive", ""),
+        (suite_compile.__file__, 5, "emit", "")])
+    assert suite_compile.caller(frames) == "jaxfric/numerics/tensor.py:inv2"
+    assert suite_compile.caller(frames[:1]) == "tests/test_x.py:test_x" and suite_compile.caller(frames[3:]) == "-"
+    assert suite_compile.caller(frames[:1] + frames[4:]) == "tests/test_x.py:test_x"
 
 
 def test_suite_programs_groups_one_computation_at_other_sizes_into_one_structure():
