@@ -52,9 +52,11 @@ class Assembled(NamedTuple):
     enhanced_gap: jax.Array | None = None
 
 
+@eqx.filter_jit
 def mesh_geometry(mesh: StripMesh, thickness_points: int = 2) -> ElementGeometry:
     """Reference shape-function gradients and weights of every element of ``mesh``, with
-    ``thickness_points`` Gauss points through each element's thickness (:func:`~jaxfric.fem.element.gauss_rule`)."""
+    ``thickness_points`` Gauss points through each element's thickness (:func:`~jaxfric.fem.element.gauss_rule`).
+    One compiled program where it is called outside one (some 50 one-primitive programs op by op)."""
     return element_geometry(mesh.nodes[mesh.elements], thickness_points)
 
 

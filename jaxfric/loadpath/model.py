@@ -192,9 +192,14 @@ class SimState(eqx.Module):
     contact: ContactState | None = None
 
 
+@eqx.filter_jit
 def initial_state(model: StripModel) -> SimState:
     """The state before the first step: zero displacements, virgin material at every Gauss point, the
-    tools at their initial positions (with no force), pseudo-time 0 in phase 0."""
+    tools at their initial positions (with no force), pseudo-time 0 in phase 0.
+
+    One compiled program where it is called outside one (a notebook, a test): run op by op, the tools'
+    projections compiled some 200 one-primitive programs, 7.7 s on the Nine's spec mesh against 0.9 s
+    (``JAXFRIC_CACHE_DIR=off``, a new process). Inside a run's programs it is inlined."""
     n_el = model.mesh.n_elements
     one = initial_point_state(model.material, model.formulation, model.enhanced_update,
                               model.mesh.nodes_per_element)
