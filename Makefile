@@ -10,7 +10,7 @@ export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=true
 # with the most tests first, leaves the single long tests of one-test files for the end
 # (python experiments/suite_files.py REPORT.xml models both orders on a run's measured times). The
 # compiled programs are kept in .pytest_cache between runs (tests/conftest.py): the next make test reads
-# them (323 s against 493 s); make clean or pytest --cache-clear starts from none.
+# them (301 s against 432 s of tests in a clean clone); make clean or pytest --cache-clear starts from none.
 WORKERS ?= 2
 
 .PHONY: run lint test test-all bench clean

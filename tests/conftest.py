@@ -22,8 +22,8 @@ The suite's processes (pytest-xdist's two workers and the command lines that tes
 persistent compilation cache, so that a program compiled in one process is read from disk in the others,
 and it is kept between test runs (``.pytest_cache/d/jaxfric-xla``; ``pytest --cache-clear`` or ``make clean``
 empties it, and it is emptied when it passes :data:`CACHE_LIMIT_MB`): a later run reads the programs that
-took 0.05 s or more to compile, unless a change touched them (the fast suite 323 s instead of 493 s,
-docs/results.md, test suite run time). ``JAXFRIC_TEST_CACHE=fresh`` gives a test run a folder of its own,
+took 0.05 s or more to compile, unless a change touched them (the fast suite 301 s instead of 432 s in a
+clean clone, docs/results.md, test suite run time). ``JAXFRIC_TEST_CACHE=fresh`` gives a test run a folder of its own,
 removed at its end (what a clean clone sees, and how the suite's compilation is measured:
 ``experiments/suite_compile.py``); ``JAX_COMPILATION_CACHE_DIR`` already set: that folder is used, and kept.
 """
@@ -113,8 +113,8 @@ def _share_compiled_programs():
     """One compilation cache for the test run, set in the environment before JAX starts (the workers and the
     command lines that tests run inherit it). Returns the folder to remove at the end, if made here."""
     # The command lines keep every program (jaxfric.io.cache); the suite keeps those that took 0.05 s or more
-    # (360 programs; 250 of them from 0.05 to 1 s took 68 s of XLA's time in a cold run), not the 4,400 shorter
-    # one-primitive programs (58 s): writing them too made a first run 556 s, against 493 s. The next run
+    # (360 programs; 248 of them from 0.05 to 1 s took 71 s of XLA's time in a cold run), not the 2,900 shorter
+    # one-primitive programs (36 s): writing them too made a first run 556 s, against 493 s. The next run
     # 323 s, against 355 s keeping JAX's default, a second or more (docs/results.md, test suite run time).
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.05")
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
