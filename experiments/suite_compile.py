@@ -41,6 +41,7 @@ RECORDS = os.path.join(RESULTS, "suite_compile_records")
 OUT = os.path.join(RESULTS, "suite_compile.csv")
 CALLERS_OUT = os.path.join(RESULTS, "suite_compile_callers.csv")
 ROOT = os.path.dirname(HERE) + os.sep
+_THIS_FILE = os.path.abspath(__file__)
 
 _MESSAGE = re.compile(r"Finished (tracing|jaxpr to MLIR module conversion|XLA compilation of) (.*?) "
                       r"(?:for jit )?in ([0-9.e+-]+) sec")
@@ -79,7 +80,7 @@ def caller(frames) -> str:
     first) in the package, else in the tests or the experiments; ``-`` where there is none."""
     inside = [None, None]
     for frame in reversed(frames):
-        if os.path.abspath(frame.filename) == os.path.abspath(__file__):
+        if os.path.abspath(frame.filename) == _THIS_FILE:
             continue   # the recorder's own frames
         path = frame.filename[len(ROOT):] if frame.filename.startswith(ROOT) else ""
         where = 0 if path.startswith("jaxfric" + os.sep) else 1 if path.startswith(("tests", "experiments")) else None
@@ -159,9 +160,9 @@ def callers(records: list) -> dict:
     """One-primitive programs per caller (records of the plugin above): (programs, seconds of XLA's
     compilation)."""
     out: dict = collections.defaultdict(lambda: [0, 0.0])
-    for _, stage, name, seconds, *where in records:
+    for _, stage, name, seconds, *rest in records:
         if stage == "xla" and kind(name) == "op by op":
-            row = out[(where or ["-"])[0] or "-"]
+            row = out[(rest[0] if rest else None) or "-"]
             row[0] += 1
             row[1] += seconds
     return dict(out)
@@ -186,14 +187,13 @@ def main() -> None:
     for k in kinds:
         part = [totals[(k, s)] for s in stages]
         print(f"  {k:9s}: {sum(part):6.0f} s (trace {part[0]:.0f}, lower {part[1]:.0f}, XLA {part[2]:.0f})")
-    by_caller = callers(records)
+    ranked = sorted(callers(records).items(), key=lambda item: -item[1][0])
     with open(CALLERS_OUT, "w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(["caller", "programs", "xla_s"])
-        for where, (n, seconds) in sorted(by_caller.items(), key=lambda item: -item[1][0]):
+        for where, (n, seconds) in ranked:
             writer.writerow([where, n, f"{seconds:.2f}"])
-    top = sorted(by_caller.items(), key=lambda item: -item[1][0])[:8]
-    print("one-primitive programs by caller: " + ", ".join(f"{w} {n}" for w, (n, _) in top))
+    print("one-primitive programs by caller: " + ", ".join(f"{w} {n}" for w, (n, _) in ranked[:8]))
     print(f"wrote {OUT} and {CALLERS_OUT}")
 
 
